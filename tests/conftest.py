@@ -1,0 +1,29 @@
+"""Shared fixtures: the device under test, the ../shared data (skipped when absent), a scratch cache."""
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+# keep the suite's generated scenes away from the user's cache, and quiet
+os.environ.setdefault("WILLAGS_CACHE", str(REPO / ".pytest_cache" / "willags-scenes"))
+torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+
+
+@pytest.fixture(params=["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def device(request) -> torch.device:
+    return torch.device(request.param)
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"{SHARED_DATA} is absent (the benchmark scenes live in ../shared/data)")
+    return SHARED_DATA
+
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")

@@ -1,0 +1,166 @@
+"""The NeRF-W evaluation protocol for appearance-conditioned models.
+
+A test image's appearance (exposure, weather, camera) is unknown to the model, so NeRF-W fits it on the image's
+*left half* and scores the *right half*. Here, for each test image:
+
+1. freeze the scene (every Gaussian parameter and network weight);
+2. initialise the latent from the VAE encoder's mean of the left half (models without a VAE: the mean training
+   embedding), then optimise only the latent with Adam on the left half (0.8 L1 + 0.2 D-SSIM, the training loss);
+3. score the right half: PSNR, SSIM, and LPIPS when its weights can be loaded (else reported as unavailable).
+
+Also reported, so each number's meaning is visible: the encoder latent without optimisation (right half) and
+full-image scores. Defaults: 128 Adam steps at lr 0.01, the same budget as the peer table in ../shared/gpu/README.
+"""
+
+from dataclasses import dataclass
+from typing import Callable, Dict, List, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from willags_ns.losses import reconstruction_loss
+
+
+@dataclass
+class EvalProtocolConfig:
+    """NeRF-W protocol settings."""
+
+    steps: int = 128
+    """Adam steps fitting the latent on the left half of each test image (0 = encoder latent only)."""
+    lr: float = 0.01
+    """Adam learning rate for the latent."""
+    max_images: int = -1
+    """Evaluate at most this many test images (-1 = all)."""
+
+
+def split_halves(width: int) -> Tuple[slice, slice]:
+    """Column slices (left, right) of an image `width` pixels wide: disjoint, covering, left = floor(W/2)."""
+    if width < 2:
+        raise ValueError(f"the NeRF-W protocol needs images at least 2 pixels wide, got width={width}")
+    half = width // 2
+    return slice(0, half), slice(half, width)
+
+
+def psnr(pred: Tensor, gt: Tensor) -> float:
+    """PSNR in dB of images in [0, 1] (any matching shapes)."""
+    mse = torch.mean((pred.float() - gt.float()) ** 2).clamp_min(1e-12)
+    return float(-10.0 * torch.log10(mse))
+
+
+def ssim(pred: Tensor, gt: Tensor) -> float:
+    """SSIM of [H, W, 3] images in [0, 1] (torchmetrics' Gaussian-window SSIM)."""
+    from torchmetrics.functional.image import structural_similarity_index_measure
+
+    p, g = pred.permute(2, 0, 1)[None].float(), gt.permute(2, 0, 1)[None].float()
+    return float(structural_similarity_index_measure(p, g, data_range=1.0))
+
+
+def image_scores(pred: Tensor, gt: Tensor, lpips_fn: Optional[Callable] = None) -> Dict[str, float]:
+    """PSNR, SSIM (and LPIPS if a metric is given) of [H, W, 3] images."""
+    out = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
+    if lpips_fn is not None:
+        out["lpips"] = float(lpips_fn(pred.permute(2, 0, 1)[None].clamp(0, 1), gt.permute(2, 0, 1)[None]))
+    return out
+
+
+def fit_latent(
+    render_fn: Callable[[Tensor], Tensor],
+    gt: Tensor,
+    z0: Tensor,
+    cols: slice,
+    steps: int,
+    lr: float,
+) -> Tuple[Tensor, List[float]]:
+    """Optimise a latent so `render_fn(z)` [H, W, 3] matches `gt` on the columns `cols`.
+
+    Only z receives updates (the caller freezes the scene). Returns (z, per-step loss history; the first entry is
+    the loss at z0).
+    """
+    z = z0.detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([z], lr=lr)
+    target = gt[:, cols].permute(2, 0, 1)[None]
+    history: List[float] = []
+    for _ in range(steps):
+        opt.zero_grad(set_to_none=True)
+        pred = render_fn(z)[:, cols].permute(2, 0, 1)[None]
+        loss = reconstruction_loss(pred, target, None)
+        loss.backward()
+        history.append(float(loss.detach()))
+        opt.step()
+    with torch.no_grad():
+        history.append(float(reconstruction_loss(render_fn(z)[:, cols].permute(2, 0, 1)[None], target, None)))
+    return z.detach(), history
+
+
+class frozen:
+    """Context manager: parameters of `module` get requires_grad=False inside, restored on exit."""
+
+    def __init__(self, module: torch.nn.Module):
+        self.params = list(module.parameters())
+        self.flags: List[bool] = []
+
+    def __enter__(self):
+        self.flags = [p.requires_grad for p in self.params]
+        for p in self.params:
+            p.requires_grad_(False)
+        return self
+
+    def __exit__(self, *exc):
+        for p, f in zip(self.params, self.flags):
+            p.requires_grad_(f)
+        return False
+
+
+def evaluate_model(model, cameras, images: List[Tensor], cfg: EvalProtocolConfig, names: Optional[List[str]] = None):
+    """Run the protocol over test `cameras` (nerfstudio Cameras, one per image) and GT `images` [H, W, 3] in [0, 1].
+
+    Returns (aggregate dict, per-image list). Keys: `psnr`/`ssim`/`lpips` (right half, fitted latent: the
+    headline numbers), `encoder_*` (right half, encoder latent, no optimisation), `full_*` (whole image, fitted
+    latent), `left_loss_before` / `left_loss_after`.
+    """
+    model.eval()
+    lpips_fn = model.lpips_metric() if hasattr(model, "lpips_metric") else None
+    appearance = getattr(model.config, "appearance", "sh") == "willags"
+    n = len(images) if cfg.max_images < 0 else min(cfg.max_images, len(images))
+    per_image = []
+    with frozen(model):
+        for i in range(n):
+            gt = images[i][..., :3].float().to(model.device)
+            cam = cameras[i : i + 1].to(model.device)
+            left, right = split_halves(gt.shape[1])
+
+            def render_fn(z: Optional[Tensor], cam=cam) -> Tensor:
+                c = cam
+                if z is not None:
+                    c = cam.to(model.device)
+                    c.metadata = dict(c.metadata or {})
+                    c.metadata["appearance_latent"] = z
+                return model.get_outputs(c)["rgb"]
+
+            rec: Dict[str, float] = {}
+            if appearance:
+                if model.appearance_nets.vae is not None:
+                    z0 = model.encode_image(gt[:, left])
+                else:
+                    z0 = model.default_latent()
+                with torch.no_grad():
+                    enc = render_fn(z0)
+                rec.update({f"encoder_{k}": v for k, v in image_scores(enc[:, right], gt[:, right], lpips_fn).items()})
+                with torch.enable_grad():
+                    z, hist = fit_latent(render_fn, gt, z0, left, cfg.steps, cfg.lr)
+                rec["left_loss_before"], rec["left_loss_after"] = hist[0], hist[-1]
+            else:  # no appearance model: nothing to fit
+                z = None
+            with torch.no_grad():
+                pred = render_fn(z)
+            rec.update(image_scores(pred[:, right], gt[:, right], lpips_fn))
+            rec.update({f"full_{k}": v for k, v in image_scores(pred, gt, lpips_fn).items()})
+            if names is not None:
+                rec["image"] = names[i]  # type: ignore[assignment]
+            per_image.append(rec)
+    keys = [k for k in per_image[0] if k != "image"] if per_image else []
+    agg = {k: float(sum(r[k] for r in per_image) / len(per_image)) for k in keys}
+    agg["num_images"] = float(len(per_image))
+    if lpips_fn is None:
+        agg["lpips_status"] = "unavailable (no LPIPS weights on this machine)"  # type: ignore[assignment]
+    return agg, per_image

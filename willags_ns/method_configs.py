@@ -1,0 +1,112 @@
+"""nerfstudio method specifications: `willags` (the paper), `willags-lite` (fast preset), `willags-3dgs`
+(plain 3DGS through the same code: the CPU stand-in for splatfacto in benchmarks).
+
+Without CUDA the methods default to the CPU (`--machine.device-type cpu` is not needed) and to our torch
+rasteriser; with CUDA, to gsplat.
+"""
+
+
+import torch
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from willags_ns.appearance.triplane import TriplaneConfig
+from willags_ns.appearance.vae import VAEConfig
+from willags_ns.data.dataparser import WillagsDataParserConfig
+from willags_ns.model import WillagsModelConfig
+from willags_ns.pipeline import WillagsPipelineConfig
+from willags_ns.transient import PerceptualMaskConfig
+
+
+def default_device_type() -> str:
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def _optimizers(max_steps: int) -> dict[str, dict]:
+    """Splatfacto's per-group Adam settings, plus f_s ('features') and the appearance networks."""
+
+    def adam(lr: float, sched=None):
+        return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": sched}
+
+    return {
+        "means": adam(1.6e-4, ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=max_steps)),
+        "scales": adam(0.005),
+        "quats": adam(0.001),
+        "opacities": adam(0.05),
+        "features_dc": adam(0.0025),
+        "features_rest": adam(0.0025 / 20),
+        "features": adam(0.0025),
+        "appearance": {
+            "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps, warmup_steps=100),
+        },
+        "camera_opt": adam(1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, warmup_steps=1000)),
+    }
+
+
+def _trainer(name: str, model: WillagsModelConfig, steps: int) -> TrainerConfig:
+    return TrainerConfig(
+        method_name=name,
+        steps_per_eval_image=500,
+        steps_per_eval_batch=0,
+        steps_per_save=2000,
+        steps_per_eval_all_images=100000,
+        max_num_iterations=steps,
+        mixed_precision=False,
+        machine=MachineConfig(device_type=default_device_type()),  # type: ignore[arg-type]
+        pipeline=WillagsPipelineConfig(
+            datamanager=FullImageDatamanagerConfig(dataparser=WillagsDataParserConfig(), cache_images_type="uint8"),
+            model=model,
+        ),
+        optimizers=_optimizers(steps),
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+        vis="viewer+tensorboard",
+    )
+
+
+def willags_config() -> TrainerConfig:
+    """The paper's configuration: 64-d latent, 64x64x32 planes, mask every step, 30k steps."""
+    return _trainer("willags", WillagsModelConfig(), 30000)
+
+
+def willags_lite_config() -> TrainerConfig:
+    """Fast preset: 32-d latent, 32x32x16 planes, mask refreshed every 4th visit of an image, 7k steps.
+
+    Smaller planes shrink the hypernetwork's last layer 8x (3*16*32*32 outputs); the cheaper mask cadence removes
+    most teacher renders and VGG passes. Ships the same components, so every switch still applies.
+    """
+    model = WillagsModelConfig(
+        vae=VAEConfig(latent_dim=32, image_size=32),
+        triplane=TriplaneConfig(latent_dim=32, resolution=32, channels=16, hyper_hidden=(64, 16)),
+        mask=PerceptualMaskConfig(warmup_steps=300),
+        mask_every=4,
+        refine_every=100,
+        warmup_length=300,
+        stop_split_at=5000,
+    )
+    return _trainer("willags-lite", model, 7000)
+
+
+def willags_3dgs_config() -> TrainerConfig:
+    """Plain 3DGS (splatfacto's colours, losses and densification) through our rasteriser: no appearance
+    model, no mask. Use it as the splatfacto baseline where splatfacto's CUDA-only code cannot run."""
+    model = WillagsModelConfig(appearance="sh", use_mask=False, use_vae=False, use_field=False)
+    return _trainer("willags-3dgs", model, 30000)
+
+
+willags_method = MethodSpecification(
+    config=willags_config(),
+    description="WilLaGS: beta-VAE appearance latent + tri-plane hypernetwork colour field + EMA teacher + "
+    "perceptual transient mask (Gaussian splatting in the wild). Trains on CPU or CUDA.",
+)
+willags_lite_method = MethodSpecification(
+    config=willags_lite_config(), description="WilLaGS fast preset (smaller latent/planes, cheaper mask, 7k steps)."
+)
+willags_3dgs_method = MethodSpecification(
+    config=willags_3dgs_config(),
+    description="Plain 3DGS (splatfacto's model) through willags' CPU/CUDA rasteriser: the benchmark baseline.",
+)

@@ -1,0 +1,716 @@
+"""WillagsModel: splatfacto's Gaussians with a latent-conditioned appearance field, an EMA teacher and a
+perceptual transient mask (WilLaGS). Runs on any device; rasterises through `willags_ns.render.rasterize`.
+
+Per training step (the pipeline hands the model the training image first):
+
+    image --VAE encoder--> mu, logvar --reparameterise--> z              [D]
+    z --hypernetwork--> tri-planes [3, Cp, R, R]; means --bounds--> [-1,1]^3 --bilinear--> MLP --> f_d [N, 32]
+    T_color(f_d, f_s, view dir) --> colours [N, 3] --rasterize--> render
+    EMA teacher (same networks, EMA weights) --> pseudo-GT render (no grad)
+    VGG16(GT) vs VGG16(teacher) --> D(p); static mask = D < 0.85 (after a warm-up)
+    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)
+
+The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check
+`isinstance(model, SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution
+schedule and metrics, and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights
+(LPIPS). `appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the
+CPU stand-in for splatfacto in benchmarks (method `willags-3dgs`).
+"""
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Union
+
+import torch
+import torch.nn.functional as F
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.data.scene_box import OrientedBox
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.models.splatfacto import (
+    RGB2SH,
+    SplatfactoModel,
+    SplatfactoModelConfig,
+    num_sh_bases,
+    random_quat_tensor,
+)
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor, nn
+from torch.nn import Parameter
+
+from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig
+from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField, normalize_points, robust_bounds
+from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, vae_loss
+from willags_ns.losses import reconstruction_loss
+from willags_ns.render import rasterize
+from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
+from willags_ns.transient import PerceptualFeatures, PerceptualMaskConfig, mask_active, perceptual_error, static_mask
+from willags_ns.viewer import APPEARANCE_ENV, AppearanceControls, latent_from_spec
+
+
+def viewmat_from_c2w(c2w: Tensor) -> Tensor:
+    """nerfstudio camera-to-world [C, 3, 4] (OpenGL: -z forward, +y up) -> gsplat world-to-camera [C, 4, 4].
+
+    Same maths as splatfacto's `get_viewmat`, without its torch.compile (15-20 s on the first CPU call).
+    """
+    R = c2w[:, :3, :3] * torch.tensor([1.0, -1.0, -1.0], device=c2w.device, dtype=c2w.dtype)  # flip y, z
+    T = c2w[:, :3, 3:4]
+    R_inv = R.transpose(1, 2)
+    viewmat = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
+    viewmat[:, 3, 3] = 1.0
+    viewmat[:, :3, :3] = R_inv
+    viewmat[:, :3, 3:4] = -torch.bmm(R_inv, T)
+    return viewmat
+
+
+def _lpips_weights_cached() -> bool:
+    """torchmetrics' LPIPS builds torchvision's AlexNet with ImageNet weights: only try when they are on disk."""
+    hub = Path(torch.hub.get_dir()) / "checkpoints"
+    return any(hub.glob("alexnet-owt-*.pth"))
+
+
+@dataclass
+class WillagsModelConfig(SplatfactoModelConfig):
+    """WilLaGS: splatfacto + beta-VAE latent + tri-plane hypernetwork colour field + EMA teacher + perceptual mask."""
+
+    _target: type = field(default_factory=lambda: WillagsModel)
+    appearance: Literal["willags", "sh"] = "willags"
+    """'willags': the latent-conditioned appearance field (the method). 'sh': plain 3DGS colours (splatfacto's
+    spherical harmonics), no appearance model and no mask: the baseline configuration (method willags-3dgs)."""
+    use_vae: bool = True
+    """Appearance latent from the beta-VAE encoder. Off: a per-image embedding table (NeRF-W / Splatfacto-W style)."""
+    use_field: bool = True
+    """Tri-plane hypernetwork field f_d(z, x). Off: the latent z is concatenated with f_s (no spatial field)."""
+    use_mask: bool = True
+    """Perceptual transient mask from the EMA teacher. Off: every pixel is supervised."""
+    intrinsic_dim: int = 32
+    """Size of the learnable per-Gaussian intrinsic feature f_s."""
+    vae: VAEConfig = field(default_factory=VAEConfig)
+    """beta-VAE appearance encoder/decoder (latent size, input size, beta)."""
+    triplane: TriplaneConfig = field(default_factory=TriplaneConfig)
+    """Tri-plane hypernetwork field (plane resolution/channels, MLP sizes). Its latent_dim follows vae.latent_dim."""
+    decoder: ColorDecoderConfig = field(default_factory=ColorDecoderConfig)
+    """Colour decoder T_color(f_d, f_s, view direction)."""
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    """EMA teacher (decay tau) that renders the pseudo ground truth for the mask."""
+    mask: PerceptualMaskConfig = field(default_factory=PerceptualMaskConfig)
+    """Perceptual transient mask (VGG16 weights source, threshold 0.85, warm-up)."""
+    mask_every: int = 1
+    """Recompute an image's mask on every k-th step (teacher render + VGG); other steps reuse that image's last
+    mask. 1 = the paper (every step). Larger values trade mask freshness for speed."""
+    lambda_vae: float = 0.01
+    """Weight of L_VAE = L1 recon + beta * KL in the total loss."""
+    embedding_init_std: float = 0.01
+    """Init std of the per-image embedding table (use_vae=False only)."""
+    backend: Literal["auto", "gsplat", "torch"] = "auto"
+    """Rasteriser backend: gsplat (CUDA), our pure-torch rasteriser (any device), or auto (gsplat on CUDA)."""
+    log_images_every: int = 500
+    """Write training images (render, teacher render, D map, mask, VAE reconstruction) to tensorboard every N
+    steps (0 = never)."""
+    export_view_samples: int = 26
+    """Number of view directions averaged when baking the view-dependent colour into a PLY (ns-export)."""
+
+
+class AppearanceNetworks(nn.Module):
+    """Every network the EMA teacher copies: VAE (or embedding table), tri-plane field, colour decoder.
+
+    Per-Gaussian tensors (means, f_s) live in the model's gauss_params, so densification never touches this.
+    """
+
+    def __init__(self, cfg: WillagsModelConfig, num_train: int):
+        super().__init__()
+        d = cfg.vae.latent_dim
+        self.latent_dim = d
+        self.vae = (
+            AppearanceVAE(latent_dim=d, image_size=cfg.vae.image_size, channels=tuple(cfg.vae.channels))
+            if cfg.use_vae
+            else None
+        )
+        self.embeddings = None
+        if not cfg.use_vae:
+            self.embeddings = nn.Embedding(max(num_train, 1), d)
+            nn.init.normal_(self.embeddings.weight, std=cfg.embedding_init_std)
+        tp = cfg.triplane
+        self.field = (
+            TriplaneHyperField(
+                latent_dim=d,
+                resolution=tp.resolution,
+                channels=tp.channels,
+                hyper_hidden=tuple(tp.hyper_hidden),
+                feature_dim=tp.feature_dim,
+                mlp_hidden=tp.mlp_hidden,
+            )
+            if cfg.use_field
+            else None
+        )
+        self.color = ColorDecoder(
+            dynamic_dim=tp.feature_dim if cfg.use_field else 0,
+            intrinsic_dim=cfg.intrinsic_dim + (0 if cfg.use_field else d),
+            hidden=cfg.decoder.hidden,
+            dir_sh_degree=cfg.decoder.dir_sh_degree,
+        )
+
+    def latent_stats(self, image_chw: Tensor | None, image_idx: int | None) -> tuple[Tensor, Tensor | None]:
+        """(mu [D], logvar [D] or None) of one training image: the VAE posterior, or the embedding row."""
+        if self.vae is not None:
+            assert image_chw is not None
+            mu, logvar = self.vae.encode(image_chw[None])
+            return mu[0], logvar[0]
+        assert self.embeddings is not None and image_idx is not None
+        idx = torch.tensor([image_idx], device=self.embeddings.weight.device)
+        return self.embeddings(idx)[0], None
+
+    def dynamic_features(self, z: Tensor, xyz_norm: Tensor) -> Tensor | None:
+        """f_d [N, F] for latent z [D] at normalised means [N, 3]; None without the field."""
+        if self.field is None:
+            return None
+        return self.field(z, xyz_norm)
+
+    def colors(self, z: Tensor, f_d: Tensor | None, f_s: Tensor, dirs: Tensor) -> Tensor:
+        """Per-Gaussian RGB [N, 3] from f_d [N, F] (or None), f_s [N, Fs], view directions [N, 3]."""
+        if self.field is None:
+            f_s = torch.cat([f_s, z.expand(f_s.shape[0], -1)], dim=-1)  # the "w/o field" ablation
+        return self.color(f_d, f_s, dirs)
+
+
+class WillagsModel(SplatfactoModel):
+    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow."""
+
+    config: WillagsModelConfig
+
+    # ------------------------------------------------------------------ set-up
+    def populate_modules(self):
+        cfg = self.config
+        if cfg.use_absgrad and cfg.backend == "torch":
+            CONSOLE.log("willags: use_absgrad needs gsplat's CUDA backward; using plain gradients (torch backend)")
+            cfg.use_absgrad = False
+        if self.seed_points is not None and not cfg.random_init:
+            means = self.seed_points[0].float().clone()
+            seed_rgb = self.seed_points[1].float() / 255.0 if self.seed_points[1].shape[0] > 0 else None
+        else:
+            means = (torch.rand((cfg.num_random, 3)) - 0.5) * cfg.random_scale
+            seed_rgb = None
+        if means.shape[0] < 4:
+            raise ValueError(
+                f"willags needs at least 4 initial points to initialise Gaussians, got {means.shape[0]} "
+                "(check the dataparser's seed points: sparse_pc.ply / points3D.bin)"
+            )
+        distances, _ = self.k_nearest_sklearn(means, 3)
+        avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True).clamp_min(1e-7)
+        n = means.shape[0]
+        params = {
+            "means": Parameter(means),
+            "scales": Parameter(torch.log(avg_dist.repeat(1, 3))),
+            "quats": Parameter(random_quat_tensor(n)),
+            "opacities": Parameter(torch.logit(0.1 * torch.ones(n, 1))),
+        }
+        if cfg.appearance == "sh":
+            dim_sh = num_sh_bases(cfg.sh_degree)
+            shs = torch.zeros((n, dim_sh, 3))
+            if seed_rgb is not None:
+                shs[:, 0, :] = RGB2SH(seed_rgb) if cfg.sh_degree > 0 else torch.logit(seed_rgb, eps=1e-10)
+            else:
+                shs[:, 0, :] = torch.rand(n, 3)
+            params["features_dc"] = Parameter(shs[:, 0, :].contiguous())
+            params["features_rest"] = Parameter(shs[:, 1:, :].contiguous())
+        else:
+            # f_s starts small and random; its first 3 entries carry the seed colour (centred), which gives the
+            # colour decoder an easy first solution without changing the method.
+            f_s = 0.1 * torch.randn(n, cfg.intrinsic_dim)
+            if seed_rgb is not None and cfg.intrinsic_dim >= 3:
+                f_s[:, :3] = seed_rgb * 2.0 - 1.0
+            params["features"] = Parameter(f_s)
+        self.gauss_params = nn.ParameterDict(params)
+
+        self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
+        from pytorch_msssim import SSIM
+        from torchmetrics.image import PeakSignalNoiseRatio
+
+        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
+        self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
+        self._lpips = None  # built lazily (needs AlexNet ImageNet weights on disk)
+        self._lpips_status: str | None = None
+        self.step = 0
+        self.crop_box: OrientedBox | None = None
+        self.background_color = torch.tensor([0.1490, 0.1647, 0.2157])
+        if cfg.background_color != "random":
+            from nerfstudio.utils.colors import get_color
+
+            self.background_color = get_color(cfg.background_color)
+        if cfg.use_bilateral_grid:
+            raise ValueError("willags: use_bilateral_grid is not supported (the appearance field models the ISP)")
+
+        from gsplat.strategy import DefaultStrategy
+
+        self.strategy = DefaultStrategy(
+            prune_opa=cfg.cull_alpha_thresh,
+            grow_grad2d=cfg.densify_grad_thresh,
+            grow_scale3d=cfg.densify_size_thresh,
+            grow_scale2d=cfg.split_screen_size,
+            prune_scale3d=cfg.cull_scale_thresh,
+            prune_scale2d=cfg.cull_screen_size,
+            refine_scale2d_stop_iter=cfg.stop_screen_size_at,
+            refine_start_iter=cfg.warmup_length,
+            refine_stop_iter=cfg.stop_split_at,
+            reset_every=cfg.reset_alpha_every * cfg.refine_every,
+            refine_every=cfg.refine_every,
+            pause_refine_after_reset=self.num_train_data + cfg.refine_every,
+            absgrad=cfg.use_absgrad,
+            revised_opacity=False,
+            verbose=False,
+        )
+        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+
+        # --- the appearance model (absent for appearance="sh")
+        self.appearance_nets: AppearanceNetworks | None = None
+        self.teacher: AppearanceNetworks | None = None
+        self.perceptual: PerceptualFeatures | None = None
+        if cfg.appearance == "willags":
+            cfg.triplane.latent_dim = cfg.vae.latent_dim
+            self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data)
+            if cfg.use_mask and cfg.teacher.enabled:
+                self.teacher = make_teacher(self.appearance_nets)
+            if cfg.use_mask:
+                self.perceptual = PerceptualFeatures(
+                    weights=cfg.mask.vgg_weights, path=cfg.mask.vgg_weights_path, max_resolution=cfg.mask.max_resolution
+                )
+            lo, hi = robust_bounds(means)  # fixed at initialisation (see triplane.robust_bounds for the rule)
+            self.register_buffer("bounds_lo", lo.float())
+            self.register_buffer("bounds_hi", hi.float())
+            d = cfg.vae.latent_dim
+            # mean latent of each training image, refreshed whenever it is visited: the appearances users pick
+            self.register_buffer("train_latents", torch.zeros(max(self.num_train_data, 1), d))
+            self.register_buffer("train_latent_seen", torch.zeros(max(self.num_train_data, 1), dtype=torch.bool))
+        self.render_latent: Tensor | None = None  # appearance override for eval/viewer/export ([D])
+        self._train_batch: dict | None = None
+        self._step_cache: dict[str, Tensor] = {}
+        self._mask_cache: dict[int, Tensor] = {}
+        self._mask_visits: dict[int, int] = {}
+        self._fd_cache: tuple[tuple, Tensor] | None = None
+        self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
+        if cfg.appearance == "willags":
+            self.viewer_controls = AppearanceControls(self)
+
+    # ------------------------------------------------------------------ properties used by exporter / viewer
+    @property
+    def features_dc(self):
+        if "features_dc" in self.gauss_params:
+            return self.gauss_params["features_dc"]
+        return RGB2SH(self.baked_colors())
+
+    @property
+    def features_rest(self):
+        if "features_rest" in self.gauss_params:
+            return self.gauss_params["features_rest"]
+        return torch.zeros(self.num_points, 0, 3, device=self.device)
+
+    @property
+    def intrinsic_features(self) -> Tensor:
+        return self.gauss_params["features"]
+
+    @property
+    def colors(self):
+        if self.config.appearance == "sh":
+            return super().colors
+        return self.baked_colors()
+
+    @property
+    def shs_0(self):
+        if self.config.appearance == "sh":
+            return super().shs_0
+        return RGB2SH(self.baked_colors())
+
+    @property
+    def shs_rest(self):
+        return self.features_rest
+
+    def get_gaussian_param_groups(self) -> dict[str, list[Parameter]]:
+        return {name: [p] for name, p in self.gauss_params.items()}
+
+    def get_param_groups(self) -> dict[str, list[Parameter]]:
+        gps = self.get_gaussian_param_groups()
+        if self.appearance_nets is not None:
+            gps["appearance"] = list(self.appearance_nets.parameters())
+        self.camera_optimizer.get_param_groups(param_groups=gps)
+        return gps
+
+    def load_state_dict(self, dict, **kwargs):  # type: ignore[override]
+        # splatfacto resizes gauss_params to the checkpoint's point count; names are ours, so do it here
+        self.step = 30000
+        newp = dict["gauss_params.means"].shape[0]
+        for name, param in self.gauss_params.items():
+            self.gauss_params[name] = Parameter(torch.zeros((newp,) + param.shape[1:], device=self.device))
+        nn.Module.load_state_dict(self, dict, **kwargs)
+
+    # ------------------------------------------------------------------ appearance
+    def set_train_batch(self, batch: dict) -> None:
+        """Called by WillagsPipeline before each training forward: the image feeds the VAE encoder."""
+        self._train_batch = batch
+
+    def _image_chw(self, image: Tensor) -> Tensor:
+        img = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+        return img[..., :3].permute(2, 0, 1).to(self.device)  # [3, H, W]
+
+    def default_latent(self) -> Tensor:
+        """The appearance used when none is chosen: the mean of the training images' latents."""
+        assert self.appearance_nets is not None
+        seen = self.train_latent_seen
+        if seen.any():
+            return self.train_latents[seen].mean(0)
+        if self.appearance_nets.embeddings is not None:
+            return self.appearance_nets.embeddings.weight.mean(0).detach()
+        return torch.zeros(self.appearance_nets.latent_dim, device=self.device)
+
+    def current_latent(self) -> Tensor:
+        """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
+        if self.render_latent is not None:
+            return self.render_latent.to(self.device)
+        spec = os.environ.get(APPEARANCE_ENV)
+        if spec:
+            z = latent_from_spec(spec, self.image_names, self.train_latents, self.train_latent_seen)
+            if z is not None:
+                self.render_latent = z
+                return z.to(self.device)
+        return self.default_latent()
+
+    def set_train_image_names(self, names: list[str]) -> None:
+        """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
+        self.image_names = list(names)
+        if self.config.appearance == "willags":
+            self.viewer_controls.set_image_names(self.image_names)
+
+    @torch.no_grad()
+    def encode_image(self, image: Tensor) -> Tensor:
+        """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
+        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs use_vae=True"
+        mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
+        return mu[0]
+
+    def _normalized_means(self, means: Tensor) -> Tensor:
+        return normalize_points(means, self.bounds_lo, self.bounds_hi)
+
+    def _dynamic_features(self, nets: AppearanceNetworks, z: Tensor, means: Tensor, cacheable: bool):
+        """f_d, recomputed only when z or the Gaussians change while rendering (viewer / eval)."""
+        if nets.field is None:
+            return None
+        if not cacheable:
+            return nets.dynamic_features(z, self._normalized_means(means))
+        key = (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step)
+        if self._fd_cache is not None and self._fd_cache[0] == key:
+            return self._fd_cache[1]
+        f_d = nets.dynamic_features(z, self._normalized_means(means))
+        self._fd_cache = (key, f_d)
+        return f_d
+
+    def appearance_colors(
+        self,
+        z: Tensor,
+        means: Tensor,
+        f_s: Tensor,
+        cam_center: Tensor,
+        nets: AppearanceNetworks | None = None,
+        cacheable: bool = False,
+    ) -> Tensor:
+        """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D]."""
+        nets = nets if nets is not None else self.appearance_nets
+        assert nets is not None
+        f_d = self._dynamic_features(nets, z, means, cacheable)
+        dirs = means - cam_center[None, :]
+        return nets.colors(z, f_d, f_s, dirs)
+
+    @torch.no_grad()
+    def baked_colors(self, z: Tensor | None = None) -> Tensor:
+        """View-independent colours [N, 3] for export: the decoder averaged over a Fibonacci sphere of views."""
+        assert self.appearance_nets is not None
+        z = self.current_latent() if z is None else z.to(self.device)
+        means, f_s = self.means, self.intrinsic_features
+        f_d = self._dynamic_features(self.appearance_nets, z, means, cacheable=False)
+        k = max(1, self.config.export_view_samples)
+        i = torch.arange(k, device=self.device, dtype=torch.float32) + 0.5
+        phi, cos_t = math.pi * (1 + 5**0.5) * i, 1 - 2 * i / k
+        sin_t = (1 - cos_t**2).sqrt()
+        dirs = torch.stack([sin_t * phi.cos(), sin_t * phi.sin(), cos_t], -1)  # [k, 3]
+        acc = torch.zeros(means.shape[0], 3, device=self.device)
+        for d in dirs:
+            acc += self.appearance_nets.colors(z, f_d, f_s, d.expand_as(means))
+        return acc / k
+
+    # ------------------------------------------------------------------ rendering
+    def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
+        return rasterize(
+            means=means,
+            quats=quats,
+            scales=torch.exp(scales),
+            opacities=torch.sigmoid(opacities).squeeze(-1),
+            colors=colors,
+            viewmats=viewmat,
+            Ks=K,
+            width=W,
+            height=H,
+            packed=False,
+            near_plane=0.01,
+            far_plane=1e10,
+            render_mode=render_mode,
+            sh_degree=sh_degree,
+            absgrad=self.strategy.absgrad,
+            rasterize_mode=self.config.rasterize_mode,
+            backend=self.config.backend,
+        )
+
+    def get_outputs(self, camera: Cameras) -> dict[str, Union[torch.Tensor, list]]:
+        if not isinstance(camera, Cameras):
+            raise TypeError(f"WillagsModel.get_outputs expects nerfstudio Cameras, got {type(camera).__name__}")
+        cfg = self.config
+        if self.training:
+            if camera.shape[0] != 1:
+                raise ValueError("willags trains on one camera at a time")
+            c2w = self.camera_optimizer.apply_to_camera(camera)
+        else:
+            c2w = camera.camera_to_worlds
+        if self.crop_box is not None and not self.training:
+            crop_ids = self.crop_box.within(self.means).squeeze()
+            if crop_ids.sum() == 0:
+                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+        else:
+            crop_ids = None
+        gp = {k: (v[crop_ids] if crop_ids is not None else v) for k, v in self.gauss_params.items()}
+
+        scale_fac = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale_fac)
+        viewmat = viewmat_from_c2w(c2w)
+        K = camera.get_intrinsics_matrices().to(self.device)
+        W, H = int(camera.width.item()), int(camera.height.item())
+        self.last_size = (H, W)
+        camera.rescale_output_resolution(scale_fac)
+        render_mode = "RGB+ED" if (cfg.output_depth_during_training or not self.training) else "RGB"
+        cam_center = c2w[0, :3, 3]
+
+        outputs: dict[str, Union[Tensor, list]] = {}
+        if cfg.appearance == "sh":
+            colors = torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
+            if cfg.sh_degree > 0:
+                sh_degree = min(self.step // cfg.sh_degree_interval, cfg.sh_degree)
+            else:
+                colors, sh_degree = torch.sigmoid(colors).squeeze(1), None
+        else:
+            z = self._latent_for_forward(camera, outputs)
+            colors = self.appearance_colors(
+                z, gp["means"], gp["features"], cam_center, cacheable=not self.training and not torch.is_grad_enabled()
+            )
+            sh_degree = None
+
+        render, alpha, self.info = self._rasterize(
+            gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, render_mode, sh_degree
+        )
+        if self.training:
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+        background = self._get_background_color()
+        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+
+        if self.training and self._teacher_needed():
+            outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background)
+
+        depth_im = None
+        if render_mode == "RGB+ED":
+            depth_im = render[..., 3:4]
+            depth_im = torch.where(alpha > 0, depth_im, depth_im.detach().max()).squeeze(0)
+        if background.shape[0] == 3 and not self.training:
+            background = background.expand(H, W, 3)
+        outputs.update({"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background})  # type: ignore
+        return outputs
+
+    def _latent_for_forward(self, camera: Cameras, outputs: dict) -> Tensor:
+        """Training: encode this step's image (reparameterised). Otherwise: camera metadata / chosen / default."""
+        nets = self.appearance_nets
+        assert nets is not None
+        md = camera.metadata or {}
+        if not self.training:
+            if "appearance_latent" in md:
+                return torch.as_tensor(md["appearance_latent"], device=self.device).reshape(-1).float()
+            return self.current_latent()
+        batch = self._train_batch
+        if batch is None:
+            raise RuntimeError(
+                "willags: the model got no training image; train it through WillagsPipeline (method configs "
+                "'willags*' do) or call model.set_train_batch(batch) before model(camera)"
+            )
+        idx = int(batch["image_idx"]) if "image_idx" in batch else int(md.get("cam_idx", 0))
+        img = self._image_chw(batch["image"])
+        mu, logvar = nets.latent_stats(img, idx)
+        if logvar is not None:
+            z = reparameterize(mu[None], logvar[None])[0]
+            self._step_cache.update({"mu": mu, "logvar": logvar, "z": z, "vae_in": img})
+        else:
+            z = mu
+            self._step_cache.update({"z": z})
+        self._step_cache["image_idx"] = torch.tensor(idx)
+        if idx < self.train_latents.shape[0]:
+            self.train_latents[idx] = mu.detach()
+            self.train_latent_seen[idx] = True
+        return z
+
+    def _teacher_needed(self) -> bool:
+        cfg = self.config
+        if cfg.appearance != "willags" or not cfg.use_mask or self.teacher is None:
+            return False
+        if not mask_active(self.step, cfg.mask.warmup_steps):
+            return False
+        idx = int(self._step_cache.get("image_idx", torch.tensor(-1)))
+        visits = self._mask_visits.get(idx, 0)
+        self._mask_visits[idx] = visits + 1
+        return idx not in self._mask_cache or visits % max(1, cfg.mask_every) == 0
+
+    @torch.no_grad()
+    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background) -> Tensor:
+        """Pseudo-GT [H, W, 3] from the EMA teacher networks with the student's current Gaussians (no grad)."""
+        teacher = self.teacher
+        assert teacher is not None
+        if teacher.vae is not None:
+            mu, _ = teacher.vae.encode(self._step_cache["vae_in"][None])
+            z = mu[0]
+        else:
+            z = teacher.embeddings.weight[int(self._step_cache["image_idx"])]  # type: ignore[union-attr]
+        colors = self.appearance_colors(z, gp["means"], gp["features"], cam_center, nets=teacher)
+        render, alpha, _ = self._rasterize(
+            gp["means"].detach(), gp["quats"].detach(), gp["scales"].detach(), gp["opacities"].detach(), colors,
+            viewmat.detach(), K, W, H, "RGB",
+        )
+        return torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0).squeeze(0)
+
+    # ------------------------------------------------------------------ losses / metrics
+    def _static_mask(self, outputs, gt_img: Tensor) -> Tensor | None:
+        """[H, W] float mask of static pixels (1 = supervised), or None when masking is off / warming up."""
+        cfg = self.config
+        if cfg.appearance != "willags" or not cfg.use_mask or not mask_active(self.step, cfg.mask.warmup_steps):
+            return None
+        idx = int(self._step_cache.get("image_idx", torch.tensor(-1)))
+        H, W = gt_img.shape[:2]
+        if "teacher_rgb" in outputs:
+            assert self.perceptual is not None
+            gt_b = gt_img.permute(2, 0, 1)[None]
+            te_b = outputs["teacher_rgb"].permute(2, 0, 1)[None]
+            with torch.no_grad():
+                d = perceptual_error(self.perceptual(gt_b), self.perceptual(te_b), (H, W))[0]  # [H, W]
+            self._step_cache["D"] = d
+            mask = static_mask(d, cfg.mask.threshold)
+            self._mask_cache[idx] = mask
+        elif idx in self._mask_cache:
+            mask = self._mask_cache[idx]
+        else:
+            return None
+        if mask.shape != (H, W):  # resolution schedule moved on since the mask was cached
+            mask = F.interpolate(mask[None, None].float(), size=(H, W), mode="nearest")[0, 0] > 0.5
+        return mask.float()
+
+    def get_metrics_dict(self, outputs, batch) -> dict[str, torch.Tensor]:
+        metrics = super().get_metrics_dict(outputs, batch)
+        if self.training and "z" in self._step_cache:
+            metrics["latent_norm"] = self._step_cache["z"].detach().norm()
+        return metrics
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> dict[str, torch.Tensor]:
+        cfg = self.config
+        gt_img = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        pred_img = outputs["rgb"]
+        mask = self._static_mask(outputs, gt_img) if self.training else None
+        if "mask" in batch:  # user-provided masks (nerfstudio convention) combine with ours
+            user = self._downscale_if_required(batch["mask"]).to(self.device)[..., 0].float()
+            mask = user if mask is None else mask * user
+        pred_b, gt_b = pred_img.permute(2, 0, 1)[None], gt_img.permute(2, 0, 1)[None]
+        mask_b = None if mask is None else mask[None]
+        loss_dict = {"main_loss": reconstruction_loss(pred_b, gt_b, mask_b, ssim_lambda=cfg.ssim_lambda)}
+        if mask is not None and metrics_dict is not None:
+            metrics_dict["masked_fraction"] = 1.0 - mask.mean().detach()
+
+        if self.training and "logvar" in self._step_cache and self.appearance_nets is not None:
+            vae = self.appearance_nets.vae
+            assert vae is not None
+            sc = self._step_cache
+            recon = vae.decode(sc["z"][None])
+            target = vae.prepare(sc["vae_in"][None])
+            l_vae, parts = vae_loss(recon, target, sc["mu"][None], sc["logvar"][None], beta=cfg.vae.beta)
+            loss_dict["vae_loss"] = cfg.lambda_vae * l_vae
+            if metrics_dict is not None:
+                metrics_dict["vae_kl"] = parts["vae_kl"].detach()
+                metrics_dict["vae_recon"] = parts["vae_recon"].detach()
+            sc["vae_recon_img"] = recon.detach()
+
+        if cfg.use_scale_regularization and self.step % 10 == 0:
+            s = torch.exp(self.scales)
+            ratio = s.amax(dim=-1) / s.amin(dim=-1)
+            loss_dict["scale_reg"] = 0.1 * (torch.clamp_min(ratio, cfg.max_gauss_ratio) - cfg.max_gauss_ratio).mean()
+        if self.training:
+            self.camera_optimizer.get_loss_dict(loss_dict)
+            self._maybe_log_images(outputs, gt_img, mask)
+        return loss_dict
+
+    def _maybe_log_images(self, outputs, gt_img: Tensor, mask: Tensor | None) -> None:
+        every = self.config.log_images_every
+        if every <= 0 or self.step % every != 0:
+            return
+        from nerfstudio.utils import writer
+
+        writer.put_image("train/render_vs_gt", torch.cat([gt_img, outputs["rgb"].detach()], dim=1), self.step)
+        if "teacher_rgb" in outputs:
+            writer.put_image("train/teacher_render", outputs["teacher_rgb"], self.step)
+        if "D" in self._step_cache:
+            d = self._step_cache["D"]
+            writer.put_image("train/perceptual_D", (d / d.max().clamp_min(1e-6))[..., None].expand(-1, -1, 3), self.step)
+        if mask is not None:
+            writer.put_image("train/static_mask", mask[..., None].expand(-1, -1, 3), self.step)
+        if "vae_recon_img" in self._step_cache:
+            writer.put_image("train/vae_reconstruction", self._step_cache["vae_recon_img"][0].permute(1, 2, 0), self.step)
+
+    def get_image_metrics_and_images(self, outputs, batch):
+        gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        pred = outputs["rgb"]
+        combined = torch.cat([gt_rgb, pred], dim=1)
+        gt_b, pred_b = gt_rgb.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None]
+        metrics = {"psnr": float(self.psnr(gt_b, pred_b).item()), "ssim": float(self.ssim(gt_b, pred_b))}
+        lpips = self.lpips_metric()
+        if lpips is not None:
+            metrics["lpips"] = float(lpips(gt_b, pred_b))
+        return metrics, {"img": combined}
+
+    def lpips_metric(self):
+        """torchmetrics LPIPS when AlexNet's ImageNet weights are on disk; else None with a one-line notice."""
+        if self._lpips is None and self._lpips_status is None:
+            if _lpips_weights_cached():
+                from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+                self._lpips = LearnedPerceptualImagePatchSimilarity(normalize=True).to(self.device)
+                self._lpips_status = "torchmetrics alexnet"
+            else:
+                self._lpips_status = "unavailable"
+                CONSOLE.log(
+                    f"willags: LPIPS unavailable (no AlexNet weights in {torch.hub.get_dir()}/checkpoints; "
+                    "offline): reporting PSNR and SSIM only"
+                )
+        return self._lpips
+
+    # ------------------------------------------------------------------ callbacks
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> list[TrainingCallback]:
+        cbs = super().get_training_callbacks(training_callback_attributes)
+        if self.teacher is not None:
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_teacher))
+        cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._end_step))
+        return cbs
+
+    def update_teacher(self, step: int) -> None:
+        """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
+        assert self.teacher is not None and self.appearance_nets is not None
+        ema_update_(self.teacher, self.appearance_nets, self.config.teacher.tau)
+
+    def _end_step(self, step: int) -> None:
+        self._step_cache = {}
+        self._train_batch = None
+
+    # ------------------------------------------------------------------ checkpoints carry the mask provenance
+    def get_extra_state(self):
+        """Saved as `_extra_state` in every checkpoint: which VGG weights made the transient masks."""
+        src = self.perceptual.source if self.perceptual is not None else None
+        return {"perceptual_source": src or self.__dict__.get("loaded_perceptual_source")}
+
+    def set_extra_state(self, state) -> None:
+        self.loaded_perceptual_source = (state or {}).get("perceptual_source")

@@ -1,0 +1,94 @@
+"""Real spherical harmonics up to degree 4, evaluated exactly like gsplat 1.4.0.
+
+The basis constants and their order are those of gsplat's `_eval_sh_bases_fast` (Sloan, "Efficient Spherical
+Harmonic Evaluation", JCGT 2013), so SH colours from the torch backend match the CUDA backend's
+`spherical_harmonics()` to float rounding.
+"""
+
+import torch
+from torch import Tensor
+
+MAX_SH_DEGREE = 4
+
+
+def num_sh_bases(degree: int) -> int:
+    """Number of SH coefficients used by `degree`: (degree + 1) ** 2."""
+    return (degree + 1) ** 2
+
+
+def eval_sh_bases(degree: int, dirs: Tensor) -> Tensor:
+    """SH basis values at unit directions.
+
+    Args:
+        degree: SH degree in [0, 4].
+        dirs: unit directions. [..., 3]
+
+    Returns:
+        basis values. [..., (degree + 1) ** 2]
+    """
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise ValueError(f"sh_degree must be in [0, {MAX_SH_DEGREE}], got {degree}")
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, 0.2820947917738781)]
+    if degree >= 1:
+        a = -0.48860251190292
+        out += [a * y, -a * z, a * x]
+    if degree >= 2:
+        z2 = z * z
+        tb = -1.092548430592079 * z
+        ta = 0.5462742152960395
+        c1 = x * x - y * y
+        s1 = 2 * x * y
+        out += [ta * s1, tb * y, 0.9461746957575601 * z2 - 0.3153915652525201, tb * x, ta * c1]
+    if degree >= 3:
+        tc = -2.285228997322329 * z2 + 0.4570457994644658
+        tb = 1.445305721320277 * z
+        ta = -0.5900435899266435
+        c2 = x * c1 - y * s1
+        s2 = x * s1 + y * c1
+        out += [ta * s2, tb * s1, tc * y, z * (1.865881662950577 * z2 - 1.119528997770346), tc * x, tb * c1, ta * c2]
+    if degree >= 4:
+        td = z * (-4.683325804901025 * z2 + 2.007139630671868)
+        tc = 3.31161143515146 * z2 - 0.47308734787878
+        tb = -1.770130769779931 * z
+        ta = 0.6258357354491763
+        c3 = x * c2 - y * s2
+        s3 = x * s2 + y * c2
+        out += [
+            ta * s3,
+            tb * s2,
+            tc * s1,
+            td * y,
+            1.984313483298443 * z2 * (1.865881662950577 * z2 - 1.119528997770346)
+            - 1.006230589874905 * (0.9461746957575601 * z2 - 0.3153915652525201),
+            td * x,
+            tc * c1,
+            tb * c2,
+            ta * c3,
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def spherical_harmonics(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
+    """Evaluate SH colours along (not necessarily unit) view directions, like gsplat's `spherical_harmonics()`.
+
+    Only the first (degree + 1) ** 2 coefficients are used, so a model can grow its active degree over training.
+    Note that gsplat's `rasterization()` adds 0.5 and clamps at 0 *after* this; `rasterize` does the same.
+
+    Args:
+        degree: SH degree in [0, 4].
+        dirs: view directions (normalised here). [..., 3]
+        coeffs: SH coefficients. [..., K, 3] with K >= (degree + 1) ** 2
+
+    Returns:
+        colours. [..., 3]
+    """
+    nb = num_sh_bases(degree)
+    if coeffs.shape[-2] < nb:
+        raise ValueError(f"sh_degree={degree} needs {nb} SH coefficients, got {coeffs.shape[-2]}")
+    if degree == 0:
+        return 0.2820947917738781 * coeffs[..., 0, :]
+    # Clamped norm: a direction of length 0 (mean at the camera centre) stays finite, gradient included.
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    bases = eval_sh_bases(degree, dirs)  # [..., nb]
+    return (bases[..., None] * coeffs[..., :nb, :]).sum(dim=-2)
