@@ -45,7 +45,14 @@ from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, 
 from willags_ns.losses import reconstruction_loss
 from willags_ns.render import rasterize
 from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
-from willags_ns.transient import PerceptualFeatures, PerceptualMaskConfig, mask_active, perceptual_error, static_mask
+from willags_ns.transient import (
+    PerceptualFeatures,
+    PerceptualMaskConfig,
+    mask_active,
+    mask_threshold,
+    perceptual_error,
+    static_mask,
+)
 from willags_ns.viewer import APPEARANCE_ENV, AppearanceControls, latent_from_spec
 
 
@@ -99,6 +106,10 @@ class WillagsModelConfig(SplatfactoModelConfig):
     mask_every: int = 1
     """Recompute an image's mask on every k-th step (teacher render + VGG); other steps reuse that image's last
     mask. 1 = the paper (every step). Larger values trade mask freshness for speed."""
+    max_masked_fraction: float = 0.5
+    """If the mask would drop more than this fraction of an image, the teacher is not trustworthy there (still
+    training, or an appearance it cannot explain): that image is supervised everywhere instead (logged as
+    mask_rejected). Occluders in photo collections cover far less than half an image."""
     lambda_vae: float = 0.01
     """Weight of L_VAE = L1 recon + beta * KL in the total loss."""
     embedding_init_std: float = 0.01
@@ -182,9 +193,6 @@ class WillagsModel(SplatfactoModel):
     # ------------------------------------------------------------------ set-up
     def populate_modules(self):
         cfg = self.config
-        if cfg.use_absgrad and cfg.backend == "torch":
-            CONSOLE.log("willags: use_absgrad needs gsplat's CUDA backward; using plain gradients (torch backend)")
-            cfg.use_absgrad = False
         if self.seed_points is not None and not cfg.random_init:
             means = self.seed_points[0].float().clone()
             seed_rgb = self.seed_points[1].float() / 255.0 if self.seed_points[1].shape[0] > 0 else None
@@ -288,6 +296,7 @@ class WillagsModel(SplatfactoModel):
         self._mask_cache: dict[int, Tensor] = {}
         self._mask_visits: dict[int, int] = {}
         self._fd_cache: tuple[tuple, Tensor] | None = None
+        self._absgrad_notice = False
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
         if cfg.appearance == "willags":
             self.viewer_controls = AppearanceControls(self)
@@ -437,7 +446,18 @@ class WillagsModel(SplatfactoModel):
         return acc / k
 
     # ------------------------------------------------------------------ rendering
+    def _uses_gsplat(self, means: Tensor) -> bool:
+        return self.config.backend == "gsplat" or (self.config.backend == "auto" and means.is_cuda)
+
     def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
+        # absgrad (densify on |grad|) exists only in gsplat's CUDA backward; the strategy must agree with the
+        # rasteriser or it reads a gradient that was never written
+        absgrad = self.config.use_absgrad and self._uses_gsplat(means)
+        if self.strategy.absgrad != absgrad:
+            if not absgrad and self.config.use_absgrad and not self._absgrad_notice:
+                CONSOLE.log("willags: use_absgrad needs gsplat's CUDA backward; densifying on plain gradients")
+                self._absgrad_notice = True
+            self.strategy.absgrad = absgrad
         return rasterize(
             means=means,
             quats=quats,
@@ -453,7 +473,7 @@ class WillagsModel(SplatfactoModel):
             far_plane=1e10,
             render_mode=render_mode,
             sh_degree=sh_degree,
-            absgrad=self.strategy.absgrad,
+            absgrad=absgrad,
             rasterize_mode=self.config.rasterize_mode,
             backend=self.config.backend,
         )
@@ -593,7 +613,13 @@ class WillagsModel(SplatfactoModel):
             with torch.no_grad():
                 d = perceptual_error(self.perceptual(gt_b), self.perceptual(te_b), (H, W))[0]  # [H, W]
             self._step_cache["D"] = d
-            mask = static_mask(d, cfg.mask.threshold)
+            thr = mask_threshold(self.step, cfg.mask.threshold, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
+            mask = static_mask(d, thr)
+            if 1.0 - mask.float().mean() > cfg.max_masked_fraction:
+                # the teacher disagrees with most of the image: that is a teacher not yet trained (or an appearance
+                # it cannot explain), not a transient; supervise every pixel rather than none
+                mask = torch.ones_like(mask)
+                self._step_cache["mask_rejected"] = torch.tensor(1.0)
             self._mask_cache[idx] = mask
         elif idx in self._mask_cache:
             mask = self._mask_cache[idx]
@@ -622,6 +648,8 @@ class WillagsModel(SplatfactoModel):
         loss_dict = {"main_loss": reconstruction_loss(pred_b, gt_b, mask_b, ssim_lambda=cfg.ssim_lambda)}
         if mask is not None and metrics_dict is not None:
             metrics_dict["masked_fraction"] = 1.0 - mask.mean().detach()
+            if "mask_rejected" in self._step_cache:
+                metrics_dict["mask_rejected"] = self._step_cache["mask_rejected"]
 
         if self.training and "logvar" in self._step_cache and self.appearance_nets is not None:
             vae = self.appearance_nets.vae
@@ -629,7 +657,9 @@ class WillagsModel(SplatfactoModel):
             sc = self._step_cache
             recon = vae.decode(sc["z"][None])
             target = vae.prepare(sc["vae_in"][None])
-            l_vae, parts = vae_loss(recon, target, sc["mu"][None], sc["logvar"][None], beta=cfg.vae.beta)
+            l_vae, parts = vae_loss(
+                recon, target, sc["mu"][None], sc["logvar"][None], beta=cfg.vae.beta, recon_reduction=cfg.vae.recon_reduction
+            )
             loss_dict["vae_loss"] = cfg.lambda_vae * l_vae
             if metrics_dict is not None:
                 metrics_dict["vae_kl"] = parts["vae_kl"].detach()

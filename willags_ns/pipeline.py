@@ -18,6 +18,8 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     """VanillaPipeline that passes the training batch to the model before its forward pass."""
 
     _target: type = field(default_factory=lambda: WillagsPipeline)
+    eval_protocol: EvalProtocolConfig = field(default_factory=EvalProtocolConfig)
+    """NeRF-W protocol used by `ns-eval` (fit the latent on the left half of each test image, score the right)."""
 
 
 class WillagsPipeline(VanillaPipeline):

@@ -12,7 +12,6 @@ the sparse training directions. Constants are the ones of gsplat / 3DGS (``SH_C*
 """
 
 from dataclasses import dataclass
-from typing import Optional
 
 import torch
 from jaxtyping import Float
@@ -55,11 +54,11 @@ def sh_basis(dirs: Float[Tensor, "N 3"], degree: int) -> Float[Tensor, "N K"]:
     if not 0 <= degree <= 3:
         raise ValueError(f"sh degree must be in 0..3, got {degree}")
     x, y, z = dirs.unbind(-1)
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z  # [N] each (unused for degree < 2)
     out = [torch.full_like(x, SH_C0)]
     if degree >= 1:
         out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
         out += [
             SH_C2[0] * xy,
             SH_C2[1] * yz,
@@ -99,7 +98,7 @@ class ColorDecoder(nn.Module):
 
     def forward(
         self,
-        f_d: Optional[Float[Tensor, "N Fd"]],
+        f_d: Float[Tensor, "N Fd"] | None,
         f_s: Float[Tensor, "N Fs"],
         view_dirs: Float[Tensor, "N 3"],
     ) -> Float[Tensor, "N 3"]:

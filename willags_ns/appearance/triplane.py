@@ -14,28 +14,34 @@ mean planes, shared by all images). The last layer then has 32 * 393,216 = 12.6M
 paper's 3-layer MLP.
 
 Initialisation (for stable early training): the bias planes are N(0, 1) (unit-variance features, so the
-sampling MLP sees well-scaled inputs from step 0), the basis (last hypernetwork layer) is small (std 0.01 of
-the output), so z modulates the planes only slightly at first, and the sampling MLP's last layer is small with
+sampling MLP sees well-scaled inputs from step 0), the basis (last hypernetwork layer) is small (weights
+N(0, 0.01^2 / width): the z-dependent part is ~0.2% of the planes' std at init), so z modulates the planes only
+slightly at first, and the sampling MLP's last layer is small with
 zero bias, so f_d starts near a constant (0) and the colour decoder first relies on the intrinsic feature.
 
 Bounds rule (:func:`robust_bounds`): per axis the [q, 1 - q] quantiles (q = 0.02) of the initial points, widened
 by a 10% margin of the extent on each side. Quantiles ignore the far-away SfM outliers (sky points, stray
 matches) that would otherwise squeeze the whole scene into a few texels; the margin leaves room for Gaussians
 that densify slightly outside the initial cloud. Points outside the box are clamped to its faces: they share the
-boundary texels instead of producing NaN or zero padding. A degenerate axis (flat point cloud) is widened to a
-minimum extent so the normalisation never divides by zero.
+boundary texels instead of producing NaN or zero padding. A degenerate axis (flat point cloud) is widened,
+around its centre, to 1% of the largest axis' extent (and at least 1e-5 x the coordinates' magnitude), so the normalisation never divides by
+zero and Gaussians that leave the plane still map to distinct texels.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
-MIN_EXTENT = 1e-6
-"""Smallest per-axis extent of the bounds (absolute units), against division by zero on a flat point cloud."""
+MIN_EXTENT = 1e-5
+"""Smallest extent of the bounds, relative to max(1, |box centre|) so that it survives float32 rounding, and
+(absolute) of ``normalize_points``' divisor: no division by zero."""
+MIN_REL_EXTENT = 0.01
+"""Smallest per-axis extent of :func:`robust_bounds` relative to its largest axis: a flat (planar) point cloud
+still gets a usable box along its thin axis."""
 
 # (u, v) axes of the three planes: grid_sample's x indexes the plane's width, y its height.
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # XY, XZ, YZ
@@ -51,7 +57,7 @@ class TriplaneConfig:
     """Side R of each feature plane (texels)."""
     channels: int = 32
     """Channels Cp of each plane."""
-    hyper_hidden: Tuple[int, ...] = (128, 32)
+    hyper_hidden: tuple[int, ...] = (128, 32)
     """Hidden widths of the hypernetwork z -> planes. The last one is the size of the learned plane basis;
     keep it small, the last layer has ``hyper_hidden[-1] * 3 * channels * resolution**2`` weights."""
     feature_dim: int = 32
@@ -73,11 +79,11 @@ def _quantile(x: Tensor, q: float) -> Tensor:
 @torch.no_grad()
 def robust_bounds(
     points: Float[Tensor, "N 3"], quantile: float = 0.02, margin: float = 0.1
-) -> Tuple[Float[Tensor, "3"], Float[Tensor, "3"]]:
+) -> tuple[Float[Tensor, " 3"], Float[Tensor, " 3"]]:
     """Per-axis scene box ``(lo, hi)``: the [quantile, 1 - quantile] range widened by ``margin * extent`` per side.
 
     Non-finite points are ignored; with no finite point the box is [-1, 1]^3. Each axis is at least
-    ``MIN_EXTENT`` wide (centred on the data). Example: x uniform on [0, 10], q = 0.02, margin = 0.1 gives
+    ``max(MIN_EXTENT * max(1, |centre|), MIN_REL_EXTENT * largest extent)`` wide (widened about its centre). Example: x uniform on [0, 10], q = 0.02, margin = 0.1 gives
     [0.2, 9.8] -> extent 9.6 -> [-0.76, 10.76].
     """
     if points.dim() != 2 or points.shape[-1] != 3:
@@ -94,12 +100,14 @@ def robust_bounds(
     lo = lo - margin * extent
     hi = hi + margin * extent
     centre = 0.5 * (lo + hi)
-    half = 0.5 * (hi - lo).clamp_min(MIN_EXTENT)
+    floor = MIN_EXTENT * max(1.0, float(centre.abs().max()))
+    min_extent = max(floor, MIN_REL_EXTENT * float((hi - lo).max()))
+    half = 0.5 * (hi - lo).clamp_min(min_extent)
     return centre - half, centre + half
 
 
 def normalize_points(
-    points: Float[Tensor, "N 3"], lo: Float[Tensor, "3"], hi: Float[Tensor, "3"]
+    points: Float[Tensor, "N 3"], lo: Float[Tensor, " 3"], hi: Float[Tensor, " 3"]
 ) -> Float[Tensor, "N 3"]:
     """Map ``points`` to [-1, 1]^3 with ``lo -> -1`` and ``hi -> +1``, clamping points outside the box.
 
@@ -141,11 +149,12 @@ class TriplaneHyperField(nn.Module):
         nn.init.normal_(self.basis.weight, std=0.01 / d_in**0.5)
         self.mean_planes = nn.Parameter(torch.randn(3, channels, resolution, resolution))  # [3, Cp, R, R]
 
-        self.mlp = nn.Sequential(nn.Linear(3 * channels, mlp_hidden), nn.ReLU(), nn.Linear(mlp_hidden, feature_dim))
-        nn.init.normal_(self.mlp[-1].weight, std=1e-2 / mlp_hidden**0.5)
-        nn.init.zeros_(self.mlp[-1].bias)
+        last = nn.Linear(mlp_hidden, feature_dim)
+        nn.init.normal_(last.weight, std=1e-2 / mlp_hidden**0.5)
+        nn.init.zeros_(last.bias)
+        self.mlp = nn.Sequential(nn.Linear(3 * channels, mlp_hidden), nn.ReLU(), last)
 
-    def planes(self, z: Float[Tensor, "D"]) -> Float[Tensor, "3 Cp R R"]:
+    def planes(self, z: Float[Tensor, " D"]) -> Float[Tensor, "3 Cp R R"]:
         """The three planes (XY, XZ, YZ) for one latent ``z`` [D] (a [1, D] batch of one is accepted)."""
         if z.dim() == 2 and z.shape[0] == 1:
             z = z[0]
@@ -170,6 +179,6 @@ class TriplaneHyperField(nn.Module):
         feats = feats.squeeze(-1).permute(2, 0, 1).reshape(n, 3 * self.channels)  # [N, 3 * Cp]
         return self.mlp(feats)
 
-    def forward(self, z: Float[Tensor, "D"], xyz_norm: Float[Tensor, "N 3"]) -> Float[Tensor, "N F"]:
+    def forward(self, z: Float[Tensor, " D"], xyz_norm: Float[Tensor, "N 3"]) -> Float[Tensor, "N F"]:
         """``query(planes(z), xyz_norm)``."""
         return self.query(self.planes(z), xyz_norm)

@@ -38,6 +38,7 @@ from willags_ns.render.sh import spherical_harmonics
 ALPHA_MIN = 1.0 / 255.0  # gsplat skips pairs below this alpha: they change neither colour nor transmittance
 ALPHA_MAX = 0.999  # gsplat clamps alpha here (and stops gradients through the clamp)
 T_MIN = 1e-4  # gsplat stops a pixel once the transmittance after a Gaussian would be <= this
+LAYERS_PER_CHUNK = 16  # early termination granularity of `bin_pairs` in dense scenes (pairs per pixel per chunk)
 
 
 def quat_scale_to_matrix(quats: Tensor, scales: Tensor) -> Tensor:
@@ -85,8 +86,8 @@ def project_gaussians(
     """EWA projection of 3D Gaussians, a twin of gsplat's `fully_fused_projection` (pinhole, packed=False).
 
     Returns a dict of [C, N, ...] tensors: radii (int32, 0 = culled), means2d [C, N, 2] (pixels), depths
-    (camera z), conics [C, N, 3] (upper triangle of cov2d^-1), cov2d [C, N, 3] (blurred covariance, upper
-    triangle), compensations [C, N] or None. Culled entries hold finite but meaningless values.
+    (camera z), conics [C, N, 3] (upper triangle of the blurred cov2d^-1), compensations [C, N] or None. Culled
+    entries hold finite but meaningless values.
     """
     M = quat_scale_to_matrix(quats, scales)  # [N, 3, 3]
     Rv = viewmats[:, :3, :3]  # [C, 3, 3]
@@ -150,7 +151,6 @@ def project_gaussians(
         "means2d": means2d,
         "depths": means_c[..., 2],
         "conics": conics,
-        "cov2d": torch.stack([c00, c01, c11], dim=-1),
         "compensations": compensations,
     }
 
@@ -173,10 +173,9 @@ def _tile_box(means2d: Tensor, radii: Tensor, tile_size: int, tile_width: int, t
 
 
 @torch.no_grad()
-def _bin_pairs(
+def bin_pairs(
     means2d: Tensor,  # [S, 2] splats in (camera, depth) order
     conics: Tensor,  # [S, 3]
-    cov2d: Tensor,  # [S, 3]
     opacities: Tensor,  # [S]
     radii: Tensor,  # [S] > 0
     cams: Tensor,  # [S] camera index
@@ -184,78 +183,181 @@ def _bin_pairs(
     height: int,
     n_cameras: int,
     tile_size: int,
-):
-    """Gaussian-pixel pairs that gsplat would composite, sorted by (pixel, depth), after the T cut-off.
+    layers_per_chunk: Optional[int] = None,
+) -> dict:
+    """The Gaussian-pixel pairs gsplat composites (before its T cut-off), sorted by (pixel, depth), with alpha.
 
-    Returns (splat index [K], global pixel id [K] = (cam * H + y) * W + x, n_candidates).
+    No gradient: the pair set is piecewise constant in the parameters. Pixel p is a pair of splat s iff p lies in
+    one of gsplat's intersected tiles of s (from the 3-sigma radius) and alpha = min(0.999, o exp(-sigma)) >= 1/255
+    with sigma >= 0. alpha >= 1/255 <=> sigma <= ln(255 o), an ellipse: pixels are enumerated row by row over its
+    (slightly widened) chords with two repeat_interleaves (splat -> rows -> pixels), then tested exactly, so the
+    cost is proportional to the pairs, never to N x pixels.
+
+    Early termination: when the pairs are many times the pixels (dense scenes), splats are processed front to back
+    in chunks of about `layers_per_chunk` pairs per pixel; once a pixel's transmittance after a chunk is <= 1e-4,
+    gsplat's cut-off has fired there, so later chunks skip it.
+
+    Returns a dict of [M] tensors: sp (splat index), pix (global pixel id (cam * H + y) * W + x), raw (o exp(-sigma),
+    alpha before the 0.999 clamp), dx, dy (pixel centre minus 2D mean).
     """
-    device = means2d.device
+    device, dtype = means2d.device, means2d.dtype
     S = means2d.shape[0]
+    n_pix = n_cameras * height * width
     tile_width = math.ceil(width / tile_size)
     tile_height = math.ceil(height / tile_size)
     tx0, tx1, ty0, ty1 = _tile_box(means2d, radii, tile_size, tile_width, tile_height)
     mx, my = means2d.unbind(-1)
-    # alpha >= 1/255 <=> sigma <= ln(255 o): an ellipse; its box half-widths are sqrt(2 t Sigma_xx), sqrt(2 t Sigma_yy).
-    # The margin only makes the box a safe superset: the exact alpha test below decides.
-    t = torch.log(opacities * 255.0).clamp_min(0.0)
-    hx = torch.sqrt(2.0 * t * cov2d[:, 0]) * 1.001 + 1e-3
-    hy = torch.sqrt(2.0 * t * cov2d[:, 2]) * 1.001 + 1e-3
-    # pixel x is a candidate iff |x + 0.5 - mx| <= hx and its tile is intersected (and it is inside the image)
-    x0 = torch.maximum(torch.ceil(mx - hx - 0.5), tx0 * tile_size)
-    x1 = torch.minimum(torch.floor(mx + hx - 0.5), torch.clamp(tx1 * tile_size, max=width) - 1)
+    a, b, c = conics.unbind(-1)
+    # ellipse a dx^2 + 2 b dx dy + c dy^2 <= 2 t, t = ln(255 o); |dy| <= sqrt(2 t a / det), det = a c - b^2 > 0.
+    # The 1e-4 relative / 1e-3 px widening only makes the candidates a safe superset; the exact test decides.
+    t = torch.log(opacities * 255.0)
+    det = a * c - b * b
+    hy = torch.sqrt(2.0 * t.clamp_min(0.0) * a / det) * 1.0001 + 1e-3
     y0 = torch.maximum(torch.ceil(my - hy - 0.5), ty0 * tile_size)
     y1 = torch.minimum(torch.floor(my + hy - 0.5), torch.clamp(ty1 * tile_size, max=height) - 1)
-    nx = (x1 - x0 + 1).clamp(0, width)  # float clamps first: huge boxes must not overflow int conversion
-    ny = (y1 - y0 + 1).clamp(0, height)
-    has = opacities >= ALPHA_MIN
-    nx = torch.where(has, nx, torch.zeros_like(nx)).long()
-    ny = ny.long()
-    counts = nx * ny  # [S]
-    x0 = x0.clamp(0, width).long()
-    y0 = y0.clamp(0, height).long()
+    ny = (y1 - y0 + 1).clamp(0, height)  # float clamp first: huge boxes must not overflow the int conversion
+    ny = torch.where(t >= 0, ny, torch.zeros_like(ny)).long()
+    y0 = y0.clamp(0, height)
 
-    # enumerate candidates: pair j belongs to splat sp[j] and is its local[j]-th pixel (row-major in its box)
-    sp = torch.repeat_interleave(torch.arange(S, device=device), counts)  # [M]
-    n_cand = sp.numel()
-    first = torch.cumsum(counts, 0) - counts
-    local = torch.arange(n_cand, device=device) - first.index_select(0, sp)
-    nxs = nx.index_select(0, sp)
-    ly = torch.div(local, nxs, rounding_mode="floor")
-    px = x0.index_select(0, sp) + (local - ly * nxs)
-    py = y0.index_select(0, sp) + ly
+    # rows: one per (splat, image row) crossing the ellipse
+    rs = torch.repeat_interleave(torch.arange(S, device=device), ny)  # [R]
+    R = rs.numel()
+    tab = torch.stack([mx, my, a, b, c, det, t, opacities, y0, tx0 * tile_size, torch.clamp(tx1 * tile_size, max=width)])
+    mx_r, my_r, a_r, b_r, c_r, det_r, t_r, o_r, y0_r, xa_r, xb_r = tab.index_select(1, rs)
+    y = y0_r + (torch.arange(R, device=device) - (torch.cumsum(ny, 0) - ny).index_select(0, rs)).to(dtype)
+    dy = y + 0.5 - my_r
+    # the row's chord: dx in [xc - half, xc + half]
+    xc = mx_r - b_r * dy / a_r
+    half = torch.sqrt(torch.clamp(2.0 * t_r * a_r - dy * dy * det_r, min=0.0)) / a_r * 1.0001 + 1e-3
+    x0 = torch.maximum(torch.ceil(xc - half - 0.5), xa_r)
+    x1 = torch.minimum(torch.floor(xc + half - 0.5), xb_r - 1)
+    nx = (x1 - x0 + 1).clamp(0, width).long()
+    x0 = x0.clamp(0, width)
+    # per row: sigma(dx) = (A dx + B) dx + Cc with A = a / 2, B = b dy, Cc = c dy^2 / 2
+    rows_f = torch.stack([x0 + 0.5 - mx_r, dy, 0.5 * a_r, b_r * dy, 0.5 * c_r * dy * dy, o_r])  # [6, R]
+    base = (cams.index_select(0, rs) * height + y.long()) * width + x0.long()  # pixel id of each chord's start
 
-    # exact alpha test, as gsplat (pixel centres at +0.5)
-    dx = px.to(mx.dtype) + 0.5 - mx.index_select(0, sp)
-    dy = py.to(mx.dtype) + 0.5 - my.index_select(0, sp)
-    con = conics.index_select(0, sp)
-    sigma = 0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) + con[:, 1] * dx * dy
-    alpha = torch.clamp_max(opacities.index_select(0, sp) * torch.exp(-sigma), ALPHA_MAX)
-    keep = torch.nonzero((sigma >= 0) & (alpha >= ALPHA_MIN)).squeeze(1)
-    sp = sp.index_select(0, keep)
-    alpha = alpha.index_select(0, keep)
-    pix = (cams.index_select(0, sp) * height + py.index_select(0, keep)) * width + px.index_select(0, keep)
+    ends = torch.cumsum(nx, 0)
+    M = int(ends[-1]) if R > 0 else 0
+    chunk = (layers_per_chunk or LAYERS_PER_CHUNK) * n_pix
+    bounds = [0, R]
+    if M > 3 * chunk:  # below ~50 layers per pixel the extra passes cost more than the cut-off saves
+        cuts = torch.searchsorted(ends, torch.arange(chunk, M, chunk, device=device)).tolist()
+        bounds = sorted(set([0, R] + cuts))
+    log_t = torch.zeros(n_pix, dtype=torch.float64, device=device) if len(bounds) > 2 else None
+    parts = []
+    for r0, r1 in zip(bounds[:-1], bounds[1:]):
+        n = nx[r0:r1]
+        rows_i = torch.stack([(ends[r0:r1] - n), base[r0:r1], rs[r0:r1]])  # [3, r]
+        first, base_p, sp = torch.repeat_interleave(rows_i, n, dim=1)
+        dx0, dy_p, A, B, Cc, o = torch.repeat_interleave(rows_f[:, r0:r1], n, dim=1)
+        start = int(ends[r0 - 1]) if r0 > 0 else 0
+        local = torch.arange(start, int(ends[r1 - 1]) if r1 > r0 else start, device=device) - first  # within row
+        dx = dx0 + local.to(dtype)
+        pix = base_p + local
+        sigma = (A * dx + B) * dx + Cc
+        raw = o * torch.exp(-sigma)
+        ok = (sigma >= 0) & (raw >= ALPHA_MIN)  # alpha = min(0.999, raw) >= 1/255 <=> raw >= 1/255
+        if log_t is not None and r0 > 0:
+            ok &= (log_t > math.log(T_MIN)).index_select(0, pix)  # pixels already cut off stay done
+        keep = torch.nonzero(ok).squeeze(1)
+        part = [sp, pix, raw, dx, dy_p]
+        part = [x.index_select(0, keep) for x in part]
+        if log_t is not None:
+            log_t.index_add_(0, part[1], torch.log1p(-torch.clamp_max(part[2], ALPHA_MAX).double()))
+        parts.append(part)
+    sp, pix, raw, dx, dy = [torch.cat(x) for x in zip(*parts)] if len(parts) > 1 else parts[0]
+    # splats were enumerated in (camera, depth) order: one stable sort by pixel gives front-to-back lists
+    key = pix.int() if n_pix < 2**31 else pix  # int32 keys sort ~2x faster
+    key, perm = torch.sort(key, stable=True)
+    return {
+        "sp": sp.index_select(0, perm),
+        "pix": key.long(),
+        "raw": raw.index_select(0, perm),
+        "dx": dx.index_select(0, perm),
+        "dy": dy.index_select(0, perm),
+    }
 
-    # splats were enumerated in (camera, depth) order: a stable sort by pixel gives front-to-back lists
-    pix, perm = torch.sort(pix, stable=True)
-    sp = sp.index_select(0, perm)
-    alpha = alpha.index_select(0, perm)
 
-    # gsplat's early stop: drop the pair whose next_T = T (1 - alpha) <= 1e-4 and every later one at that pixel.
-    log1m = torch.log1p(-alpha.double())
-    cs = torch.cumsum(log1m, 0)
-    log_next_t = cs - (cs - log1m).index_select(0, _segment_first(pix, n_cameras * height * width))
-    keep = torch.nonzero(log_next_t > math.log(T_MIN)).squeeze(1)
-    if keep.numel() < sp.numel():
-        sp = sp.index_select(0, keep)
-        pix = pix.index_select(0, keep)
-    return sp, pix, n_cand
-
-
-def _segment_first(pix: Tensor, n_pix: int) -> Tensor:
-    """For a sorted id array, the index of the first element with the same id, for every element."""
+def _segments(pix: Tensor, n_pix: int) -> tuple:
+    """For an id array sorted ascending: per element, the index of the first and of the last element with its id."""
     counts = torch.bincount(pix, minlength=n_pix)
-    first = torch.cumsum(counts, 0) - counts
-    return first.index_select(0, pix)
+    ends = torch.cumsum(counts, 0)
+    return (ends - counts).index_select(0, pix), (ends - 1).index_select(0, pix)
+
+
+class _Composite(torch.autograd.Function):
+    """Front-to-back alpha compositing over pairs sorted by (pixel, depth), with gsplat's rules.
+
+    Forward (pairs and their alpha come from `bin_pairs`, computed from the same detached values): T is a segmented
+    exclusive cumsum of log(1 - alpha) in float64; a pair whose next_T <= 1e-4 ends its pixel (exclusive). Outputs
+    the accumulated features sum(alpha T f) [D, P] and alpha 1 - T_final [P].
+
+    Backward (the analytic gradient of gsplat's kernel, vectorised): with w_i = alpha_i T_i and g = dL/dimage,
+        dL/df_i     = w_i g
+        dL/dalpha_i = T_i g.f_i - (sum_{j>i} w_j g.f_j) / (1 - alpha_i) + dL/dacc T_final / (1 - alpha_i)
+    then through alpha = o exp(-sigma) to the opacity, the conic and the 2D mean (zero where alpha is clamped at
+    0.999, like gsplat).
+
+    Per-pair arrays are kept as rows ([6, K], [D, K]): contiguous rows make the elementwise work, the stacking and
+    the index_add along dim 1 several times faster on CPU than [K, 6] columns.
+    """
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, sp, pix, raw, dx, dy, n_pix, stats):
+        alpha = torch.clamp_max(raw, ALPHA_MAX)
+        # exclusive segmented cumsum in float64: a global float32 cumsum over ~1e6 pairs would lose T's precision
+        log1m = torch.log1p(-alpha.double())
+        cs = torch.cumsum(log1m, 0)
+        first, _ = _segments(pix, n_pix)
+        log_next_t = cs - (cs - log1m).index_select(0, first)
+        keep = torch.nonzero(log_next_t > math.log(T_MIN)).squeeze(1)
+        if keep.numel() < pix.numel():
+            sp, pix, raw, alpha, dx, dy = [x.index_select(0, keep) for x in (sp, pix, raw, alpha, dx, dy)]
+            log1m, log_next_t = log1m.index_select(0, keep), log_next_t.index_select(0, keep)
+        T = torch.exp(log_next_t - log1m).to(alpha.dtype)
+        w = alpha * T
+        img = torch.zeros(features.shape[1], n_pix, dtype=features.dtype, device=features.device)
+        img.index_add_(1, pix, features.t().index_select(1, sp) * w)
+        log_t_final = torch.zeros(n_pix, dtype=log1m.dtype, device=log1m.device).index_add_(0, pix, log1m)
+        t_final = torch.exp(log_t_final).to(alpha.dtype)
+        stats["n_pairs"] = int(pix.numel())
+        tab = torch.cat([conics.t(), opacities[None]], dim=0)  # [4, S]
+        ctx.save_for_backward(tab, features, sp, pix, raw, alpha, T, dx, dy, t_final)
+        ctx.n_pix = n_pix
+        return img, 1.0 - t_final
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, v_img, v_acc):
+        tab, features, sp, pix, raw, alpha, T, dx, dy, t_final = ctx.saved_tensors
+        G = v_img.contiguous().index_select(1, pix)  # [D, K] (contiguous: the grad of a sum is a stride-0 view)
+        w = alpha * T
+        v_features = torch.zeros_like(features.t()).index_add_(1, sp, G * w).t()
+        gf = (G * features.t().index_select(1, sp)).sum(0)  # g . f_i
+        # sum over later pairs of the same pixel of w_j g.f_j: segment total minus inclusive cumsum (float64)
+        cs = torch.cumsum((w * gf).double(), 0)
+        _, last = _segments(pix, ctx.n_pix)
+        later = (cs.index_select(0, last) - cs).to(alpha.dtype)
+        v_alpha = T * gf + ((v_acc.contiguous() * t_final).index_select(0, pix) - later) / (1.0 - alpha)
+        v_alpha = v_alpha * (raw <= ALPHA_MAX)  # no gradient through the clamp
+
+        a, b, c, o = tab.index_select(1, sp)
+        v_o = alpha / o * v_alpha  # = exp(-sigma) v_alpha where not clamped; o >= alpha >= 1/255
+        v_sigma = -alpha * v_alpha
+        hv = 0.5 * v_sigma
+        v_pair = torch.stack(
+            [
+                -v_sigma * (a * dx + b * dy),  # d sigma / d mean2d = -(conic @ (pixel - mean2d))
+                -v_sigma * (b * dx + c * dy),
+                hv * dx * dx,
+                v_sigma * dx * dy,
+                hv * dy * dy,
+                v_o,
+            ]
+        )  # [6, K]
+        v_tab = torch.zeros(6, tab.shape[1], dtype=tab.dtype, device=tab.device).index_add_(1, sp, v_pair)
+        return v_tab[:2].t(), v_tab[2:5].t(), v_tab[5], v_features, None, None, None, None, None, None, None
 
 
 def composite_pairs(
@@ -263,36 +365,25 @@ def composite_pairs(
     conics: Tensor,  # [S, 3]
     opacities: Tensor,  # [S]
     features: Tensor,  # [S, D]
-    sp: Tensor,  # [K] splat of each pair, sorted by (pixel, depth)
-    pix: Tensor,  # [K] global pixel id of each pair
-    width: int,
-    height: int,
-    n_cameras: int,
+    pairs: dict,  # from bin_pairs
+    n_pix: int,
 ) -> tuple:
-    """Differentiable front-to-back alpha compositing over a sorted pair list.
+    """Differentiable compositing (see `_Composite`). Returns features [n_pix, D], alpha [n_pix], n_pairs."""
+    stats: dict = {}
+    img, acc = _Composite.apply(
+        means2d, conics, opacities, features, pairs["sp"], pairs["pix"], pairs["raw"], pairs["dx"], pairs["dy"],
+        n_pix, stats,
+    )  # fmt: skip
+    return img.t(), acc, stats["n_pairs"]
 
-    Returns accumulated features [n_pix, D] (sum of w f) and alpha [n_pix] (sum of w = 1 - T_final),
-    w = alpha T with T = prod over earlier pairs of the same pixel of (1 - alpha).
-    """
-    n_pix = n_cameras * height * width
-    px = torch.remainder(pix, width)
-    py = torch.remainder(torch.div(pix, width, rounding_mode="floor"), height)  # row within its camera
-    dx = px.to(means2d.dtype) + 0.5 - means2d[:, 0].index_select(0, sp)
-    dy = py.to(means2d.dtype) + 0.5 - means2d[:, 1].index_select(0, sp)
-    con = conics.index_select(0, sp)
-    sigma = 0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) + con[:, 1] * dx * dy
-    alpha = torch.clamp_max(opacities.index_select(0, sp) * torch.exp(-sigma), ALPHA_MAX)
-    # exclusive segmented cumsum in float64: a global float32 cumsum over ~1e6 pairs would lose T's precision
-    log1m = torch.log1p(-alpha).double()
-    excl = torch.cumsum(log1m, 0) - log1m
-    log_t = excl - excl.index_select(0, _segment_first(pix, n_pix))
-    w = alpha * torch.exp(log_t).to(alpha.dtype)  # [K]
-    D = features.shape[-1]
-    feats = torch.zeros(n_pix, D, dtype=features.dtype, device=features.device).index_add(
-        0, pix, features.index_select(0, sp) * w[:, None]
-    )
-    acc = torch.zeros(n_pix, dtype=w.dtype, device=w.device).index_add(0, pix, w)
-    return feats, acc
+
+def _depth_sort_key(depths: Tensor, near_plane: float) -> Tensor:
+    """A sort key with the order of the depths. Visible depths are >= near_plane; when that is >= 0, the IEEE bit
+    pattern read as an integer has the same order (gsplat sorts these bits too), and integer sorts are radix sorts,
+    ~15x faster than float sorts on CPU."""
+    if near_plane >= 0 and depths.dtype in (torch.float32, torch.float64):
+        return depths.contiguous().view(torch.int32 if depths.dtype == torch.float32 else torch.int64)
+    return depths
 
 
 def rasterize_torch(
@@ -341,7 +432,6 @@ def rasterize_torch(
 
     # Flat views over (camera, gaussian); in packed mode the meta tensors are the packed ones and everything
     # downstream indexes into them, so meta["means2d"].grad is the gradient w.r.t. exactly that tensor.
-    cov2d = proj["cov2d"].reshape(C * N, 3)
     radii_f = radii.reshape(C * N)
     vis = torch.nonzero(radii_f > 0).squeeze(1)  # [nnz] flat ids, camera-major
     cam_ids = torch.div(vis, max(N, 1), rounding_mode="floor")
@@ -352,7 +442,6 @@ def rasterize_torch(
         conics = conics.reshape(C * N, 3).index_select(0, vis)
         opac = opac.reshape(C * N).index_select(0, vis)
         radii = radii_f.index_select(0, vis)
-        cov2d = cov2d.index_select(0, vis)
         src = torch.arange(vis.numel(), device=device)  # visible rows of the flat tables
         means2d_f, depths_f, conics_f, opac_f = means2d, depths, conics, opac
     else:
@@ -362,8 +451,9 @@ def rasterize_torch(
 
     # visible splats in (camera, depth) order; ties broken by Gaussian index like gsplat's stable radix sort
     with torch.no_grad():
-        order = torch.sort(depths_f.detach().index_select(0, src), stable=True).indices
-        order = order.index_select(0, torch.sort(cam_ids.index_select(0, order), stable=True).indices)
+        order = torch.sort(_depth_sort_key(depths_f.detach().index_select(0, src), near_plane), stable=True).indices
+        if C > 1:
+            order = order.index_select(0, torch.sort(cam_ids.index_select(0, order), stable=True).indices)
     src = src.index_select(0, order)
     cam_s, gs_s = cam_ids.index_select(0, order), gs_ids.index_select(0, order)
     m2_s = means2d_f.index_select(0, src)  # [S, 2]
@@ -385,19 +475,11 @@ def rasterize_torch(
         feats.append(depths_f.index_select(0, src)[:, None])
     feats = torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0]  # [S, D']
 
-    sp, pix, n_cand = _bin_pairs(
-        m2_s.detach(),
-        con_s.detach(),
-        cov2d.index_select(0, src).detach(),
-        op_s.detach(),
-        radii.reshape(-1).index_select(0, src),
-        cam_s,
-        width,
-        height,
-        C,
+    pairs = bin_pairs(
+        m2_s.detach(), con_s.detach(), op_s.detach(), radii.reshape(-1).index_select(0, src), cam_s, width, height, C,
         tile_size,
-    )
-    out, acc = composite_pairs(m2_s, con_s, op_s, feats, sp, pix, width, height, C)
+    )  # fmt: skip
+    out, acc, n_pairs = composite_pairs(m2_s, con_s, op_s, feats, pairs, C * height * width)
     render = out.reshape(C, height, width, -1)
     alpha = acc.reshape(C, height, width, 1)
 
@@ -433,8 +515,8 @@ def rasterize_torch(
         "tile_size": tile_size,
         "n_cameras": C,
         # torch-backend extras
-        "n_pairs": int(sp.numel()),
-        "n_candidates": int(n_cand),
+        "n_pairs": n_pairs,
+        "n_candidates": int(pairs["pix"].numel()),
         "backend": "torch",
     }
     return render, alpha, meta

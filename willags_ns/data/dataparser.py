@@ -1,0 +1,533 @@
+"""`willags-data`: one nerfstudio dataparser for the embedded synthetic scene, transforms.json scenes and COLMAP scenes.
+
+What `data` points at decides the branch:
+
+- nothing (`ns-train willags` without `--data`; `None`, `Path()` or `"."`): the embedded synthetic in-the-wild scene
+  (`willags_ns.data.synthetic`), generated once into the cache and then read as a transforms.json scene;
+- a directory with `transforms.json` (or the json file itself): nerfstudio's own `nerfstudio-data` parser, explicit
+  `train_filenames` / `val_filenames` / `test_filenames` respected, `ply_file_path` loaded as seed points;
+- a directory with a COLMAP model (`colmap/sparse/0`, `sparse/0`, `sparse` or `dense/sparse`): nerfstudio's
+  `colmap` parser with the model's 3D points as seed points.
+
+In both real-data branches a NeRF-W / Phototourism split file (`*.tsv` with columns `filename`, `id`, `split`,
+`dataset`) in the directory gives the train/test split. Evaluation-only files found next to the images
+(`masks_gt/`, `gt_clean/`) are exposed in `DataparserOutputs.metadata` ("masks_gt_dir", "gt_clean_dir"); training
+never reads them. Input problems raise `WillagsDataError` naming the file or field, before nerfstudio's parsers run.
+"""
+
+import csv
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
+from nerfstudio.data.utils import colmap_parsing_utils
+from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+from nerfstudio.process_data.colmap_utils import parse_colmap_camera_params
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
+
+COLMAP_MODEL_DIRS = ("colmap/sparse/0", "sparse/0", "sparse", "dense/sparse")
+"""Where a COLMAP model is looked for, in this order (relative to `data`)."""
+
+EVAL_ONLY_DIRS = {"masks_gt_dir": "masks_gt", "gt_clean_dir": "gt_clean"}
+"""metadata key -> directory name of the evaluation-only files exposed when present."""
+
+SPLITS = ("train", "val", "test")
+
+
+class WillagsDataError(ValueError):
+    """Bad input data; the message names the file or field at fault."""
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# readers (pure functions)
+
+_PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+
+
+def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read the vertex positions [N, 3] float32 and colours [N, 3] uint8 of a point-cloud PLY (ascii or binary).
+
+    Why not open3d (what nerfstudio uses): it is slow to import and, on machines without libusb, fails to import at
+    all. Colours stored as floats are taken to be in [0, 1]; a cloud without colours gets grey.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise WillagsDataError(f"cannot read point cloud {path}: {e}") from None
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise WillagsDataError(f"{path} is not a PLY file (no 'ply' magic or no 'end_header')")
+    body_start = raw.index(b"\n", end) + 1
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    fmt, elements = None, []  # elements: [name, count, [(prop, dtype)]]
+    for line in header:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info", "ply"):
+            continue
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            elements.append([words[1], int(words[2]), []])
+        elif words[0] == "property":
+            if not elements:
+                raise WillagsDataError(f"{path}: property before any element in the PLY header")
+            if words[1] == "list":
+                elements[-1][2].append((words[-1], None))
+            elif words[1] in _PLY_TYPES:
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise WillagsDataError(f"{path}: unknown PLY property type {words[1]!r}")
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise WillagsDataError(f"{path}: unsupported PLY format {fmt!r}")
+    if not elements or elements[0][0] != "vertex":
+        raise WillagsDataError(f"{path}: the first PLY element must be 'vertex'")
+    _, count, props = elements[0]
+    names = [p for p, _ in props]
+    if any(t is None for _, t in props):
+        raise WillagsDataError(f"{path}: list properties in the vertex element are not supported")
+    if not {"x", "y", "z"} <= set(names):
+        raise WillagsDataError(f"{path}: the vertex element lacks x, y or z")
+    if fmt == "ascii":
+        lines = raw[body_start:].decode("ascii").splitlines()[:count]
+        try:
+            table = np.array([[float(v) for v in ln.split()[: len(names)]] for ln in lines], dtype=np.float64)
+        except ValueError as e:
+            raise WillagsDataError(f"{path}: malformed ascii vertex data ({e})") from None
+        if table.shape != (count, len(names)):
+            raise WillagsDataError(f"{path}: expected {count} vertices with {len(names)} values, got {table.shape}")
+        cols = {n: table[:, i] for i, n in enumerate(names)}
+        kinds = {n: np.dtype(t).kind for n, t in props}
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        dtype = np.dtype([(n, order + t) for n, t in props])
+        if len(raw) - body_start < count * dtype.itemsize:
+            raise WillagsDataError(f"{path}: truncated (needs {count} vertices of {dtype.itemsize} bytes)")
+        arr = np.frombuffer(raw, dtype=dtype, count=count, offset=body_start)
+        cols = {n: arr[n] for n in names}
+        kinds = {n: dtype[n].kind for n in names}
+    xyz = np.stack([cols["x"], cols["y"], cols["z"]], axis=-1).astype(np.float32)
+    cnames = next((c for c in (("red", "green", "blue"), ("r", "g", "b")) if set(c) <= set(names)), None)
+    if cnames is None:
+        rgb = np.full((count, 3), 128, dtype=np.uint8)
+    else:
+        rgb = np.stack([np.asarray(cols[c], dtype=np.float64) for c in cnames], axis=-1)
+        if kinds[cnames[0]] == "f":
+            rgb = rgb * 255.0
+        rgb = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
+    return xyz, rgb
+
+
+def read_split_tsv(path: Path) -> dict[str, str]:
+    """Read a NeRF-W / Phototourism split file: tab-separated with a header holding at least `filename` and `split`
+    (usually `filename id split dataset`). Returns {filename: "train" | "test"}; rows with an empty id ("nan": images
+    the SfM did not register) are kept, since the COLMAP model decides which images exist."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise WillagsDataError(f"cannot read split file {path}: {e}") from None
+    rows = list(csv.reader(text.splitlines(), delimiter="\t"))
+    if not rows:
+        raise WillagsDataError(f"split file {path} is empty")
+    header = [h.strip().lower() for h in rows[0]]
+    for col in ("filename", "split"):
+        if col not in header:
+            raise WillagsDataError(
+                f"split file {path}: header {rows[0]} has no '{col}' column (expected tab-separated "
+                "'filename id split dataset')"
+            )
+    fi, si = header.index("filename"), header.index("split")
+    table: dict[str, str] = {}
+    for lineno, row in enumerate(rows[1:], start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) <= max(fi, si):
+            raise WillagsDataError(f"split file {path}, line {lineno}: expected {len(header)} tab-separated columns")
+        name, split = row[fi].strip(), row[si].strip().lower()
+        if not name:
+            raise WillagsDataError(f"split file {path}, line {lineno}: empty filename")
+        if split not in ("train", "test"):
+            raise WillagsDataError(f"split file {path}, line {lineno}: split {row[si]!r} is neither 'train' nor 'test'")
+        if table.get(name, split) != split:
+            raise WillagsDataError(f"split file {path}, line {lineno}: {name} is listed in both splits")
+        table[name] = split
+    if not table:
+        raise WillagsDataError(f"split file {path} lists no images")
+    return table
+
+
+def _tsv_split_of(image: Path, table: dict[str, str]) -> str | None:
+    """Split of an image path: the tsv names files relative to the images folder (usually just the file name)."""
+    parts = image.parts
+    for k in range(1, len(parts) + 1):
+        split = table.get("/".join(parts[-k:]))
+        if split is not None:
+            return split
+    return None
+
+
+def find_colmap_model(root: Path, colmap_path: Path | None = None) -> Path | None:
+    """The COLMAP model directory under `root` (`colmap_path` if given, else the first of `COLMAP_MODEL_DIRS` holding
+    cameras and images files), or None."""
+    candidates = [colmap_path] if colmap_path is not None else [Path(c) for c in COLMAP_MODEL_DIRS]
+    for rel in candidates:
+        d = root / rel
+        has_cams = (d / "cameras.bin").is_file() or (d / "cameras.txt").is_file()
+        has_imgs = (d / "images.bin").is_file() or (d / "images.txt").is_file()
+        if has_cams and has_imgs:
+            return d
+    return None
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# nerfstudio's transforms.json parser, minus open3d
+
+
+class _NerfstudioParser(Nerfstudio):
+    """nerfstudio's transforms.json parser reading `ply_file_path` with `read_ply_points` instead of open3d."""
+
+    def _load_3D_points(self, ply_file_path: Path, transform_matrix: torch.Tensor, scale_factor: float):
+        xyz, rgb = read_ply_points(ply_file_path)
+        if len(xyz) == 0:
+            return None
+        points = torch.from_numpy(xyz)
+        # same transform as nerfstudio: the ply is in the coordinates of transforms.json's poses
+        points = torch.cat([points, torch.ones_like(points[:, :1])], -1) @ transform_matrix.T
+        return {"points3D_xyz": points * scale_factor, "points3D_rgb": torch.from_numpy(rgb)}
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the dataparser
+
+
+@dataclass
+class WillagsDataParserConfig(DataParserConfig):
+    """willags-data: the embedded synthetic scene (no --data), a transforms.json scene or a COLMAP scene."""
+
+    _target: type = field(default_factory=lambda: WillagsDataParser)
+    """target class to instantiate"""
+    data: Path | None = None  # pyright: ignore[reportIncompatibleVariableOverride]
+    """Scene directory (transforms.json scene, or COLMAP scene with colmap/sparse/0, sparse/0, sparse or dense/sparse,
+    optionally with a NeRF-W *.tsv split) or a transforms json file. None, '' or '.': the embedded synthetic scene
+    (the parser then sets data to the generated scene's directory, for `datamanager.get_datapath()`)."""
+    synthetic: SyntheticSceneConfig = field(default_factory=SyntheticSceneConfig)
+    """Parameters of the embedded synthetic scene (used only when data is not given)."""
+    cache_dir: Path | None = None
+    """Where synthetic scenes are generated; default $WILLAGS_CACHE/scenes or ~/.cache/willags/scenes."""
+    split_tsv: Path | None = None
+    """NeRF-W / Phototourism split file (relative to data or absolute). Default: the one *.tsv in data, if any."""
+    colmap_path: Path | None = None
+    """COLMAP model directory relative to data. Default: the first of colmap/sparse/0, sparse/0, sparse, dense/sparse."""
+    images_path: Path = Path("images")
+    """COLMAP scenes: image directory relative to data (dense/images is tried when this is absent)."""
+    load_3D_points: bool = True
+    """Seed the Gaussians with the scene's points (transforms.json's ply_file_path, or the COLMAP points3D)."""
+    downscale_factor: int | None = None
+    """Image downscale factor; None: nerfstudio's rule (largest side <= 1600 px, using existing images_N folders)."""
+    scale_factor: float = 1.0
+    """How much to scale the camera origins by (after auto-scaling)."""
+    scene_scale: float = 1.0
+    """How much to scale the region of interest (scene box) by."""
+    orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
+    """How nerfstudio orients the poses."""
+    center_method: Literal["poses", "focus", "none"] = "poses"
+    """How nerfstudio centres the poses."""
+    auto_scale_poses: bool = True
+    """Scale the poses to fit in the +/- 1 box."""
+    eval_mode: Literal["fraction", "filename", "interval", "all"] = "interval"
+    """Train/eval split when the scene gives none (no *_filenames in transforms.json, no tsv, no *_list.txt)."""
+    eval_interval: int = 8
+    """eval_mode=interval: every eval_interval-th image (sorted by name / COLMAP id) is held out."""
+    train_split_fraction: float = 0.9
+    """eval_mode=fraction: fraction of the images used for training."""
+
+
+class WillagsDataParser(DataParser):
+    """Resolves `config.data` once (see the module docstring), then delegates to nerfstudio's parser for it."""
+
+    config: WillagsDataParserConfig  # pyright: ignore[reportIncompatibleVariableOverride]
+
+    def __init__(self, config: WillagsDataParserConfig):
+        super().__init__(config)
+        self._delegate: DataParser | None = None
+        self._tsv: dict[str, str] | None = None
+        self._root: Path | None = None
+
+    # ---- resolution
+
+    def _resolve(self) -> DataParser:
+        if self._delegate is not None:
+            return self._delegate
+        data = self.config.data
+        if data is None or Path(data) == Path():
+            scene_dir = ensure_default_scene(self.config.synthetic, self.config.cache_dir)
+            CONSOLE.log(f"willags-data: embedded synthetic in-the-wild scene at {scene_dir}")
+            # Point the (shared) config at the generated scene, so `datamanager.get_datapath()` (ns-viewer, exports)
+            # names a real directory; the saved config.yml keeps data unset and regenerates/reuses the scene.
+            self.config.data = scene_dir
+            self._delegate = self._transforms_parser(scene_dir, scene_dir / "transforms.json")
+            return self._delegate
+        data = Path(data).expanduser()
+        if not data.exists():
+            raise WillagsDataError(f"data path {data} does not exist")
+        if data.is_file():
+            if data.suffix != ".json":
+                raise WillagsDataError(f"data path {data} is a file but not a transforms .json file")
+            self._delegate = self._transforms_parser(data.parent, data)
+        elif (data / "transforms.json").is_file():
+            self._delegate = self._transforms_parser(data, data / "transforms.json")
+        else:
+            model = find_colmap_model(data, self.config.colmap_path)
+            if model is None:
+                looked = [str(self.config.colmap_path)] if self.config.colmap_path else list(COLMAP_MODEL_DIRS)
+                raise WillagsDataError(
+                    f"{data} has neither transforms.json nor a COLMAP model (cameras + images .bin/.txt) in "
+                    f"{', '.join(looked)}"
+                )
+            self._delegate = self._colmap_parser(data, model)
+        return self._delegate
+
+    def _find_tsv(self, root: Path) -> Path | None:
+        if self.config.split_tsv is not None:
+            tsv = self.config.split_tsv if self.config.split_tsv.is_absolute() else root / self.config.split_tsv
+            if not tsv.is_file():
+                raise WillagsDataError(f"split_tsv {tsv} does not exist")
+            return tsv
+        found = sorted(root.glob("*.tsv"))
+        if len(found) > 1:
+            raise WillagsDataError(
+                f"{root} holds several split files ({', '.join(p.name for p in found)}): choose one with --split-tsv"
+            )
+        return found[0] if found else None
+
+    def _split_kwargs(self) -> dict[str, Any]:
+        # With a tsv, nerfstudio's parser is asked for every image (fraction 1.0 keeps all in "train", with no
+        # warning) and the tsv then picks each split: the poses are oriented and scaled over all images, as usual.
+        if self._tsv is not None:
+            return {"eval_mode": "fraction", "train_split_fraction": 1.0}
+        return {
+            "eval_mode": self.config.eval_mode,
+            "eval_interval": self.config.eval_interval,
+            "train_split_fraction": self.config.train_split_fraction,
+        }
+
+    def _common_kwargs(self) -> dict[str, Any]:
+        c = self.config
+        return {
+            "downscale_factor": c.downscale_factor,
+            "scale_factor": c.scale_factor,
+            "scene_scale": c.scene_scale,
+            "orientation_method": c.orientation_method,
+            "center_method": c.center_method,
+            "auto_scale_poses": c.auto_scale_poses,
+        }
+
+    def _transforms_parser(self, root: Path, json_path: Path) -> DataParser:
+        meta = _check_transforms(json_path, self.config.downscale_factor)
+        self._root = root
+        tsv = self._find_tsv(root)
+        has_split_keys = any(f"{s}_filenames" in meta for s in SPLITS)
+        if tsv is not None and has_split_keys:
+            if self.config.split_tsv is not None:
+                raise WillagsDataError(
+                    f"{json_path} has explicit *_filenames splits and split_tsv {tsv} was given: keep only one"
+                )
+            CONSOLE.log(f"willags-data: {json_path.name} lists its splits; ignoring {tsv.name}")
+            tsv = None
+        if tsv is not None:
+            self._tsv = read_split_tsv(tsv)
+            CONSOLE.log(f"willags-data: train/test split from {tsv}")
+        load_points = self.config.load_3D_points and "ply_file_path" in meta
+        if self.config.load_3D_points and not load_points:
+            # (also keeps nerfstudio from asking interactively to convert a colmap/ folder into a ply)
+            CONSOLE.log(f"willags-data: {json_path} has no ply_file_path; no seed points (random initialisation)")
+        if load_points and not (root / meta["ply_file_path"]).is_file():
+            raise WillagsDataError(f"{json_path}: ply_file_path {meta['ply_file_path']!r} does not exist")
+        cfg = NerfstudioDataParserConfig(
+            data=json_path if json_path.name != "transforms.json" else root,
+            load_3D_points=load_points,
+            **self._common_kwargs(),
+            **self._split_kwargs(),
+        )
+        return _NerfstudioParser(cfg)
+
+    def _colmap_parser(self, root: Path, model: Path) -> DataParser:
+        self._root = root
+        images_path = self.config.images_path
+        if not (root / images_path).is_dir() and (root / "dense" / "images").is_dir():
+            images_path = Path("dense/images")
+        images_dir = root / images_path
+        if self.config.downscale_factor is not None and self.config.downscale_factor > 1:
+            images_dir = images_dir.parent / f"{images_dir.name}_{self.config.downscale_factor}"
+        _check_colmap(root, model, images_dir, self.config.load_3D_points)
+        tsv = self._find_tsv(root)
+        if tsv is not None:
+            lists = [p.name for p in root.glob("*_list.txt")]
+            if lists:
+                raise WillagsDataError(f"{root} has both a tsv split ({tsv.name}) and {', '.join(lists)}: keep one")
+            self._tsv = read_split_tsv(tsv)
+            CONSOLE.log(f"willags-data: train/test split from {tsv}")
+        cfg = ColmapDataParserConfig(
+            data=root,
+            colmap_path=model.relative_to(root),
+            images_path=images_path,
+            load_3D_points=self.config.load_3D_points,
+            **self._common_kwargs(),
+            **self._split_kwargs(),
+        )
+        return cfg.setup()
+
+    # ---- outputs
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs: Any) -> DataparserOutputs:
+        if split not in SPLITS:
+            raise WillagsDataError(f"unknown split {split!r}; expected one of {SPLITS}")
+        delegate = self._resolve()
+        if self._tsv is None:
+            outputs = delegate.get_dataparser_outputs(split)
+        else:
+            outputs = _select_tsv_split(delegate.get_dataparser_outputs("train"), self._tsv, split)
+        assert self._root is not None
+        metadata = dict(outputs.metadata)
+        metadata["data_dir"] = self._root
+        for key, name in EVAL_ONLY_DIRS.items():
+            if (self._root / name).is_dir():
+                metadata[key] = self._root / name
+        return dataclasses.replace(outputs, metadata=metadata)
+
+
+def _select_tsv_split(outputs: DataparserOutputs, table: dict[str, str], split: str) -> DataparserOutputs:
+    """The images of `outputs` (all the scene's images) that the tsv puts in `split` (val and test: 'test')."""
+    want = "train" if split == "train" else "test"
+    splits = [_tsv_split_of(p, table) for p in outputs.image_filenames]
+    idx = [i for i, s in enumerate(splits) if s == want]
+    if not idx:
+        raise WillagsDataError(f"the tsv split lists no '{want}' image that is in the scene")
+    missing = sum(s is None for s in splits)
+    if missing and split == "train":
+        CONSOLE.log(f"willags-data: {missing} image(s) of the scene are not in the tsv and are left out of both splits")
+    index = torch.tensor(idx, dtype=torch.long)
+    metadata = dict(outputs.metadata)
+    depth = metadata.get("depth_filenames")
+    if depth is not None:
+        metadata["depth_filenames"] = [depth[i] for i in idx]
+    masks = outputs.mask_filenames
+    return dataclasses.replace(
+        outputs,
+        image_filenames=[outputs.image_filenames[i] for i in idx],
+        cameras=outputs.cameras[index],
+        mask_filenames=[masks[i] for i in idx] if masks is not None else None,
+        metadata=metadata,
+    )
+
+
+def _check_transforms(json_path: Path, downscale_factor: int | None = None) -> dict[str, Any]:
+    """Validate a transforms.json enough that nerfstudio's parser cannot fail deep inside. Returns its content.
+    With an explicit downscale factor N > 1 the images are looked for where nerfstudio reads them: images_N/<name>."""
+    try:
+        meta = json.loads(json_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as e:
+        raise WillagsDataError(f"cannot read {json_path}: {e}") from None
+    except json.JSONDecodeError as e:
+        raise WillagsDataError(f"{json_path} is not valid JSON: {e}") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise WillagsDataError(f"{json_path}: no 'frames' list (or it is empty)")
+    root = json_path.parent
+    names, centres = set(), []
+    for i, frame in enumerate(meta["frames"]):
+        if not isinstance(frame, dict) or "file_path" not in frame:
+            raise WillagsDataError(f"{json_path}: frames[{i}] has no 'file_path'")
+        try:
+            pose = np.asarray(frame.get("transform_matrix"), dtype=np.float64)
+        except (TypeError, ValueError):
+            pose = np.zeros(0)
+        if pose.shape not in ((4, 4), (3, 4)) or not np.isfinite(pose).all():
+            raise WillagsDataError(
+                f"{json_path}: frames[{i}] ({frame['file_path']}) needs a finite 4x4 transform_matrix"
+            )
+        for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+            if key not in meta and key not in frame:
+                raise WillagsDataError(
+                    f"{json_path}: '{key}' is neither global nor in frames[{i}] ({frame['file_path']})"
+                )
+        image = root / frame["file_path"]
+        if downscale_factor is not None and downscale_factor > 1:
+            image = root / f"images_{downscale_factor}" / image.name
+        if not image.is_file():
+            raise WillagsDataError(f"{json_path}: frames[{i}] image {image} does not exist")
+        names.add(Path(frame["file_path"]).as_posix())
+        centres.append(pose[:3, 3])
+    if np.ptp(np.stack(centres), axis=0).max() == 0:  # nerfstudio's auto-scale would divide by zero
+        raise WillagsDataError(f"{json_path}: all {len(centres)} cameras sit at the same position; need a baseline")
+    for s in SPLITS:
+        listed = meta.get(f"{s}_filenames")
+        if listed is None:
+            continue
+        unknown = [f for f in listed if Path(f).as_posix() not in names]
+        if unknown:
+            raise WillagsDataError(f"{json_path}: {s}_filenames lists files with no frame: {unknown[:5]}")
+    return meta
+
+
+def _check_colmap(root: Path, model: Path, images_dir: Path, need_points: bool) -> None:
+    """Validate a COLMAP scene: image folder, readable model, one camera type, image files, points."""
+    if not images_dir.is_dir():
+        raise WillagsDataError(f"COLMAP scene {root}: image directory {images_dir} does not exist")
+    try:
+        if (model / "cameras.bin").is_file():
+            cameras = colmap_parsing_utils.read_cameras_binary(model / "cameras.bin")
+            images = colmap_parsing_utils.read_images_binary(model / "images.bin")
+        else:
+            cameras = colmap_parsing_utils.read_cameras_text(model / "cameras.txt")
+            images = colmap_parsing_utils.read_images_text(model / "images.txt")
+    except Exception as e:  # the readers raise assorted errors (struct, KeyError, ValueError) on bad files
+        raise WillagsDataError(f"cannot read the COLMAP model in {model}: {type(e).__name__}: {e}") from None
+    if not images:
+        raise WillagsDataError(f"the COLMAP model in {model} has no registered images")
+    try:
+        models = {parse_colmap_camera_params(cam)["camera_model"] for cam in cameras.values()}
+    except Exception as e:
+        raise WillagsDataError(f"{model}: unsupported COLMAP camera model ({e})") from None
+    if len(models) > 1:
+        raise WillagsDataError(f"{model}: cameras of several types {sorted(models)}; nerfstudio supports one")
+    missing = [im.name for im in images.values() if not (images_dir / im.name).is_file()]
+    if missing:
+        raise WillagsDataError(
+            f"{len(missing)} image(s) of the COLMAP model are missing in {images_dir}: {missing[:5]}"
+        )
+    if need_points and not ((model / "points3D.bin").is_file() or (model / "points3D.txt").is_file()):
+        raise WillagsDataError(f"{model} has no points3D.bin/.txt (pass --load-3D-points False to start from random)")
+
+
+willags_dataparser = DataParserSpecification(
+    config=WillagsDataParserConfig(),
+    description="WilLaGS data: the embedded synthetic in-the-wild scene (no --data), a transforms.json scene or a "
+    "COLMAP scene (NeRF-W .tsv split honoured); eval-only masks_gt/ and gt_clean/ exposed in metadata",
+)
