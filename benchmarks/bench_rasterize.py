@@ -9,7 +9,9 @@ trained scenes. The loss for the backward is a fixed random weighting of render 
 
 Prints a markdown table for N in {5k, 20k, 100k} x {64^2, 128^2, 256^2}: median time of the forward and of
 forward+backward, and the number of Gaussian-pixel pairs composited (torch backend). gsplat is timed only when
-CUDA is available. CPU threads are fixed to 2 (the project's CPU budget).
+CUDA is available. CPU threads are fixed to 2 (the project's CPU budget; `--threads` changes it). On a shared
+machine, other processes' load inflates the median of a 2-thread run (a descheduled OpenMP thread stalls every
+parallel op); the min column is the less disturbed figure.
 
 Usage:
     python benchmarks/bench_rasterize.py            # full grid
@@ -53,13 +55,15 @@ def _sync(device: str) -> None:
 def time_backend(backend: str, n: int, size: int, repeats: int, device: str) -> dict:
     """Median forward and forward+backward seconds, and the pair count (torch backend)."""
     means, quats, scales, opacities, colors, viewmats, Ks = make_scene(n, size, device)
-    params = [t.requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+    params = [means, quats, scales, opacities, colors]
+    for p in params:
+        p.requires_grad_(True)
     g = torch.Generator().manual_seed(1)
     w_render = torch.randn(1, size, size, 3, generator=g).to(device)
     w_alpha = torch.randn(1, size, size, 1, generator=g).to(device)
 
     def forward():
-        return rasterize(*params, viewmats, Ks, size, size, backend=backend)
+        return rasterize(means, quats, scales, opacities, colors, viewmats, Ks, size, size, backend=backend)
 
     fwd, fwd_bwd, pairs = [], [], None
     for i in range(repeats + 1):  # first run is a warm-up
@@ -78,7 +82,13 @@ def time_backend(backend: str, n: int, size: int, repeats: int, device: str) -> 
             fwd.append(t1 - t0)
             fwd_bwd.append(t2 - t0)
         pairs = meta.get("n_pairs")
-    return {"fwd": statistics.median(fwd), "fwd_bwd": statistics.median(fwd_bwd), "pairs": pairs}
+    return {
+        "fwd": statistics.median(fwd),
+        "fwd_bwd": statistics.median(fwd_bwd),
+        "fwd_min": min(fwd),
+        "fwd_bwd_min": min(fwd_bwd),
+        "pairs": pairs,
+    }
 
 
 def profile(n: int = 20_000, size: int = 128) -> None:
@@ -87,12 +97,14 @@ def profile(n: int = 20_000, size: int = 128) -> None:
     from torch.profiler import profile as tprofile
 
     means, quats, scales, opacities, colors, viewmats, Ks = make_scene(n, size)
-    params = [t.requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+    for t in (means, quats, scales, opacities, colors):
+        t.requires_grad_(True)
+    args = (means, quats, scales, opacities, colors, viewmats, Ks, size, size)
     for _ in range(2):
-        render, alpha, _ = rasterize(*params, viewmats, Ks, size, size, backend="torch")
+        render, alpha, _ = rasterize(*args, backend="torch")
         (render.sum() + alpha.sum()).backward()
     with tprofile(activities=[ProfilerActivity.CPU]) as prof:
-        render, alpha, _ = rasterize(*params, viewmats, Ks, size, size, backend="torch")
+        render, alpha, _ = rasterize(*args, backend="torch")
         (render.sum() + alpha.sum()).backward()
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=30))
 
@@ -110,7 +122,7 @@ def main() -> None:
     backends = [("torch", "cpu")] + ([("gsplat", "cuda")] if torch.cuda.is_available() else [])
     repeats = 3 if args.quick else 7
     print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, repeats={repeats} (median)\n")
-    print("| N | image | backend | pairs | forward (ms) | forward+backward (ms) |")
+    print("| N | image | backend | pairs | forward ms, median (min) | forward+backward ms, median (min) |")
     print("|---:|---:|---|---:|---:|---:|")
     for n in (5_000, 20_000, 100_000):
         for size in (64, 128, 256):
@@ -119,10 +131,9 @@ def main() -> None:
             for backend, device in backends:
                 r = time_backend(backend, n, size, repeats, device)
                 pairs = f"{r['pairs']:,}" if r["pairs"] is not None else "-"
-                print(
-                    f"| {n:,} | {size}x{size} | {backend} | {pairs} | {1e3 * r['fwd']:.1f} | {1e3 * r['fwd_bwd']:.1f} |",
-                    flush=True,
-                )
+                fwd = f"{1e3 * r['fwd']:.1f} ({1e3 * r['fwd_min']:.1f})"
+                fwd_bwd = f"{1e3 * r['fwd_bwd']:.1f} ({1e3 * r['fwd_bwd_min']:.1f})"
+                print(f"| {n:,} | {size}x{size} | {backend} | {pairs} | {fwd} | {fwd_bwd} |", flush=True)
 
 
 if __name__ == "__main__":

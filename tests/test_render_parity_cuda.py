@@ -9,6 +9,7 @@ The worst cases print with:
 """
 
 import math
+from typing import Any
 
 import pytest
 import torch
@@ -69,19 +70,32 @@ def make_case(name: str, seed: int = 0) -> dict:
         colors = 0.4 * torch.randn(N, 16, 3, generator=g)
         kw["backgrounds"] = rand(C, 3)
     if name == "extremes":
+        # the camera sits at z = -5 looking along +z (depth = z + 5)
         N = 8
         means = torch.tensor(
-            [[0.0, 0.0, 0.0], [0.3, 0.1, 0.5], [0.0, 0.0, -9.0], [0.0, 0.0, -5.0], [0.1, 0.0, -4.98], [40.0, 0.0, 0.0],
-             [0.2, -0.1, -4.5], [-0.2, 0.1, 1e3]]
-        )  # fmt: skip  (camera at z = -5 looking at +z: behind, at the centre, just past the near plane, off-screen, far)
+            [
+                [0.0, 0.0, 0.0],  # tiny (scale 1e-6)
+                [0.3, 0.1, 0.5],  # huge (scale 1e3)
+                [0.0, 0.0, -9.0],  # behind the camera
+                [0.0, 0.0, -5.0],  # at the camera centre
+                [0.1, 0.0, -4.98],  # just past the near plane
+                [40.0, 0.0, 0.0],  # off-screen
+                [0.2, -0.1, -4.5],  # very close
+                [-0.2, 0.1, 1e3],  # far
+            ]
+        )
         scales = torch.tensor([[1e-6] * 3, [1e3] * 3] + [[0.05, 0.02, 0.1]] * (N - 2))
         quats, opacities, colors = torch.randn(N, 4, generator=g), 0.2 + 0.79 * rand(N), rand(N, 3)
     viewmats = _look_at_viewmats(C)
     Ks = _intrinsics(C, W, H, f=0.9 * W)
     return dict(
         params=dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors),
-        viewmats=viewmats, Ks=Ks, width=W, height=H, kwargs=kw,
-    )  # fmt: skip
+        viewmats=viewmats,
+        Ks=Ks,
+        width=W,
+        height=H,
+        kwargs=kw,
+    )
 
 
 CASES = ("random_rgb", "multi_cam_antialiased_ed", "sh3_per_camera_bg", "dense_opaque", "extremes")
@@ -89,11 +103,17 @@ CASES = ("random_rgb", "multi_cam_antialiased_ed", "sh3_per_camera_bg", "dense_o
 
 def _run(case: dict, backend: str, device: str):
     params = {k: v.to(device).clone().requires_grad_(True) for k, v in case["params"].items()}
-    kw = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in case["kwargs"].items()}
+    kw: dict[str, Any] = {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in case["kwargs"].items()}
     render, alpha, meta = rasterize(
-        *params.values(), case["viewmats"].to(device), case["Ks"].to(device), case["width"], case["height"],
-        backend=backend, packed=False, **kw,
-    )  # fmt: skip
+        **params,
+        viewmats=case["viewmats"].to(device),
+        Ks=case["Ks"].to(device),
+        width=case["width"],
+        height=case["height"],
+        backend=backend,
+        packed=False,
+        **kw,
+    )
     meta["means2d"].retain_grad()
     g = torch.Generator().manual_seed(123)
     w_r = torch.randn(render.shape, generator=g).to(device)

@@ -5,6 +5,7 @@ gradients), float64 gradcheck, exceptions, extremes, and gsplat's DefaultStrateg
 """
 
 import math
+from typing import Any
 
 import pytest
 import torch
@@ -55,20 +56,42 @@ def covariances(quats, scales):
     w, x, y, z = F.normalize(quats, dim=-1).unbind(-1)
     R = torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
-    ).reshape(-1, 3, 3)  # fmt: skip
+    ).reshape(-1, 3, 3)
     M = R * scales[:, None, :]
     return M @ M.transpose(-1, -2)
 
 
+def rasterize_p(params, viewmats, Ks, width, height, **kwargs: Any):
+    """`rasterize` with the five Gaussian tensors given as one sequence."""
+    means, quats, scales, opacities, colors = params
+    return rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kwargs)
+
+
 def dense_reference(
-    means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, tile_size=16, eps2d=0.3,
-    backgrounds=None, antialiased=False, sh_degree=None, depth_channel=False,
-):  # fmt: skip
+    params,
+    viewmats,
+    Ks,
+    width,
+    height,
+    *,
+    tile_size=16,
+    eps2d=0.3,
+    backgrounds=None,
+    antialiased=False,
+    sh_degree=None,
+    depth_channel=False,
+):
     """An independent, slow twin of gsplat's pipeline: gsplat's own pure-torch projection, then its CUDA
     compositing kernel replayed literally, one Gaussian at a time (front to back) over all pixels at once:
     tile membership, alpha = min(0.999, o exp(-sigma)), skip alpha < 1/255 or sigma < 0, stop at next_T <= 1e-4.
@@ -76,6 +99,7 @@ def dense_reference(
     of pixels where the cut-off stopped compositing."""
     from gsplat.cuda._torch_impl import _fully_fused_projection, _spherical_harmonics
 
+    means, quats, scales, opacities, colors = params
     C, N = viewmats.shape[0], means.shape[0]
     radii, means2d, depths, conics, comp = _fully_fused_projection(
         means, covariances(quats, scales), viewmats, Ks, width, height, eps2d=eps2d, calc_compensations=antialiased
@@ -149,6 +173,7 @@ def test_single_gaussian_alpha_at_centre_and_falloff():
     color = torch.tensor([[0.2, 0.5, 1.0]])
     render, alpha, meta = rasterize(means, quats, scales, torch.tensor([o]), color, viewmats, Ks, W, H)
     assert render.shape == (1, H, W, 3) and alpha.shape == (1, H, W, 1)
+    assert meta["backend"] == "torch"  # "auto" on CPU tensors
     assert torch.allclose(meta["means2d"][0, 0], torch.tensor([8.5, 7.5]))
     torch.testing.assert_close(alpha[0, 7, 8, 0], torch.tensor(o))
     torch.testing.assert_close(render[0, 7, 8], o * color[0])
@@ -202,7 +227,7 @@ def test_empty_scene_gives_background(case):
     assert torch.equal(render, bg[:, None, None, :].expand(2, H, W, 3))
     assert meta["n_pairs"] == 0 and (meta["radii"] == 0).all() and meta["radii"].shape == (2, N)
     render.sum().backward()  # still a graph; gradients are zero, not NaN
-    assert torch.equal(means.grad, torch.zeros_like(means))
+    assert means.grad is not None and torch.equal(means.grad, torch.zeros_like(means))
 
 
 def test_transmittance_cutoff_is_exclusive():
@@ -230,14 +255,14 @@ def test_expected_depth_of_single_opaque_gaussian():
     z = 3.7
     means = torch.tensor([[0.0, 0.0, z]])
     args = (means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.4), torch.tensor([0.9]), torch.rand(1, 3))
-    render, alpha, _ = rasterize(*args, viewmats, Ks, W, H, render_mode="RGB+ED")
+    render, alpha, _ = rasterize_p(args, viewmats, Ks, W, H, render_mode="RGB+ED")
     covered = alpha[0, ..., 0] > 0
     assert covered.sum() > 10
     torch.testing.assert_close(render[0][covered][:, 3], torch.full((int(covered.sum()),), z))
     assert torch.equal(render[0][~covered][:, 3], torch.zeros(int((~covered).sum())))
-    acc_depth, alpha_d, _ = rasterize(*args, viewmats, Ks, W, H, render_mode="D")
+    acc_depth, alpha_d, _ = rasterize_p(args, viewmats, Ks, W, H, render_mode="D")
     torch.testing.assert_close(acc_depth, alpha_d * z)
-    ed, _, _ = rasterize(*args, viewmats, Ks, W, H, render_mode="ED")
+    ed, _, _ = rasterize_p(args, viewmats, Ks, W, H, render_mode="ED")
     torch.testing.assert_close(ed[..., 0], render[..., 3])
 
 
@@ -250,6 +275,7 @@ def test_expected_depth_of_single_opaque_gaussian():
         (1, 16, False, None, False, "RGB"),
         (2, 8, True, None, True, "RGB+ED"),
         (2, 4, False, 3, False, "RGB+D"),
+        (2, 16, False, 2, True, "RGB"),  # per-camera SH coefficients [C, N, K, 3], partial degree
     ],
 )
 def test_matches_dense_gsplat_twin(C, tile_size, antialiased, sh_degree, per_camera_colors, render_mode):
@@ -262,21 +288,39 @@ def test_matches_dense_gsplat_twin(C, tile_size, antialiased, sh_degree, per_cam
     viewmats = orbit_viewmats(C, dtype=dtype)
     _, Ks = pinhole(W, H, 30.0, C=C, dtype=dtype)
     if sh_degree is not None:
-        colors = 0.3 * torch.randn(N, 16, 3, dtype=dtype, generator=torch.Generator().manual_seed(3))
+        shape = (C, N, 16, 3) if per_camera_colors else (N, 16, 3)
+        colors = 0.3 * torch.randn(*shape, dtype=dtype, generator=torch.Generator().manual_seed(3))
     elif per_camera_colors:
         colors = torch.rand(C, N, 3, dtype=dtype)
     bg = torch.rand(C, 3, dtype=dtype)
     params = [means, quats, scales, opac, colors]
     for p in params:
         p.requires_grad_(True)
-    render, alpha, meta = rasterize(
-        *params, viewmats, Ks, W, H, tile_size=tile_size, backgrounds=bg, sh_degree=sh_degree,
-        rasterize_mode="antialiased" if antialiased else "classic", render_mode=render_mode,
-    )  # fmt: skip
+    render, alpha, meta = rasterize_p(
+        params,
+        viewmats,
+        Ks,
+        W,
+        H,
+        tile_size=tile_size,
+        backgrounds=bg,
+        sh_degree=sh_degree,
+        rasterize_mode="antialiased" if antialiased else "classic",
+        render_mode=render_mode,
+    )
     ref_r, ref_a, ref_m2, n_stopped = dense_reference(
-        *params, viewmats, Ks, W, H, tile_size=tile_size, eps2d=0.3, backgrounds=bg, antialiased=antialiased,
-        sh_degree=sh_degree, depth_channel=render_mode != "RGB",
-    )  # fmt: skip
+        params,
+        viewmats,
+        Ks,
+        W,
+        H,
+        tile_size=tile_size,
+        eps2d=0.3,
+        backgrounds=bg,
+        antialiased=antialiased,
+        sh_degree=sh_degree,
+        depth_channel=render_mode != "RGB",
+    )
     if render_mode == "RGB+ED":
         ref_r = torch.cat([ref_r[..., :3], ref_r[..., 3:] / ref_a.clamp(min=1e-10)], dim=-1)
     assert meta["n_pairs"] > 500
@@ -292,7 +336,7 @@ def test_matches_dense_gsplat_twin(C, tile_size, antialiased, sh_degree, per_cam
     ref_m2.retain_grad()
     ours = torch.autograd.grad((render * wr).sum() + (alpha * wa).sum(), params + [meta["means2d"]])
     ref = torch.autograd.grad((ref_r * wr).sum() + (ref_a * wa).sum(), params + [ref_m2])
-    for name, a, b in zip(["means", "quats", "scales", "opacities", "colors", "means2d"], ours, ref):
+    for name, a, b in zip(["means", "quats", "scales", "opacities", "colors", "means2d"], ours, ref, strict=True):
         assert torch.isfinite(a).all(), name
         assert rel_err(a, b) < 1e-8, (name, rel_err(a, b))
 
@@ -310,14 +354,14 @@ def test_chunked_early_termination_matches_dense_twin(monkeypatch):
     viewmats = orbit_viewmats(C, dtype=dtype)
     _, Ks = pinhole(W, H, 25.0, C=C, dtype=dtype)
     params = [means, quats, scales, opac.requires_grad_(True), colors.requires_grad_(True)]
-    render, alpha, meta = rasterize(*params, viewmats, Ks, W, H, tile_size=8)
-    ref_r, ref_a, _, n_stopped = dense_reference(*params, viewmats, Ks, W, H, tile_size=8)
+    render, alpha, meta = rasterize_p(params, viewmats, Ks, W, H, tile_size=8)
+    ref_r, ref_a, _, n_stopped = dense_reference(params, viewmats, Ks, W, H, tile_size=8)
     assert n_stopped > 50
     assert meta["n_candidates"] < 0.9 * _count_candidates_without_chunks(params, viewmats, Ks, W, H, monkeypatch)
     assert rel_err(render, ref_r) < 1e-10 and rel_err(alpha, ref_a) < 1e-10
     ours = torch.autograd.grad(render.square().sum() + alpha.sum(), params[3:])
     ref = torch.autograd.grad(ref_r.square().sum() + ref_a.sum(), params[3:])
-    for a, b in zip(ours, ref):
+    for a, b in zip(ours, ref, strict=True):
         assert rel_err(a, b) < 1e-8
 
 
@@ -326,7 +370,7 @@ def _count_candidates_without_chunks(params, viewmats, Ks, W, H, monkeypatch):
 
     monkeypatch.setattr(rt, "LAYERS_PER_CHUNK", 10**6)
     with torch.no_grad():
-        return rasterize(*params, viewmats, Ks, W, H, tile_size=8)[2]["n_candidates"]
+        return rasterize_p(params, viewmats, Ks, W, H, tile_size=8)[2]["n_candidates"]
 
 
 def test_packed_matches_unpacked():
@@ -354,7 +398,8 @@ def test_sh_matches_gsplat_torch_twin():
     coeffs = torch.randn(50, 25, 3, dtype=torch.float64)
     for degree in range(5):
         torch.testing.assert_close(
-            spherical_harmonics(degree, dirs, coeffs), _spherical_harmonics(degree, dirs, coeffs[:, : (degree + 1) ** 2])
+            spherical_harmonics(degree, dirs, coeffs),
+            _spherical_harmonics(degree, dirs, coeffs[:, : (degree + 1) ** 2]),
         )
 
 
@@ -375,7 +420,7 @@ def test_gradcheck_float64():
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
 
     def fn(*p):
-        render, alpha, meta = rasterize(*p, viewmats, Ks, W, H, render_mode="RGB+ED")
+        render, alpha, meta = rasterize_p(p, viewmats, Ks, W, H, render_mode="RGB+ED")
         assert meta["n_pairs"] == 3 * W * H
         return render, alpha
 
@@ -385,14 +430,21 @@ def test_gradcheck_float64():
 # ----------------------------------------------------------------------------------------------- exceptions
 
 
-def _valid_args(N=4, C=1):
+def _valid_args(N=4, C=1) -> dict[str, Any]:
     means, quats, scales, opac, colors = random_scene(N, seed=0)
     means = means + torch.tensor([0.0, 0.0, 3.0])
     viewmats, Ks = pinhole(8, 8, 8.0, C=C)
     return dict(
-        means=means, quats=quats, scales=scales, opacities=opac, colors=colors, viewmats=viewmats, Ks=Ks,
-        width=8, height=8,
-    )  # fmt: skip
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opac,
+        colors=colors,
+        viewmats=viewmats,
+        Ks=Ks,
+        width=8,
+        height=8,
+    )
 
 
 @pytest.mark.parametrize(
@@ -455,17 +507,17 @@ def test_extremes_are_finite():
     colors = torch.rand(N, 3, generator=torch.Generator().manual_seed(1))
     for mode in ("classic", "antialiased"):
         params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
-        render, alpha, meta = rasterize(*params, viewmats, Ks, W, H, render_mode="RGB+ED", rasterize_mode=mode)
+        render, alpha, meta = rasterize_p(params, viewmats, Ks, W, H, render_mode="RGB+ED", rasterize_mode=mode)
         assert torch.isfinite(render).all() and torch.isfinite(alpha).all()
         assert meta["radii"][0, 2] == 0 and meta["radii"][0, 3] == 0  # behind / at the camera: culled
         assert meta["radii"][0, 1] > 0 and meta["radii"][0, 4] > 0
         assert meta["n_pairs"] > 0
         meta["means2d"].retain_grad()
         (render.square().sum() + alpha.sum()).backward()
-        for name, p in zip(["means", "quats", "scales", "opacities", "colors"], params):
-            assert torch.isfinite(p.grad).all(), (mode, name)
-        assert torch.isfinite(meta["means2d"].grad).all()
-        assert params[0].grad[1].abs().sum() > 0  # the huge Gaussian gets a gradient
+        grads = [p.grad for p in params] + [meta["means2d"].grad]
+        for name, g in zip(["means", "quats", "scales", "opacities", "colors", "means2d"], grads, strict=True):
+            assert g is not None and torch.isfinite(g).all(), (mode, name)
+        assert grads[0] is not None and grads[0][1].abs().sum() > 0  # the huge Gaussian gets a gradient
 
 
 # ----------------------------------------------------------------------------------------------- densification
@@ -490,7 +542,9 @@ def test_default_strategy_accepts_meta():
             "colors": colors,
         }
     )
-    optimizers = {k: torch.optim.Adam([{"params": p, "lr": 1e-3, "name": k}]) for k, p in params.items()}
+    optimizers: dict[str, torch.optim.Optimizer] = {
+        k: torch.optim.Adam([{"params": p, "lr": 1e-3, "name": k}]) for k, p in params.items()
+    }
     strategy = DefaultStrategy(
         refine_start_iter=0, refine_every=2, grow_grad2d=1e-12, grow_scale3d=0.08, prune_opa=0.0, reset_every=10_000
     )
@@ -500,12 +554,21 @@ def test_default_strategy_accepts_meta():
     target = torch.rand(1, H, W, 3)
     for step in (1, 2):
         render, alpha, info = rasterize(
-            params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
-            params["colors"], viewmats, Ks, W, H, packed=False,
-        )  # fmt: skip
+            params["means"],
+            params["quats"],
+            torch.exp(params["scales"]),
+            torch.sigmoid(params["opacities"]),
+            params["colors"],
+            viewmats,
+            Ks,
+            W,
+            H,
+            packed=False,
+        )
         strategy.step_pre_backward(params, optimizers, state, step, info)
         (render - target).square().mean().backward()
-        assert info["means2d"].grad is not None and info["means2d"].grad.shape == (1, N, 2)
+        grad2d = info["means2d"].grad
+        assert grad2d is not None and grad2d.shape == (1, N, 2)
         visible = info["radii"][0] > 0
         if step == 1:
             strategy.step_post_backward(params, optimizers, state, step, info, packed=False)

@@ -27,7 +27,7 @@ def _train(tmp_path: Path, method: str = "willags", steps: int = 20, data=None, 
     config.output_dir = tmp_path
     config.timestamp = "t"
     config.experiment_name = "exp"
-    config.machine.device_type = "cpu"
+    config.machine.device_type = "cuda" if torch.cuda.is_available() else "cpu"
     if data is not None:
         config.pipeline.datamanager.data = data
     config.pipeline.eval_protocol.steps = eval_steps  # saved in config.yml, so ns-eval uses it too

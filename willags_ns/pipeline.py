@@ -10,7 +10,7 @@ from pathlib import Path
 
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 
-from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model
+from willags_ns.eval.protocol import EvalProtocolConfig, eval_split_images, evaluate_model
 
 
 @dataclass
@@ -46,7 +46,7 @@ class WillagsPipeline(VanillaPipeline):
         latent without optimisation; `full_*` score the whole image.
         """
         ds = self.datamanager.eval_dataset
-        images = [ds.get_image_float32(i) for i in range(len(ds))]
+        images = eval_split_images(self.datamanager)
         names = [Path(p).name for p in ds.image_filenames]
         self.eval()
         agg, per_image = evaluate_model(self.model, ds.cameras, images, self.config.eval_protocol, names)

@@ -111,6 +111,23 @@ class frozen:
         return False
 
 
+def eval_split_images(datamanager) -> List[Tensor]:
+    """Eval-split GT images [H, W, 3] float in [0, 1], exactly as the eval cameras see them.
+
+    nerfstudio's full-image datamanager undistorts (and crops) images when it caches them and rewrites the eval
+    cameras' intrinsics and sizes in place, so the dataset's raw files no longer match the cameras: use its cache.
+    """
+    cache = getattr(datamanager, "cached_eval", None)
+    if cache is None:
+        ds = datamanager.eval_dataset
+        return [ds.get_image_float32(i) for i in range(len(ds))]
+    out = []
+    for d in cache:
+        img = d["image"]
+        out.append(img.float() / 255.0 if img.dtype == torch.uint8 else img.float())
+    return out
+
+
 def evaluate_model(model, cameras, images: List[Tensor], cfg: EvalProtocolConfig, names: Optional[List[str]] = None):
     """Run the protocol over test `cameras` (nerfstudio Cameras, one per image) and GT `images` [H, W, 3] in [0, 1].
 
@@ -127,7 +144,13 @@ def evaluate_model(model, cameras, images: List[Tensor], cfg: EvalProtocolConfig
         for i in range(n):
             gt = images[i][..., :3].float().to(model.device)
             cam = cameras[i : i + 1].to(model.device)
-            left, right = split_halves(gt.shape[1])
+            h, w = int(cam.height.item()), int(cam.width.item())
+            if gt.shape[:2] != (h, w):
+                raise ValueError(
+                    f"test image {names[i] if names else i}: ground truth is {gt.shape[1]}x{gt.shape[0]} but its "
+                    f"camera renders {w}x{h} (were the images undistorted/cropped? use eval_split_images())"
+                )
+            left, right = split_halves(w)
 
             def render_fn(z: Optional[Tensor], cam=cam) -> Tensor:
                 c = cam

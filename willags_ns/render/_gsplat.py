@@ -1,6 +1,6 @@
 """Adapter over gsplat 1.4.0's public `gsplat.rasterization()` (CUDA). No private gsplat module is touched."""
 
-from typing import Optional
+from typing import Any, cast
 
 from torch import Tensor
 
@@ -16,18 +16,18 @@ def rasterize_gsplat(
     width: int,
     height: int,
     *,
-    backgrounds: Optional[Tensor] = None,
+    backgrounds: Tensor | None = None,
     render_mode: str = "RGB",
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = 0.3,
-    sh_degree: Optional[int] = None,
+    sh_degree: int | None = None,
     packed: bool = False,
     absgrad: bool = False,
     rasterize_mode: str = "classic",
     radius_clip: float = 0.0,
     tile_size: int = 16,
-) -> tuple:
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """The gsplat backend of `willags_ns.render.rasterize`: every argument is passed through unchanged."""
     # imported here: importing gsplat is slow and its CUDA extension is only built on first use
     from gsplat import rasterization
@@ -50,9 +50,9 @@ def rasterize_gsplat(
         packed=packed,
         tile_size=tile_size,
         backgrounds=backgrounds,
-        render_mode=render_mode,
+        render_mode=cast(Any, render_mode),  # validated by `rasterize`
         absgrad=absgrad,
-        rasterize_mode=rasterize_mode,
+        rasterize_mode=cast(Any, rasterize_mode),
     )
     meta["backend"] = "gsplat"
     return render, alpha, meta

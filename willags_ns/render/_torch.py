@@ -1,33 +1,31 @@
 """Pure-PyTorch 3D Gaussian rasterizer: the CPU twin of gsplat 1.4.0's CUDA `rasterization()` (pinhole, 3DGS).
 
 No gsplat import anywhere here: gsplat's own `_torch_impl` still calls CUDA ops for binning, so it cannot run on a
-CPU-only machine.
+CPU-only machine. Every rule below is gsplat's (checked against its CUDA kernels in tests/test_render_parity_cuda.py
+and against a literal replay of its compositing loop in tests/test_render_torch.py).
 
-Pipeline (all vectorised, no Python loop over Gaussians, tiles or pixels):
+Pipeline (vectorised: no Python loop over Gaussians, tiles or pixels; never an N x pixels matrix):
 
-1. `project_gaussians`: EWA splatting exactly as gsplat's `fully_fused_projection` (pinhole): world->camera,
-   covariance R S S^T R^T, Jacobian with gsplat's clipped tx/ty (lim = (W - cx) / fx + 0.3 tan_fovx),
-   cov2d + eps2d I, conic = cov2d^-1, radius = ceil(3 sqrt(lambda_max)), culling (depth outside
-   [near, far], radius <= radius_clip, 3-sigma box off-screen) -> radii 0.
-2. Binning into Gaussian-pixel pairs, never a dense N x pixels matrix: gsplat rasterises pixel p with splat g
-   iff p lies in one of g's intersected 16x16 tiles and alpha = min(0.999, o exp(-sigma)) >= 1/255 (sigma >= 0).
-   alpha >= 1/255 <=> sigma <= ln(255 o), an ellipse whose axis-aligned box has half-widths
-   sqrt(2 ln(255 o) Sigma_xx) and sqrt(2 ln(255 o) Sigma_yy); the candidate pixels are that box intersected with
-   the tile box, enumerated with one repeat_interleave and filtered by the exact alpha test. This is the same pair
-   set as gsplat (including the pixels just outside the 3-sigma radius that gsplat still touches in the tile).
-3. Splats are enumerated in (camera, depth) order, so ONE stable sort by pixel id gives front-to-back lists per
-   pixel. Transmittance is a segmented exclusive cumsum of log(1 - alpha) in float64 (global cumsum minus its
-   value at each pixel's first pair). gsplat's early stop (next_T = T (1 - alpha) <= 1e-4 ends the pixel,
-   exclusive) keeps a prefix of each pixel's list.
-4. Only the surviving pairs are re-evaluated with autograd enabled; weights w = alpha T are scattered into the
-   image with index_add. Autograd provides the backward, including d loss / d means2d for densification.
+1. `project_gaussians` (autograd): EWA splatting as gsplat's `fully_fused_projection`: world->camera, covariance
+   R S S^T R^T, Jacobian with gsplat's clipped tx/ty (lim = (W - cx) / fx + 0.3 tan_fovx), cov2d + eps2d I,
+   conic = cov2d^-1, radius = ceil(3 sqrt(lambda_max)), culling (depth outside [near, far], radius <= radius_clip,
+   3-sigma box off-screen) -> radii 0.
+2. `bin_pairs` (no grad): gsplat composites pixel p with splat s iff p lies in one of s's intersected tiles and
+   alpha = min(0.999, o exp(-sigma)) >= 1/255 with sigma >= 0. alpha >= 1/255 <=> sigma <= ln(255 o), an ellipse;
+   its pixels are enumerated row by row over the ellipse's chords (clipped to the tile box) with repeat_interleave,
+   then tested exactly. Splats are enumerated in (camera, depth) order, so ONE stable sort by pixel id gives
+   front-to-back lists. In dense scenes splats go in depth chunks and pixels already cut off are skipped.
+3. `_Composite` (custom autograd.Function): transmittance is a segmented exclusive cumsum of log(1 - alpha) in
+   float64 (global cumsum minus its value at each pixel's first pair); gsplat's early stop (next_T <= 1e-4 ends the
+   pixel, exclusive); w = alpha T scattered into the image with index_add. Its backward is the analytic gradient
+   of gsplat's kernel, vectorised with a second segmented cumsum. Compared with autograd through the same ops it
+   reuses the alpha computed while binning and keeps no graph over the pairs: 27 vs 37 ms for this stage at 20k
+   Gaussians / 128^2 / 1 thread. The gradient reaches meta["means2d"], which densification strategies read.
 
-Steps 2-3 run under no_grad on detached values: they only decide *which* pairs exist and in what order; the
-pair set is piecewise constant in the parameters, exactly as in gsplat (whose backward ignores it too).
+The pair set and its order are piecewise constant in the parameters, as in gsplat, whose backward ignores them too.
 """
 
 import math
-from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -183,7 +181,7 @@ def bin_pairs(
     height: int,
     n_cameras: int,
     tile_size: int,
-    layers_per_chunk: Optional[int] = None,
+    layers_per_chunk: int | None = None,
 ) -> dict:
     """The Gaussian-pixel pairs gsplat composites (before its T cut-off), sorted by (pixel, depth), with alpha.
 
@@ -222,7 +220,9 @@ def bin_pairs(
     # rows: one per (splat, image row) crossing the ellipse
     rs = torch.repeat_interleave(torch.arange(S, device=device), ny)  # [R]
     R = rs.numel()
-    tab = torch.stack([mx, my, a, b, c, det, t, opacities, y0, tx0 * tile_size, torch.clamp(tx1 * tile_size, max=width)])
+    tab = torch.stack(
+        [mx, my, a, b, c, det, t, opacities, y0, tx0 * tile_size, torch.clamp(tx1 * tile_size, max=width)]
+    )
     mx_r, my_r, a_r, b_r, c_r, det_r, t_r, o_r, y0_r, xa_r, xb_r = tab.index_select(1, rs)
     y = y0_r + (torch.arange(R, device=device) - (torch.cumsum(ny, 0) - ny).index_select(0, rs)).to(dtype)
     dy = y + 0.5 - my_r
@@ -239,20 +239,23 @@ def bin_pairs(
 
     ends = torch.cumsum(nx, 0)
     M = int(ends[-1]) if R > 0 else 0
+    # int32 pair indices when they fit: half the memory traffic, and int32 keys sort ~2x faster
+    idx_dtype = torch.int32 if max(M, n_pix, S) < 2**31 else torch.int64
     chunk = (layers_per_chunk or LAYERS_PER_CHUNK) * n_pix
     bounds = [0, R]
     if M > 3 * chunk:  # below ~50 layers per pixel the extra passes cost more than the cut-off saves
         cuts = torch.searchsorted(ends, torch.arange(chunk, M, chunk, device=device)).tolist()
         bounds = sorted(set([0, R] + cuts))
     log_t = torch.zeros(n_pix, dtype=torch.float64, device=device) if len(bounds) > 2 else None
+    rows_i = torch.stack([ends - nx, base, rs]).to(idx_dtype)  # [3, R]: first pair, first pixel, splat
     parts = []
-    for r0, r1 in zip(bounds[:-1], bounds[1:]):
+    for r0, r1 in zip(bounds[:-1], bounds[1:], strict=True):
         n = nx[r0:r1]
-        rows_i = torch.stack([(ends[r0:r1] - n), base[r0:r1], rs[r0:r1]])  # [3, r]
-        first, base_p, sp = torch.repeat_interleave(rows_i, n, dim=1)
+        first, base_p, sp = torch.repeat_interleave(rows_i[:, r0:r1], n, dim=1)
         dx0, dy_p, A, B, Cc, o = torch.repeat_interleave(rows_f[:, r0:r1], n, dim=1)
         start = int(ends[r0 - 1]) if r0 > 0 else 0
-        local = torch.arange(start, int(ends[r1 - 1]) if r1 > r0 else start, device=device) - first  # within row
+        stop = int(ends[r1 - 1]) if r1 > r0 else start
+        local = torch.arange(start, stop, dtype=idx_dtype, device=device) - first  # index within the row's chord
         dx = dx0 + local.to(dtype)
         pix = base_p + local
         sigma = (A * dx + B) * dx + Cc
@@ -261,18 +264,16 @@ def bin_pairs(
         if log_t is not None and r0 > 0:
             ok &= (log_t > math.log(T_MIN)).index_select(0, pix)  # pixels already cut off stay done
         keep = torch.nonzero(ok).squeeze(1)
-        part = [sp, pix, raw, dx, dy_p]
-        part = [x.index_select(0, keep) for x in part]
+        part = [x.index_select(0, keep) for x in (sp, pix, raw, dx, dy_p)]
         if log_t is not None:
-            log_t.index_add_(0, part[1], torch.log1p(-torch.clamp_max(part[2], ALPHA_MAX).double()))
+            log_t.index_add_(0, part[1].long(), torch.log1p(-torch.clamp_max(part[2], ALPHA_MAX).double()))
         parts.append(part)
-    sp, pix, raw, dx, dy = [torch.cat(x) for x in zip(*parts)] if len(parts) > 1 else parts[0]
+    sp, pix, raw, dx, dy = [torch.cat(x) for x in zip(*parts, strict=True)] if len(parts) > 1 else parts[0]
     # splats were enumerated in (camera, depth) order: one stable sort by pixel gives front-to-back lists
-    key = pix.int() if n_pix < 2**31 else pix  # int32 keys sort ~2x faster
-    key, perm = torch.sort(key, stable=True)
+    pix, perm = torch.sort(pix, stable=True)
     return {
-        "sp": sp.index_select(0, perm),
-        "pix": key.long(),
+        "sp": sp.index_select(0, perm).long(),  # int64: index_add with int32 indices is very slow on CPU
+        "pix": pix.long(),
         "raw": raw.index_select(0, perm),
         "dx": dx.index_select(0, perm),
         "dy": dy.index_select(0, perm),
@@ -329,11 +330,16 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, v_img, v_acc):
+    def backward(ctx, *grad_outputs):  # type: ignore[override]
+        v_img, v_acc = grad_outputs  # [D, P], [P]
         tab, features, sp, pix, raw, alpha, T, dx, dy, t_final = ctx.saved_tensors
         G = v_img.contiguous().index_select(1, pix)  # [D, K] (contiguous: the grad of a sum is a stride-0 view)
         w = alpha * T
-        v_features = torch.zeros_like(features.t()).index_add_(1, sp, G * w).t()
+        v_features = None
+        if ctx.needs_input_grad[3]:
+            v_features = torch.zeros_like(features.t()).index_add_(1, sp, G * w).t()
+        if not any(ctx.needs_input_grad[:3]):
+            return None, None, None, v_features, None, None, None, None, None, None, None
         gf = (G * features.t().index_select(1, sp)).sum(0)  # g . f_i
         # sum over later pairs of the same pixel of w_j g.f_j: segment total minus inclusive cumsum (float64)
         cs = torch.cumsum((w * gf).double(), 0)
@@ -371,9 +377,18 @@ def composite_pairs(
     """Differentiable compositing (see `_Composite`). Returns features [n_pix, D], alpha [n_pix], n_pairs."""
     stats: dict = {}
     img, acc = _Composite.apply(
-        means2d, conics, opacities, features, pairs["sp"], pairs["pix"], pairs["raw"], pairs["dx"], pairs["dy"],
-        n_pix, stats,
-    )  # fmt: skip
+        means2d,
+        conics,
+        opacities,
+        features,
+        pairs["sp"],
+        pairs["pix"],
+        pairs["raw"],
+        pairs["dx"],
+        pairs["dy"],
+        n_pix,
+        stats,
+    )
     return img.t(), acc, stats["n_pairs"]
 
 
@@ -397,12 +412,12 @@ def rasterize_torch(
     width: int,
     height: int,
     *,
-    backgrounds: Optional[Tensor] = None,  # [C, D]
+    backgrounds: Tensor | None = None,  # [C, D]
     render_mode: str = "RGB",
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = 0.3,
-    sh_degree: Optional[int] = None,
+    sh_degree: int | None = None,
     packed: bool = False,
     rasterize_mode: str = "classic",
     radius_clip: float = 0.0,
@@ -476,9 +491,16 @@ def rasterize_torch(
     feats = torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0]  # [S, D']
 
     pairs = bin_pairs(
-        m2_s.detach(), con_s.detach(), op_s.detach(), radii.reshape(-1).index_select(0, src), cam_s, width, height, C,
+        m2_s.detach(),
+        con_s.detach(),
+        op_s.detach(),
+        radii.reshape(-1).index_select(0, src),
+        cam_s,
+        width,
+        height,
+        C,
         tile_size,
-    )  # fmt: skip
+    )
     out, acc, n_pairs = composite_pairs(m2_s, con_s, op_s, feats, pairs, C * height * width)
     render = out.reshape(C, height, width, -1)
     alpha = acc.reshape(C, height, width, 1)

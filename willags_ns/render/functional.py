@@ -10,7 +10,7 @@ Example:
     >>> render.shape, alpha.shape  # [C, 48, 64, D], [C, 48, 64, 1]
 """
 
-from typing import Optional
+from typing import Any
 
 from jaxtyping import Float
 from torch import Tensor
@@ -35,19 +35,19 @@ def rasterize(
     width: int,
     height: int,
     *,
-    backgrounds: Optional[Float[Tensor, "C D"]] = None,
+    backgrounds: Float[Tensor, "C D"] | None = None,
     render_mode: str = "RGB",
     backend: str = "auto",
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = 0.3,
-    sh_degree: Optional[int] = None,
+    sh_degree: int | None = None,
     packed: bool = False,
     absgrad: bool = False,
     rasterize_mode: str = "classic",
     radius_clip: float = 0.0,
     tile_size: int = 16,
-) -> tuple:
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Rasterize N 3D Gaussians into C pinhole cameras (shapes and semantics of gsplat 1.4.0 `rasterization`).
 
     Args:
@@ -96,7 +96,7 @@ def rasterize(
         raise ValueError(f"tile_size must be a positive int, got {tile_size!r}")
     if backend == "auto":
         backend = "gsplat" if means.is_cuda else "torch"
-    kwargs = dict(
+    kwargs: dict[str, Any] = dict(
         backgrounds=backgrounds,
         render_mode=render_mode,
         near_plane=near_plane,

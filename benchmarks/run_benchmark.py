@@ -1,0 +1,92 @@
+"""Train and evaluate a grid of methods x scenes x step budgets; write docs/benchmarks.{json,md}.
+
+    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --out docs/benchmarks
+    python benchmarks/run_benchmark.py --grid configs/benchmark_gpu.json --out docs/benchmarks   # adds GPU records
+    python benchmarks/run_benchmark.py --render-only --out docs/benchmarks                        # markdown from JSON
+    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --dry-run                # list the runs
+    python benchmarks/run_benchmark.py --merge gpu_out/benchmarks.json --out docs/benchmarks      # fetched records
+
+Each run trains in its own subprocess (see willags_ns/eval/harness.py); records merge into the existing JSON
+(same (scene, method, device, steps, tag) replaced, others kept) and the markdown is regenerated after every run.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # `python benchmarks/run_benchmark.py` from anywhere
+    sys.path.insert(0, str(REPO))
+
+from willags_ns.eval import harness  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--grid", type=Path, help="grid JSON (configs/benchmark_cpu.json, configs/benchmark_gpu.json)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=REPO / "docs" / "benchmarks",
+        help="output prefix: writes <out>.json and <out>.md (default docs/benchmarks)",
+    )
+    ap.add_argument(
+        "--work-dir",
+        type=Path,
+        default=Path("/tmp/willags-bench"),
+        help="per-run folders (spec, log, result; checkpoints with --keep-runs)",
+    )
+    ap.add_argument("--methods", nargs="*", help="only these methods of the grid")
+    ap.add_argument("--scenes", nargs="*", help="only these scenes of the grid (short names: default, fox-wild, ...)")
+    ap.add_argument("--dry-run", action="store_true", help="list the runs and exit")
+    ap.add_argument("--keep-runs", action="store_true", help="keep each run's checkpoint and config.yml")
+    ap.add_argument("--steps", nargs="*", type=int, help="only these step budgets of the grid")
+    ap.add_argument(
+        "--stop-after-s",
+        type=float,
+        default=0.0,
+        help="start no new run after this many seconds (time-limited machines); 0 = no limit",
+    )
+    ap.add_argument("--render-only", action="store_true", help="regenerate <out>.md from <out>.json and exit")
+    ap.add_argument(
+        "--merge",
+        nargs="*",
+        type=Path,
+        default=[],
+        help="merge the records of these JSON files (e.g. fetched from a GPU run) into <out>.json, "
+        "regenerate <out>.md and exit",
+    )
+    args = ap.parse_args(argv)
+    out = args.out if args.out.is_absolute() else Path.cwd() / args.out
+    if args.merge:
+        recs = harness.load_records(out.with_suffix(".json"))
+        for f in args.merge:
+            recs = harness.merge_records(recs, harness.load_records(f))
+        _, m = harness.write_outputs(recs, out)
+        print(f"{len(recs)} records -> {out.with_suffix('.json')}, {m}")
+        return 0
+    if args.render_only:
+        recs = harness.load_records(out.with_suffix(".json"))
+        j, m = harness.write_outputs(recs, out)
+        print(f"{len(recs)} records -> {m}")
+        return 0
+    if args.grid is None:
+        ap.error("--grid is required (unless --render-only)")
+    command = "python benchmarks/run_benchmark.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    harness.run_grid(
+        args.grid,
+        out,
+        args.work_dir,
+        args.methods,
+        args.scenes,
+        args.dry_run,
+        args.keep_runs,
+        command,
+        stop_after_s=args.stop_after_s,
+        only_steps=args.steps,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

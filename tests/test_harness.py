@@ -1,0 +1,292 @@
+"""Benchmark harness: grid parsing, schedules, record merging, markdown and goals; one tiny end-to-end run."""
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from willags_ns.eval import harness
+from willags_ns.eval.harness import (
+    apply_schedule,
+    build_config,
+    goal_rows,
+    merge_records,
+    pareto_rows,
+    parse_grid,
+    render_markdown,
+)
+
+# ---------------------------------------------------------------- grid
+
+
+def test_parse_grid_defaults_overrides_and_tags():
+    grid = {
+        "steps": [100, 200],
+        "downscale": 2,
+        "protocol_steps": 16,
+        "runs": [
+            {"scene": "default", "methods": ["willags", "willags-3dgs"]},
+            {"scene": "../shared/data/fox-wild", "methods": ["willags"], "steps": [50], "protocol_steps": 4},
+            {"scene": "sacre-coeur-mini", "methods": ["willags-lite"], "downscale": 4, "tag": "x"},
+        ],
+    }
+    settings, specs = parse_grid(grid)
+    assert settings["device"] == "auto"
+    keys = [(s.scene_name, s.method, s.steps) for s in specs]
+    assert keys == [
+        ("default", "willags", 100), ("default", "willags", 200),
+        ("default", "willags-3dgs", 100), ("default", "willags-3dgs", 200),
+        ("fox-wild", "willags", 50), ("sacre-coeur-mini", "willags-lite", 100), ("sacre-coeur-mini", "willags-lite", 200),
+    ]  # fmt: skip
+    default, fox, sacre = specs[0], specs[4], specs[5]
+    assert default.downscale == 1 and default.tag == ""  # the synthetic scene is never downscaled
+    assert fox.downscale == 2 and fox.tag == "ds2" and fox.protocol_steps == 4
+    assert default.protocol_steps == 16
+    assert sacre.downscale == 4 and sacre.tag == "x"
+
+
+@pytest.mark.parametrize(
+    "grid",
+    [
+        {"runs": []},
+        {"stepz": [1], "runs": [{"scene": "default", "methods": ["willags"]}]},
+        {"runs": [{"scene": "default", "methods": ["nerfacto"]}]},
+        {"runs": [{"scene": "default", "methods": ["willags"], "step": 3}]},
+        {"runs": [{"methods": ["willags"]}]},
+        {"runs": [{"scene": "default", "methods": ["willags"], "steps": [0]}]},
+        {"device": "tpu", "runs": [{"scene": "default", "methods": ["willags"]}]},
+    ],
+)
+def test_parse_grid_rejects_bad_grids(grid):
+    with pytest.raises(ValueError):
+        parse_grid(grid)
+
+
+def test_shipped_grids_parse():
+    for name in ("benchmark_cpu.json", "benchmark_gpu.json"):
+        settings, specs = parse_grid(json.loads((harness.REPO / "configs" / name).read_text()))
+        assert specs, name
+        methods = {s.method for s in specs}
+        assert {"willags", "willags-lite", "willags-novae", "willags-nofield", "willags-nomask"} <= methods
+    _, gpu = parse_grid(json.loads((harness.REPO / "configs" / "benchmark_gpu.json").read_text()))
+    assert any(s.method == "splatfacto" for s in gpu)
+
+
+def test_resolve_scene(tmp_path):
+    assert harness.resolve_scene("default") is None
+    (tmp_path / "data" / "sc").mkdir(parents=True)
+    assert harness.resolve_scene("sc", [str(tmp_path / "data")]) == (tmp_path / "data" / "sc").resolve()
+    assert harness.resolve_scene(str(tmp_path / "data" / "sc")) == (tmp_path / "data" / "sc").resolve()
+    with pytest.raises(FileNotFoundError):
+        harness.resolve_scene("no-such-scene", [str(tmp_path)])
+
+
+def test_downscaled_scene_mirror(tmp_path):
+    src = tmp_path / "scene"
+    (src / "images").mkdir(parents=True)
+    (src / "transforms.json").write_text("{}")
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 255, (7, 9, 3), dtype=np.uint8)).save(src / "images" / "a.png")
+    Image.fromarray(np.full((6, 10, 3), 200, np.uint8)).save(src / "images" / "b.jpg")
+    dst = harness.downscaled_scene(src, 2, cache_root=tmp_path / "cache")
+    assert (dst / "transforms.json").is_symlink() and (dst / "images").is_symlink()
+    assert Image.open(dst / "images_2" / "a.png").size == (4, 3)  # floor(9/2) x floor(7/2)
+    small_b = np.asarray(Image.open(dst / "images_2" / "b.jpg"))
+    assert small_b.shape == (3, 5, 3) and abs(int(small_b.mean()) - 200) <= 2
+    mtime = (dst / "images_2" / "a.png").stat().st_mtime_ns
+    assert harness.downscaled_scene(src, 2, cache_root=tmp_path / "cache") == dst
+    assert (dst / "images_2" / "a.png").stat().st_mtime_ns == mtime  # reused, not rewritten
+    assert not list(src.glob("images_*"))  # the source is never written
+    assert harness.downscaled_scene(src, 1, cache_root=tmp_path / "cache") == src.resolve()
+
+
+# ---------------------------------------------------------------- schedules
+
+
+@pytest.mark.parametrize("method", ["willags", "willags-lite", "willags-3dgs", "willags-novae"])
+def test_short_schedule_is_the_same_for_every_method(method, tmp_path):
+    cfg = build_config(method, 300, "cpu", None, None, "short", tmp_path)
+    m = cfg.pipeline.model
+    assert cfg.max_num_iterations == 300
+    assert (m.num_downscales, m.warmup_length, m.refine_every, m.stop_split_at) == (0, 50, 50, 240)
+    assert m.reset_alpha_every * m.refine_every > 300  # no opacity reset inside the run
+    if hasattr(m, "mask"):
+        assert m.mask.warmup_steps == 75
+    scheds = [g["scheduler"] for g in cfg.optimizers.values() if g.get("scheduler") is not None]
+    assert scheds and all(s.max_steps == 300 for s in scheds)
+    assert all(getattr(s, "warmup_steps", 0) < 300 for s in scheds)
+    assert cfg.steps_per_eval_image == 0 and cfg.steps_per_eval_all_images == 0  # train_s is training only
+    assert m.log_images_every == 0
+    if method == "willags-novae":
+        assert m.use_vae is False
+
+
+def test_default_schedule_changes_only_the_budget(tmp_path):
+    ref = harness.base_trainer_config("willags")
+    cfg = harness.base_trainer_config("willags")
+    apply_schedule(cfg, 5000, "default")
+    assert cfg.max_num_iterations == 5000
+    assert cfg.pipeline.model == ref.pipeline.model
+    with pytest.raises(ValueError):
+        apply_schedule(cfg, 10, "fast")
+
+
+# ---------------------------------------------------------------- records, goals, markdown
+
+
+def _rec(scene, method, steps, psnr, device="cpu", tag="ds2", train_s=100.0, **kw):
+    r = {
+        "scene": scene, "method": method, "device": device, "steps": steps, "tag": tag, "psnr": psnr,
+        "ssim": 0.5, "lpips": None, "full_psnr": psnr - 0.1, "encoder_psnr": psnr - 1, "train_s": train_s,
+        "s_per_step": train_s / steps, "fps": 10.0, "num_gaussians": 1234, "peak_mem_gb": 1.5, "status": "ok",
+        "date": "2026-01-02T03:04:05", "command": "python benchmarks/run_benchmark.py --grid g.json",
+        "machine": "2 CPU cores", "schedule": "short", "protocol_steps": 32, "image_hw": [240, 135],
+        "num_train_images": 58, "num_images": 4.0,
+    }  # fmt: skip
+    r.update(kw)
+    return r
+
+
+def test_merge_replaces_same_key_and_keeps_others():
+    old = [_rec("fox-wild", "willags", 300, 18.0), _rec("fox-wild", "willags", 100, 15.0),
+           _rec("fox-wild", "willags", 300, 25.0, device="cuda", tag="")]  # fmt: skip
+    new = [_rec("fox-wild", "willags", 300, 19.0), _rec("fox-clean", "willags", 300, 20.0)]
+    merged = merge_records(old, new)
+    assert len(merged) == 4
+    by = {harness.record_key(r): r["psnr"] for r in merged}
+    assert by[("fox-wild", "willags", "cpu", 300, "ds2")] == 19.0  # replaced
+    assert by[("fox-wild", "willags", "cpu", 100, "ds2")] == 15.0  # kept
+    assert by[("fox-wild", "willags", "cuda", 300, "")] == 25.0  # other device kept
+    assert by[("fox-clean", "willags", "cpu", 300, "ds2")] == 20.0  # added
+    # a different tag is a different record
+    assert len(merge_records(merged, [_rec("fox-wild", "willags", 300, 1.0, tag="ds4")])) == 5
+
+
+def test_write_outputs_merges_into_existing_file(tmp_path):
+    out = tmp_path / "bench"
+    harness.write_outputs([_rec("fox-wild", "willags", 300, 18.0, device="cuda", tag="")], out)
+    recs = merge_records(harness.load_records(out.with_suffix(".json")), [_rec("fox-wild", "willags", 300, 17.0)])
+    harness.write_outputs(recs, out)
+    back = harness.load_records(out.with_suffix(".json"))
+    assert sorted(r["device"] for r in back) == ["cpu", "cuda"]
+    md = out.with_suffix(".md").read_text()
+    assert "## cpu" in md and "## cuda" in md
+
+
+def _goal(rows, start):
+    (row,) = [r for r in rows if r["goal"].startswith(start)]
+    return row
+
+
+def test_goal_rows_missed_and_met_margins():
+    recs = [
+        _rec("fox-wild", "willags", 300, 20.0, train_s=200),
+        _rec("fox-wild", "willags-3dgs", 300, 17.5, train_s=100),
+        _rec("fox-wild", "willags-novae", 300, 18.5),
+        _rec("fox-wild", "willags-lite", 100, 17.6, train_s=40),
+        _rec("fox-clean", "willags", 300, 26.9),
+        _rec("fox-clean", "willags-3dgs", 300, 27.2),
+    ]
+    rows = goal_rows(recs, "cpu")
+    g1 = _goal(rows, "fox-wild: willags >= willags-3dgs (stand-in) + 4 dB")
+    assert g1["status"] == "missed by 1.50 dB" and g1["met"] is False
+    g2 = _goal(rows, "fox-wild: willags >= w/o VAE + 1 dB")
+    assert g2["status"] == "met (margin 0.50 dB)" and g2["met"] is True
+    g4 = _goal(rows, "fox-clean")
+    assert g4["status"] == "missed by 0.10 dB"  # -0.3 dB against a -0.2 dB tolerance
+    g5 = _goal(rows, "fox-wild: willags-lite")
+    assert g5["met"] is True and "0.40x" in g5["status"]  # 40 s vs 100 s
+    assert _goal(rows, "fox-wild: mask")["status"] == "not measured"
+
+
+def test_goal_rows_mask_and_stock_baseline_preferred():
+    recs = [
+        _rec("fox-wild", "willags", 5000, 22.0, device="cuda", tag="", mask_iou=0.5, mask_fp_rate=0.07,
+             mask_recall=0.9),
+        _rec("fox-wild", "splatfacto", 5000, 17.2, device="cuda", tag="", train_s=50),
+        _rec("fox-wild", "willags-3dgs", 5000, 10.0, device="cuda", tag=""),
+        _rec("fox-wild", "willags-lite", 5000, 17.0, device="cuda", tag="", train_s=20),
+        _rec("fox-clean", "willags", 5000, 27.1, device="cuda", tag=""),
+        _rec("fox-clean", "splatfacto", 5000, 27.2, device="cuda", tag=""),
+    ]  # fmt: skip
+    rows = goal_rows(recs, "cuda")
+    g1 = _goal(rows, "fox-wild: willags >= splatfacto + 4 dB")
+    assert g1["status"] == "met (margin 0.80 dB)"
+    gm = _goal(rows, "fox-wild: mask")
+    assert gm["status"] == "IoU missed by 0.10; FP missed by 2.0 pp" and gm["met"] is False
+    assert _goal(rows, "fox-clean")["status"] == "met (margin 0.10 dB)"
+    g5 = _goal(rows, "fox-wild: willags-lite")
+    assert g5["met"] is False and g5["status"].startswith("missed: never reached (by 0.20 dB)")
+
+
+def test_pareto_marks_dominated_points():
+    recs = [
+        _rec("fox-wild", "willags", 100, 15.0, train_s=50),
+        _rec("fox-wild", "willags", 300, 18.0, train_s=150),
+        _rec("fox-wild", "willags-3dgs", 300, 16.0, train_s=60),  # slower and worse than nothing? no: Pareto
+        _rec("fox-wild", "willags-lite", 300, 14.0, train_s=70),  # dominated by willags@100
+    ]
+    rows = {(r["method"], r["steps"]): r["pareto"] for r in pareto_rows(recs, "cpu")}
+    assert rows == {("willags", 100): True, ("willags", 300): True, ("willags-3dgs", 300): True,
+                    ("willags-lite", 300): False}  # fmt: skip
+
+
+def test_markdown_has_provenance_tables_goals_and_failures():
+    recs = [
+        _rec("default", "willags", 300, 21.0, tag=""),
+        _rec(
+            "fox-wild",
+            "willags",
+            300,
+            18.0,
+            mask_iou=0.4,
+            mask_fp_rate=0.02,
+            mask_recall=0.8,
+            mask_iou_mean=0.41,
+            mask_rejected=3.0,
+            mask_num_images=58.0,
+        ),
+        _rec("fox-wild", "willags-3dgs", 300, 16.5),
+        {**_rec("fox-wild", "willags-nomask", 300, 0.0), "psnr": None, "status": "failed (exit 1)"},
+    ]
+    md = render_markdown(recs)
+    assert "## cpu" in md
+    assert "`python benchmarks/run_benchmark.py --grid g.json`" in md
+    assert "2 CPU cores" in md and "2026-01-02" in md and "step budgets: 300" in md
+    assert md.index("### default") < md.index("### fox-wild")
+    assert "| willags-3dgs (stand-in) [ds2] | 300 | 16.50 |" in md
+    assert "failed (exit 1)" in md
+    assert "fox-wild: willags >= willags-3dgs (stand-in) + 4 dB" in md and "missed by 2.50 dB" in md
+    assert "| 0.400 | 0.410 | 0.800 | 2.0% | 3/58 |" in md  # mask columns where measured
+    assert "### Pareto: fox-wild PSNR vs train time" in md
+    assert "135x240 px" in md
+
+
+# ---------------------------------------------------------------- end to end
+
+
+@pytest.mark.slow
+def test_tiny_grid_end_to_end(tmp_path):
+    grid = {
+        "device": "cpu", "steps": [5], "protocol_steps": 2, "max_test_images": 1, "mask_max_images": 2,
+        "fps_views": 1, "runs": [{"scene": "default", "methods": ["willags"]}],
+    }  # fmt: skip
+    gpath = tmp_path / "grid.json"
+    gpath.write_text(json.dumps(grid))
+    out = tmp_path / "docs" / "benchmarks"
+    harness.write_outputs([_rec("fox-wild", "willags", 300, 18.0, device="cuda", tag="")], out)  # a GPU record
+    logs = []
+    recs = harness.run_grid(gpath, out, tmp_path / "work", command="bench-test", log=logs.append)
+    assert len(recs) == 1 and recs[0]["status"] == "ok", logs
+    r = recs[0]
+    for k in ("psnr", "ssim", "encoder_psnr", "full_psnr", "train_s", "fps", "num_gaussians", "peak_mem_gb"):
+        assert isinstance(r[k], (int, float)) and np.isfinite(r[k]), k
+    assert r["lpips"] is None or np.isfinite(r["lpips"])
+    assert r["mask_status"] == "ok" and r["mask_num_images"] == 2  # the synthetic scene has masks_gt/
+    assert r["steps"] == 5 and r["device"] == "cpu" and r["scene"] == "default" and r["command"] == "bench-test"
+    back = harness.load_records(out.with_suffix(".json"))
+    assert {x["device"] for x in back} == {"cpu", "cuda"}  # merged, the GPU record kept
+    md = out.with_suffix(".md").read_text()
+    assert "### default" in md and "bench-test" in md
+    assert not (tmp_path / "work" / "default-willags-5-cpu" / "out").exists()  # checkpoints removed

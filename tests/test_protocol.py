@@ -1,0 +1,172 @@
+"""NeRF-W protocol: halves, latent fitting, and a frozen scene (willags_ns/eval/protocol.py)."""
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, fit_latent, split_halves
+
+
+@pytest.mark.parametrize("width", [2, 3, 7, 8, 135, 240])
+def test_split_halves_disjoint_and_covering(width):
+    left, right = split_halves(width)
+    cols_l = set(range(width)[left])
+    cols_r = set(range(width)[right])
+    assert cols_l and cols_r
+    assert not cols_l & cols_r
+    assert cols_l | cols_r == set(range(width))
+    assert max(cols_l) < min(cols_r)  # left is left
+    assert len(cols_l) == width // 2
+
+
+@pytest.mark.parametrize("width", [0, 1])
+def test_split_halves_too_narrow_raises(width):
+    with pytest.raises(ValueError):
+        split_halves(width)
+
+
+def test_fit_latent_uses_only_the_given_columns():
+    """A toy renderer: the image is sigmoid(z) per channel; the left half of the GT is one colour, the right
+    another. Fitting on the left must reach the left colour whatever the right half holds."""
+    H, W = 16, 24  # the loss has an SSIM term: 11-px window
+    left, right = split_halves(W)
+    target = torch.tensor([0.2, 0.5, 0.8])
+
+    def render(z):
+        return torch.sigmoid(z).view(1, 1, 3).expand(H, W, 3)
+
+    z0 = torch.zeros(3)
+    fits = []
+    for right_colour in (0.0, 1.0):
+        gt = torch.empty(H, W, 3)
+        gt[:, left] = target
+        gt[:, right] = right_colour
+        z, hist = fit_latent(render, gt, z0, left, steps=300, lr=0.05)
+        assert hist[-1] < hist[0]
+        fits.append(torch.sigmoid(z))
+    torch.testing.assert_close(fits[0], fits[1])  # the right half never entered the loss
+    torch.testing.assert_close(fits[0], target, atol=0.03, rtol=0)
+    assert torch.equal(z0, torch.zeros(3))  # the initial latent is not modified in place
+
+
+# ---------------------------------------------------------------- a tiny real WillagsModel
+
+
+def _camera(width=32, height=24):
+    from nerfstudio.cameras.cameras import Cameras, CameraType
+
+    c2w = torch.eye(4)[:3][None].clone()  # looks down -z from the origin
+    c2w[0, 2, 3] = 3.0
+    f = 0.9 * width
+    return Cameras(
+        camera_to_worlds=c2w,
+        fx=torch.tensor([[f]]),
+        fy=torch.tensor([[f]]),
+        cx=torch.tensor([[width / 2]]),
+        cy=torch.tensor([[height / 2]]),
+        width=torch.tensor([[width]]),
+        height=torch.tensor([[height]]),
+        camera_type=CameraType.PERSPECTIVE,
+    )
+
+
+def _tiny_model(**overrides):
+    from nerfstudio.data.scene_box import SceneBox
+
+    from willags_ns.appearance.triplane import TriplaneConfig
+    from willags_ns.appearance.vae import VAEConfig
+    from willags_ns.model import WillagsModelConfig
+
+    g = torch.Generator().manual_seed(0)
+    xyz = (torch.rand(300, 3, generator=g) - 0.5) * torch.tensor([2.0, 1.5, 0.5])
+    rgb = (torch.rand(300, 3, generator=g) * 255).to(torch.uint8)
+    kw = dict(
+        vae=VAEConfig(latent_dim=8, image_size=16, channels=(8, 8)),
+        triplane=TriplaneConfig(
+            latent_dim=8, resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16
+        ),
+        intrinsic_dim=8,
+        use_mask=False,
+        backend="torch",
+        background_color="black",
+        num_downscales=0,
+    )
+    kw.update(overrides)
+    torch.manual_seed(0)
+    cfg = WillagsModelConfig(**kw)
+    scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = cfg.setup(scene_box=scene_box, num_train_data=2, seed_points=(xyz, rgb))
+    with torch.no_grad():
+        # opaque, visible Gaussians, so the render depends on the colours
+        model.gauss_params["opacities"].fill_(2.0)
+        # the field starts nearly independent of z (small init); scale it up as training would, so the latent
+        # visibly changes the render
+        field = getattr(model.appearance_nets, "field", None) if model.appearance_nets is not None else None
+        if field is not None:
+            field.basis.weight.mul_(300.0)
+            field.mlp[-1].weight.mul_(30.0)
+    return model
+
+
+def _state(model):
+    return {k: v.detach().clone() for k, v in model.state_dict().items() if torch.is_tensor(v)}
+
+
+def test_protocol_fits_the_latent_and_leaves_the_scene_untouched():
+    model = _tiny_model()
+    cam = _camera()
+    model.eval()
+    # ground truth: the model's own render under a latent far from the encoder's guess
+    z_true = 3.0 * torch.randn(8, generator=torch.Generator().manual_seed(1))
+    c = cam.to("cpu")
+    c.metadata = {"appearance_latent": z_true}
+    with torch.no_grad():
+        gt = model.get_outputs(c)["rgb"].clone()
+    assert gt.std() > 0.01
+    before = _state(model)
+    flags = {n: p.requires_grad for n, p in model.named_parameters()}
+    agg, per_image = evaluate_model(model, cam, [gt], EvalProtocolConfig(steps=25, lr=0.1), names=["a.png"])
+    assert agg["left_loss_after"] < agg["left_loss_before"]
+    assert per_image[0]["image"] == "a.png"
+    for k in ("psnr", "ssim", "encoder_psnr", "full_psnr"):
+        assert math.isfinite(agg[k])
+    assert agg["psnr"] > agg["encoder_psnr"]  # the fitted latent explains the held-out half better
+    after = {k: v for k, v in model.state_dict().items() if torch.is_tensor(v)}
+    assert before.keys() == after.keys()
+    for k, v in before.items():
+        assert torch.equal(v, after[k]), f"evaluate_model changed {k}"
+    assert {n: p.requires_grad for n, p in model.named_parameters()} == flags  # frozen only inside
+
+
+def test_protocol_without_vae_starts_from_the_mean_embedding():
+    model = _tiny_model(use_vae=False)
+    cam = _camera()
+    model.eval()
+    c = cam.to("cpu")
+    c.metadata = {"appearance_latent": torch.full((8,), 2.0)}
+    with torch.no_grad():
+        gt = model.get_outputs(c)["rgb"].clone()
+    before = _state(model)
+    agg, _ = evaluate_model(model, cam, [gt], EvalProtocolConfig(steps=15, lr=0.1))
+    assert agg["left_loss_after"] < agg["left_loss_before"]
+    for k, v in before.items():
+        assert torch.equal(v, model.state_dict()[k]), k
+
+
+def test_protocol_sh_model_has_no_latent():
+    model = _tiny_model(appearance="sh", use_vae=False, use_field=False)
+    cam = _camera()
+    model.eval()
+    with torch.no_grad():
+        gt = model.get_outputs(cam.to("cpu"))["rgb"].clone()
+    before = _state(model)
+    agg, per_image = evaluate_model(model, cam, [gt, gt], EvalProtocolConfig(steps=5, max_images=1))
+    assert agg["num_images"] == 1 and len(per_image) == 1
+    assert "left_loss_before" not in agg and "encoder_psnr" not in agg
+    assert agg["psnr"] > 40  # scored against its own render: identical up to float noise
+    for k, v in before.items():
+        assert torch.equal(v, model.state_dict()[k]), k
