@@ -6,7 +6,17 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.willags-installed
 DEMO_DIR ?= demo_outputs
 
-.PHONY: demo test install lint bench clean-venv
+.PHONY: demo test install sysdeps lint bench clean-venv
+
+# open3d (imported by `ns-export` and nerfstudio's .ply loading) needs Debian's libusb-1.0-0. Checked on every
+# run (cheap); installed with apt when missing and we may (root); otherwise the command to run is printed.
+sysdeps:
+	@ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing libusb-1.0-0 (needed by open3d: ns-export, .ply seed points)"; \
+	    (apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || (apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 >/dev/null)) \
+	      || echo "warning: could not install libusb-1.0-0; ns-export will fail (sudo apt-get install libusb-1.0-0)"; \
+	  else echo "warning: libusb-1.0-0 missing; ns-export needs it: sudo apt-get install libusb-1.0-0"; fi; }
 
 $(STAMP): pyproject.toml constraints-cpu.txt Makefile
 	@$(PY) -c 'import sys; v=sys.version_info[:2]; sys.exit(0 if (3,10)<=v<=(3,12) else "willags needs python 3.10-3.12, got %d.%d (set PY=python3.X)" % v)'
@@ -17,12 +27,12 @@ $(STAMP): pyproject.toml constraints-cpu.txt Makefile
 	$(BIN)/python -m willags_ns.tvshim install
 	@touch $(STAMP)
 
-install: $(STAMP)
+install: $(STAMP) sysdeps
 
-demo: $(STAMP)
+demo: $(STAMP) sysdeps
 	$(BIN)/python -m willags_ns.scripts.demo --output-dir $(DEMO_DIR)
 
-test: $(STAMP)
+test: $(STAMP) sysdeps
 	$(BIN)/python -m pytest -q -ra
 
 lint: $(STAMP)

@@ -15,13 +15,19 @@ from pathlib import Path
 
 import torch
 
-ABLATIONS = {"willags-novae": {"use_vae": False}, "willags-nofield": {"use_field": False}, "willags-nomask": {"use_mask": False}}
+ABLATIONS = {
+    "willags-novae": {"use_vae": False},
+    "willags-nofield": {"use_field": False},
+    "willags-nomask": {"use_mask": False},
+}
 
 
 def build_config(method: str, scene: Path | None, steps: int, out: Path, protocol_steps: int):
     from willags_ns import method_configs as mc
 
-    base = {"willags-lite": mc.willags_lite_config, "willags-3dgs": mc.willags_3dgs_config}.get(method, mc.willags_config)
+    base = {"willags-lite": mc.willags_lite_config, "willags-3dgs": mc.willags_3dgs_config}.get(
+        method, mc.willags_config
+    )
     config = base()
     config.method_name = method if method in ("willags", "willags-lite", "willags-3dgs") else "willags"
     config.max_num_iterations = steps
@@ -76,7 +82,9 @@ def run_one(method: str, scene: Path | None, steps: int, out: Path, protocol_ste
     rec = {
         "scene": scene.name if scene else "default",
         "method": method,
-        "device": torch.cuda.get_device_name() if torch.cuda.is_available() else f"cpu ({platform.processor() or 'x86_64'})",
+        "device": torch.cuda.get_device_name()
+        if torch.cuda.is_available()
+        else f"cpu ({platform.processor() or 'x86_64'})",
         "steps": steps,
         "train_s": round(train_s, 1),
         "num_gaussians": int(model.num_points),
@@ -104,7 +112,7 @@ def main() -> None:
     args = ap.parse_args()
     steps = args.steps * len(args.methods) if len(args.steps) == 1 else args.steps
     records = []
-    for method, n in zip(args.methods, steps):
+    for method, n in zip(args.methods, steps, strict=True):
         try:
             rec = run_one(method, args.scene, n, args.out, args.protocol_steps)
         except Exception as e:  # one failed run must not lose the others
@@ -116,7 +124,19 @@ def main() -> None:
         print("RESULT", json.dumps(rec), flush=True)
         if args.json_out:
             args.json_out.write_text(json.dumps(records, indent=1))
-    keys = ["scene", "method", "steps", "psnr", "ssim", "encoder_psnr", "full_psnr", "train_s", "fps", "num_gaussians", "peak_mem_gb"]
+    keys = [
+        "scene",
+        "method",
+        "steps",
+        "psnr",
+        "ssim",
+        "encoder_psnr",
+        "full_psnr",
+        "train_s",
+        "fps",
+        "num_gaussians",
+        "peak_mem_gb",
+    ]
     print("| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
     for r in records:
         print("| " + " | ".join(str(r.get(k, "")) for k in keys) + " |")

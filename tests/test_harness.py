@@ -249,6 +249,18 @@ def test_markdown_has_provenance_tables_goals_and_failures():
         ),
         _rec("fox-wild", "willags-3dgs", 300, 16.5),
         {**_rec("fox-wild", "willags-nomask", 300, 0.0), "psnr": None, "status": "failed (exit 1)"},
+        # no transients in the scene: IoU undefined, the false-positive rate still shown
+        _rec(
+            "fox-appearance-only",
+            "willags",
+            300,
+            17.0,
+            mask_status="ok",
+            mask_iou=None,
+            mask_fp_rate=0.01,
+            mask_rejected=0.0,
+            mask_num_images=58.0,
+        ),
     ]
     md = render_markdown(recs)
     assert "## cpu" in md
@@ -259,8 +271,9 @@ def test_markdown_has_provenance_tables_goals_and_failures():
     assert "failed (exit 1)" in md
     assert "fox-wild: willags >= willags-3dgs (stand-in) + 4 dB" in md and "missed by 2.50 dB" in md
     assert "| 0.400 | 0.410 | 0.800 | 2.0% | 3/58 |" in md  # mask columns where measured
+    assert "| - | - | - | 1.0% | 0/58 |" in md
     assert "### Pareto: fox-wild PSNR vs train time" in md
-    assert "135x240 px" in md
+    assert "first train image 135x240 px" in md
 
 
 # ---------------------------------------------------------------- end to end

@@ -60,7 +60,7 @@ def _train(tmp_path: Path, method: str = "willags", steps: int = 20, data=None, 
 
 def _check_finite(losses):
     assert losses, "no training step ran"
-    assert all(torch.isfinite(torch.tensor(l)) for l, _ in losses), [l for l, _ in losses]
+    assert all(torch.isfinite(torch.tensor(v)) for v, _ in losses), [v for v, _ in losses]
 
 
 def test_willags_trains_saves_and_reloads(tmp_path):
@@ -139,8 +139,20 @@ def test_ns_train_cli_runs_without_data_or_device_flags(tmp_path):
     """`ns-train willags` with no --data and no --machine.device-type: the default scene, on CPU."""
     exe = Path(sys.executable).with_name("ns-train")
     cmd = [
-        str(exe), "willags", "--max-num-iterations", "3", "--steps-per-save", "3", "--vis", "tensorboard",
-        "--output-dir", str(tmp_path), "--timestamp", "t", "--pipeline.model.num-downscales", "0",
+        str(exe),
+        "willags",
+        "--max-num-iterations",
+        "3",
+        "--steps-per-save",
+        "3",
+        "--vis",
+        "tensorboard",
+        "--output-dir",
+        str(tmp_path),
+        "--timestamp",
+        "t",
+        "--pipeline.model.num-downscales",
+        "0",
     ]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, (out.stdout[-3000:], out.stderr[-3000:])
@@ -161,3 +173,56 @@ def test_ns_eval_runs_the_protocol(tmp_path):
     for k in ("psnr", "ssim", "encoder_psnr", "full_psnr", "left_loss_before", "left_loss_after"):
         assert k in results
     assert results["left_loss_after"] <= results["left_loss_before"] + 1e-6
+
+
+def test_ns_export_bakes_the_chosen_appearance_into_a_standard_ply(tmp_path):
+    """`ns-export gaussian-splat` on a willags checkpoint: a 3DGS PLY whose colours follow WILLAGS_APPEARANCE."""
+    import os
+
+    import numpy as np
+    from plyfile import PlyData
+
+    config, trainer, _ = _train(tmp_path, "willags", steps=6)
+    exe = Path(sys.executable).with_name("ns-export")
+    n = trainer.pipeline.model.num_points
+    dc = {}
+    for spec in ("mean", "sample:3"):
+        out_dir = tmp_path / spec.replace(":", "_")
+        cmd = [
+            str(exe),
+            "gaussian-splat",
+            "--load-config",
+            str(config.get_base_dir() / "config.yml"),
+            "--output-dir",
+            str(out_dir),
+        ]
+        res = subprocess.run(
+            cmd, capture_output=True, text=True, timeout=600, env={**os.environ, "WILLAGS_APPEARANCE": spec}
+        )
+        assert res.returncode == 0, (res.stdout[-2000:], res.stderr[-2000:])
+        ply = PlyData.read(str(out_dir / "splat.ply"))
+        v = ply["vertex"]
+        assert v.count <= n and v.count > 0
+        for field in ("x", "opacity", "scale_0", "rot_0", "f_dc_0", "f_dc_1", "f_dc_2"):
+            assert field in v.data.dtype.names
+        dc[spec] = np.stack([v["f_dc_0"], v["f_dc_1"], v["f_dc_2"]], 1)
+        assert np.isfinite(dc[spec]).all()
+    # a different appearance gives different baked colours for the same Gaussians
+    assert dc["mean"].shape == dc["sample:3"].shape and not np.allclose(dc["mean"], dc["sample:3"])
+
+
+def test_bad_appearance_spec_names_the_problem():
+    from willags_ns.viewer import latent_from_spec
+
+    names = ["a.png", "b.png"]
+    lat, seen = torch.zeros(2, 4), torch.tensor([True, False])
+    assert latent_from_spec("mean", names, lat, seen) is None
+    assert latent_from_spec("image:a", names, lat, seen).shape == (4,)
+    with pytest.raises(ValueError, match="unknown training image 'zzz'"):
+        latent_from_spec("image:zzz", names, lat, seen)
+    with pytest.raises(ValueError, match="never encoded"):
+        latent_from_spec("image:b.png", names, lat, seen)
+    with pytest.raises(ValueError, match="unknown appearance spec"):
+        latent_from_spec("bogus:1", names, lat, seen)
+    z = latent_from_spec("interp:0,0,0.5", ["a.png", "b.png"], torch.ones(2, 4), torch.tensor([True, True]))
+    assert torch.allclose(z, torch.ones(4))

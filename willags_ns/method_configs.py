@@ -5,7 +5,6 @@ Without CUDA the methods default to the CPU (`--machine.device-type cpu` is not 
 rasteriser; with CUDA, to gsplat.
 """
 
-
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
@@ -44,7 +43,9 @@ def _optimizers(max_steps: int) -> dict[str, dict]:
             "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps, warmup_steps=100),
         },
-        "camera_opt": adam(1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, warmup_steps=1000)),
+        "camera_opt": adam(
+            1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, warmup_steps=1000)
+        ),
     }
 
 

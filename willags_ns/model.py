@@ -491,7 +491,9 @@ class WillagsModel(SplatfactoModel):
         if self.crop_box is not None and not self.training:
             crop_ids = self.crop_box.within(self.means).squeeze()
             if crop_ids.sum() == 0:
-                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+                return self.get_empty_outputs(
+                    int(camera.width.item()), int(camera.height.item()), self.background_color
+                )
         else:
             crop_ids = None
         gp = {k: (v[crop_ids] if crop_ids is not None else v) for k, v in self.gauss_params.items()}
@@ -524,7 +526,9 @@ class WillagsModel(SplatfactoModel):
             gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, render_mode, sh_degree
         )
         if self.training:
-            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+            self.strategy.step_pre_backward(
+                self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
+            )
         background = self._get_background_color()
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
 
@@ -537,7 +541,9 @@ class WillagsModel(SplatfactoModel):
             depth_im = torch.where(alpha > 0, depth_im, depth_im.detach().max()).squeeze(0)
         if background.shape[0] == 3 and not self.training:
             background = background.expand(H, W, 3)
-        outputs.update({"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background})  # type: ignore
+        outputs.update(
+            {"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background}
+        )  # type: ignore
         return outputs
 
     def _latent_for_forward(self, camera: Cameras, outputs: dict) -> Tensor:
@@ -593,8 +599,16 @@ class WillagsModel(SplatfactoModel):
             z = teacher.embeddings.weight[int(self._step_cache["image_idx"])]  # type: ignore[union-attr]
         colors = self.appearance_colors(z, gp["means"], gp["features"], cam_center, nets=teacher)
         render, alpha, _ = self._rasterize(
-            gp["means"].detach(), gp["quats"].detach(), gp["scales"].detach(), gp["opacities"].detach(), colors,
-            viewmat.detach(), K, W, H, "RGB",
+            gp["means"].detach(),
+            gp["quats"].detach(),
+            gp["scales"].detach(),
+            gp["opacities"].detach(),
+            colors,
+            viewmat.detach(),
+            K,
+            W,
+            H,
+            "RGB",
         )
         return torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0).squeeze(0)
 
@@ -658,7 +672,12 @@ class WillagsModel(SplatfactoModel):
             recon = vae.decode(sc["z"][None])
             target = vae.prepare(sc["vae_in"][None])
             l_vae, parts = vae_loss(
-                recon, target, sc["mu"][None], sc["logvar"][None], beta=cfg.vae.beta, recon_reduction=cfg.vae.recon_reduction
+                recon,
+                target,
+                sc["mu"][None],
+                sc["logvar"][None],
+                beta=cfg.vae.beta,
+                recon_reduction=cfg.vae.recon_reduction,
             )
             loss_dict["vae_loss"] = cfg.lambda_vae * l_vae
             if metrics_dict is not None:
@@ -686,11 +705,15 @@ class WillagsModel(SplatfactoModel):
             writer.put_image("train/teacher_render", outputs["teacher_rgb"], self.step)
         if "D" in self._step_cache:
             d = self._step_cache["D"]
-            writer.put_image("train/perceptual_D", (d / d.max().clamp_min(1e-6))[..., None].expand(-1, -1, 3), self.step)
+            writer.put_image(
+                "train/perceptual_D", (d / d.max().clamp_min(1e-6))[..., None].expand(-1, -1, 3), self.step
+            )
         if mask is not None:
             writer.put_image("train/static_mask", mask[..., None].expand(-1, -1, 3), self.step)
         if "vae_recon_img" in self._step_cache:
-            writer.put_image("train/vae_reconstruction", self._step_cache["vae_recon_img"][0].permute(1, 2, 0), self.step)
+            writer.put_image(
+                "train/vae_reconstruction", self._step_cache["vae_recon_img"][0].permute(1, 2, 0), self.step
+            )
 
     def get_image_metrics_and_images(self, outputs, batch):
         gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
@@ -720,7 +743,9 @@ class WillagsModel(SplatfactoModel):
         return self._lpips
 
     # ------------------------------------------------------------------ callbacks
-    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> list[TrainingCallback]:
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> list[TrainingCallback]:
         cbs = super().get_training_callbacks(training_callback_attributes)
         if self.teacher is not None:
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_teacher))

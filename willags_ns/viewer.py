@@ -130,4 +130,6 @@ def latent_from_spec(spec: str, image_names: list[str], train_latents: Tensor, s
         except ValueError:
             raise ValueError(f"{APPEARANCE_ENV}: interpolation T must be a number, got {parts[2]!r}") from None
         return interpolate_latents(train_latents[index_of(parts[0])], train_latents[index_of(parts[1])], t)
-    raise ValueError(f"{APPEARANCE_ENV}: unknown appearance spec {spec!r} (mean | image:NAME | sample:SEED | interp:A,B,T)")
+    raise ValueError(
+        f"{APPEARANCE_ENV}: unknown appearance spec {spec!r} (mean | image:NAME | sample:SEED | interp:A,B,T)"
+    )

@@ -954,7 +954,7 @@ def pareto_rows(records: list[dict[str, Any]], device: str, scene: str = "fox-wi
 
 
 def _scene_table(recs: list[dict[str, Any]]) -> list[str]:
-    has_mask = any(r.get("mask_iou") is not None for r in recs)
+    has_mask = any(r.get("mask_status") == "ok" or r.get("mask_iou") is not None for r in recs)
     head = [
         "method",
         "steps",
@@ -1069,7 +1069,7 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
             n_test = sorted({int(r["num_images"]) for r in ok if r.get("num_images") is not None})
             info = []
             if res:
-                info.append(f"train images {'/'.join(res)} px (WxH)")
+                info.append(f"first train image {'/'.join(res)} px (WxH)")
             if n_train:
                 info.append(f"{'/'.join(map(str, n_train))} train views")
             if n_test:

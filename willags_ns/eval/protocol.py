@@ -12,8 +12,8 @@ Also reported, so each number's meaning is visible: the encoder latent without o
 full-image scores. Defaults: 128 Adam steps at lr 0.01, the same budget as the peer table in ../shared/gpu/README.
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -33,7 +33,7 @@ class EvalProtocolConfig:
     """Evaluate at most this many test images (-1 = all)."""
 
 
-def split_halves(width: int) -> Tuple[slice, slice]:
+def split_halves(width: int) -> tuple[slice, slice]:
     """Column slices (left, right) of an image `width` pixels wide: disjoint, covering, left = floor(W/2)."""
     if width < 2:
         raise ValueError(f"the NeRF-W protocol needs images at least 2 pixels wide, got width={width}")
@@ -55,7 +55,7 @@ def ssim(pred: Tensor, gt: Tensor) -> float:
     return float(structural_similarity_index_measure(p, g, data_range=1.0))
 
 
-def image_scores(pred: Tensor, gt: Tensor, lpips_fn: Optional[Callable] = None) -> Dict[str, float]:
+def image_scores(pred: Tensor, gt: Tensor, lpips_fn: Callable | None = None) -> dict[str, float]:
     """PSNR, SSIM (and LPIPS if a metric is given) of [H, W, 3] images."""
     out = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
     if lpips_fn is not None:
@@ -70,7 +70,7 @@ def fit_latent(
     cols: slice,
     steps: int,
     lr: float,
-) -> Tuple[Tensor, List[float]]:
+) -> tuple[Tensor, list[float]]:
     """Optimise a latent so `render_fn(z)` [H, W, 3] matches `gt` on the columns `cols`.
 
     Only z receives updates (the caller freezes the scene). Returns (z, per-step loss history; the first entry is
@@ -79,7 +79,7 @@ def fit_latent(
     z = z0.detach().clone().requires_grad_(True)
     opt = torch.optim.Adam([z], lr=lr)
     target = gt[:, cols].permute(2, 0, 1)[None]
-    history: List[float] = []
+    history: list[float] = []
     for _ in range(steps):
         opt.zero_grad(set_to_none=True)
         pred = render_fn(z)[:, cols].permute(2, 0, 1)[None]
@@ -97,7 +97,7 @@ class frozen:
 
     def __init__(self, module: torch.nn.Module):
         self.params = list(module.parameters())
-        self.flags: List[bool] = []
+        self.flags: list[bool] = []
 
     def __enter__(self):
         self.flags = [p.requires_grad for p in self.params]
@@ -106,12 +106,12 @@ class frozen:
         return self
 
     def __exit__(self, *exc):
-        for p, f in zip(self.params, self.flags):
+        for p, f in zip(self.params, self.flags, strict=True):
             p.requires_grad_(f)
         return False
 
 
-def eval_split_images(datamanager) -> List[Tensor]:
+def eval_split_images(datamanager) -> list[Tensor]:
     """Eval-split GT images [H, W, 3] float in [0, 1], exactly as the eval cameras see them.
 
     nerfstudio's full-image datamanager undistorts (and crops) images when it caches them and rewrites the eval
@@ -128,7 +128,7 @@ def eval_split_images(datamanager) -> List[Tensor]:
     return out
 
 
-def evaluate_model(model, cameras, images: List[Tensor], cfg: EvalProtocolConfig, names: Optional[List[str]] = None):
+def evaluate_model(model, cameras, images: list[Tensor], cfg: EvalProtocolConfig, names: list[str] | None = None):
     """Run the protocol over test `cameras` (nerfstudio Cameras, one per image) and GT `images` [H, W, 3] in [0, 1].
 
     Returns (aggregate dict, per-image list). Keys: `psnr`/`ssim`/`lpips` (right half, fitted latent: the
@@ -152,7 +152,7 @@ def evaluate_model(model, cameras, images: List[Tensor], cfg: EvalProtocolConfig
                 )
             left, right = split_halves(w)
 
-            def render_fn(z: Optional[Tensor], cam=cam) -> Tensor:
+            def render_fn(z: Tensor | None, cam=cam) -> Tensor:
                 c = cam
                 if z is not None:
                     c = cam.to(model.device)
@@ -160,7 +160,7 @@ def evaluate_model(model, cameras, images: List[Tensor], cfg: EvalProtocolConfig
                     c.metadata["appearance_latent"] = z
                 return model.get_outputs(c)["rgb"]
 
-            rec: Dict[str, float] = {}
+            rec: dict[str, float] = {}
             if appearance:
                 if model.appearance_nets.vae is not None:
                     z0 = model.encode_image(gt[:, left])
