@@ -14,7 +14,9 @@ from willags_ns.transient import (
     mask_active,
     mask_threshold,
     perceptual_error,
+    robust_threshold,
     static_mask,
+    transient_threshold,
 )
 
 
@@ -187,6 +189,41 @@ def test_static_mask_threshold_is_strict():
     assert static_mask(D, 0.85).tolist() == [[[True, True, False, False]]]
 
 
+def test_robust_threshold_equals_fixed_on_a_well_explained_image():
+    g = torch.Generator().manual_seed(0)
+    D = 0.1 + 0.05 * torch.randn(2, 32, 32, generator=g).abs()  # a teacher that explains the image
+    D[0, :8, :8] = 3.0  # an occluder
+    thr = robust_threshold(D, 0.85, 2.0)
+    assert thr.shape == (2, 1, 1)
+    torch.testing.assert_close(thr, torch.full((2, 1, 1), 0.85))
+    assert torch.equal(static_mask(D, thr), static_mask(D, 0.85))
+
+
+def test_robust_threshold_keeps_texture_and_flags_the_occluder():
+    """Textured static pixels with D around 0.7 +- 0.3 (a blurry teacher): the fixed 0.85 drops ~30% of them,
+    the robust bar keeps nearly all of them and still flags an occluder at D = 2.5."""
+    g = torch.Generator().manual_seed(1)
+    D = (0.7 + 0.3 * torch.randn(1, 64, 64, generator=g)).clamp_min(0)
+    occ = torch.zeros(1, 64, 64, dtype=torch.bool)
+    occ[0, 10:26, 30:50] = True
+    D[occ] = 2.5 + 0.2 * torch.rand(int(occ.sum()), generator=g)
+    fixed_fp = (~static_mask(D, 0.85) & ~occ).float().sum() / (~occ).sum()
+    thr = robust_threshold(D, 0.85, 2.0)
+    robust_fp = (~static_mask(D, thr) & ~occ).float().sum() / (~occ).sum()
+    assert fixed_fp > 0.25 and robust_fp < 0.05, (fixed_fp, robust_fp)
+    assert bool((~static_mask(D, thr))[occ].all())  # every occluder pixel still flagged
+    assert 0.85 < float(thr) < 2.5
+
+
+def test_transient_threshold_rules():
+    D = torch.rand(1, 8, 8)
+    assert transient_threshold(D, 0.85, "fixed") == 0.85
+    assert transient_threshold(D, float("inf"), "robust") == float("inf")  # warming up: nothing masked
+    assert transient_threshold(D, 0.85, "robust").shape == (1, 1, 1)
+    with pytest.raises(ValueError, match="unknown mask threshold rule"):
+        transient_threshold(D, 0.85, "bogus")
+
+
 def test_schedule_boundaries():
     assert not mask_active(0, 500)
     assert not mask_active(499, 500)
@@ -204,6 +241,7 @@ def test_schedule_boundaries():
 def test_config_defaults():
     cfg = PerceptualMaskConfig()
     assert cfg.threshold == 0.85 and cfg.vgg_weights == "auto" and cfg.warmup_steps == 500
+    assert cfg.threshold_rule == "robust" and cfg.robust_k == 2.0
 
 
 def test_modules_do_not_import_torchvision_eagerly():

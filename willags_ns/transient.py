@@ -93,6 +93,14 @@ class PerceptualMaskConfig:
 
     threshold: float = 0.85
     """Pixels with perceptual error D >= threshold are transient (excluded from the loss)."""
+    threshold_rule: Literal["fixed", "robust"] = "robust"
+    """"fixed": the paper's rule, transient iff D >= threshold. "robust": per image, transient iff
+    D >= max(threshold, median(D) + robust_k * 1.4826 * MAD(D)) (see :func:`robust_threshold`). Equal to "fixed"
+    whenever the teacher explains the image (most pixels have a small D); it raises the bar only in images whose
+    typical pixel already differs (a teacher that cannot yet render fine texture, the seeded VGG fallback's
+    uncalibrated scale), which otherwise lose their textured static regions to the mask."""
+    robust_k: float = 2.0
+    """Robust rule: how many robust standard deviations (1.4826 MAD) above the median D a pixel must be."""
     vgg_weights: VggWeights = "auto"
     """Where the VGG16 weights come from: "auto" (vgg_weights_path if set, else the torch hub cache file, else
     the seeded fallback), "torchvision" (torchvision's loader; downloads when online), "path" (a state-dict file
@@ -352,9 +360,38 @@ def perceptual_error(
     return total[:, 0]
 
 
-def static_mask(D: Float[Tensor, "B H W"], threshold: float) -> Bool[Tensor, "B H W"]:
-    """True where the pixel is static (kept in the loss): ``D < threshold``."""
+def static_mask(D: Float[Tensor, "B H W"], threshold: float | Tensor) -> Bool[Tensor, "B H W"]:
+    """True where the pixel is static (kept in the loss): ``D < threshold`` (a float, or [B, 1, 1] per image)."""
     return D < threshold
+
+
+MAD_TO_STD = 1.4826
+"""MAD of a normal distribution times this is its standard deviation."""
+
+
+def robust_threshold(D: Float[Tensor, "B H W"], threshold: float, k: float) -> Float[Tensor, "B 1 1"]:
+    """Per-image threshold ``max(threshold, median(D) + k * 1.4826 * MAD(D))``, medians over each image's pixels.
+
+    Transients cover a minority of an image, so the median and MAD describe its static pixels: a pixel must stand
+    out from them by ``k`` robust standard deviations *and* exceed the absolute threshold. Example: D of a clean
+    image ~ 0.1 +- 0.05 -> bar max(0.85, 0.1 + 2 * 0.07) = 0.85 (the paper's rule); D of a textured image the
+    teacher renders blurred ~ 0.7 +- 0.3 -> bar 0.7 + 2 * 0.44 = 1.58, so texture stays and an occluder (D ~ 2)
+    is still flagged. ``threshold = inf`` (mask warming up) stays inf.
+    """
+    flat = D.flatten(1)
+    med = flat.median(dim=1).values  # [B]
+    mad = (flat - med[:, None]).abs().median(dim=1).values
+    bar = (med + k * MAD_TO_STD * mad).clamp_min(threshold)
+    return bar[:, None, None]
+
+
+def transient_threshold(D: Float[Tensor, "B H W"], threshold: float, rule: str = "fixed", k: float = 2.0):
+    """The threshold of ``rule`` ("fixed" -> ``threshold``; "robust" -> :func:`robust_threshold`)."""
+    if rule == "fixed" or math.isinf(threshold):
+        return threshold
+    if rule == "robust":
+        return robust_threshold(D, threshold, k)
+    raise ValueError(f"unknown mask threshold rule {rule!r} (fixed | robust)")
 
 
 def mask_active(step: int, warmup_steps: int) -> bool:

@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
-from willags_ns.transient import mask_threshold, perceptual_error, static_mask
+from willags_ns.transient import mask_threshold, perceptual_error, static_mask, transient_threshold
 
 
 @dataclass
@@ -99,17 +99,21 @@ def predicted_transient(
     teacher: Tensor,
     threshold: float,
     max_masked_fraction: float = 1.0,
+    rule: str = "fixed",
+    robust_k: float = 2.0,
 ) -> tuple[Tensor, bool, Tensor]:
     """(transient [H, W] bool, rejected, D [H, W]) from GT and teacher render [H, W, 3] in [0, 1].
 
-    Same rule as training: static = D < threshold; if more than `max_masked_fraction` of the image would be
-    dropped, the mask is rejected (nothing is transient)."""
+    Same rule as training: static = D < threshold (per image for rule "robust", see
+    willags_ns.transient.robust_threshold); if more than `max_masked_fraction` of the image would be dropped, the
+    mask is rejected (nothing is transient)."""
     H, W = gt.shape[:2]
     with torch.no_grad():
         d = perceptual_error(
             perceptual(gt.permute(2, 0, 1)[None].float()), perceptual(teacher.permute(2, 0, 1)[None].float()), (H, W)
         )[0]
-    transient = ~static_mask(d, threshold)
+    thr = transient_threshold(d[None], threshold, rule, robust_k)
+    transient = ~static_mask(d[None], thr)[0]
     rejected = bool(transient.float().mean() > max_masked_fraction)
     if rejected:
         transient = torch.zeros_like(transient)
@@ -230,6 +234,7 @@ def mask_scores(
     was_training = model.training
     model.eval()
     counts: list[MaskCounts] = []
+    counts_fixed: list[MaskCounts] = []
     d_pos: list[Tensor] = []
     d_neg: list[Tensor] = []
     per_image = []
@@ -245,10 +250,17 @@ def mask_scores(
             cam, image, gt_mask = training_view(train_dataset, i, gt_mask)
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
             render = teacher_render(model, cam, img, i)
-            pred, rejected, d = predicted_transient(model.perceptual, img, render, thr, cfg.max_masked_fraction)
+            rule, k = getattr(cfg.mask, "threshold_rule", "fixed"), getattr(cfg.mask, "robust_k", 2.0)
+            pred, rejected, d = predicted_transient(
+                model.perceptual, img, render, thr, cfg.max_masked_fraction, rule, k
+            )
             gt_t = torch.from_numpy(gt_mask).to(pred.device)
             c = count_pixels(pred, gt_t, rejected)
             counts.append(c)
+            # the paper's fixed rule on the same D, for comparison
+            fixed = d >= thr
+            fixed_rej = bool(fixed.float().mean() > cfg.max_masked_fraction)
+            counts_fixed.append(count_pixels(torch.zeros_like(fixed) if fixed_rej else fixed, gt_t, fixed_rej))
             d_cpu = d.float().cpu()
             gt_cpu = gt_t.cpu()
             # subsample D for the medians: 4096 pixels per class and image is plenty
@@ -267,6 +279,10 @@ def mask_scores(
         return {"status": f"no training image has a mask in {masks_gt_dir}"}
     out: dict = dict(aggregate_counts(counts))
     out["threshold"] = float(thr)
+    out["rule"] = getattr(cfg.mask, "threshold_rule", "fixed")
+    fixed_agg = aggregate_counts(counts_fixed)
+    for key in ("iou", "recall", "fp_rate", "rejected"):
+        out[f"fixed_{key}"] = fixed_agg[key]
     pos, neg = torch.cat(d_pos), torch.cat(d_neg)
     out["d_median_transient"] = float(pos.median()) if pos.numel() else None
     out["d_median_clean"] = float(neg.median()) if neg.numel() else None
