@@ -76,6 +76,7 @@ VARIANTS = {
     "splatfacto": ("stock", {}, ()),
     "willags-3dgs": ("willags", dict(appearance="sh", use_mask=False, use_vae=False, use_field=False), ()),
     "willags": ("willags", {}, ()),
+    "willags-2raster": ("willags", dict(fuse_teacher_render=False), ()),  # the teacher as a second rasterisation
     "willags-mask4": ("willags", dict(mask_every=4), ()),
     "willags-vgg256": ("willags", {"mask.max_resolution": 256}, ()),
     "willags-nomask": ("willags", dict(use_mask=False), ()),

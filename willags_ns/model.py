@@ -107,6 +107,11 @@ class WillagsModelConfig(SplatfactoModelConfig):
     mask_every: int = 1
     """Recompute an image's mask on every k-th step (teacher render + VGG); other steps reuse that image's last
     mask. 1 = the paper (every step). Larger values trade mask freshness for speed."""
+    fuse_teacher_render: bool = True
+    """Render the teacher's colours as 3 extra channels of the student's rasterisation (same Gaussians, same
+    camera) instead of a second rasterisation. Identical pseudo-GT and identical student gradients (the teacher
+    channels are detached, so their share of every geometry gradient is zero); saves the teacher's projection,
+    sorting and compositing (measured in docs/gpu_notes.md)."""
     max_masked_fraction: float = 0.5
     """If the mask would drop more than this fraction of an image, the teacher is not trustworthy there (still
     training, or an appearance it cannot explain): that image is supervised everywhere instead (logged as
@@ -523,6 +528,10 @@ class WillagsModel(SplatfactoModel):
             )
             sh_degree = None
 
+        teacher_needed = self.training and self._teacher_needed()
+        fused = teacher_needed and cfg.fuse_teacher_render
+        if fused:  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
+            colors = torch.cat([colors, self._teacher_colors(gp, cam_center)], dim=-1)
         render, alpha, self.info = self._rasterize(
             gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, render_mode, sh_degree
         )
@@ -533,12 +542,15 @@ class WillagsModel(SplatfactoModel):
         background = self._get_background_color()
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
 
-        if self.training and self._teacher_needed():
+        if fused:
+            teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * background
+            outputs["teacher_rgb"] = torch.clamp(teacher, 0.0, 1.0).squeeze(0)
+        elif teacher_needed:
             outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background)
 
         depth_im = None
         if render_mode == "RGB+ED":
-            depth_im = render[..., 3:4]
+            depth_im = render[..., -1:]  # gsplat appends expected depth after the colour channels
             depth_im = torch.where(alpha > 0, depth_im, depth_im.detach().max()).squeeze(0)
         if background.shape[0] == 3 and not self.training:
             background = background.expand(H, W, 3)
@@ -589,8 +601,8 @@ class WillagsModel(SplatfactoModel):
         return idx not in self._mask_cache or visits % max(1, cfg.mask_every) == 0
 
     @torch.no_grad()
-    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background) -> Tensor:
-        """Pseudo-GT [H, W, 3] from the EMA teacher networks with the student's current Gaussians (no grad)."""
+    def _teacher_colors(self, gp, cam_center) -> Tensor:
+        """Per-Gaussian RGB [N, 3] of the EMA teacher networks for this step's image (no grad)."""
         teacher = self.teacher
         assert teacher is not None
         if teacher.vae is not None:
@@ -598,7 +610,13 @@ class WillagsModel(SplatfactoModel):
             z = mu[0]
         else:
             z = teacher.embeddings.weight[int(self._step_cache["image_idx"])]  # type: ignore[union-attr]
-        colors = self.appearance_colors(z, gp["means"], gp["features"], cam_center, nets=teacher)
+        return self.appearance_colors(z, gp["means"].detach(), gp["features"].detach(), cam_center, nets=teacher)
+
+    @torch.no_grad()
+    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background) -> Tensor:
+        """Pseudo-GT [H, W, 3] from the EMA teacher networks with the student's current Gaussians (no grad): a
+        second rasterisation (fuse_teacher_render=False; the fused path renders the same image)."""
+        colors = self._teacher_colors(gp, cam_center)
         render, alpha, _ = self._rasterize(
             gp["means"].detach(),
             gp["quats"].detach(),

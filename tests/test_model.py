@@ -1,0 +1,72 @@
+"""WillagsModel wiring that unit tests of the components do not see: the fused teacher render."""
+
+import math
+import warnings
+
+import torch
+from nerfstudio.data.scene_box import SceneBox
+
+from tests.test_mask_eval import _camera
+from willags_ns.appearance.triplane import TriplaneConfig
+from willags_ns.appearance.vae import VAEConfig
+from willags_ns.model import WillagsModelConfig
+from willags_ns.transient import PerceptualMaskConfig
+
+
+def _tiny_model():
+    g = torch.Generator().manual_seed(0)
+    xyz = (torch.rand(600, 3, generator=g) - 0.5) * torch.tensor([2.4, 1.8, 0.4])
+    rgb = (torch.rand(600, 3, generator=g) * 255).to(torch.uint8)
+    torch.manual_seed(0)
+    cfg = WillagsModelConfig(
+        vae=VAEConfig(latent_dim=8, image_size=16, channels=(8, 8)),
+        triplane=TriplaneConfig(
+            latent_dim=8, resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16
+        ),
+        intrinsic_dim=8,
+        mask=PerceptualMaskConfig(vgg_weights="seeded", warmup_steps=0),
+        backend="torch",
+        background_color="black",
+        num_downscales=0,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = cfg.setup(
+            scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2, seed_points=(xyz, rgb)
+        )
+    with torch.no_grad():
+        model.gauss_params["opacities"].fill_(1.0)
+        model.gauss_params["scales"].fill_(math.log(0.05))
+        for p in model.teacher.parameters():  # a teacher that differs from the student, as during training
+            p.add_(0.3 * torch.randn(p.shape, generator=g))
+    model.optimizers = {}  # only read by densification, which a single forward does not reach
+    return model
+
+
+def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_gradients_unchanged():
+    model = _tiny_model()
+    model.train()
+    cam = _camera(48, 32)
+    h, w = int(cam.height), int(cam.width)
+    image = (torch.rand(h, w, 3, generator=torch.Generator().manual_seed(1)) * 255).to(torch.uint8)
+    names = ["means", "scales", "quats", "opacities", "features"]
+    results = {}
+    for fused in (True, False):
+        model.config.fuse_teacher_render = fused
+        model._mask_cache.clear()
+        model._mask_visits.clear()
+        torch.manual_seed(3)  # same reparameterisation noise in both runs
+        model.set_train_batch({"image": image, "image_idx": 0})
+        out = model.get_outputs(cam)
+        assert "teacher_rgb" in out, "the teacher must render on a mask step"
+        loss = (out["rgb"] - 0.5).square().mean()
+        grads = torch.autograd.grad(loss, [model.gauss_params[k] for k in names])
+        results[fused] = (out["teacher_rgb"], out["rgb"].detach(), grads)
+        model._end_step(0)
+    (t_f, rgb_f, g_f), (t_s, rgb_s, g_s) = results[True], results[False]
+    assert t_f.shape == (h, w, 3) and not torch.allclose(t_f, rgb_f, atol=1e-3)  # really the teacher's colours
+    torch.testing.assert_close(t_f, t_s, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(rgb_f, rgb_s, atol=1e-5, rtol=1e-5)
+    for name, a, b in zip(names, g_f, g_s, strict=True):
+        assert a.abs().sum() > 0, name
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4, msg=lambda m, n=name: f"{n}: {m}")
