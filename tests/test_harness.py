@@ -303,3 +303,23 @@ def test_tiny_grid_end_to_end(tmp_path):
     md = out.with_suffix(".md").read_text()
     assert "### default" in md and "bench-test" in md
     assert not (tmp_path / "work" / "default-willags-5-cpu" / "out").exists()  # checkpoints removed
+
+
+def test_markdown_renders_gpu_suite_speed_records_as_their_own_table():
+    speed = {
+        "scene": "synthetic-box-1000000-800px",
+        "method": "willags",
+        "device": "NVIDIA H100",
+        "steps": 0,
+        "tag": "h100",
+        "step_ms": 52.6,
+        "step_ratio_vs_splatfacto": 3.14,
+        "extra_vram_gb": 1.98,
+        "host_syncs_per_step": 26.0,
+        "render_fps_ratio_vs_gsplat": 0.293,
+    }
+    md = render_markdown([speed])
+    assert "### Train step / render / memory: synthetic-box-1000000-800px" in md
+    assert "| willags | 52.60 | 3.14 | +1.98 | 26 | 0.293 | - |" in md
+    assert "### Goals" not in md  # a speed-only section measures none of the accuracy goals
+    assert "| PSNR |" not in md

@@ -1006,6 +1006,27 @@ def _scene_table(recs: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _speed_table(recs: list[dict[str, Any]]) -> list[str]:
+    """Records of benchmarks/gpu_suite.py (train step, render, memory, parity at a fixed N): one row per variant."""
+    out = [
+        f"### Train step / render / memory: {recs[0]['scene']} (benchmarks/gpu_suite.py; details in docs/gpu_notes.md)",
+        "",
+        "| variant | step ms | ratio vs splatfacto | extra peak VRAM GB | host syncs/step | render FPS ratio vs gsplat "
+        "| parity fwd / grad rel. err |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(recs, key=lambda r: r.get("step_ms") or 0):
+        parity = "-"
+        if r.get("parity_fwd_rel_err") is not None:
+            parity = f"{r['parity_fwd_rel_err']:.1e} / {r.get('parity_grad_rel_err', float('nan')):.1e}"
+        out.append(
+            f"| {r['method']} | {_f(r.get('step_ms'), '.2f')} | {_f(r.get('step_ratio_vs_splatfacto'), '.2f')} | "
+            f"{_f(r.get('extra_vram_gb'), '+.2f')} | {_f(r.get('host_syncs_per_step'), '.0f')} | "
+            f"{_f(r.get('render_fps_ratio_vs_gsplat'), '.3f', '-')} | {parity} |"
+        )
+    return out
+
+
 def render_markdown(records: list[dict[str, Any]]) -> str:
     """docs/benchmarks.md from the records: per device, the runs' provenance, the goals, a table per scene and the
     fox-wild Pareto table."""
@@ -1050,9 +1071,11 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         fails = [r for r in recs if r.get("status", "ok") != "ok"]
         if fails:
             out.append(f"- failed runs: {len(fails)} (listed in the tables)")
-        out += ["", "### Goals", "", "| goal | measured | target | status |", "|---|---|---|---|"]
-        for g in goal_rows(recs, device):
-            out.append(f"| {g['goal']} | {g['measured']} | {g['target']} | {g['status']} |")
+        goals = goal_rows(recs, device)
+        if any(g["status"] != "not measured" for g in goals):  # speed-only sections measure none of them
+            out += ["", "### Goals", "", "| goal | measured | target | status |", "|---|---|---|---|"]
+            for g in goals:
+                out.append(f"| {g['goal']} | {g['measured']} | {g['target']} | {g['status']} |")
         out.append("")
         if device == "cpu":
             out += [
@@ -1061,6 +1084,10 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
                 "GPU table or to published ones.",
                 "",
             ]
+        speed = [r for r in recs if r.get("step_ms") is not None]
+        if speed:
+            out += _speed_table(speed) + [""]
+        recs = [r for r in recs if r.get("step_ms") is None]
         for scene in sorted({r["scene"] for r in recs}, key=lambda s: (s != "default", s)):
             srecs = [r for r in recs if r["scene"] == scene]
             ok = _ok(srecs)
