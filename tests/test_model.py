@@ -70,3 +70,22 @@ def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_g
     for name, a, b in zip(names, g_f, g_s, strict=True):
         assert a.abs().sum() > 0, name
         torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4, msg=lambda m, n=name: f"{n}: {m}")
+
+
+def test_appearance_path_is_finite_at_the_extremes():
+    """Huge latents, Gaussians far outside the scene bounds, a Gaussian exactly at the camera centre (zero-length
+    view direction): colours stay finite in [0, 1] and every gradient stays finite."""
+    model = _tiny_model()
+    n = model.num_points
+    means = model.means.detach().clone()
+    means[0] = torch.tensor([1e6, -1e6, 1e6])  # far outside the bounds: clamped, not extrapolated
+    means[1] = torch.tensor([0.0, 0.0, 2.5])  # at the camera centre below
+    means.requires_grad_(True)
+    f_s = model.intrinsic_features.detach().clone().requires_grad_(True)
+    cam_center = torch.tensor([0.0, 0.0, 2.5])
+    for scale in (0.0, 1.0, 1e4, -1e4):
+        z = torch.full((model.train_latents.shape[1],), scale, requires_grad=True)
+        rgb = model.appearance_colors(z, means, f_s, cam_center)
+        assert rgb.shape == (n, 3) and torch.isfinite(rgb).all() and rgb.min() >= 0 and rgb.max() <= 1
+        gz, gm, gf = torch.autograd.grad(rgb.sum(), [z, means, f_s])
+        assert torch.isfinite(gz).all() and torch.isfinite(gm).all() and torch.isfinite(gf).all(), scale
