@@ -89,3 +89,36 @@ def test_appearance_path_is_finite_at_the_extremes():
         assert rgb.shape == (n, 3) and torch.isfinite(rgb).all() and rgb.min() >= 0 and rgb.max() <= 1
         gz, gm, gf = torch.autograd.grad(rgb.sum(), [z, means, f_s])
         assert torch.isfinite(gz).all() and torch.isfinite(gm).all() and torch.isfinite(gf).all(), scale
+
+
+def test_fixed_appearance_renders_through_baked_sh_close_to_the_decoder_and_runs_it_once():
+    model = _tiny_model()
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(6)
+        for p in model.appearance_nets.parameters():  # a decoder with real latent and view dependence
+            p.add_(0.3 * torch.randn(p.shape, generator=g))
+    model.eval()
+    model.render_latent = torch.randn(model.train_latents.shape[1], generator=g)
+    cam = _camera(48, 32)
+    calls = []
+    model.appearance_nets.color.register_forward_hook(lambda *a: calls.append(1))
+    with torch.no_grad():
+        model.config.render_sh_degree = -1
+        exact = model.get_outputs(cam)["rgb"]
+        n_exact = len(calls)
+        model.config.render_sh_degree = 3
+        baked = model.get_outputs(cam)["rgb"]
+        n_first = len(calls) - n_exact
+        cam.camera_to_worlds[0, 0, 3] += 0.2  # the viewer moves the camera; the appearance stays
+        model.get_outputs(cam)
+        n_second = len(calls) - n_exact - n_first
+    assert n_exact == 1 and n_first >= 32 and n_second == 0  # fitted once per appearance, never per frame
+    psnr = -10 * torch.log10(((baked - exact) ** 2).mean())
+    assert psnr > 35, f"baked SH render differs from the decoder's: {psnr:.1f} dB"
+    assert (baked - exact).abs().max() < 0.1
+    # a camera-supplied latent (the NeRF-W protocol, the demo) always takes the exact decoder path
+    cam.metadata = {"appearance_latent": model.render_latent}
+    with torch.no_grad():
+        before = len(calls)
+        model.get_outputs(cam)
+    assert len(calls) - before == 1

@@ -39,7 +39,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
-from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig
+from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig, sh_basis
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField, normalize_points, robust_bounds
 from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, vae_loss
 from willags_ns.losses import reconstruction_loss
@@ -70,6 +70,18 @@ def viewmat_from_c2w(c2w: Tensor) -> Tensor:
     viewmat[:, :3, :3] = R_inv
     viewmat[:, :3, 3:4] = -torch.bmm(R_inv, T)
     return viewmat
+
+
+RENDER_SH_SAMPLES = 64
+"""View directions over which the decoder is fitted by SH when rendering with a fixed appearance."""
+
+
+def fibonacci_directions(k: int, device=None) -> Tensor:
+    """k unit vectors [k, 3] spread evenly over the sphere (Fibonacci lattice)."""
+    i = torch.arange(k, device=device, dtype=torch.float32) + 0.5
+    phi, cos_t = math.pi * (1 + 5**0.5) * i, 1 - 2 * i / k
+    sin_t = (1 - cos_t**2).clamp_min(0).sqrt()
+    return torch.stack([sin_t * phi.cos(), sin_t * phi.sin(), cos_t], -1)
 
 
 def _lpips_weights_cached() -> bool:
@@ -125,6 +137,12 @@ class WillagsModelConfig(SplatfactoModelConfig):
     log_images_every: int = 500
     """Write training images (render, teacher render, D map, mask, VAE reconstruction) to tensorboard every N
     steps (0 = never)."""
+    render_sh_degree: int = 3
+    """Rendering with a chosen appearance and no gradient (viewer, ns-render, eval images during training; not
+    training, not the NeRF-W protocol, whose latent arrives in the camera's metadata): once per appearance change the
+    colour decoder is projected by least squares onto real SH of this degree per Gaussian (over RENDER_SH_SAMPLES
+    view directions), and every frame the rasteriser evaluates SH like 3DGS: the decoder MLP no longer runs per
+    frame. -1 = run the decoder every frame (exact)."""
     export_view_samples: int = 26
     """Number of view directions averaged when baking the view-dependent colour into a PLY (ns-export)."""
 
@@ -302,6 +320,7 @@ class WillagsModel(SplatfactoModel):
         self._mask_cache: dict[int, Tensor] = {}
         self._mask_visits: dict[int, int] = {}
         self._fd_cache: tuple[tuple, Tensor] | None = None
+        self._sh_cache: tuple[tuple, Tensor] | None = None
         self._absgrad_notice = False
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
         if cfg.appearance == "willags":
@@ -435,6 +454,25 @@ class WillagsModel(SplatfactoModel):
         return nets.colors(z, f_d, f_s, dirs)
 
     @torch.no_grad()
+    def baked_sh(self, z: Tensor, means: Tensor, f_s: Tensor, degree: int) -> Tensor:
+        """SH coefficients [N, (degree + 1)**2, 3] whose evaluation (gsplat's: sum_k c_k Y_k(d) + 0.5) best fits the
+        decoder's colour over RENDER_SH_SAMPLES directions d (least squares). Cached per (latent, Gaussians)."""
+        nets = self.appearance_nets
+        assert nets is not None
+        key = (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step, degree)
+        if self._sh_cache is not None and self._sh_cache[0] == key:
+            return self._sh_cache[1]
+        f_d = self._dynamic_features(nets, z, means, cacheable=True)
+        dirs = fibonacci_directions(max(RENDER_SH_SAMPLES, 2 * (degree + 1) ** 2), means.device)  # [M, 3]
+        proj = torch.linalg.pinv(sh_basis(dirs, degree))  # [K, M]: coefficients from samples
+        coeffs = torch.zeros(means.shape[0], proj.shape[0], 3, device=means.device)
+        for m in range(dirs.shape[0]):  # one decoder pass per direction: no [M, N, 3] buffer
+            rgb = nets.colors(z, f_d, f_s, dirs[m].expand_as(means)) - 0.5  # gsplat adds 0.5 back
+            coeffs += proj[None, :, m, None] * rgb[:, None, :]
+        self._sh_cache = (key, coeffs)
+        return coeffs
+
+    @torch.no_grad()
     def baked_colors(self, z: Tensor | None = None) -> Tensor:
         """View-independent colours [N, 3] for export: the decoder averaged over a Fibonacci sphere of views."""
         assert self.appearance_nets is not None
@@ -442,10 +480,7 @@ class WillagsModel(SplatfactoModel):
         means, f_s = self.means, self.intrinsic_features
         f_d = self._dynamic_features(self.appearance_nets, z, means, cacheable=False)
         k = max(1, self.config.export_view_samples)
-        i = torch.arange(k, device=self.device, dtype=torch.float32) + 0.5
-        phi, cos_t = math.pi * (1 + 5**0.5) * i, 1 - 2 * i / k
-        sin_t = (1 - cos_t**2).sqrt()
-        dirs = torch.stack([sin_t * phi.cos(), sin_t * phi.sin(), cos_t], -1)  # [k, 3]
+        dirs = fibonacci_directions(k, self.device)  # [k, 3]
         acc = torch.zeros(means.shape[0], 3, device=self.device)
         for d in dirs:
             acc += self.appearance_nets.colors(z, f_d, f_s, d.expand_as(means))
@@ -523,10 +558,15 @@ class WillagsModel(SplatfactoModel):
                 colors, sh_degree = torch.sigmoid(colors).squeeze(1), None
         else:
             z = self._latent_for_forward(camera, outputs)
-            colors = self.appearance_colors(
-                z, gp["means"], gp["features"], cam_center, cacheable=not self.training and not torch.is_grad_enabled()
-            )
-            sh_degree = None
+            fixed = not self.training and not torch.is_grad_enabled()
+            if fixed and cfg.render_sh_degree >= 0 and "appearance_latent" not in (camera.metadata or {}):
+                colors, sh_degree = (
+                    self.baked_sh(z, gp["means"], gp["features"], cfg.render_sh_degree),
+                    cfg.render_sh_degree,
+                )
+            else:
+                colors = self.appearance_colors(z, gp["means"], gp["features"], cam_center, cacheable=fixed)
+                sh_degree = None
 
         teacher_needed = self.training and self._teacher_needed()
         fused = teacher_needed and cfg.fuse_teacher_render
