@@ -23,7 +23,7 @@ COMMANDS = {
 
 def normalise(rec: dict, source: str) -> dict:
     rec = dict(rec)
-    kind = "gpu_suite" if "step_ms" in rec or "parity_fwd_rel_err" in rec else "train_eval"
+    kind = "gpu_suite" if {"step_ms", "parity_fwd_rel_err", "render_fps_ratio_vs_gsplat"} & rec.keys() else "train_eval"
     rec.setdefault("status", "error" if "error" in rec else "ok")
     rec.setdefault("machine", f"1x {rec.get('device', 'GPU')} (lent), torch 2.11 cu130, gsplat 1.4.0 (JIT)")
     rec.setdefault("command", COMMANDS[kind])

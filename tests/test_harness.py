@@ -320,6 +320,6 @@ def test_markdown_renders_gpu_suite_speed_records_as_their_own_table():
     }
     md = render_markdown([speed])
     assert "### Train step / render / memory: synthetic-box-1000000-800px" in md
-    assert "| willags | 52.60 | 3.14 | +1.98 | 26 | 0.293 | - |" in md
+    assert "| willags [h100] | 52.60 | 3.14 | +1.98 | 26 | 0.293 | - |" in md
     assert "### Goals" not in md  # a speed-only section measures none of the accuracy goals
     assert "| PSNR |" not in md

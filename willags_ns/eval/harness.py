@@ -1006,6 +1006,15 @@ def _scene_table(recs: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _is_speed_record(r: dict[str, Any]) -> bool:
+    """A benchmarks/gpu_suite.py record (train step, render speed, memory, parity), not a train-and-score run."""
+    return any(r.get(k) is not None for k in ("step_ms", "render_fps_ratio_vs_gsplat", "parity_fwd_rel_err"))
+
+
+def _speed_label(r: dict[str, Any]) -> str:
+    return r["method"] + (f" [{r['tag']}]" if r.get("tag") else "")
+
+
 def _speed_table(recs: list[dict[str, Any]]) -> list[str]:
     """Records of benchmarks/gpu_suite.py (train step, render, memory, parity at a fixed N): one row per variant."""
     out = [
@@ -1020,7 +1029,7 @@ def _speed_table(recs: list[dict[str, Any]]) -> list[str]:
         if r.get("parity_fwd_rel_err") is not None:
             parity = f"{r['parity_fwd_rel_err']:.1e} / {r.get('parity_grad_rel_err', float('nan')):.1e}"
         out.append(
-            f"| {r['method']} | {_f(r.get('step_ms'), '.2f')} | {_f(r.get('step_ratio_vs_splatfacto'), '.2f')} | "
+            f"| {_speed_label(r)} | {_f(r.get('step_ms'), '.2f')} | {_f(r.get('step_ratio_vs_splatfacto'), '.2f')} | "
             f"{_f(r.get('extra_vram_gb'), '+.2f')} | {_f(r.get('host_syncs_per_step'), '.0f')} | "
             f"{_f(r.get('render_fps_ratio_vs_gsplat'), '.3f', '-')} | {parity} |"
         )
@@ -1084,10 +1093,10 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
                 "GPU table or to published ones.",
                 "",
             ]
-        speed = [r for r in recs if r.get("step_ms") is not None]
+        speed = [r for r in recs if _is_speed_record(r)]
         if speed:
             out += _speed_table(speed) + [""]
-        recs = [r for r in recs if r.get("step_ms") is None]
+        recs = [r for r in recs if not _is_speed_record(r)]
         for scene in sorted({r["scene"] for r in recs}, key=lambda s: (s != "default", s)):
             srecs = [r for r in recs if r["scene"] == scene]
             ok = _ok(srecs)
