@@ -21,7 +21,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Union
+from typing import Literal, Union, cast
 
 import torch
 import torch.nn.functional as F
@@ -213,6 +213,11 @@ class WillagsModel(SplatfactoModel):
     """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow."""
 
     config: WillagsModelConfig
+    # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
+    train_latents: Tensor
+    train_latent_seen: Tensor
+    bounds_lo: Tensor
+    bounds_hi: Tensor
 
     # ------------------------------------------------------------------ set-up
     def populate_modules(self):
@@ -302,7 +307,7 @@ class WillagsModel(SplatfactoModel):
             cfg.triplane.latent_dim = cfg.vae.latent_dim
             self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data)
             if cfg.use_mask and cfg.teacher.enabled:
-                self.teacher = make_teacher(self.appearance_nets)
+                self.teacher = cast(AppearanceNetworks, make_teacher(self.appearance_nets))
             if cfg.use_mask:
                 self.perceptual = PerceptualFeatures(
                     weights=cfg.mask.vgg_weights, path=cfg.mask.vgg_weights_path, max_resolution=cfg.mask.max_resolution
@@ -434,7 +439,8 @@ class WillagsModel(SplatfactoModel):
         if self._fd_cache is not None and self._fd_cache[0] == key:
             return self._fd_cache[1]
         f_d = nets.dynamic_features(z, self._normalized_means(means))
-        self._fd_cache = (key, f_d)
+        if f_d is not None:
+            self._fd_cache = (key, f_d)
         return f_d
 
     def appearance_colors(
@@ -595,8 +601,8 @@ class WillagsModel(SplatfactoModel):
         if background.shape[0] == 3 and not self.training:
             background = background.expand(H, W, 3)
         outputs.update(
-            {"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background}
-        )  # type: ignore
+            {"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background}  # type: ignore[dict-item]
+        )
         return outputs
 
     def _latent_for_forward(self, camera: Cameras, outputs: dict) -> Tensor:

@@ -21,7 +21,7 @@ def interpolate_latents(z_a: Tensor, z_b: Tensor, t: float) -> Tensor:
     return (1.0 - t) * z_a + t * z_b
 
 
-def sample_latent(dim: int, seed: int, device="cpu") -> Tensor:
+def sample_latent(dim: int, seed: int, device: "torch.device | str" = "cpu") -> Tensor:
     """A new appearance: z ~ N(0, I), reproducible from the seed."""
     g = torch.Generator().manual_seed(int(seed))
     return torch.randn(dim, generator=g).to(device)
@@ -33,6 +33,8 @@ class AppearanceControls(nn.Module):
     An nn.Module without parameters so the viewer's tree walk reaches it; the model is kept in `_model` (a plain
     attribute, not a submodule, to avoid a reference cycle in the module tree).
     """
+
+    _model: "WillagsModel"
 
     def __init__(self, model: "WillagsModel", image_names: list[str] | None = None):
         super().__init__()
@@ -70,7 +72,7 @@ class AppearanceControls(nn.Module):
         if mode == MODES[2]:
             return interpolate_latents(m.train_latents[names.index(a)], m.train_latents[names.index(b)], float(t))
         if mode == MODES[3]:
-            return sample_latent(m.train_latents.shape[1], seed, m.device)
+            return sample_latent(int(m.train_latents.shape[1]), seed, m.device)
         return None
 
     def apply(self) -> None:
@@ -120,7 +122,7 @@ def latent_from_spec(spec: str, image_names: list[str], train_latents: Tensor, s
             seed = int(arg or 0)
         except ValueError:
             raise ValueError(f"{APPEARANCE_ENV}: sample seed must be an integer, got {arg!r}") from None
-        return sample_latent(train_latents.shape[1], seed, train_latents.device)
+        return sample_latent(int(train_latents.shape[1]), seed, train_latents.device)
     if kind == "interp":
         parts = arg.split(",")
         if len(parts) != 3:
