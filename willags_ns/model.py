@@ -142,7 +142,8 @@ class WillagsModelConfig(SplatfactoModelConfig):
     training, not the NeRF-W protocol, whose latent arrives in the camera's metadata): once per appearance change the
     colour decoder is projected by least squares onto real SH of this degree per Gaussian (over RENDER_SH_SAMPLES
     view directions), and every frame the rasteriser evaluates SH like 3DGS: the decoder MLP no longer runs per
-    frame. -1 = run the decoder every frame (exact)."""
+    frame. The bake happens on the second frame with the same appearance and Gaussians (a viewer open during
+    training, where the Gaussians change every step, keeps the exact decoder). -1 = the decoder every frame."""
     export_view_samples: int = 26
     """Number of view directions averaged when baking the view-dependent colour into a PLY (ns-export)."""
 
@@ -326,6 +327,7 @@ class WillagsModel(SplatfactoModel):
         self._mask_visits: dict[int, int] = {}
         self._fd_cache: tuple[tuple, Tensor] | None = None
         self._sh_cache: tuple[tuple, Tensor] | None = None
+        self._sh_seen: tuple | None = None
         self._absgrad_notice = False
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
         if cfg.appearance == "willags":
@@ -459,13 +461,25 @@ class WillagsModel(SplatfactoModel):
         dirs = means - cam_center[None, :]
         return nets.colors(z, f_d, f_s, dirs)
 
+    def _sh_key(self, z: Tensor, means: Tensor, degree: int) -> tuple:
+        return (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step, degree)
+
+    def _use_baked_sh(self, z: Tensor, means: Tensor, degree: int) -> bool:
+        """Bake on the second frame with the same (latent, Gaussians): a viewer refreshing during training, where
+        the Gaussians change every step, keeps the exact decoder instead of paying a bake per frame."""
+        key = self._sh_key(z, means, degree)
+        if (self._sh_cache is not None and self._sh_cache[0] == key) or self._sh_seen == key:
+            return True
+        self._sh_seen = key
+        return False
+
     @torch.no_grad()
     def baked_sh(self, z: Tensor, means: Tensor, f_s: Tensor, degree: int) -> Tensor:
         """SH coefficients [N, (degree + 1)**2, 3] whose evaluation (gsplat's: sum_k c_k Y_k(d) + 0.5) best fits the
         decoder's colour over RENDER_SH_SAMPLES directions d (least squares). Cached per (latent, Gaussians)."""
         nets = self.appearance_nets
         assert nets is not None
-        key = (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step, degree)
+        key = self._sh_key(z, means, degree)
         if self._sh_cache is not None and self._sh_cache[0] == key:
             return self._sh_cache[1]
         f_d = self._dynamic_features(nets, z, means, cacheable=True)
@@ -565,7 +579,13 @@ class WillagsModel(SplatfactoModel):
         else:
             z = self._latent_for_forward(camera, outputs)
             fixed = not self.training and not torch.is_grad_enabled()
-            if fixed and cfg.render_sh_degree >= 0 and "appearance_latent" not in (camera.metadata or {}):
+            deg = cfg.render_sh_degree
+            if (
+                fixed
+                and deg >= 0
+                and "appearance_latent" not in (camera.metadata or {})
+                and self._use_baked_sh(z, gp["means"], deg)
+            ):
                 colors, sh_degree = (
                     self.baked_sh(z, gp["means"], gp["features"], cfg.render_sh_degree),
                     cfg.render_sh_degree,
