@@ -206,6 +206,9 @@ def test_ns_export_bakes_the_chosen_appearance_into_a_standard_ply(tmp_path):
         for field in ("x", "opacity", "scale_0", "rot_0", "f_dc_0", "f_dc_1", "f_dc_2"):
             assert field in v.data.dtype.names
         dc[spec] = np.stack([v["f_dc_0"], v["f_dc_1"], v["f_dc_2"]], 1)
+        # view-dependent colour as degree-3 SH (the decoder fitted per Gaussian): 15 x 3 f_rest, Inria layout
+        rest = np.stack([v[f"f_rest_{i}"] for i in range(45)], 1)
+        assert f"f_rest_{45}" not in v.data.dtype.names and np.isfinite(rest).all() and np.abs(rest).max() > 0
         assert np.isfinite(dc[spec]).all()
     # a different appearance gives different baked colours for the same Gaussians
     assert dc["mean"].shape == dc["sample:3"].shape and not np.allclose(dc["mean"], dc["sample:3"])

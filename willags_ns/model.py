@@ -338,13 +338,13 @@ class WillagsModel(SplatfactoModel):
     def features_dc(self):
         if "features_dc" in self.gauss_params:
             return self.gauss_params["features_dc"]
-        return RGB2SH(self.baked_colors())
+        return self.export_sh()[:, 0, :]
 
     @property
     def features_rest(self):
         if "features_rest" in self.gauss_params:
             return self.gauss_params["features_rest"]
-        return torch.zeros(self.num_points, 0, 3, device=self.device)
+        return self.export_sh()[:, 1:, :]
 
     @property
     def intrinsic_features(self) -> Tensor:
@@ -360,11 +360,21 @@ class WillagsModel(SplatfactoModel):
     def shs_0(self):
         if self.config.appearance == "sh":
             return super().shs_0
-        return RGB2SH(self.baked_colors())
+        return self.export_sh()[:, 0, :]
 
     @property
     def shs_rest(self):
         return self.features_rest
+
+    @torch.no_grad()
+    def export_sh(self) -> Tensor:
+        """SH [N, K, 3] of the chosen appearance for exporters (`ns-export gaussian-splat` writes f_dc + f_rest): the
+        decoder fitted by SH of degree render_sh_degree (view-dependent, 3DGS layout); with render_sh_degree=-1, the
+        decoder colour averaged over export_view_samples directions as degree 0."""
+        deg = self.config.render_sh_degree
+        if deg < 0:
+            return RGB2SH(self.baked_colors())[:, None, :]
+        return self.baked_sh(self.current_latent(), self.means, self.intrinsic_features, deg)
 
     def get_gaussian_param_groups(self) -> dict[str, list[Parameter]]:
         return {name: [p] for name, p in self.gauss_params.items()}
