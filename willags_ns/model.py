@@ -360,7 +360,7 @@ class WillagsModel(SplatfactoModel):
     def shs_0(self):
         if self.config.appearance == "sh":
             return super().shs_0
-        return self.export_sh()[:, 0, :]
+        return self.features_dc
 
     @property
     def shs_rest(self):
@@ -474,22 +474,24 @@ class WillagsModel(SplatfactoModel):
     def _sh_key(self, z: Tensor, means: Tensor, degree: int) -> tuple:
         return (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step, degree)
 
-    def _use_baked_sh(self, z: Tensor, means: Tensor, degree: int) -> bool:
-        """Bake on the second frame with the same (latent, Gaussians): a viewer refreshing during training, where
-        the Gaussians change every step, keeps the exact decoder instead of paying a bake per frame."""
+    def _frame_sh(self, z: Tensor, means: Tensor, f_s: Tensor, degree: int) -> Tensor | None:
+        """The baked SH for this frame, or None to run the decoder. Bakes on the second frame with the same (latent,
+        Gaussians): a viewer refreshing during training, where the Gaussians change every step, keeps the exact
+        decoder instead of paying a bake per frame."""
         key = self._sh_key(z, means, degree)
-        if (self._sh_cache is not None and self._sh_cache[0] == key) or self._sh_seen == key:
-            return True
-        self._sh_seen = key
-        return False
+        if self._sh_seen != key and (self._sh_cache is None or self._sh_cache[0] != key):
+            self._sh_seen = key
+            return None
+        return self.baked_sh(z, means, f_s, degree, key)
 
     @torch.no_grad()
-    def baked_sh(self, z: Tensor, means: Tensor, f_s: Tensor, degree: int) -> Tensor:
+    def baked_sh(self, z: Tensor, means: Tensor, f_s: Tensor, degree: int, key: tuple | None = None) -> Tensor:
         """SH coefficients [N, (degree + 1)**2, 3] whose evaluation (gsplat's: sum_k c_k Y_k(d) + 0.5) best fits the
-        decoder's colour over RENDER_SH_SAMPLES directions d (least squares). Cached per (latent, Gaussians)."""
+        decoder's colour over RENDER_SH_SAMPLES directions d (least squares). Cached per (latent, Gaussians);
+        `key` is :meth:`_sh_key` when the caller already has it (one host sync per frame, not two)."""
         nets = self.appearance_nets
         assert nets is not None
-        key = self._sh_key(z, means, degree)
+        key = self._sh_key(z, means, degree) if key is None else key
         if self._sh_cache is not None and self._sh_cache[0] == key:
             return self._sh_cache[1]
         f_d = self._dynamic_features(nets, z, means, cacheable=True)
@@ -590,16 +592,11 @@ class WillagsModel(SplatfactoModel):
             z = self._latent_for_forward(camera, outputs)
             fixed = not self.training and not torch.is_grad_enabled()
             deg = cfg.render_sh_degree
-            if (
-                fixed
-                and deg >= 0
-                and "appearance_latent" not in (camera.metadata or {})
-                and self._use_baked_sh(z, gp["means"], deg)
-            ):
-                colors, sh_degree = (
-                    self.baked_sh(z, gp["means"], gp["features"], cfg.render_sh_degree),
-                    cfg.render_sh_degree,
-                )
+            sh = None
+            if fixed and deg >= 0 and "appearance_latent" not in (camera.metadata or {}):
+                sh = self._frame_sh(z, gp["means"], gp["features"], deg)
+            if sh is not None:
+                colors, sh_degree = sh, deg
             else:
                 colors = self.appearance_colors(z, gp["means"], gp["features"], cam_center, cacheable=fixed)
                 sh_degree = None
