@@ -16,6 +16,7 @@ from willags_ns.transient import (
     perceptual_error,
     robust_threshold,
     static_mask,
+    transient_mask,
     transient_threshold,
 )
 
@@ -222,6 +223,17 @@ def test_transient_threshold_rules():
     assert transient_threshold(D, 0.85, "robust").shape == (1, 1, 1)
     with pytest.raises(ValueError, match="unknown mask threshold rule"):
         transient_threshold(D, 0.85, "bogus")
+
+
+def test_transient_mask_flags_above_threshold_and_rejects_a_mostly_flagged_image():
+    D = torch.zeros(10, 10)
+    D[:3] = 2.0  # 30% of the image
+    transient, rejected = transient_mask(D, 0.85, max_masked_fraction=0.5)
+    assert not rejected and torch.equal(transient, D >= 0.85)
+    transient, rejected = transient_mask(D, 0.85, max_masked_fraction=0.25)
+    assert rejected and not transient.any()  # rejected: nothing is transient, every pixel is supervised
+    transient, rejected = transient_mask(D, float("inf"), "robust")  # warming up
+    assert not rejected and not transient.any()
 
 
 def test_schedule_boundaries():

@@ -51,8 +51,7 @@ from willags_ns.transient import (
     mask_active,
     mask_threshold,
     perceptual_error,
-    static_mask,
-    transient_threshold,
+    transient_mask,
 )
 from willags_ns.viewer import APPEARANCE_ENV, AppearanceControls, latent_from_spec
 
@@ -720,12 +719,11 @@ class WillagsModel(SplatfactoModel):
                 d = perceptual_error(self.perceptual(gt_b), self.perceptual(te_b), (H, W))[0]  # [H, W]
             self._step_cache["D"] = d
             thr = mask_threshold(self.step, cfg.mask.threshold, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
-            thr = transient_threshold(d[None], thr, cfg.mask.threshold_rule, cfg.mask.robust_k)
-            mask = static_mask(d[None], thr)[0]
-            if 1.0 - mask.float().mean() > cfg.max_masked_fraction:
-                # the teacher disagrees with most of the image: that is a teacher not yet trained (or an appearance
-                # it cannot explain), not a transient; supervise every pixel rather than none
-                mask = torch.ones_like(mask)
+            transient, rejected = transient_mask(
+                d, thr, cfg.mask.threshold_rule, cfg.mask.robust_k, cfg.max_masked_fraction
+            )
+            mask = ~transient  # a rejected mask supervises every pixel rather than none
+            if rejected:
                 self._step_cache["mask_rejected"] = torch.tensor(1.0)
             self._mask_cache[idx] = mask
         elif idx in self._mask_cache:

@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
-from willags_ns.transient import mask_threshold, perceptual_error, static_mask, transient_threshold
+from willags_ns.transient import mask_threshold, perceptual_error, transient_mask
 
 
 @dataclass
@@ -112,11 +112,7 @@ def predicted_transient(
         d = perceptual_error(
             perceptual(gt.permute(2, 0, 1)[None].float()), perceptual(teacher.permute(2, 0, 1)[None].float()), (H, W)
         )[0]
-    thr = transient_threshold(d[None], threshold, rule, robust_k)
-    transient = ~static_mask(d[None], thr)[0]
-    rejected = bool(transient.float().mean() > max_masked_fraction)
-    if rejected:
-        transient = torch.zeros_like(transient)
+    transient, rejected = transient_mask(d, threshold, rule, robust_k, max_masked_fraction)
     return transient, rejected, d
 
 
@@ -235,6 +231,8 @@ def mask_scores(
     model.eval()
     counts: list[MaskCounts] = []
     counts_fixed: list[MaskCounts] = []
+    # configs saved before the threshold rule existed load without these fields: the paper's rule
+    rule, k = getattr(cfg.mask, "threshold_rule", "fixed"), getattr(cfg.mask, "robust_k", 2.0)
     d_pos: list[Tensor] = []
     d_neg: list[Tensor] = []
     per_image = []
@@ -250,7 +248,6 @@ def mask_scores(
             cam, image, gt_mask = training_view(train_dataset, i, gt_mask)
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
             render = teacher_render(model, cam, img, i)
-            rule, k = getattr(cfg.mask, "threshold_rule", "fixed"), getattr(cfg.mask, "robust_k", 2.0)
             pred, rejected, d = predicted_transient(
                 model.perceptual, img, render, thr, cfg.max_masked_fraction, rule, k
             )
@@ -258,9 +255,8 @@ def mask_scores(
             c = count_pixels(pred, gt_t, rejected)
             counts.append(c)
             # the paper's fixed rule on the same D, for comparison
-            fixed = d >= thr
-            fixed_rej = bool(fixed.float().mean() > cfg.max_masked_fraction)
-            counts_fixed.append(count_pixels(torch.zeros_like(fixed) if fixed_rej else fixed, gt_t, fixed_rej))
+            fixed, fixed_rej = transient_mask(d, thr, "fixed", max_masked_fraction=cfg.max_masked_fraction)
+            counts_fixed.append(count_pixels(fixed, gt_t, fixed_rej))
             d_cpu = d.float().cpu()
             gt_cpu = gt_t.cpu()
             # subsample D for the medians: 4096 pixels per class and image is plenty
@@ -279,7 +275,7 @@ def mask_scores(
         return {"status": f"no training image has a mask in {masks_gt_dir}"}
     out: dict = dict(aggregate_counts(counts))
     out["threshold"] = float(thr)
-    out["rule"] = getattr(cfg.mask, "threshold_rule", "fixed")
+    out["rule"] = rule
     fixed_agg = aggregate_counts(counts_fixed)
     for key in ("iou", "recall", "fp_rate", "rejected"):
         out[f"fixed_{key}"] = fixed_agg[key]
