@@ -1,43 +1,23 @@
 """WillagsModel wiring that unit tests of the components do not see: the fused teacher render."""
 
 import math
-import warnings
 
 import torch
-from nerfstudio.data.scene_box import SceneBox
 
 from tests.test_mask_eval import _camera
-from willags_ns.appearance.triplane import TriplaneConfig
-from willags_ns.appearance.vae import VAEConfig
-from willags_ns.model import WillagsModelConfig
-from willags_ns.transient import PerceptualMaskConfig
+from tests.test_mask_eval import _tiny_model as _mask_eval_tiny_model
 
 
 def _tiny_model():
+    """test_mask_eval's tiny model, in training shape: the mask from step 0, a teacher that differs from the student
+    (as it does during training), half-transparent Gaussians."""
+    model = _mask_eval_tiny_model(use_vae=True)
+    model.config.mask.warmup_steps = 0
     g = torch.Generator().manual_seed(0)
-    xyz = (torch.rand(600, 3, generator=g) - 0.5) * torch.tensor([2.4, 1.8, 0.4])
-    rgb = (torch.rand(600, 3, generator=g) * 255).to(torch.uint8)
-    torch.manual_seed(0)
-    cfg = WillagsModelConfig(
-        vae=VAEConfig(latent_dim=8, image_size=16, channels=(8, 8)),
-        triplane=TriplaneConfig(
-            latent_dim=8, resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16
-        ),
-        intrinsic_dim=8,
-        mask=PerceptualMaskConfig(vgg_weights="seeded", warmup_steps=0),
-        backend="torch",
-        background_color="black",
-        num_downscales=0,
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model = cfg.setup(
-            scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2, seed_points=(xyz, rgb)
-        )
     with torch.no_grad():
         model.gauss_params["opacities"].fill_(1.0)
         model.gauss_params["scales"].fill_(math.log(0.05))
-        for p in model.teacher.parameters():  # a teacher that differs from the student, as during training
+        for p in model.teacher.parameters():
             p.add_(0.3 * torch.randn(p.shape, generator=g))
     model.optimizers = {}  # only read by densification, which a single forward does not reach
     return model

@@ -175,31 +175,38 @@ def test_ns_eval_runs_the_protocol(tmp_path):
     assert results["left_loss_after"] <= results["left_loss_before"] + 1e-6
 
 
+def _run_ns_tool(tool: str, args: list[str], appearance: str) -> None:
+    """Run a nerfstudio console script of this venv with WILLAGS_APPEARANCE=appearance; it must succeed."""
+    import os
+
+    cmd = [str(Path(sys.executable).with_name(tool)), *args]
+    env = {**os.environ, "WILLAGS_APPEARANCE": appearance}
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    assert res.returncode == 0, (res.stdout[-2000:], res.stderr[-2000:])
+
+
 def test_ns_export_bakes_the_chosen_appearance_into_a_standard_ply(tmp_path):
     """`ns-export gaussian-splat` on a willags checkpoint: a 3DGS PLY whose colours follow WILLAGS_APPEARANCE."""
-    import os
 
     import numpy as np
     from plyfile import PlyData
 
     config, trainer, _ = _train(tmp_path, "willags", steps=6)
-    exe = Path(sys.executable).with_name("ns-export")
     n = trainer.pipeline.model.num_points
     dc = {}
     for spec in ("mean", "sample:3"):
         out_dir = tmp_path / spec.replace(":", "_")
-        cmd = [
-            str(exe),
-            "gaussian-splat",
-            "--load-config",
-            str(config.get_base_dir() / "config.yml"),
-            "--output-dir",
-            str(out_dir),
-        ]
-        res = subprocess.run(
-            cmd, capture_output=True, text=True, timeout=600, env={**os.environ, "WILLAGS_APPEARANCE": spec}
+        _run_ns_tool(
+            "ns-export",
+            [
+                "gaussian-splat",
+                "--load-config",
+                str(config.get_base_dir() / "config.yml"),
+                "--output-dir",
+                str(out_dir),
+            ],
+            appearance=spec,
         )
-        assert res.returncode == 0, (res.stdout[-2000:], res.stderr[-2000:])
         ply = PlyData.read(str(out_dir / "splat.ply"))
         v = ply["vertex"]
         assert v.count <= n and v.count > 0
@@ -233,7 +240,6 @@ def test_bad_appearance_spec_names_the_problem():
 
 def test_ns_render_uses_the_chosen_appearance(tmp_path):
     """`ns-render dataset` on a willags checkpoint: WILLAGS_APPEARANCE picks the appearance of the frames."""
-    import os
 
     import numpy as np
     from PIL import Image
@@ -244,28 +250,26 @@ def test_ns_render_uses_the_chosen_appearance(tmp_path):
         for p in trainer.pipeline.model.appearance_nets.field.parameters():
             p.add_(0.5 * torch.randn(p.shape, generator=g))
     trainer.save_checkpoint(trainer.config.max_num_iterations)
-    exe = Path(sys.executable).with_name("ns-render")
     frames = {}
     for spec in ("mean", "sample:5"):
         out_dir = tmp_path / ("render_" + spec.replace(":", "_"))
-        cmd = [
-            str(exe),
-            "dataset",
-            "--load-config",
-            str(config.get_base_dir() / "config.yml"),
-            "--output-path",
-            str(out_dir),
-            "--split",
-            "test",
-            "--rendered-output-names",
-            "rgb",
-            "--image-format",
-            "png",
-        ]
-        res = subprocess.run(
-            cmd, capture_output=True, text=True, timeout=600, env={**os.environ, "WILLAGS_APPEARANCE": spec}
+        _run_ns_tool(
+            "ns-render",
+            [
+                "dataset",
+                "--load-config",
+                str(config.get_base_dir() / "config.yml"),
+                "--output-path",
+                str(out_dir),
+                "--split",
+                "test",
+                "--rendered-output-names",
+                "rgb",
+                "--image-format",
+                "png",
+            ],
+            appearance=spec,
         )
-        assert res.returncode == 0, (res.stdout[-2000:], res.stderr[-2000:])
         pngs = sorted(out_dir.rglob("*.png"))
         assert pngs, f"ns-render wrote no frame under {out_dir}"
         frames[spec] = np.asarray(Image.open(pngs[0])).astype(np.float32)
