@@ -6,7 +6,7 @@
     python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --dry-run                # list the runs
     python benchmarks/run_benchmark.py --merge gpu_out/benchmarks.json --out docs/benchmarks      # fetched records
 
-Each run trains in its own subprocess (see willags_ns/eval/harness.py); records merge into the existing JSON
+Each run trains in its own subprocess (see benchmarks/harness.py); records merge into the existing JSON
 (same (scene, method, device, steps, tag) replaced, others kept) and the markdown is regenerated after every run.
 """
 
@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # `python benchmarks/run_benchmark.py` from anywhere
     sys.path.insert(0, str(REPO))
 
-from willags_ns.eval import harness  # noqa: E402
+from benchmarks import harness  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -47,6 +47,9 @@ def main(argv=None) -> int:
         default=0.0,
         help="start no new run after this many seconds (time-limited machines); 0 = no limit",
     )
+    ap.add_argument("--tag", help="override every run's tag (repeats: r1, r2, ...)")
+    ap.add_argument("--seed", type=int, help="override every run's seed")
+    ap.add_argument("--oracle", action="store_true", help="also score latents fitted on the whole test image")
     ap.add_argument("--render-only", action="store_true", help="regenerate <out>.md from <out>.json and exit")
     ap.add_argument(
         "--merge",
@@ -84,6 +87,11 @@ def main(argv=None) -> int:
         command,
         stop_after_s=args.stop_after_s,
         only_steps=args.steps,
+        overrides={
+            k: v
+            for k, v in (("tag", args.tag), ("seed", args.seed), ("oracle", args.oracle or None))
+            if v is not None
+        },
     )
     return 0
 

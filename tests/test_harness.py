@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from willags_ns.eval import harness
-from willags_ns.eval.harness import (
+from benchmarks import harness
+from benchmarks.harness import (
     apply_schedule,
     build_config,
     goal_rows,

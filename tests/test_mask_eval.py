@@ -80,7 +80,7 @@ def _camera(width, height):
     )
 
 
-def _tiny_model(use_vae: bool):
+def _tiny_model(use_vae: bool, color_mode: str = "modulated"):
     from nerfstudio.data.scene_box import SceneBox
 
     from willags_ns.appearance.triplane import TriplaneConfig
@@ -99,6 +99,7 @@ def _tiny_model(use_vae: bool):
         ),
         intrinsic_dim=8,
         use_vae=use_vae,
+        color_mode=color_mode,
         mask=PerceptualMaskConfig(vgg_weights="seeded"),
         backend="torch",
         background_color="black",

@@ -1,17 +1,23 @@
-"""WillagsModel wiring that unit tests of the components do not see: the fused teacher render."""
+"""WillagsModel wiring that unit tests of the components do not see: the fused teacher render, the appearance
+path at the extremes, rendering a fixed appearance through baked SH; for both colour modes."""
 
 import math
 
+import pytest
 import torch
 
 from tests.test_mask_eval import _camera
 from tests.test_mask_eval import _tiny_model as _mask_eval_tiny_model
 
 
-def _tiny_model():
+MODES = ("modulated", "decoder")
+
+
+def _tiny_model(color_mode: str = "modulated"):
     """test_mask_eval's tiny model, in training shape: the mask from step 0, a teacher that differs from the student
-    (as it does during training), half-transparent Gaussians."""
-    model = _mask_eval_tiny_model(use_vae=True)
+    (as it does during training), half-transparent Gaussians. Modulated: the zero-initialised colour transform is
+    perturbed (a trained one is not the identity) and the SH has view dependence (degree 3 active)."""
+    model = _mask_eval_tiny_model(use_vae=True, color_mode=color_mode)
     model.config.mask.warmup_steps = 0
     g = torch.Generator().manual_seed(0)
     with torch.no_grad():
@@ -19,17 +25,28 @@ def _tiny_model():
         model.gauss_params["scales"].fill_(math.log(0.05))
         for p in model.teacher.parameters():
             p.add_(0.3 * torch.randn(p.shape, generator=g))
+        if color_mode == "modulated":
+            for p in model.appearance_nets.modulation.parameters():
+                p.add_(0.1 * torch.randn(p.shape, generator=g))
+            model.gauss_params["features_rest"].normal_(0.0, 0.03, generator=g)
+            # colours away from 0, where 3DGS' clamp (and so the bake's one approximation) does not bite
+            rgb = 0.25 + 0.5 * torch.rand(model.num_points, 3, generator=g)
+            model.gauss_params["features_dc"].copy_((rgb - 0.5) / 0.28209479177387814)
+            model.step = 10_000  # SH degree 3 active
     model.optimizers = {}  # only read by densification, which a single forward does not reach
     return model
 
 
-def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_gradients_unchanged():
-    model = _tiny_model()
+@pytest.mark.parametrize("color_mode", MODES)
+def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_gradients_unchanged(color_mode):
+    model = _tiny_model(color_mode)
     model.train()
     cam = _camera(48, 32)
     h, w = int(cam.height), int(cam.width)
     image = (torch.rand(h, w, 3, generator=torch.Generator().manual_seed(1)) * 255).to(torch.uint8)
     names = ["means", "scales", "quats", "opacities", "features"]
+    if color_mode == "modulated":
+        names += ["features_dc", "features_rest"]
     results = {}
     for fused in (True, False):
         model.config.fuse_teacher_render = fused
@@ -52,10 +69,12 @@ def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_g
         torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4, msg=lambda m, n=name: f"{n}: {m}")
 
 
-def test_appearance_path_is_finite_at_the_extremes():
+@pytest.mark.parametrize("color_mode", MODES)
+def test_appearance_path_is_finite_at_the_extremes(color_mode):
     """Huge latents, Gaussians far outside the scene bounds, a Gaussian exactly at the camera centre (zero-length
-    view direction): colours stay finite in [0, 1] and every gradient stays finite."""
-    model = _tiny_model()
+    view direction): colours stay finite (in [0, 1] for the decoder's sigmoid, >= 0 for the modulated SH colour,
+    which the compositing clamps) and every gradient stays finite."""
+    model = _tiny_model(color_mode)
     n = model.num_points
     means = model.means.detach().clone()
     means[0] = torch.tensor([1e6, -1e6, 1e6])  # far outside the bounds: clamped, not extrapolated
@@ -66,13 +85,14 @@ def test_appearance_path_is_finite_at_the_extremes():
     for scale in (0.0, 1.0, 1e4, -1e4):
         z = torch.full((model.train_latents.shape[1],), scale, requires_grad=True)
         rgb = model.appearance_colors(z, means, f_s, cam_center)
-        assert rgb.shape == (n, 3) and torch.isfinite(rgb).all() and rgb.min() >= 0 and rgb.max() <= 1
+        assert rgb.shape == (n, 3) and torch.isfinite(rgb).all() and rgb.min() >= 0
+        assert color_mode == "modulated" or rgb.max() <= 1
         gz, gm, gf = torch.autograd.grad(rgb.sum(), [z, means, f_s])
         assert torch.isfinite(gz).all() and torch.isfinite(gm).all() and torch.isfinite(gf).all(), scale
 
 
 def test_fixed_appearance_renders_through_baked_sh_close_to_the_decoder_and_runs_it_once():
-    model = _tiny_model()
+    model = _tiny_model("decoder")
     with torch.no_grad():
         g = torch.Generator().manual_seed(6)
         for p in model.appearance_nets.parameters():  # a decoder with real latent and view dependence
@@ -108,3 +128,59 @@ def test_fixed_appearance_renders_through_baked_sh_close_to_the_decoder_and_runs
         before = len(calls)
         model.get_outputs(cam)
     assert len(calls) - before == 1
+
+
+def test_modulated_appearance_bakes_to_sh_exactly_once_per_appearance():
+    """color_mode='modulated' is affine in the SH coefficients: the baked SH render equals the exact render (no
+    least-squares fit), and the bake runs the colour transform once per appearance, never per frame."""
+    model = _tiny_model("modulated")
+    model.eval()
+    g = torch.Generator().manual_seed(6)
+    model.render_latent = torch.randn(model.train_latents.shape[1], generator=g)
+    cam = _camera(48, 32)
+    calls = []
+    model.appearance_nets.modulation.global_mlp.register_forward_hook(lambda *a: calls.append(1))
+    with torch.no_grad():
+        model.config.render_sh_degree = -1
+        exact = model.get_outputs(cam)["rgb"]
+        model.config.render_sh_degree = 3
+        model.get_outputs(cam)  # first frame of this appearance: exact path
+        before = len(calls)
+        baked = model.get_outputs(cam)["rgb"]  # second: bake
+        cam.camera_to_worlds[0, 0, 3] += 0.2
+        moved_baked = model.get_outputs(cam)["rgb"]
+        n_bake = len(calls) - before
+        model.config.render_sh_degree = -1
+        moved_exact = model.get_outputs(cam)["rgb"]
+    assert n_bake == 1
+    assert not torch.allclose(exact, moved_exact, atol=1e-3)  # really view-dependent
+    torch.testing.assert_close(baked, exact, atol=2e-5, rtol=1e-4)
+    torch.testing.assert_close(moved_baked, moved_exact, atol=2e-5, rtol=1e-4)
+    # the exported SH (ns-export) is the same bake of the chosen appearance
+    model.config.render_sh_degree = 3
+    sh = model.export_sh()
+    assert sh.shape == (model.num_points, 16, 3) and torch.isfinite(sh).all()
+    torch.testing.assert_close(model.shs_0, sh[:, 0, :])
+
+
+def test_modulated_starts_as_plain_3dgs_and_the_latent_transforms_colour_globally():
+    """At initialisation the colour transform is the identity (the model starts as 3DGS: colour = SH + 0.5); a
+    trained global transform A(z) b(z) changes every Gaussian's colour the same way, and the local residual is
+    the only per-Gaussian deviation (its penalty is zero at init)."""
+    from willags_ns.appearance.modulation import local_penalty
+    from willags_ns.render.sh import spherical_harmonics
+
+    model = _mask_eval_tiny_model(use_vae=True, color_mode="modulated")
+    means, f_s, sh = model.means, model.intrinsic_features, model.sh_coeffs()
+    cam_center = torch.tensor([0.0, 0.0, 2.5])
+    with torch.no_grad():
+        for z in (torch.zeros(8), torch.randn(8) * 3):
+            rgb = model.appearance_colors(z, means, f_s, cam_center)
+            ref = (spherical_harmonics(0, means - cam_center, sh) + 0.5).clamp_min(0)
+            torch.testing.assert_close(rgb, ref)
+        mod = model.appearance_nets.modulation
+        f_d = model._dynamic_features(model.appearance_nets, z, means, cacheable=False)
+        assert local_penalty(mod.local_residual(z, f_s, f_d, means.shape[0])) == 0
+        mod.global_mlp[-1].bias.copy_(torch.tensor([1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0, 0.1, 0.0, -0.1]))  # 2x + b
+        rgb = model.appearance_colors(z, means, f_s, cam_center)
+        torch.testing.assert_close(rgb, (2 * ref + torch.tensor([0.1, 0.0, -0.1])).clamp_min(0))

@@ -40,10 +40,12 @@ from torch import Tensor, nn
 from torch.nn import Parameter
 
 from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig, sh_basis
+from willags_ns.appearance.modulation import ColorModulation, ColorModulationConfig, local_penalty
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField, normalize_points, robust_bounds
 from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, vae_loss
 from willags_ns.losses import reconstruction_loss
 from willags_ns.render import rasterize
+from willags_ns.render.sh import spherical_harmonics
 from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
 from willags_ns.transient import (
     PerceptualFeatures,
@@ -97,6 +99,13 @@ class WillagsModelConfig(SplatfactoModelConfig):
     appearance: Literal["willags", "sh"] = "willags"
     """'willags': the latent-conditioned appearance field (the method). 'sh': plain 3DGS colours (splatfacto's
     spherical harmonics), no appearance model and no mask: the baseline configuration (method willags-3dgs)."""
+    color_mode: Literal["modulated", "decoder"] = "modulated"
+    """How the appearance makes a Gaussian's colour. 'modulated' (default, measured best: docs/benchmarks.md): the
+    Gaussian's own 3DGS SH colour transformed by the latent (a global colour transform of z plus an optional,
+    penalised per-Gaussian residual fed by f_s, z and the tri-plane feature; appearance/modulation.py). 'decoder':
+    the paper's T_color MLP regresses the colour from (f_d, f_s, view direction) (method willags-paper)."""
+    modulation: ColorModulationConfig = field(default_factory=ColorModulationConfig)
+    """The colour transform of color_mode='modulated' (global transform, local residual and its penalty)."""
     use_vae: bool = True
     """Appearance latent from the beta-VAE encoder. Off: a per-image embedding table (NeRF-W / Splatfacto-W style)."""
     use_field: bool = True
@@ -157,6 +166,13 @@ class AppearanceNetworks(nn.Module):
         super().__init__()
         d = cfg.vae.latent_dim
         self.latent_dim = d
+        self.color_mode = cfg.color_mode
+        if cfg.color_mode == "modulated" and cfg.use_field and not cfg.modulation.local:
+            raise ValueError(
+                "willags: use_field=True with color_mode='modulated' needs modulation.local=True (the tri-plane "
+                "feature feeds the per-Gaussian residual); set --pipeline.model.use-field False or "
+                "--pipeline.model.modulation.local True"
+            )
         self.vae = (
             AppearanceVAE(latent_dim=d, image_size=cfg.vae.image_size, channels=tuple(cfg.vae.channels))
             if cfg.use_vae
@@ -179,12 +195,22 @@ class AppearanceNetworks(nn.Module):
             if cfg.use_field
             else None
         )
-        self.color = ColorDecoder(
-            dynamic_dim=tp.feature_dim if cfg.use_field else 0,
-            intrinsic_dim=cfg.intrinsic_dim + (0 if cfg.use_field else d),
-            hidden=cfg.decoder.hidden,
-            dir_sh_degree=cfg.decoder.dir_sh_degree,
-        )
+        self.color: ColorDecoder | None = None
+        self.modulation: ColorModulation | None = None
+        if cfg.color_mode == "decoder":
+            self.color = ColorDecoder(
+                dynamic_dim=tp.feature_dim if cfg.use_field else 0,
+                intrinsic_dim=cfg.intrinsic_dim + (0 if cfg.use_field else d),
+                hidden=cfg.decoder.hidden,
+                dir_sh_degree=cfg.decoder.dir_sh_degree,
+            )
+        else:
+            self.modulation = ColorModulation(
+                latent_dim=d,
+                intrinsic_dim=cfg.intrinsic_dim if cfg.modulation.local else 0,
+                dynamic_dim=tp.feature_dim if cfg.use_field else 0,
+                cfg=cfg.modulation,
+            )
 
     def latent_stats(self, image_chw: Tensor | None, image_idx: int | None) -> tuple[Tensor, Tensor | None]:
         """(mu [D], logvar [D] or None) of one training image: the VAE posterior, or the embedding row."""
@@ -202,8 +228,26 @@ class AppearanceNetworks(nn.Module):
             return None
         return self.field(z, xyz_norm)
 
-    def colors(self, z: Tensor, f_d: Tensor | None, f_s: Tensor, dirs: Tensor) -> Tensor:
-        """Per-Gaussian RGB [N, 3] from f_d [N, F] (or None), f_s [N, Fs], view directions [N, 3]."""
+    def colors(
+        self,
+        z: Tensor,
+        f_d: Tensor | None,
+        f_s: Tensor | None,
+        dirs: Tensor,
+        sh: Tensor | None = None,
+        sh_degree: int = 0,
+        residual: Tensor | None = None,
+    ) -> Tensor:
+        """Per-Gaussian RGB [N, 3] from f_d [N, F] (or None), f_s [N, Fs] (or None), view directions [N, 3] and,
+        for color_mode='modulated', the Gaussians' SH coefficients sh [N, K, 3] evaluated up to sh_degree
+        (``residual``: a precomputed local residual, see ColorModulation.forward)."""
+        if self.modulation is not None:
+            if sh is None:
+                raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
+            base = (spherical_harmonics(sh_degree, dirs, sh) + 0.5).clamp_min(0.0)  # gsplat's SH colour
+            # clamped like gsplat clamps SH colours, so the exact render and the SH bake agree
+            return self.modulation(z, base, f_s, f_d, residual=residual).clamp_min(0.0)
+        assert self.color is not None and f_s is not None
         if self.field is None:
             f_s = torch.cat([f_s, z.expand(f_s.shape[0], -1)], dim=-1)  # the "w/o field" ablation
         return self.color(f_d, f_s, dirs)
@@ -242,15 +286,17 @@ class WillagsModel(SplatfactoModel):
             "quats": Parameter(random_quat_tensor(n)),
             "opacities": Parameter(torch.logit(0.1 * torch.ones(n, 1))),
         }
-        if cfg.appearance == "sh":
+        if cfg.appearance == "sh" or cfg.color_mode == "modulated":  # 3DGS colours (modulated: the base colour)
             dim_sh = num_sh_bases(cfg.sh_degree)
             shs = torch.zeros((n, dim_sh, 3))
             if seed_rgb is not None:
-                shs[:, 0, :] = RGB2SH(seed_rgb) if cfg.sh_degree > 0 else torch.logit(seed_rgb, eps=1e-10)
+                shs[:, 0, :] = RGB2SH(seed_rgb) if (cfg.sh_degree > 0 or cfg.appearance != "sh") else torch.logit(seed_rgb, eps=1e-10)
             else:
                 shs[:, 0, :] = torch.rand(n, 3)
             params["features_dc"] = Parameter(shs[:, 0, :].contiguous())
             params["features_rest"] = Parameter(shs[:, 1:, :].contiguous())
+            if cfg.appearance == "willags" and cfg.modulation.local and cfg.intrinsic_dim > 0:
+                params["features"] = Parameter(0.1 * torch.randn(n, cfg.intrinsic_dim))  # f_s of the residual
         else:
             # f_s starts small and random; its first 3 entries carry the seed colour (centred), which gives the
             # colour decoder an easy first solution without changing the method.
@@ -335,6 +381,8 @@ class WillagsModel(SplatfactoModel):
     # ------------------------------------------------------------------ properties used by exporter / viewer
     @property
     def features_dc(self):
+        """Splatfacto's name for the degree-0 SH parameter; with the paper's decoder (no SH parameters), the chosen
+        appearance baked to SH."""
         if "features_dc" in self.gauss_params:
             return self.gauss_params["features_dc"]
         return self.export_sh()[:, 0, :]
@@ -346,8 +394,9 @@ class WillagsModel(SplatfactoModel):
         return self.export_sh()[:, 1:, :]
 
     @property
-    def intrinsic_features(self) -> Tensor:
-        return self.gauss_params["features"]
+    def intrinsic_features(self) -> Tensor | None:
+        """f_s [N, Fs], or None when the configuration has none (modulated colours without a local residual)."""
+        return self.gauss_params["features"] if "features" in self.gauss_params else None
 
     @property
     def colors(self):
@@ -357,13 +406,16 @@ class WillagsModel(SplatfactoModel):
 
     @property
     def shs_0(self):
+        """What exporters write as f_dc: splatfacto's SH, or the chosen appearance baked to SH."""
         if self.config.appearance == "sh":
             return super().shs_0
-        return self.features_dc
+        return self.export_sh()[:, 0, :]
 
     @property
     def shs_rest(self):
-        return self.features_rest
+        if self.config.appearance == "sh":
+            return super().shs_rest
+        return self.export_sh()[:, 1:, :]
 
     @torch.no_grad()
     def export_sh(self) -> Tensor:
@@ -454,26 +506,48 @@ class WillagsModel(SplatfactoModel):
             self._fd_cache = (key, f_d)
         return f_d
 
+    def sh_coeffs(self, gp: dict | None = None) -> Tensor | None:
+        """SH coefficients [N, K, 3] of the Gaussians (`gp`: a cropped gauss_params view), or None without them."""
+        gp = self.gauss_params if gp is None else gp
+        if "features_dc" not in gp:
+            return None
+        return torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
+
+    def active_sh_degree(self) -> int:
+        """SH degree in use now: splatfacto's schedule (one more degree every sh_degree_interval steps)."""
+        return min(self.step // max(1, self.config.sh_degree_interval), self.config.sh_degree)
+
     def appearance_colors(
         self,
         z: Tensor,
         means: Tensor,
-        f_s: Tensor,
+        f_s: Tensor | None,
         cam_center: Tensor,
         nets: AppearanceNetworks | None = None,
         cacheable: bool = False,
+        sh: Tensor | None = None,
     ) -> Tensor:
-        """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D]."""
+        """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D].
+
+        `sh` [N, K, 3]: the Gaussians' SH coefficients (color_mode='modulated'); default: all the model's Gaussians.
+        When the student's networks run in training, the local residual is kept for its penalty."""
         nets = nets if nets is not None else self.appearance_nets
         assert nets is not None
         f_d = self._dynamic_features(nets, z, means, cacheable)
         dirs = means - cam_center[None, :]
-        return nets.colors(z, f_d, f_s, dirs)
+        if nets.modulation is None:
+            assert f_s is not None
+            return nets.colors(z, f_d, f_s, dirs)
+        sh = self.sh_coeffs() if sh is None else sh
+        residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0])
+        if self.training and nets is self.appearance_nets and torch.is_grad_enabled():
+            self._step_cache["local_residual"] = residual  # type: ignore[assignment]
+        return nets.colors(z, f_d, f_s, dirs, sh=sh, sh_degree=self.active_sh_degree(), residual=residual)
 
     def _sh_key(self, z: Tensor, means: Tensor, degree: int) -> tuple:
         return (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step, degree)
 
-    def _frame_sh(self, z: Tensor, means: Tensor, f_s: Tensor, degree: int) -> Tensor | None:
+    def _frame_sh(self, z: Tensor, means: Tensor, f_s: Tensor | None, degree: int, sh: Tensor | None) -> Tensor | None:
         """The baked SH for this frame, or None to run the decoder. Bakes on the second frame with the same (latent,
         Gaussians): a viewer refreshing during training, where the Gaussians change every step, keeps the exact
         decoder instead of paying a bake per frame."""
@@ -481,40 +555,81 @@ class WillagsModel(SplatfactoModel):
         if self._sh_seen != key and (self._sh_cache is None or self._sh_cache[0] != key):
             self._sh_seen = key
             return None
-        return self.baked_sh(z, means, f_s, degree, key)
+        return self.baked_sh(z, means, f_s, degree, key, sh=sh)
 
     @torch.no_grad()
-    def baked_sh(self, z: Tensor, means: Tensor, f_s: Tensor, degree: int, key: tuple | None = None) -> Tensor:
-        """SH coefficients [N, (degree + 1)**2, 3] whose evaluation (gsplat's: sum_k c_k Y_k(d) + 0.5) best fits the
-        decoder's colour over RENDER_SH_SAMPLES directions d (least squares). Cached per (latent, Gaussians);
-        `key` is :meth:`_sh_key` when the caller already has it (one host sync per frame, not two)."""
+    def baked_sh(
+        self,
+        z: Tensor,
+        means: Tensor,
+        f_s: Tensor | None,
+        degree: int,
+        key: tuple | None = None,
+        sh: Tensor | None = None,
+    ) -> Tensor:
+        """SH coefficients [N, (degree + 1)**2, 3] whose evaluation (gsplat's: sum_k c_k Y_k(d) + 0.5) reproduces the
+        appearance's colour. Cached per (latent, Gaussians); `key` is :meth:`_sh_key` when the caller already has it
+        (one host sync per frame, not two).
+
+        color_mode='modulated': exact (the colour is an affine map of the SH colour: the map is applied to the
+        coefficients). 'decoder': the decoder fitted by least squares over RENDER_SH_SAMPLES directions."""
         nets = self.appearance_nets
         assert nets is not None
         key = self._sh_key(z, means, degree) if key is None else key
         if self._sh_cache is not None and self._sh_cache[0] == key:
             return self._sh_cache[1]
         f_d = self._dynamic_features(nets, z, means, cacheable=True)
-        dirs = fibonacci_directions(max(RENDER_SH_SAMPLES, 2 * (degree + 1) ** 2), means.device)  # [M, 3]
-        proj = torch.linalg.pinv(sh_basis(dirs, degree))  # [K, M]: coefficients from samples
-        coeffs = torch.zeros(means.shape[0], proj.shape[0], 3, device=means.device)
-        for m in range(dirs.shape[0]):  # one decoder pass per direction: no [M, N, 3] buffer
-            rgb = nets.colors(z, f_d, f_s, dirs[m].expand_as(means)) - 0.5  # gsplat adds 0.5 back
-            coeffs += proj[None, :, m, None] * rgb[:, None, :]
+        if nets.modulation is not None:
+            coeffs = self._modulated_sh(nets.modulation, z, means, f_s, f_d, degree, sh)
+        else:
+            dirs = fibonacci_directions(max(RENDER_SH_SAMPLES, 2 * (degree + 1) ** 2), means.device)  # [M, 3]
+            proj = torch.linalg.pinv(sh_basis(dirs, degree))  # [K, M]: coefficients from samples
+            coeffs = torch.zeros(means.shape[0], proj.shape[0], 3, device=means.device)
+            for m in range(dirs.shape[0]):  # one decoder pass per direction: no [M, N, 3] buffer
+                rgb = nets.colors(z, f_d, f_s, dirs[m].expand_as(means)) - 0.5  # gsplat adds 0.5 back
+                coeffs += proj[None, :, m, None] * rgb[:, None, :]
         self._sh_cache = (key, coeffs)
         return coeffs
 
+    def _modulated_sh(self, mod: ColorModulation, z, means, f_s, f_d, degree: int, sh: Tensor | None) -> Tensor:
+        """The colour transform applied to the SH coefficients: with M_i = diag(1 + s_i) A and t_i = (1 + s_i) b + o_i,
+        c_i(d) = M_i (SH_i(d) + 0.5) + t_i = sum_k (M_i c_k) Y_k(d) + 0.5 + (M_i 0.5 + t_i - 0.5), the constant going
+        into the degree-0 coefficient (Y_0 = C0). Exact up to the clamps at 0 (base colour, final colour)."""
+        sh = self.sh_coeffs() if sh is None else sh
+        k_out = (degree + 1) ** 2
+        k_use = min(k_out, (self.active_sh_degree() + 1) ** 2, sh.shape[1])
+        A, b = mod.global_transform(z)
+        n = means.shape[0]
+        M = A.expand(n, 3, 3)
+        t = b.expand(n, 3)
+        residual = mod.local_residual(z, f_s, f_d, n)
+        if residual is not None:
+            scale = 1.0 + residual[:, :3]
+            M = scale[:, :, None] * M
+            t = scale * t + residual[:, 3:]
+        out = torch.zeros(n, k_out, 3, device=means.device, dtype=sh.dtype)
+        out[:, :k_use] = torch.einsum("nij,nkj->nki", M, sh[:, :k_use])
+        const = (M @ torch.full((3,), 0.5, device=means.device, dtype=M.dtype)) + t - 0.5
+        out[:, 0] += const / 0.28209479177387814  # SH_C0
+        return out
+
     @torch.no_grad()
     def baked_colors(self, z: Tensor | None = None) -> Tensor:
-        """View-independent colours [N, 3] for export: the decoder averaged over a Fibonacci sphere of views."""
+        """View-independent colours [N, 3] for export: the appearance averaged over a Fibonacci sphere of views."""
         assert self.appearance_nets is not None
         z = self.current_latent() if z is None else z.to(self.device)
         means, f_s = self.means, self.intrinsic_features
-        f_d = self._dynamic_features(self.appearance_nets, z, means, cacheable=False)
         k = max(1, self.config.export_view_samples)
         dirs = fibonacci_directions(k, self.device)  # [k, 3]
         acc = torch.zeros(means.shape[0], 3, device=self.device)
+        nets = self.appearance_nets
+        f_d = self._dynamic_features(nets, z, means, cacheable=False)
+        sh = self.sh_coeffs()
+        residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0]) if nets.modulation is not None else None
         for d in dirs:
-            acc += self.appearance_nets.colors(z, f_d, f_s, d.expand_as(means))
+            acc += nets.colors(
+                z, f_d, f_s, d.expand_as(means), sh=sh, sh_degree=self.active_sh_degree(), residual=residual
+            )
         return acc / k
 
     # ------------------------------------------------------------------ rendering
@@ -593,15 +708,17 @@ class WillagsModel(SplatfactoModel):
             deg = cfg.render_sh_degree
             sh = None
             if fixed and deg >= 0 and "appearance_latent" not in (camera.metadata or {}):
-                sh = self._frame_sh(z, gp["means"], gp["features"], deg)
+                sh = self._frame_sh(z, gp["means"], gp.get("features"), deg, self.sh_coeffs(gp))
             if sh is not None:
                 colors, sh_degree = sh, deg
             else:
-                colors = self.appearance_colors(z, gp["means"], gp["features"], cam_center, cacheable=fixed)
+                colors = self.appearance_colors(
+                    z, gp["means"], gp.get("features"), cam_center, cacheable=fixed, sh=self.sh_coeffs(gp)
+                )
                 sh_degree = None
 
         teacher_needed = self.training and self._teacher_needed()
-        fused = teacher_needed and cfg.fuse_teacher_render
+        fused = teacher_needed and cfg.fuse_teacher_render and self.teacher is not None
         if fused:  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
             colors = torch.cat([colors, self._teacher_colors(gp, cam_center)], dim=-1)
         render, alpha, self.info = self._rasterize(
@@ -617,6 +734,8 @@ class WillagsModel(SplatfactoModel):
         if fused:
             teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * background
             outputs["teacher_rgb"] = torch.clamp(teacher, 0.0, 1.0).squeeze(0)
+        elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render
+            outputs["teacher_rgb"] = rgb.detach().squeeze(0)
         elif teacher_needed:
             outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background)
 
@@ -663,7 +782,7 @@ class WillagsModel(SplatfactoModel):
 
     def _teacher_needed(self) -> bool:
         cfg = self.config
-        if cfg.appearance != "willags" or not cfg.use_mask or self.teacher is None:
+        if cfg.appearance != "willags" or not cfg.use_mask:
             return False
         if not mask_active(self.step, cfg.mask.warmup_steps):
             return False
@@ -682,7 +801,10 @@ class WillagsModel(SplatfactoModel):
             z = mu[0]
         else:
             z = teacher.embeddings.weight[int(self._step_cache["image_idx"])]  # type: ignore[union-attr]
-        return self.appearance_colors(z, gp["means"].detach(), gp["features"].detach(), cam_center, nets=teacher)
+        f_s = gp["features"].detach() if "features" in gp else None
+        sh = self.sh_coeffs(gp)
+        sh = sh.detach() if sh is not None else None
+        return self.appearance_colors(z, gp["means"].detach(), f_s, cam_center, nets=teacher, sh=sh)
 
     @torch.no_grad()
     def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background) -> Tensor:
@@ -775,6 +897,10 @@ class WillagsModel(SplatfactoModel):
                 metrics_dict["vae_kl"] = parts["vae_kl"].detach()
                 metrics_dict["vae_recon"] = parts["vae_recon"].detach()
             sc["vae_recon_img"] = recon.detach()
+
+        pen = local_penalty(self._step_cache.get("local_residual")) if self.training else None
+        if pen is not None and cfg.modulation.local_penalty > 0:
+            loss_dict["appearance_local"] = cfg.modulation.local_penalty * pen
 
         if cfg.use_scale_regularization and self.step % 10 == 0:
             s = torch.exp(self.scales)

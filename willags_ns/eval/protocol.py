@@ -31,6 +31,9 @@ class EvalProtocolConfig:
     """Adam learning rate for the latent."""
     max_images: int = -1
     """Evaluate at most this many test images (-1 = all)."""
+    oracle: bool = False
+    """Also fit the latent on the *whole* test image and score its right half (`oracle_*`): the gap to the
+    headline number is what inferring the appearance from half an image costs (a diagnosis, not the protocol)."""
 
 
 def split_halves(width: int) -> tuple[slice, slice]:
@@ -128,6 +131,38 @@ def eval_split_images(datamanager) -> list[Tensor]:
     return out
 
 
+def render_with_latent(model, cam, z: Tensor | None) -> Tensor:
+    """[H, W, 3] render of one camera with latent z passed in the camera metadata (the exact colour path)."""
+    c = cam
+    if z is not None:
+        c = cam.to(model.device)
+        c.metadata = dict(c.metadata or {})
+        c.metadata["appearance_latent"] = z
+    return model.get_outputs(c)["rgb"]
+
+
+@torch.no_grad()
+def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8) -> dict[str, float]:
+    """Fitting capacity: PSNR / SSIM of training views rendered with their *own* latents (the mean latent each image
+    had when last visited; no test-time inference), over up to `max_images` evenly spaced training images."""
+    model.eval()
+    n = len(images)
+    if n == 0:
+        return {}
+    k = n if max_images < 0 else min(max_images, n)
+    idx = sorted({round(i * (n - 1) / max(1, k - 1)) for i in range(k)})
+    appearance = getattr(model.config, "appearance", "sh") == "willags"
+    scores = []
+    for i in idx:
+        z = model.train_latents[i] if appearance else None
+        pred = render_with_latent(model, cameras[i : i + 1].to(model.device), z)
+        gt = images[i][..., :3].float().to(model.device)
+        scores.append(image_scores(pred, gt))
+    return {f"train_{k}": float(sum(s[k] for s in scores) / len(scores)) for k in scores[0]} | {
+        "train_num_images": float(len(scores))
+    }
+
+
 def evaluate_model(model, cameras, images: list[Tensor], cfg: EvalProtocolConfig, names: list[str] | None = None):
     """Run the protocol over test `cameras` (nerfstudio Cameras, one per image) and GT `images` [H, W, 3] in [0, 1].
 
@@ -153,12 +188,7 @@ def evaluate_model(model, cameras, images: list[Tensor], cfg: EvalProtocolConfig
             left, right = split_halves(w)
 
             def render_fn(z: Tensor | None, cam=cam) -> Tensor:
-                c = cam
-                if z is not None:
-                    c = cam.to(model.device)
-                    c.metadata = dict(c.metadata or {})
-                    c.metadata["appearance_latent"] = z
-                return model.get_outputs(c)["rgb"]
+                return render_with_latent(model, cam, z)
 
             rec: dict[str, float] = {}
             if appearance:
@@ -172,6 +202,12 @@ def evaluate_model(model, cameras, images: list[Tensor], cfg: EvalProtocolConfig
                 with torch.enable_grad():
                     z, hist = fit_latent(render_fn, gt, z0, left, cfg.steps, cfg.lr)
                 rec["left_loss_before"], rec["left_loss_after"] = hist[0], hist[-1]
+                if cfg.oracle:
+                    with torch.enable_grad():
+                        z_o, _ = fit_latent(render_fn, gt, z0, slice(0, w), cfg.steps, cfg.lr)
+                    with torch.no_grad():
+                        pred_o = render_fn(z_o)
+                    rec.update({f"oracle_{k}": v for k, v in image_scores(pred_o[:, right], gt[:, right]).items()})
             else:  # no appearance model: nothing to fit
                 z = None
             with torch.no_grad():

@@ -2,7 +2,7 @@
 
     python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --out docs/benchmarks
 
-Each (scene, method, steps) run is a *subprocess* (``python -m willags_ns.eval.harness child SPEC RESULT``), so
+Each (scene, method, steps) run is a *subprocess* (``python -m benchmarks.harness child SPEC RESULT``, run from the repository root), so
 peak memory and the global state nerfstudio keeps (writers, compiled kernels) belong to that run alone. The child
 trains in-process exactly as ``ns-train`` does (``config.setup() -> trainer.setup() -> trainer.train()``, vis
 tensorboard, no viewer, no evaluation during training), then measures on the test split:
@@ -48,7 +48,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[1]
 
 # ---------------------------------------------------------------------------------------------- methods
 
@@ -67,14 +67,27 @@ class MethodSpec:
 
 
 METHODS: dict[str, MethodSpec] = {
-    "willags": MethodSpec("willags"),
+    "willags": MethodSpec("willags", note="default: SH colour x latent colour transform, no field"),
+    "willags-paper": MethodSpec("willags-paper", note="the paper: colour decoder over tri-plane + f_s"),
     "willags-lite": MethodSpec("willags-lite", note="fast preset"),
     "willags-3dgs": MethodSpec(
         "willags-3dgs", note="plain 3DGS through willags' rasteriser: CPU stand-in for splatfacto"
     ),
+    "willags-field": MethodSpec(
+        "willags", (("use_field", True),), note="default + tri-plane field feeding the local residual"
+    ),
+    "willags-global": MethodSpec(
+        "willags", (("modulation.local", False),), note="default, global colour transform only (no local residual)"
+    ),
     "willags-novae": MethodSpec("willags", (("use_vae", False),), note="ablation: per-image embedding, no VAE"),
-    "willags-nofield": MethodSpec("willags", (("use_field", False),), note="ablation: no tri-plane field"),
     "willags-nomask": MethodSpec("willags", (("use_mask", False),), note="ablation: no transient mask"),
+    "willags-noteacher": MethodSpec(
+        "willags", (("teacher.enabled", False),), note="ablation: the student's own render makes the mask"
+    ),
+    "willags-nofield": MethodSpec(
+        "willags-paper", (("use_field", False),), note="paper ablation: decoder without the tri-plane field"
+    ),
+    "willags-paper-novae": MethodSpec("willags-paper", (("use_vae", False),), note="paper ablation: no VAE"),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
 }
 BASELINES = ("splatfacto", "willags-3dgs")
@@ -110,6 +123,16 @@ def apply_schedule(config, steps: int, schedule: str = "short") -> None:
                 sched.warmup_steps = max(1, steps // 10)
 
 
+def set_nested(obj, dotted: str, value) -> None:
+    """setattr through a dotted path ("modulation.local"): the overrides of a MethodSpec."""
+    *parents, leaf = dotted.split(".")
+    for p in parents:
+        obj = getattr(obj, p)
+    if not hasattr(obj, leaf):
+        raise AttributeError(f"{type(obj).__name__} has no field {leaf!r} (override {dotted!r})")
+    setattr(obj, leaf, value)
+
+
 def base_trainer_config(base: str):
     """A fresh TrainerConfig of `base` (our method configs or nerfstudio's splatfacto with our data parser)."""
     from willags_ns import method_configs as mc
@@ -124,6 +147,7 @@ def base_trainer_config(base: str):
         return config
     factory = {
         "willags": mc.willags_config,
+        "willags-paper": mc.willags_paper_config,
         "willags-lite": mc.willags_lite_config,
         "willags-3dgs": mc.willags_3dgs_config,
     }
@@ -161,7 +185,7 @@ def build_config(
         dm.dataparser.downscale_factor = downscale
     m = config.pipeline.model
     for k, v in spec.overrides:
-        setattr(m, k, v)
+        set_nested(m, k, v)
     if hasattr(m, "log_images_every"):
         m.log_images_every = 0
     return config
@@ -181,6 +205,9 @@ GRID_KEYS = {
     "fps_views": 3,
     "schedule": "short",
     "tag": None,
+    "seed": 42,
+    "oracle": False,
+    "train_views": 8,
     "threads": 0,
     "timeout_s": 0,
     "data_roots": None,
@@ -200,6 +227,9 @@ RUN_KEYS = {
     "fps_views",
     "schedule",
     "tag",
+    "seed",
+    "oracle",
+    "train_views",
     "timeout_s",
 }
 
@@ -223,6 +253,12 @@ class RunSpec:
     fps_views: int
     schedule: str
     timeout_s: float
+    seed: int = 42
+    """nerfstudio's machine.seed (repeats use different seeds and tags)."""
+    oracle: bool = False
+    """Also score the right half with the latent fitted on the whole test image (oracle_* keys)."""
+    train_views: int = 8
+    """Training views scored with their own latents (train_* keys: fitting capacity); 0 = none."""
 
     def key(self, device: str) -> tuple:
         return (self.scene_name, self.method, device, self.steps, self.tag)
@@ -277,6 +313,9 @@ def parse_grid(grid: dict[str, Any]) -> tuple[dict[str, Any], list[RunSpec]]:
                         fps_views=int(r["fps_views"]),
                         schedule=str(r["schedule"]),
                         timeout_s=float(r["timeout_s"] or 0),
+                        seed=int(r["seed"]),
+                        oracle=bool(r["oracle"]),
+                        train_views=int(r["train_views"]),
                     )
                 )
     return settings, specs
@@ -433,7 +472,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
     import torch
 
-    from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model
+    from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
 
     threads = int(spec.get("threads") or 0)
     if threads > 0:
@@ -447,6 +486,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     )
     config.set_timestamp()
     config.timestamp = "run"
+    config.machine.seed = int(spec.get("seed", config.machine.seed))
     config.save_config()
     seed = config.machine.seed
     random.seed(seed)
@@ -485,9 +525,20 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     images = [d["image"].float().div(255.0) if d["image"].dtype == torch.uint8 else d["image"].float() for d in cached]
     names = [Path(p).name for p in dm.eval_dataset.image_filenames]
     t2 = time.perf_counter()
-    proto = EvalProtocolConfig(steps=spec["protocol_steps"], lr=spec["protocol_lr"], max_images=spec["max_test_images"])
+    proto = EvalProtocolConfig(
+        steps=spec["protocol_steps"],
+        lr=spec["protocol_lr"],
+        max_images=spec["max_test_images"],
+        oracle=bool(spec.get("oracle", False)),
+    )
     agg, per_image = evaluate_model(model, cams, images, proto, names)
     eval_s = time.perf_counter() - t2
+    if int(spec.get("train_views", 0)) != 0:
+        train_imgs = [
+            d["image"].float().div(255.0) if d["image"].dtype == torch.uint8 else d["image"].float()
+            for d in dm.cached_train
+        ]
+        rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
     rec.update({k: v for k, v in agg.items()})
     rec["per_image"] = per_image
     rec["eval_s"] = eval_s
@@ -638,7 +689,7 @@ def run_one(
     }
     spec_path, result_path, log_path = run_dir / "spec.json", run_dir / "result.json", run_dir / "log.txt"
     spec_path.write_text(json.dumps(child_spec, indent=1))
-    cmd = [sys.executable, "-m", "willags_ns.eval.harness", "child", str(spec_path), str(result_path)]
+    cmd = [sys.executable, "-m", "benchmarks.harness", "child", str(spec_path), str(result_path)]
     rec: dict[str, Any] = {
         "scene": spec.scene_name,
         "method": spec.method,
@@ -695,8 +746,11 @@ def run_grid(
     log=print,
     stop_after_s: float = 0.0,
     only_steps: Sequence[int] | None = None,
+    overrides: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Run every spec of the grid (sequentially), merging each record into `<out>.json` as it finishes.
+
+    overrides: RunSpec fields set on every run (e.g. {"tag": "r2", "seed": 43} for a repeat).
 
     stop_after_s > 0: start no new run once that many seconds have passed (for time-limited GPU leases: the
     records of the finished runs are already written; rerun with --methods / --scenes for the rest)."""
@@ -709,6 +763,8 @@ def run_grid(
         specs = [s for s in specs if s.scene_name in only_scenes]
     if only_steps:
         specs = [s for s in specs if s.steps in set(int(x) for x in only_steps)]
+    if overrides:
+        specs = [dataclasses.replace(s, **overrides) for s in specs]
     skipped = [s for s in specs if METHODS[s.method].needs_cuda and device != "cuda"]
     specs = [s for s in specs if s not in skipped]
     for s in skipped:
@@ -1147,5 +1203,5 @@ def _child_main(spec_path: str, result_path: str) -> int:
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "child":
         sys.exit(_child_main(sys.argv[2], sys.argv[3]))
-    print("usage: python -m willags_ns.eval.harness child SPEC.json RESULT.json (use benchmarks/run_benchmark.py)")
+    print("usage: python -m benchmarks.harness child SPEC.json RESULT.json (use benchmarks/run_benchmark.py)")
     sys.exit(2)
