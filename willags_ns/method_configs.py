@@ -74,8 +74,10 @@ def _trainer(name: str, model: WillagsModelConfig, steps: int) -> TrainerConfig:
 def willags_model_config() -> WillagsModelConfig:
     """The default `willags` model: the beta-VAE latent (64-d), the EMA teacher and the perceptual mask of the
     paper, with the colour path that measured best (docs/benchmarks.md): each Gaussian's SH colour under a global
-    colour transform of z plus a penalised per-Gaussian residual (16-d f_s), no tri-plane field."""
-    return WillagsModelConfig(color_mode="modulated", use_field=False, intrinsic_dim=16)
+    colour transform of z plus a penalised per-Gaussian residual (16-d f_s), no tri-plane field; and gsplat's
+    antialiased rasterisation, which keeps renders consistent across the resolution schedule (a 5000-step run trains
+    at 1/4 and 1/2 resolution and is scored at full: +2.3 dB on fox-clean, measured)."""
+    return WillagsModelConfig(color_mode="modulated", use_field=False, intrinsic_dim=16, rasterize_mode="antialiased")
 
 
 def willags_config() -> TrainerConfig:
@@ -103,6 +105,7 @@ def willags_lite_config() -> TrainerConfig:
         color_mode="modulated",
         use_field=False,
         intrinsic_dim=16,
+        rasterize_mode="antialiased",
         vae=VAEConfig(latent_dim=32, image_size=32),
         triplane=TriplaneConfig(latent_dim=32, resolution=32, channels=16, hyper_hidden=(64, 16)),
         mask=PerceptualMaskConfig(warmup_steps=300),
