@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Source on the lent GPU machine, from the repository root (carry .whl-gpu, the scenes in .gpu-data and, when you
+# have it, .gpu-cache):   source benchmarks/gpu_env.sh && GRID=... bash benchmarks/gpu_scenes.sh OUT pairs...
+# - installs the wheels of ../shared/gpu/prepare_wheels.sh into /tmp/site;
+# - gsplat 1.4.0 JIT-compiles its CUDA code on every fresh machine (~3.5 min). With .gpu-cache/gsplat_cuda.so.gz
+#   (the .so a previous machine of the same image built: copy /tmp/tex/gsplat_cuda/gsplat_cuda.so, gzipped, to
+#   $OUT once) it loads that build instead, through benchmarks/gsplat_csrc_shim.py (~6 s);
+# - exports PYTHONPATH, MAX_JOBS, TORCH_EXTENSIONS_DIR=/tmp/tex (where a JIT build lands).
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .whl-gpu/*.whl >/dev/null 2>&1 \
+  || { echo "gpu_env: wheel install failed (carry .whl-gpu)"; return 1; }
+export PYTHONPATH=/tmp/site:$PWD/.whl-gpu/stub:$PWD MAX_JOBS=16 PYTHONUNBUFFERED=1 TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 \
+  TORCH_EXTENSIONS_DIR=/tmp/tex
+if [ -f .gpu-cache/gsplat_cuda.so.gz ]; then
+  gunzip -c .gpu-cache/gsplat_cuda.so.gz > /tmp/gsplat_cuda.so
+  cp benchmarks/gsplat_csrc_shim.py /tmp/site/gsplat/csrc.py
+  export WILLAGS_GSPLAT_SO=/tmp/gsplat_cuda.so
+fi
+python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA module:', _C)"
