@@ -1166,7 +1166,10 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
         paper = [
             float(r["psnr"])
             for r in records
-            if r["scene"] == sc and r["method"] == "willags-paper" and r.get("steps") == 5000 and r.get("psnr")
+            if r["scene"] == sc
+            and r["method"] == "willags-paper"
+            and r.get("steps") == 5000
+            and r.get("psnr")
             and r.get("device") != "cpu"
         ]
         out.append(

@@ -88,9 +88,7 @@ def main(argv=None) -> int:
         stop_after_s=args.stop_after_s,
         only_steps=args.steps,
         overrides={
-            k: v
-            for k, v in (("tag", args.tag), ("seed", args.seed), ("oracle", args.oracle or None))
-            if v is not None
+            k: v for k, v in (("tag", args.tag), ("seed", args.seed), ("oracle", args.oracle or None)) if v is not None
         },
     )
     return 0

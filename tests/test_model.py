@@ -9,7 +9,6 @@ import torch
 from tests.test_mask_eval import _camera
 from tests.test_mask_eval import _tiny_model as _mask_eval_tiny_model
 
-
 MODES = ("modulated", "decoder")
 
 

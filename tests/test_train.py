@@ -185,6 +185,21 @@ def _run_ns_tool(tool: str, args: list[str], appearance: str) -> None:
     assert res.returncode == 0, (res.stdout[-2000:], res.stderr[-2000:])
 
 
+def _look_trained(trainer) -> None:
+    """After 6 steps the colour transform is still ~the identity (z barely matters) and the higher SH bands are zero:
+    give the checkpoint a trained-looking, z-dependent, view-dependent state and save it again."""
+    model = trainer.pipeline.model
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(0)
+        for p in model.appearance_nets.parameters():
+            p.add_(0.3 * torch.randn(p.shape, generator=g))
+        if "features_rest" in model.gauss_params:
+            model.gauss_params["features_rest"].add_(
+                0.05 * torch.randn(model.gauss_params["features_rest"].shape, generator=g)
+            )
+    trainer.save_checkpoint(trainer.config.max_num_iterations)
+
+
 def test_ns_export_bakes_the_chosen_appearance_into_a_standard_ply(tmp_path):
     """`ns-export gaussian-splat` on a willags checkpoint: a 3DGS PLY whose colours follow WILLAGS_APPEARANCE."""
 
@@ -192,6 +207,7 @@ def test_ns_export_bakes_the_chosen_appearance_into_a_standard_ply(tmp_path):
     from plyfile import PlyData
 
     config, trainer, _ = _train(tmp_path, "willags", steps=6)
+    _look_trained(trainer)
     n = trainer.pipeline.model.num_points
     dc = {}
     for spec in ("mean", "sample:3"):
@@ -213,7 +229,7 @@ def test_ns_export_bakes_the_chosen_appearance_into_a_standard_ply(tmp_path):
         for field in ("x", "opacity", "scale_0", "rot_0", "f_dc_0", "f_dc_1", "f_dc_2"):
             assert field in v.data.dtype.names
         dc[spec] = np.stack([v["f_dc_0"], v["f_dc_1"], v["f_dc_2"]], 1)
-        # view-dependent colour as degree-3 SH (the decoder fitted per Gaussian): 15 x 3 f_rest, Inria layout
+        # view-dependent colour as degree-3 SH (the colour transform applied to the SH): 15 x 3 f_rest, Inria layout
         rest = np.stack([v[f"f_rest_{i}"] for i in range(45)], 1)
         assert f"f_rest_{45}" not in v.data.dtype.names and np.isfinite(rest).all() and np.abs(rest).max() > 0
         assert np.isfinite(dc[spec]).all()
@@ -245,11 +261,7 @@ def test_ns_render_uses_the_chosen_appearance(tmp_path):
     from PIL import Image
 
     config, trainer, _ = _train(tmp_path, "willags", steps=6)
-    with torch.no_grad():  # a trained-looking field: at 6 steps the planes barely depend on z yet
-        g = torch.Generator().manual_seed(0)
-        for p in trainer.pipeline.model.appearance_nets.field.parameters():
-            p.add_(0.5 * torch.randn(p.shape, generator=g))
-    trainer.save_checkpoint(trainer.config.max_num_iterations)
+    _look_trained(trainer)
     frames = {}
     for spec in ("mean", "sample:5"):
         out_dir = tmp_path / ("render_" + spec.replace(":", "_"))

@@ -290,7 +290,11 @@ class WillagsModel(SplatfactoModel):
             dim_sh = num_sh_bases(cfg.sh_degree)
             shs = torch.zeros((n, dim_sh, 3))
             if seed_rgb is not None:
-                shs[:, 0, :] = RGB2SH(seed_rgb) if (cfg.sh_degree > 0 or cfg.appearance != "sh") else torch.logit(seed_rgb, eps=1e-10)
+                shs[:, 0, :] = (
+                    RGB2SH(seed_rgb)
+                    if (cfg.sh_degree > 0 or cfg.appearance != "sh")
+                    else torch.logit(seed_rgb, eps=1e-10)
+                )
             else:
                 shs[:, 0, :] = torch.rand(n, 3)
             params["features_dc"] = Parameter(shs[:, 0, :].contiguous())

@@ -65,9 +65,7 @@ class ColorModulation(nn.Module):
         if cfg.local:
             self.latent_proj = nn.Linear(latent_dim, cfg.latent_proj)
             d_in = intrinsic_dim + cfg.latent_proj + dynamic_dim
-            self.local_mlp = nn.Sequential(
-                nn.Linear(d_in, cfg.local_hidden), nn.ReLU(), nn.Linear(cfg.local_hidden, 6)
-            )
+            self.local_mlp = nn.Sequential(nn.Linear(d_in, cfg.local_hidden), nn.ReLU(), nn.Linear(cfg.local_hidden, 6))
             nn.init.zeros_(self.local_mlp[-1].weight)
             nn.init.zeros_(self.local_mlp[-1].bias)
 
@@ -86,12 +84,16 @@ class ColorModulation(nn.Module):
         parts = []
         if self.intrinsic_dim > 0:
             if f_s is None or f_s.shape[-1] != self.intrinsic_dim:
-                raise ValueError(f"f_s must be [N, {self.intrinsic_dim}], got {None if f_s is None else tuple(f_s.shape)}")
+                raise ValueError(
+                    f"f_s must be [N, {self.intrinsic_dim}], got {None if f_s is None else tuple(f_s.shape)}"
+                )
             parts.append(f_s)
         parts.append(self.latent_proj(z).expand(n, -1))
         if self.dynamic_dim > 0:
             if f_d is None or f_d.shape[-1] != self.dynamic_dim:
-                raise ValueError(f"f_d must be [N, {self.dynamic_dim}], got {None if f_d is None else tuple(f_d.shape)}")
+                raise ValueError(
+                    f"f_d must be [N, {self.dynamic_dim}], got {None if f_d is None else tuple(f_d.shape)}"
+                )
             parts.append(f_d)
         return self.local_mlp(torch.cat(parts, dim=-1))
 

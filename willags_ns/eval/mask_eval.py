@@ -198,7 +198,9 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     K = cam.get_intrinsics_matrices().to(model.device)
     W, H = int(cam.width.item()), int(cam.height.item())
     gp = model.gauss_params
-    colors = model.appearance_colors(z, gp["means"], gp.get("features"), c2w[0, :3, 3], nets=nets, sh=model.sh_coeffs(gp))
+    colors = model.appearance_colors(
+        z, gp["means"], gp.get("features"), c2w[0, :3, 3], nets=nets, sh=model.sh_coeffs(gp)
+    )
     render, alpha, _ = model._rasterize(
         gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, "RGB"
     )
