@@ -189,35 +189,66 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     return scale, rot, mu_d - scale * rot @ mu_s
 
 
+def rotation_mean(rotations: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations [N, 3, 3]: the rotation nearest (Frobenius) to their average."""
+    u, _, vt = np.linalg.svd(rotations.sum(0))
+    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    return u @ sign @ vt
+
+
 def compare_poses(
-    est_w2c: dict[str, np.ndarray], ref_w2c: dict[str, np.ndarray], trim: float = 3.0
+    est_w2c: dict[str, np.ndarray],
+    ref_w2c: dict[str, np.ndarray],
+    align: str = "poses",
+    trim: float = 3.0,
 ) -> dict[str, Any]:
-    """Errors of estimated camera poses against reference poses after a similarity alignment of the camera centres.
+    """Errors of estimated camera poses against reference poses after a similarity alignment.
 
     Poses are world-to-camera [4, 4] (COLMAP convention; any convention works if both sides use it) keyed by image
-    name. The similarity is fitted by Umeyama on all common centres, then refitted on those within `trim` x the
-    median residual (so a few badly placed cameras do not drag the others). Rotation error: angle of
-    R_ref^T R_est' (R_est' the estimated camera-to-world rotation in the reference frame). Centre errors are also
-    given relative to the reference extent: the largest distance between two reference camera centres.
+    name. The similarity ref ~ s * R @ est + t:
+
+    - align="centres": Umeyama on the camera centres, refitted on those within `trim` x the median residual (a few
+      badly placed cameras do not drag the others). Ill-conditioned in rotation when the centres are nearly
+      collinear or clustered (tourists on one square): an error of the alignment, not of the poses;
+    - align="poses" (default): R = the chordal mean of R_ref_i R_est_i^T (camera-to-world rotations), which every
+      camera constrains fully; s and t are then the least-squares fit of the centres (with the same trimming).
+
+    Rotation error: angle of R_ref^T R R_est (camera-to-world rotations). Centre errors are also given relative to
+    the reference extent: the largest distance between two reference camera centres.
     """
+    if align not in ("poses", "centres"):
+        raise ValueError(f"align must be 'poses' or 'centres', got {align!r}")
     common = sorted(set(est_w2c) & set(ref_w2c))
     if len(common) < 3:
         raise ValueError(f"need >= 3 images in both models to align them, got {len(common)}")
     est_c2w = np.stack([np.linalg.inv(est_w2c[n]) for n in common])
     ref_c2w = np.stack([np.linalg.inv(ref_w2c[n]) for n in common])
     src, dst = est_c2w[:, :3, 3], ref_c2w[:, :3, 3]
-    s, rot, t = umeyama(src, dst)
+    fixed_rot = None
+    if align == "poses":
+        fixed_rot = rotation_mean(np.einsum("nij,nkj->nik", ref_c2w[:, :3, :3], est_c2w[:, :3, :3]))
+
+    def fit(sel: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        if fixed_rot is None:
+            return umeyama(src[sel], dst[sel])
+        xs, xd = src[sel] - src[sel].mean(0), dst[sel] - dst[sel].mean(0)
+        scale = float((xd * (xs @ fixed_rot.T)).sum() / (xs**2).sum())
+        return scale, fixed_rot, dst[sel].mean(0) - scale * fixed_rot @ src[sel].mean(0)
+
+    s, rot, t = fit(np.ones(len(common), dtype=bool))
     res = np.linalg.norm(s * src @ rot.T + t - dst, axis=1)
     keep = res <= trim * max(np.median(res), 1e-12)
     if keep.sum() >= 3:
-        s, rot, t = umeyama(src[keep], dst[keep])
+        s, rot, t = fit(keep)
     centre_err = np.linalg.norm(s * src @ rot.T + t - dst, axis=1)
     r_est = rot @ est_c2w[:, :3, :3]
     rel = np.einsum("nji,njk->nik", ref_c2w[:, :3, :3], r_est)
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
-    rot_err = np.degrees(np.arccos(cos))
+    # angle from both the trace (cos) and the skew part (sin): arccos alone loses precision near 0
+    skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
+    rot_err = np.degrees(np.arctan2(np.linalg.norm(skew, axis=-1) / 2, (np.trace(rel, axis1=1, axis2=2) - 1) / 2))
     extent = float(np.max(np.linalg.norm(dst[:, None] - dst[None], axis=-1)))
     return {
+        "align": align,
         "num_common": len(common),
         "scale": s,
         "rotation_error_deg": dict(zip(common, rot_err.tolist(), strict=True)),
@@ -448,6 +479,10 @@ def build_vocab_tree(db_path: Path, out: Path, per_image: int = 500, seed: int =
     words = int(2 ** np.clip(np.floor(np.log2(max(len(train) // 40, 1))), 8, 16))
     options = pycolmap.VisualIndex.BuildOptions()
     options.num_visual_words = words
+    # k-means: COLMAP's 100 iterations x 3 rounds take minutes on 2 cores for a large collection; retrieval only
+    # needs a rough quantiser (the pairs it proposes are verified geometrically anyway)
+    options.num_iterations = 25
+    options.num_rounds = 1
     index = pycolmap.VisualIndex.create(128, 64)  # SIFT descriptors, the only embedding size pycolmap implements
     index.build(options, pycolmap.FeatureDescriptorsFloat(data=train, type=pycolmap.FeatureExtractorType.SIFT))
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -466,6 +501,8 @@ def match_vocab_tree(cfg: ProcessConfig, names: Sequence[str], progress, chunk: 
         build_vocab_tree(db_path, tree, seed=cfg.seed)
     queried_file = cfg.output / "colmap" / "vocab_tree_queried.txt"  # resume: query images already done
     queried = set(queried_file.read_text().splitlines()) if queried_file.is_file() else set()
+    if not _matched_pairs(db_path):
+        queried = set()  # a new database (the old one deleted): the list belongs to the old one
     task = progress.add_task("matching (vocab tree)", total=len(names))
     list_file = cfg.output / "colmap" / "vocab_tree_queries.txt"
     for k in range(0, len(names), chunk):
