@@ -270,3 +270,92 @@ def test_cli_prints_one_clear_line_not_a_traceback(scene, tmp_path):
     last = [ln for ln in res.stderr.strip().splitlines() if ln.strip()][-1]
     assert last.startswith("willags: ") and img.name in last and "does not exist" in last, res.stderr[-2000:]
     assert "Traceback" not in res.stderr, res.stderr[-3000:]
+
+
+# ---- row 15: SIGINT mid-training -> checkpoint; --load-dir resumes at the next step with equal state
+
+
+def _tiny_config(out: Path, data: Path, steps: int, method: str = "willags"):
+    """The config tests/test_train.py's _train builds (in-process ns-train), without training."""
+    from willags_ns import method_configs
+
+    config = {"willags": method_configs.willags_config, "willags-3dgs": method_configs.willags_3dgs_config}[method]()
+    config.max_num_iterations = steps
+    config.steps_per_save = 10**6
+    config.steps_per_eval_image = 10**6
+    config.vis = "tensorboard"
+    config.output_dir = out
+    config.timestamp = "t"
+    config.experiment_name = "exp"
+    config.machine.device_type = "cpu"
+    config.pipeline.datamanager.data = data
+    m = config.pipeline.model
+    m.num_downscales = 0
+    m.warmup_length = 3
+    m.refine_every = 3
+    m.reset_alpha_every = 1000
+    m.log_images_every = 0
+    if hasattr(m, "mask"):
+        m.mask.warmup_steps = 2
+    config.set_timestamp()
+    return config
+
+
+def _state_equal(a, b, path="") -> None:
+    """Recursive equality of nested dicts / lists of tensors and numbers (optimizer state dicts)."""
+    if torch.is_tensor(a):
+        assert torch.is_tensor(b) and a.shape == b.shape and torch.equal(a, b), path
+    elif isinstance(a, dict):
+        assert set(a) == set(b), (path, set(a) ^ set(b))
+        for k in a:
+            _state_equal(a[k], b[k], f"{path}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _state_equal(x, y, f"{path}[{i}]")
+    else:
+        assert a == b, (path, a, b)
+
+
+def test_row15_sigint_writes_a_checkpoint_and_load_dir_resumes_the_same_state(tiny_scene_src, tmp_path):
+    from nerfstudio.scripts.train import _set_random_seed
+
+    config = _tiny_config(tmp_path, tiny_scene_src, steps=40)
+    config.save_config()
+    _set_random_seed(config.machine.seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    orig = trainer.train_iteration
+
+    def interrupted(step):
+        if step == 6:  # Ctrl-C arrives in the middle of step 6 (before its forward pass)
+            os.kill(os.getpid(), signal.SIGINT)
+        return orig(step)
+
+    trainer.train_iteration = interrupted
+    with pytest.raises(SystemExit) as exit_info:
+        trainer.train()
+    assert exit_info.value.code == 130
+    assert trainer.step == 6  # step 6 finished; step 7 never started
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+    ckpt_dir = config.get_checkpoint_dir()
+    assert sorted(p.name for p in ckpt_dir.glob("*.ckpt")) == ["step-000000006.ckpt"]
+    params = {k: v.detach().clone() if torch.is_tensor(v) else v for k, v in trainer.pipeline.state_dict().items()}
+    optim = {k: o.state_dict() for k, o in trainer.optimizers.optimizers.items()}
+    n_points = trainer.pipeline.model.num_points
+
+    config2 = _tiny_config(tmp_path, tiny_scene_src, steps=2)
+    config2.load_dir = ckpt_dir
+    trainer2 = config2.setup(local_rank=0, world_size=1)
+    trainer2.setup()
+    assert trainer2._start_step == 7
+    model2 = trainer2.pipeline.model
+    assert model2.num_points == n_points
+    _state_equal(params, dict(trainer2.pipeline.state_dict()), "pipeline")
+    _state_equal(optim, {k: o.state_dict() for k, o in trainer2.optimizers.optimizers.items()}, "optimizers")
+    # the optimisers hold the model's (resized) parameters, so resumed training actually moves the model
+    for name, p in model2.gauss_params.items():
+        assert trainer2.optimizers.optimizers[name].param_groups[0]["params"][0] is p, name
+    before = model2.gauss_params["means"].detach().clone()
+    trainer2.train()
+    assert not torch.equal(before, model2.gauss_params["means"].detach()), "resumed training did not update means"
