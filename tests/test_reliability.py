@@ -359,3 +359,57 @@ def test_row15_sigint_writes_a_checkpoint_and_load_dir_resumes_the_same_state(ti
     before = model2.gauss_params["means"].detach().clone()
     trainer2.train()
     assert not torch.equal(before, model2.gauss_params["means"].detach()), "resumed training did not update means"
+
+
+# ---- row 16: checkpoints load under weights_only=True; an arbitrary pickled object is refused
+
+
+class _Payload:
+    """Unpickling this runs Path.touch(marker): what an attacker's checkpoint would do with os.system."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_row16_checkpoints_load_weights_only_and_pickled_objects_are_refused(tiny_scene_src, tmp_path):
+    _, trainer, _ = _train(tmp_path / "run", tiny_scene_src, steps=2)
+    ckpt = next(trainer.checkpoint_dir.glob("*.ckpt"))
+    state = torch.load(ckpt, map_location="cpu", weights_only=True)  # explicit, and ...
+    assert state["step"] == 1 and "pipeline" in state and "optimizers" in state
+    torch.load(ckpt, map_location="cpu")  # ... as nerfstudio calls it (torch >= 2.6: weights_only by default)
+
+    marker = tmp_path / "payload-ran"
+    state["evil"] = _Payload(marker)
+    (tmp_path / "bad").mkdir()
+    bad = tmp_path / "bad" / "step-000000001.ckpt"
+    torch.save(state, bad)
+    with pytest.raises(pickle.UnpicklingError, match="(?i)weights only load failed"):
+        torch.load(bad, map_location="cpu")  # nerfstudio's call in Trainer._load_checkpoint / eval_setup
+    assert not marker.exists()
+    # through nerfstudio's own resume path
+    config = _tiny_config(tmp_path / "resume", tiny_scene_src, steps=1)
+    config.load_dir = tmp_path / "bad"
+    trainer2 = config.setup(local_rank=0, world_size=1)
+    with pytest.raises(pickle.UnpicklingError):
+        trainer2.setup()
+    assert not marker.exists()
+
+
+# ---- row 17: the viewer binds 127.0.0.1 for willags methods; an option exposes it
+
+
+def test_row17_viewer_is_local_by_default_and_the_cli_can_expose_it():
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    from willags_ns import method_configs
+
+    for factory in (method_configs.willags_config, method_configs.willags_lite_config, method_configs.willags_3dgs_config):
+        assert factory().viewer.websocket_host == "127.0.0.1"
+    cfg = tyro.cli(AnnotatedBaseConfigUnion, args=["willags"])
+    assert cfg.viewer.websocket_host == "127.0.0.1"
+    cfg = tyro.cli(AnnotatedBaseConfigUnion, args=["willags", "--viewer.websocket-host", "0.0.0.0"])
+    assert cfg.viewer.websocket_host == "0.0.0.0"
