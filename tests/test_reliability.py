@@ -9,7 +9,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,13 +18,10 @@ from PIL import Image
 
 from willags_ns.checks import (
     WillagsInputError,
-    WillagsTrainingError,
-    check_gaussians_alive,
     check_image_file,
     check_intrinsics,
     check_num_train_images,
     check_poses,
-    check_render_memory,
     validate_dataparser_outputs,
 )
 from willags_ns.data.dataparser import WillagsDataError, WillagsDataParserConfig
@@ -407,7 +403,11 @@ def test_row17_viewer_is_local_by_default_and_the_cli_can_expose_it():
 
     from willags_ns import method_configs
 
-    for factory in (method_configs.willags_config, method_configs.willags_lite_config, method_configs.willags_3dgs_config):
+    for factory in (
+        method_configs.willags_config,
+        method_configs.willags_lite_config,
+        method_configs.willags_3dgs_config,
+    ):
         assert factory().viewer.websocket_host == "127.0.0.1"
     cfg = tyro.cli(AnnotatedBaseConfigUnion, args=["willags"])
     assert cfg.viewer.websocket_host == "127.0.0.1"

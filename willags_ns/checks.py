@@ -211,14 +211,21 @@ def check_cameras(cameras, names: Sequence[str] | None = None) -> None:
     check_poses(cameras.camera_to_worlds, names)
 
 
-def validate_dataparser_outputs(outputs, check_files: bool = True) -> list[str]:
-    """Every check over one split's ``DataparserOutputs``: image count, cameras, and (``check_files``) that every
-    image exists, decodes and has its camera's size. Raises WillagsInputError; returns the warnings."""
+def validate_dataparser_outputs(outputs, check_files: bool = True, device: str | None = None) -> list[str]:
+    """Every check over one split's ``DataparserOutputs``: image count, cameras, scene scale, and
+    (``check_files``) that every image exists, decodes and has its camera's size; on a CPU ``device``, that the
+    largest image fits in memory. Raises WillagsInputError; returns the warnings."""
     files = [Path(p) for p in outputs.image_filenames]
     warn = check_num_train_images(len(files))
     names = [f.name for f in files]
     cams = outputs.cameras
     check_cameras(cams, names)
+    points = outputs.metadata.get("points3D_xyz")
+    check_scene_scale(cams.camera_to_worlds[:, :3, 3], points)
+    if device is not None and str(device).startswith("cpu"):
+        i = int((cams.width.reshape(-1) * cams.height.reshape(-1)).argmax())
+        n_points = int(points.shape[0]) if points is not None else 0
+        check_train_memory(n_points, int(cams.width.reshape(-1)[i]), int(cams.height.reshape(-1)[i]))
     if check_files:
         sizes = [(int(w), int(h)) for w, h in zip(cams.width.reshape(-1), cams.height.reshape(-1), strict=True)]
         if len(sizes) == 1 and len(files) > 1:
@@ -246,25 +253,58 @@ def check_gaussians_alive(num_points: int, step: int) -> None:
         )
 
 
-def estimate_render_bytes(num_gaussians: int, width: int, height: int, channels: int = 3) -> int:
-    """Rough peak memory (bytes) of one training render with the torch rasteriser at ``width`` x ``height``: per-pixel
-    float32 buffers for forward and backward (image, alpha, depth, transmittance, gradients: ~24 floats plus the
-    channels, twice for autograd) and per-Gaussian state (~100 floats). An estimate for a clear error, not a
-    bound."""
-    pixels = int(width) * int(height)
-    return 4 * (2 * pixels * (24 + 2 * channels) + 100 * int(num_gaussians))
+BYTES_PER_PIXEL = 3000
+"""Host memory of one CPU training step per image pixel (forward + backward: render, teacher channels, VGG features
+of the mask, SSIM maps, VAE input, autograd buffers). Measured with tests/test_model's tiny model: 480x270 -> 0.95 GB
+peak, 960x540 -> 2.0 GB, i.e. 2.9 kB per added pixel."""
+BYTES_PER_GAUSSIAN = 2000
+"""Per-Gaussian parameters, Adam moments, projections and per-Gaussian colours (generous)."""
 
 
-def check_render_memory(num_gaussians: int, width: int, height: int, available: int | None = None) -> None:
-    """Raise WillagsInputError when a render of this size would not fit in ``available`` bytes (default: the host's
-    free memory) by the estimate of :func:`estimate_render_bytes`."""
-    need = estimate_render_bytes(num_gaussians, width, height)
+def estimate_train_step_bytes(num_gaussians: int, width: int, height: int) -> int:
+    """Rough peak host memory (bytes) of one CPU training step at ``width`` x ``height``: BYTES_PER_PIXEL per pixel
+    plus BYTES_PER_GAUSSIAN per Gaussian. An estimate for a clear error, not a bound."""
+    return BYTES_PER_PIXEL * int(width) * int(height) + BYTES_PER_GAUSSIAN * int(num_gaussians)
+
+
+def check_train_memory(num_gaussians: int, width: int, height: int, available: int | None = None) -> None:
+    """Raise WillagsInputError when a CPU training step on a ``width`` x ``height`` image would not fit in
+    ``available`` bytes (default: the host's MemAvailable) by :func:`estimate_train_step_bytes`."""
+    need = estimate_train_step_bytes(num_gaussians, width, height)
     if available is None:
         available = available_memory_bytes()
     if available is not None and need > available:
         raise WillagsInputError(
-            f"a {width}x{height} render needs about {need / 2**30:.1f} GiB but {available / 2**30:.1f} GiB is free: "
-            "train at lower resolution (--pipeline.datamanager.dataparser.downscale-factor 2 or 4) or on a GPU"
+            f"training on a {width}x{height} image needs about {need / 2**30:.1f} GiB of memory on the CPU but "
+            f"{available / 2**30:.1f} GiB is free: downscale the images (--pipeline.datamanager.dataparser."
+            "downscale-factor 2 or 4, or images_N folders) or train on a GPU"
+        )
+
+
+NEAR_PLANE = 0.01
+"""The rasteriser's near plane in scene units (WillagsModel._rasterize): anything closer to a camera is culled."""
+
+
+def check_scene_scale(camera_centres: Tensor, points: Tensor | None = None, near_plane: float = NEAR_PLANE) -> None:
+    """Raise WillagsInputError when the scene is so small in its units that the near plane culls it.
+
+    The distance measured is the median camera's distance to the median seed point, or (no points) the cameras'
+    spread. nerfstudio's dataparsers scale poses into [-1, 1] by default (auto_scale_poses), so this fires only when
+    that is turned off on a scene in, e.g., kilometres-as-millimetres units. Large scenes (1e4) work as they are.
+    """
+    c = camera_centres.detach().double().reshape(-1, 3)
+    if points is not None and points.numel() >= 3:
+        centre = points.detach().double().reshape(-1, 3).median(dim=0).values
+        dist = float((c - centre).norm(dim=-1).median())
+    elif c.shape[0] >= 2:
+        dist = float((c - c.mean(0)).norm(dim=-1).max())
+    else:
+        return
+    if dist < 10 * near_plane:
+        raise WillagsInputError(
+            f"the cameras are {dist:.3g} scene units from the scene, but willags culls everything closer than "
+            f"{near_plane} to a camera: keep the dataparser's auto_scale_poses on (the default), or scale the poses "
+            "and points up"
         )
 
 

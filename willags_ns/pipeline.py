@@ -140,7 +140,9 @@ class WillagsPipeline(VanillaPipeline):
 
         def setup_after_checks(**model_kwargs):
             if checking:
-                warn_all(validate_dataparser_outputs(self.datamanager.train_dataparser_outputs))
+                device = kwargs.get("device", args[0] if args else None)
+                outputs = self.datamanager.train_dataparser_outputs
+                warn_all(validate_dataparser_outputs(outputs, device=str(device) if device is not None else None))
             return original_setup(**model_kwargs)
 
         model_config.setup = setup_after_checks  # type: ignore[method-assign]
