@@ -18,6 +18,7 @@ from PIL import Image
 
 from willags_ns.checks import (
     WillagsInputError,
+    WillagsTrainingError,
     check_image_file,
     check_intrinsics,
     check_num_train_images,
@@ -212,11 +213,28 @@ def test_row14_degenerate_intrinsics_on_parsed_cameras():
 # ---- the pipeline runs the checks for every dataparser, before the model / images; the CLI prints one line
 
 
+def small_networks() -> dict:
+    """Model overrides that keep every component but shrink it (8-d latent, 8x8x4 planes, seeded VGG): the CPU cost
+    of a step is then the rasteriser's and the VGG's on 32x24 images."""
+    from willags_ns.appearance.triplane import TriplaneConfig
+    from willags_ns.appearance.vae import VAEConfig
+    from willags_ns.transient import PerceptualMaskConfig
+
+    return {
+        "vae": VAEConfig(latent_dim=8, image_size=16, channels=(8, 8)),
+        "triplane": TriplaneConfig(
+            latent_dim=8, resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16
+        ),
+        "intrinsic_dim": 8,
+        "mask": PerceptualMaskConfig(vgg_weights="seeded", warmup_steps=2),
+    }
+
+
 def _train(out: Path, data: Path | None, steps: int, method: str = "willags", dataparser=None, **model_overrides):
-    """tests/test_train.py's in-process ns-train, tiny and fast (mask from step 2, 16x16 VAE input)."""
+    """tests/test_train.py's in-process ns-train, with small networks (mask from step 2)."""
     from tests.test_train import _train as train
 
-    overrides = {"log_images_every": 0, **model_overrides}
+    overrides = {"log_images_every": 0, **small_networks(), **model_overrides}
     if dataparser is not None:
         from willags_ns import method_configs
 
@@ -229,8 +247,6 @@ def _train(out: Path, data: Path | None, steps: int, method: str = "willags", da
 
         method_configs._trainer = patched
         try:
-            from importlib import reload  # noqa: F401  (config factories call _trainer at call time)
-
             return train(out, method, steps=steps, data=data, **overrides)
         finally:
             method_configs._trainer = orig
@@ -291,8 +307,9 @@ def _tiny_config(out: Path, data: Path, steps: int, method: str = "willags"):
     m.refine_every = 3
     m.reset_alpha_every = 1000
     m.log_images_every = 0
-    if hasattr(m, "mask"):
-        m.mask.warmup_steps = 2
+    if method == "willags":
+        for k, v in small_networks().items():
+            setattr(m, k, v)
     config.set_timestamp()
     return config
 
@@ -413,3 +430,146 @@ def test_row17_viewer_is_local_by_default_and_the_cli_can_expose_it():
     assert cfg.viewer.websocket_host == "127.0.0.1"
     cfg = tyro.cli(AnnotatedBaseConfigUnion, args=["willags", "--viewer.websocket-host", "0.0.0.0"])
     assert cfg.viewer.websocket_host == "0.0.0.0"
+
+
+# ---- row 9: poses scaled by 1e-3 / 1e4 in the dataset: nerfstudio's auto-scaling undoes it; training is finite
+
+
+def _scale_scene(scene: Path, s: float) -> None:
+    from willags_ns.data.dataparser import read_ply_points
+    from willags_ns.data.synthetic import write_ply_points
+
+    meta = _frames(scene)
+    for f in meta["frames"]:
+        m = np.array(f["transform_matrix"])
+        m[:3, 3] *= s
+        f["transform_matrix"] = m.tolist()
+    _write_frames(scene, meta)
+    xyz, rgb = read_ply_points(scene / meta["ply_file_path"])
+    write_ply_points(scene / meta["ply_file_path"], xyz * s, rgb)
+
+
+@pytest.mark.parametrize("s", [1e-3, 1e4])
+def test_row9_scaled_poses_parse_to_the_same_scene_and_train_finite(tiny_scene_src, tmp_path, s):
+    ref = _parse(tiny_scene_src)
+    scene = Path(shutil.copytree(tiny_scene_src, tmp_path / "scaled"))
+    _scale_scene(scene, s)
+    out = _parse(scene)
+    torch.testing.assert_close(out.cameras.camera_to_worlds, ref.cameras.camera_to_worlds, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(out.metadata["points3D_xyz"], ref.metadata["points3D_xyz"], atol=1e-3, rtol=1e-3)
+    if s < 1:
+        _, _, losses = _train(tmp_path / "out", scene, steps=3)
+        assert all(math.isfinite(v) for v, _ in losses)
+
+
+# ---- rows 12 and 13 through nerfstudio's trainer
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_scene_src, tmp_path_factory):
+    return _train(tmp_path_factory.mktemp("run"), tiny_scene_src, steps=2)
+
+
+def test_row12_a_pipeline_with_every_gaussian_pruned_stops_with_a_clear_error(tiny_run):
+    _, trainer, _ = tiny_run
+    model = trainer.pipeline.model
+    saved = {k: v.data for k, v in model.gauss_params.items()}
+    try:
+        for p in model.gauss_params.values():
+            p.data = p.data[:0]
+        with pytest.raises(WillagsTrainingError, match="every Gaussian was pruned by step 5"):
+            trainer.pipeline.get_train_loss_dict(5)
+    finally:
+        for k, p in model.gauss_params.items():
+            p.data = saved[k]
+
+
+def test_row13_8x8_images_train_through_nerfstudio_with_the_default_resolution_schedule(tmp_path):
+    from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
+
+    cfg = SyntheticSceneConfig(num_train=6, num_test=2, width=8, height=8, num_points=200, supersample=1)
+    scene = write_scene(make_scene(cfg), tmp_path / "scene8")
+    # num_downscales=2: the first steps train at 2x2 pixels
+    _, trainer, losses = _train(tmp_path / "out", scene, steps=4, num_downscales=2)
+    assert len(losses) == 4 and all(math.isfinite(v) for v, _ in losses)
+
+
+# ---- row 20: same seed twice on the CPU -> the same losses
+
+
+def _seeded_losses(out: Path, data: Path, steps: int) -> list[float]:
+    from nerfstudio.scripts.train import _set_random_seed
+
+    config = _tiny_config(out, data, steps=steps)
+    _set_random_seed(config.machine.seed)  # what ns-train's train_loop does
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    losses = []
+    orig = trainer.train_iteration
+
+    def spy(step):
+        loss, loss_dict, metrics = orig(step)
+        losses.append(float(loss))
+        return loss, loss_dict, metrics
+
+    trainer.train_iteration = spy
+    trainer.train()
+    return losses
+
+
+def test_row20_same_seed_twice_gives_the_same_losses_for_100_steps(tiny_scene_src, tmp_path):
+    a = _seeded_losses(tmp_path / "a", tiny_scene_src, 100)
+    b = _seeded_losses(tmp_path / "b", tiny_scene_src, 100)
+    assert len(a) == 100 and a == b, next((i, x, y) for i, (x, y) in enumerate(zip(a, b, strict=True)) if x != y)
+
+
+# ---- photo collection: one photo of reichstag replaced by a grey 1x1 image, a photo of another place, a duplicate
+
+
+def _reichstag_copy(shared: Path, dst: Path) -> tuple[Path, list[str]]:
+    """reichstag with every file symlinked (the shared data stays read-only) and images/ a real folder."""
+    src = shared / "reichstag"
+    dst.mkdir()
+    for item in src.iterdir():
+        if item.name != "images":
+            (dst / item.name).symlink_to(item)
+    (dst / "images").mkdir()
+    names = sorted(p.name for p in (src / "images").iterdir())
+    for n in names:
+        (dst / "images" / n).symlink_to(src / "images" / n)
+    return dst, names
+
+
+def _train_names(scene: Path) -> list[str]:
+    from willags_ns.data.dataparser import read_split_tsv
+
+    table = read_split_tsv(scene / "reichstag.tsv")
+    return sorted(n for n, s in table.items() if s == "train" and (scene / "images" / n).exists())
+
+
+def test_photo_collection_grey_1x1_photo_is_a_clear_error(shared_data, tmp_path):
+    scene, _ = _reichstag_copy(shared_data, tmp_path / "r")
+    victim = _train_names(scene)[3]
+    (scene / "images" / victim).unlink()
+    Image.new("RGB", (1, 1), (128, 128, 128)).save(scene / "images" / victim, format="JPEG")
+    with pytest.raises(WillagsInputError, match=rf"{victim} is 1x1 but its camera says \d+x\d+"):
+        _validate(scene)
+
+
+def test_photo_collection_foreign_photo_and_duplicate_run_finite_with_a_warning(shared_data, tmp_path):
+    scene, _ = _reichstag_copy(shared_data, tmp_path / "r")
+    train = _train_names(scene)
+    sizes = {n: Image.open(scene / "images" / n).size for n in train}
+    foreign = train[0]
+    # a duplicate: another training photo's bytes under a frame whose camera has the same size
+    dup_of, dup = next((a, b) for a in train[1:] for b in train[1:] if a < b and sizes[a] == sizes[b])
+    other = sorted((shared_data / "sacre-coeur-mini" / "images").iterdir())[0]
+    (scene / "images" / foreign).unlink()
+    Image.open(other).convert("RGB").resize(sizes[foreign]).save(scene / "images" / foreign, format="JPEG")
+    (scene / "images" / dup).unlink()
+    shutil.copy(scene / "images" / dup_of, scene / "images" / dup)
+    warns = _validate(scene)
+    assert any(dup in w and dup_of in w and "byte-identical" in w for w in warns), warns
+    with pytest.warns(UserWarning, match="byte-identical"):
+        _, _, losses = _train(tmp_path / "out", scene, steps=3, num_downscales=3, resolution_schedule=10**9)
+    assert len(losses) == 3 and all(math.isfinite(v) for v, _ in losses)

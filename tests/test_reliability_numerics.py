@@ -277,3 +277,29 @@ def test_row18_bf16_autocast_keeps_the_appearance_mlps_finite_at_the_extremes(mo
     assert torch.isfinite(mu).all() and torch.isfinite(logvar).all()
     grads = torch.autograd.grad(rgb.float().sum() + mu.float().sum(), [z, means, f_s], allow_unused=True)
     assert all(g is None or torch.isfinite(g).all() for g in grads)
+
+
+@pytest.mark.parametrize("hw", [(1, 1), (2, 2), (2, 7), (5, 5), (6, 6), (8, 8)])
+def test_row13_ssim_works_down_to_1x1_images(hw):
+    from willags_ns.losses import ssim_window
+
+    h, w = hw
+    k, _ = ssim_window(h, w)
+    assert k % 2 == 1 and (k - 1) // 2 < min(h, w) and (k == 11) == (min(h, w) >= 6)
+    pred = torch.rand(1, 3, h, w, requires_grad=True)
+    v = masked_dssim(pred, torch.rand(1, 3, h, w))
+    (g,) = torch.autograd.grad(v, pred)
+    assert torch.isfinite(v) and torch.isfinite(g).all()
+    same = masked_dssim(pred.detach(), pred.detach())
+    assert abs(float(same)) < 1e-4  # identical images: no dissimilarity
+
+
+def test_row13_vgg_mask_features_of_a_2x2_image():
+    from willags_ns.transient import PerceptualFeatures, perceptual_error
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        feats = PerceptualFeatures(weights="seeded")
+        a, b = torch.rand(1, 3, 2, 2), torch.rand(1, 3, 2, 2)
+        d = perceptual_error(feats(a), feats(b), (2, 2))
+    assert d.shape == (1, 2, 2) and torch.isfinite(d).all() and d.min() >= 0
