@@ -303,3 +303,14 @@ def test_row13_vgg_mask_features_of_a_2x2_image():
         a, b = torch.rand(1, 3, 2, 2), torch.rand(1, 3, 2, 2)
         d = perceptual_error(feats(a), feats(b), (2, 2))
     assert d.shape == (1, 2, 2) and torch.isfinite(d).all() and d.min() >= 0
+
+
+def test_row8_latent_clamping_of_the_appearance_spec_parser():
+    """Owned by the appearance-SPEC work (willags_ns/appearance_spec.py, another branch): runs once it is merged."""
+    spec = pytest.importorskip("willags_ns.appearance_spec")
+    z = torch.ones(8) * 1e3 / math.sqrt(8)  # norm 1e3
+    with pytest.warns(UserWarning, match="scaled down"):
+        out = spec.checked_latent(z, "latent file z.pt")
+    assert torch.isfinite(out).all() and float(out.norm()) <= spec.MAX_LATENT_NORM + 1e-3
+    with pytest.raises(ValueError, match="z.pt.*NaN"):
+        spec.checked_latent(torch.tensor([0.0, float("nan")]), "latent file z.pt")
