@@ -287,7 +287,7 @@ def test_cli_prints_one_clear_line_not_a_traceback(scene, tmp_path):
 # ---- row 15: SIGINT mid-training -> checkpoint; --load-dir resumes at the next step with equal state
 
 
-def _tiny_config(out: Path, data: Path, steps: int, method: str = "willags"):
+def _tiny_config(out: Path, data: Path, steps: int, method: str = "willags", refine_every: int = 3):
     """The config tests/test_train.py's _train builds (in-process ns-train), without training."""
     from willags_ns import method_configs
 
@@ -304,7 +304,7 @@ def _tiny_config(out: Path, data: Path, steps: int, method: str = "willags"):
     m = config.pipeline.model
     m.num_downscales = 0
     m.warmup_length = 3
-    m.refine_every = 3
+    m.refine_every = refine_every
     m.reset_alpha_every = 1000
     m.log_images_every = 0
     if method == "willags":
@@ -372,6 +372,7 @@ def test_row15_sigint_writes_a_checkpoint_and_load_dir_resumes_the_same_state(ti
     before = model2.gauss_params["means"].detach().clone()
     trainer2.train()
     assert not torch.equal(before, model2.gauss_params["means"].detach()), "resumed training did not update means"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored after a normal end too
 
 
 # ---- row 16: checkpoints load under weights_only=True; an arbitrary pickled object is refused
@@ -500,7 +501,8 @@ def test_row13_8x8_images_train_through_nerfstudio_with_the_default_resolution_s
 def _seeded_losses(out: Path, data: Path, steps: int) -> list[float]:
     from nerfstudio.scripts.train import _set_random_seed
 
-    config = _tiny_config(out, data, steps=steps)
+    # densification at steps 30, 60, 90 (every 3 steps, tuned for real images, grows 32x24 scenes 100-fold)
+    config = _tiny_config(out, data, steps=steps, refine_every=30)
     _set_random_seed(config.machine.seed)  # what ns-train's train_loop does
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()

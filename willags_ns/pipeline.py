@@ -77,8 +77,12 @@ def precheck_dataparser_config(datamanager_config) -> None:
 
 
 class InterruptCheckpoint:
-    """SIGINT -> finish the step, checkpoint, exit 130. Installed for the training loop only (BEFORE_TRAIN_ITERATION
-    of the first step), restored on exit; a second SIGINT raises KeyboardInterrupt at once (the previous handler).
+    """SIGINT -> finish the step, checkpoint, exit 130.
+
+    The handler is installed at the first training step (BEFORE_TRAIN_ITERATION) and the previous one restored when
+    training ends (AFTER_TRAIN) or after the checkpoint. The first Ctrl-C also restores the previous handler, so a
+    second Ctrl-C interrupts at once (and, should training have died of an exception before AFTER_TRAIN, the stale
+    handler costs one extra Ctrl-C, never a process that cannot be interrupted).
 
     Why at the end of a step: a checkpoint written from inside the backward or the optimiser step would hold
     parameters and Adam moments from two different steps. Saved after every AFTER_TRAIN_ITERATION callback of
@@ -89,6 +93,7 @@ class InterruptCheckpoint:
     def __init__(self, trainer):
         self.trainer = trainer
         self.requested = False
+        self.installed = False
         self._prev = None
 
     def _handler(self, signum, frame):
@@ -97,21 +102,28 @@ class InterruptCheckpoint:
             "[bold yellow]willags: interrupt received; finishing this step and writing a checkpoint "
             "(Ctrl-C again to stop at once)"
         )
-        signal.signal(signal.SIGINT, self._prev or signal.default_int_handler)
+        self.uninstall()
 
     def install(self, step: int) -> None:
-        if self._prev is None and self.trainer is not None:
-            try:
-                self._prev = signal.signal(signal.SIGINT, self._handler)
-            except ValueError:  # not the main thread (e.g. a trainer driven from a thread): leave SIGINT alone
-                self._prev = None
+        if self.installed or self.requested:
+            return
+        try:
+            self._prev = signal.signal(signal.SIGINT, self._handler)
+            self.installed = True
+        except ValueError:  # not the main thread (a trainer driven from a thread): leave SIGINT alone
+            pass
+
+    def uninstall(self, step: int | None = None) -> None:
+        if self.installed:
+            signal.signal(signal.SIGINT, self._prev if self._prev is not None else signal.default_int_handler)
+            self.installed = False
 
     def after_step(self, step: int) -> None:
         if not self.requested:
             return
+        self.uninstall()
         self.trainer.save_checkpoint(step)
         path = self.trainer.checkpoint_dir / f"step-{step:09d}.ckpt"
-        signal.signal(signal.SIGINT, self._prev or signal.default_int_handler)
         from nerfstudio.utils import writer
 
         writer.write_out_storage()
@@ -163,6 +175,7 @@ class WillagsPipeline(VanillaPipeline):
             self.interrupt_checkpoint = ic
             cbs.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], ic.install))
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], ic.after_step))
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], ic.uninstall))
         return cbs
 
     def get_train_loss_dict(self, step: int):
