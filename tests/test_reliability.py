@@ -575,3 +575,35 @@ def test_photo_collection_foreign_photo_and_duplicate_run_finite_with_a_warning(
     with pytest.warns(UserWarning, match="byte-identical"):
         _, _, losses = _train(tmp_path / "out", scene, steps=3, num_downscales=3, resolution_schedule=10**9)
     assert len(losses) == 3 and all(math.isfinite(v) for v, _ in losses)
+
+
+def test_row15_ctrl_c_on_ns_train_writes_a_checkpoint_and_exits_cleanly(tiny_scene_src, tmp_path):
+    """The real command line: SIGINT to `ns-train willags` once training runs."""
+    import re
+    import time
+
+    cmd = _ns_train(
+        ["willags", "--data", str(tiny_scene_src), "--output-dir", str(tmp_path), "--timestamp", "t"]
+        + ["--vis", "tensorboard", "--max-num-iterations", "100000", "--steps-per-save", "100000"]
+        + ["--pipeline.model.num-downscales", "0", "--pipeline.model.mask.vgg-weights", "seeded"]
+    )
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.time() + 300
+        while not list(tmp_path.rglob("dataparser_transforms.json")):  # written as train() starts
+            assert proc.poll() is None and time.time() < deadline, proc.communicate()[1][-3000:]
+            time.sleep(0.5)
+        time.sleep(4.0)  # some steps
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, (out[-2000:], err[-2000:])
+    assert "Traceback" not in err and "Traceback" not in out, err[-3000:]
+    m = re.search(r"interrupted after step (\d+)", out)
+    assert m, out[-2000:]
+    ckpts = [p.name for p in tmp_path.rglob("*.ckpt")]
+    assert ckpts == [f"step-{int(m.group(1)):09d}.ckpt"], ckpts
+    assert "--load-dir" in out
