@@ -607,3 +607,13 @@ def test_row15_ctrl_c_on_ns_train_writes_a_checkpoint_and_exits_cleanly(tiny_sce
     ckpts = [p.name for p in tmp_path.rglob("*.ckpt")]
     assert ckpts == [f"step-{int(m.group(1)):09d}.ckpt"], ckpts
     assert "--load-dir" in out
+
+
+def test_row6_all_black_and_all_white_training_images_train_finite_through_nerfstudio(scene, tmp_path):
+    meta = _frames(scene)
+    for i, name in enumerate(meta["train_filenames"]):
+        Image.new("RGB", (32, 24), (0, 0, 0) if i % 2 else (255, 255, 255)).save(scene / name)
+    _, _, losses = _train(tmp_path / "out", scene, steps=6)  # mask (teacher + VGG) active from step 2
+    assert len(losses) == 6 and all(math.isfinite(v) for v, _ in losses)
+    masked = [m for _, m in losses if "masked_fraction" in m]
+    assert masked and all(math.isfinite(m["vae_kl"]) and math.isfinite(m["masked_fraction"]) for m in masked)
