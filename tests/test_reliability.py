@@ -170,7 +170,7 @@ def test_row5_zero_training_images_is_an_error(scene):
     meta["test_filenames"] = meta["val_filenames"] = meta["test_filenames"] + meta["train_filenames"]
     meta["train_filenames"] = []
     _write_frames(scene, meta)
-    with pytest.raises((WillagsDataError, ValueError, AssertionError), match="(?i)no images|no data|empty"):
+    with pytest.raises(WillagsDataError, match="the training split has no images: check train_filenames"):
         _parse(scene)
     with pytest.raises(WillagsInputError, match="no images"):
         check_num_train_images(0)
@@ -268,7 +268,8 @@ def test_pipeline_checks_nerfstudios_own_parser_before_building_the_model(scene,
     assert not built, "the model was built before the inputs were checked"
 
 
-def _ns_train(args: list[str], timeout: int = 600, **popen) -> list[str]:
+def _ns_train(args: list[str]) -> list[str]:
+    """The command line of this venv's ns-train with `args`."""
     exe = Path(sys.executable).with_name("ns-train")
     return [str(exe), *args]
 
