@@ -12,9 +12,9 @@ From the command line these errors print as one line (``willags: <message>``) in
 
 Behaviour chosen for the edge cases (docs/reliability.md has the whole table):
 
-- image size differs from the camera's width/height: an error (no silent rescale). An image exactly k times the
-  camera size (k = 2, 4, 8: a full-resolution image with a downscaled camera) is an error too; nerfstudio would
-  crop or stretch nothing, it would fail deep inside the loss;
+- image size differs from the camera's width/height: an error, also when the image is exactly k times the camera
+  size (a full-resolution image next to a downscaled camera). No silent rescale: nerfstudio would pass the image on
+  as it is and the loss would fail on mismatched shapes deep inside torch;
 - a single training image: trains (the appearance latent and the mask work per image), with a warning that novel
   views will not be constrained;
 - byte-identical image files under two frames: a warning naming both.
