@@ -49,7 +49,7 @@ def masked_l1(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], mask
 
 def masked_dssim(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], mask: Tensor | None = None) -> Tensor:
     """``1 - SSIM`` averaged over kept pixels and channels (torchmetrics' per-pixel SSIM map: Gaussian window
-    11, sigma 1.5, reflect padding, data range 1). H and W must be at least 6.
+    11, sigma 1.5, reflect padding, data range 1; smaller images use a smaller window, see :func:`ssim_window`).
 
     Excluded pixels are zeroed in *both* images before SSIM, so a transient neither enters the window statistics
     of nearby kept pixels nor receives gradient through them. With an all-true mask this equals ``1 - SSIM``.
@@ -58,10 +58,32 @@ def masked_dssim(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], m
     from torchmetrics.functional.image import structural_similarity_index_measure
 
     m = _check(pred, gt, mask)
+    k, sigma = ssim_window(*pred.shape[-2:])
     _, ssim_map = structural_similarity_index_measure(
-        pred * m, gt.to(pred.dtype) * m, data_range=1.0, return_full_image=True, reduction="none"
+        pred * m,
+        gt.to(pred.dtype) * m,
+        data_range=1.0,
+        return_full_image=True,
+        reduction="none",
+        kernel_size=k,
+        sigma=sigma,
     )  # [B, 3, H, W]
     return _masked_mean(1.0 - ssim_map, m)
+
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+
+
+def ssim_window(height: int, width: int) -> tuple[int, float]:
+    """SSIM's Gaussian window (size, sigma) for an image: 11 and 1.5 (3DGS's) whenever the image has at least 6 rows
+    and columns; below that the largest odd window whose reflect padding fits, ``2 * min(H, W) - 1``, with sigma
+    scaled alike. Why: splatfacto's resolution schedule trains an 8x8 image at 2x2 for the first steps, where an
+    11-px window cannot be padded (torch raises deep inside torchmetrics). Example: 2x2 -> (3, 0.41); 1x1 -> (1,
+    0.14)."""
+    k = min(SSIM_WINDOW, 2 * min(int(height), int(width)) - 1)
+    k = max(1, k if k % 2 == 1 else k - 1)
+    return k, SSIM_SIGMA * k / SSIM_WINDOW
 
 
 def reconstruction_loss(

@@ -445,8 +445,8 @@ class WillagsModel(SplatfactoModel):
         # splatfacto resizes gauss_params to the checkpoint's point count; names are ours, so do it here
         self.step = 30000
         newp = dict["gauss_params.means"].shape[0]
-        for name, param in self.gauss_params.items():
-            self.gauss_params[name] = Parameter(torch.zeros((newp,) + param.shape[1:], device=self.device))
+        for param in self.gauss_params.values():  # resized in place: the optimisers hold these Parameter objects
+            param.data = torch.zeros((newp,) + param.shape[1:], device=self.device)
         nn.Module.load_state_dict(self, dict, **kwargs)
 
     # ------------------------------------------------------------------ appearance

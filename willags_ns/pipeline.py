@@ -3,14 +3,39 @@
 Why a pipeline at all: the beta-VAE encodes the *training image itself* into the appearance latent before the
 scene is rendered, but nerfstudio calls `model(camera)` without the batch. The pipeline gives the model the
 batch first (`model.set_train_batch`), then runs the usual forward / metrics / loss sequence unchanged.
+
+It is also where every willags method checks its inputs and guards training, whatever the dataparser
+(docs/reliability.md):
+
+- before nerfstudio's parser runs, the raw scene (transforms.json or the COLMAP model) is checked where we know
+  its layout (`precheck_dataparser_config`);
+- after parsing and before the model is built or an image is cached, `checks.validate_dataparser_outputs`: image
+  files exist, decode, match their camera's size; poses finite and rotations proper; fx, fy > 0; >= 1 image;
+- during training: a clear error when every Gaussian was pruned; a (rate-limited) warning when the transient mask
+  was rejected because it flagged most of an image;
+- Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
+  at the next step with the same parameters and optimiser state (`InterruptCheckpoint`).
 """
 
+import signal
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils.rich_utils import CONSOLE
 
+from willags_ns.checks import (
+    check_gaussians_alive,
+    install_cli_excepthook,
+    validate_dataparser_outputs,
+    warn_all,
+)
 from willags_ns.eval.protocol import EvalProtocolConfig, eval_split_images, evaluate_model
+
+MASK_REJECTED_WARN_EVERY_S = 60.0
+"""At most one 'mask rejected' warning per this many seconds (it is normal early in training)."""
 
 
 @dataclass
@@ -20,23 +45,148 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     _target: type = field(default_factory=lambda: WillagsPipeline)
     eval_protocol: EvalProtocolConfig = field(default_factory=EvalProtocolConfig)
     """NeRF-W protocol used by `ns-eval` (fit the latent on the left half of each test image, score the right)."""
+    check_inputs: bool = True
+    """Before training: check every training image (exists, decodes, matches its camera's size), the poses
+    (finite, proper rotations) and the intrinsics (fx, fy > 0); stop with a message naming the file / frame."""
+    checkpoint_on_interrupt: bool = True
+    """Ctrl-C finishes the current step, writes a checkpoint and exits; resume with --load-dir. A second Ctrl-C
+    interrupts at once."""
+
+
+def precheck_dataparser_config(datamanager_config) -> None:
+    """Check the raw scene of nerfstudio's own parsers (nerfstudio-data, colmap) before they run, so a missing
+    file or a NaN pose is named instead of failing inside them. willags-data checks its scenes itself."""
+    from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from willags_ns.data.dataparser import WillagsDataParserConfig, _check_colmap, _check_transforms
+
+    dp = datamanager_config.dataparser
+    data = datamanager_config.data if datamanager_config.data is not None else getattr(dp, "data", None)
+    if isinstance(dp, WillagsDataParserConfig) or data is None:
+        return
+    data = Path(data)
+    if isinstance(dp, NerfstudioDataParserConfig):
+        json_path = data if data.suffix == ".json" else data / "transforms.json"
+        if json_path.is_file():
+            _check_transforms(json_path, dp.downscale_factor)
+    elif isinstance(dp, ColmapDataParserConfig):
+        model = data / dp.colmap_path
+        if model.is_dir():
+            _check_colmap(data, model, data / dp.images_path, need_points=False)
+
+
+class InterruptCheckpoint:
+    """SIGINT -> finish the step, checkpoint, exit 130.
+
+    The handler is installed at the first training step (BEFORE_TRAIN_ITERATION) and the previous one restored when
+    training ends (AFTER_TRAIN) or after the checkpoint. The first Ctrl-C also restores the previous handler, so a
+    second Ctrl-C interrupts at once (and, should training have died of an exception before AFTER_TRAIN, the stale
+    handler costs one extra Ctrl-C, never a process that cannot be interrupted).
+
+    Why at the end of a step: a checkpoint written from inside the backward or the optimiser step would hold
+    parameters and Adam moments from two different steps. Saved after every AFTER_TRAIN_ITERATION callback of
+    step s (this one is the last registered), the checkpoint is exactly the state the next step would start from;
+    nerfstudio resumes at s + 1.
+    """
+
+    def __init__(self, trainer):
+        self.trainer = trainer
+        self.requested = False
+        self.installed = False
+        self._prev = None
+
+    def _handler(self, signum, frame):
+        self.requested = True
+        CONSOLE.log(
+            "[bold yellow]willags: interrupt received; finishing this step and writing a checkpoint "
+            "(Ctrl-C again to stop at once)"
+        )
+        self.uninstall()
+
+    def install(self, step: int) -> None:
+        if self.installed or self.requested:
+            return
+        try:
+            self._prev = signal.signal(signal.SIGINT, self._handler)
+            self.installed = True
+        except ValueError:  # not the main thread (a trainer driven from a thread): leave SIGINT alone
+            pass
+
+    def uninstall(self, step: int | None = None) -> None:
+        if self.installed:
+            signal.signal(signal.SIGINT, self._prev if self._prev is not None else signal.default_int_handler)
+            self.installed = False
+
+    def after_step(self, step: int) -> None:
+        if not self.requested:
+            return
+        self.uninstall()
+        self.trainer.save_checkpoint(step)
+        path = self.trainer.checkpoint_dir / f"step-{step:09d}.ckpt"
+        from nerfstudio.utils import writer
+
+        writer.write_out_storage()
+        CONSOLE.print(
+            f"willags: interrupted after step {step}; checkpoint {path}\n"
+            f"resume with: ns-train {self.trainer.config.method_name} --load-dir {self.trainer.checkpoint_dir} "
+            "(and the same other arguments)"
+        )
+        raise SystemExit(130)
 
 
 class WillagsPipeline(VanillaPipeline):
     config: WillagsPipelineConfig
 
     def __init__(self, config: WillagsPipelineConfig, *args, **kwargs):
-        super().__init__(config, *args, **kwargs)
+        install_cli_excepthook()
+        test_mode = kwargs.get("test_mode", args[1] if len(args) > 1 else "val")
+        checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
+        if checking:
+            precheck_dataparser_config(config.datamanager)
+        # The model is built inside VanillaPipeline.__init__ right after the datamanager parses the scene; the
+        # outputs are validated in between (a NaN pose would otherwise surface in the model's kNN as a sklearn
+        # error). The hook is an instance attribute on this config only, removed again below.
+        model_config = config.model
+        original_setup = model_config.setup
+
+        def setup_after_checks(**model_kwargs):
+            if checking:
+                device = kwargs.get("device", args[0] if args else None)
+                outputs = self.datamanager.train_dataparser_outputs
+                warn_all(validate_dataparser_outputs(outputs, device=str(device) if device is not None else None))
+            return original_setup(**model_kwargs)
+
+        model_config.setup = setup_after_checks  # type: ignore[method-assign]
+        try:
+            super().__init__(config, *args, **kwargs)
+        finally:
+            del model_config.setup
         names = [Path(p).name for p in self.datamanager.train_dataparser_outputs.image_filenames]
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
+        self._last_mask_warning = -float("inf")
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes):
+        cbs = super().get_training_callbacks(training_callback_attributes)
+        trainer = training_callback_attributes.trainer
+        if self.config.checkpoint_on_interrupt and trainer is not None:
+            ic = InterruptCheckpoint(trainer)
+            self.interrupt_checkpoint = ic
+            cbs.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], ic.install))
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], ic.after_step))
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], ic.uninstall))
+        return cbs
 
     def get_train_loss_dict(self, step: int):
+        check_gaussians_alive(self.model.num_points, step)
         camera, batch = self.datamanager.next_train(step)
         self.model.set_train_batch(batch)  # type: ignore[attr-defined]
         model_outputs = self._model(camera)
         metrics_dict = self.model.get_metrics_dict(model_outputs, batch)
         loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
+        if "mask_rejected" in metrics_dict:
+            self._warn_mask_rejected(step, batch)
         return model_outputs, loss_dict, metrics_dict
 
     def get_average_eval_image_metrics(self, step=None, output_path=None, get_std: bool = False):
@@ -58,3 +208,18 @@ class WillagsPipeline(VanillaPipeline):
                 if k in per_image[0]:
                     agg[f"{k}_std"] = statistics.pstdev(float(r[k]) for r in per_image)
         return agg
+
+    def _warn_mask_rejected(self, step: int, batch) -> None:
+        now = time.monotonic()
+        if now - self._last_mask_warning < MASK_REJECTED_WARN_EVERY_S:
+            return
+        self._last_mask_warning = now
+        idx = int(batch.get("image_idx", -1))
+        names = self.datamanager.train_dataparser_outputs.image_filenames
+        name = Path(names[idx]).name if 0 <= idx < len(names) else f"image {idx}"
+        frac = getattr(self.model.config, "max_masked_fraction", None)
+        CONSOLE.log(
+            f"[bold yellow]willags warning:[/bold yellow] step {step}: the transient mask flagged more than "
+            f"{frac} of {name}; that image is supervised everywhere this step (normal early in training; if it "
+            "persists for one image, that photo may not show this scene)"
+        )

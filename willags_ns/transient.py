@@ -119,6 +119,10 @@ class PerceptualMaskConfig:
     speed."""
 
 
+MIN_VGG_SIDE = 16
+"""Images with a side below this are upsampled (bilinear) before the VGG features (relu3_3 is at 1/4 resolution);
+D is resampled to the image size anyway. Splatfacto's resolution schedule trains an 8x8 image at 2x2."""
+
 RAMP_START_FACTOR = 4.0
 """Threshold multiplier at the start of the ramp (see :func:`mask_threshold`)."""
 
@@ -335,7 +339,11 @@ class PerceptualFeatures(nn.Module):
             raise ValueError(f"expected images [B, 3, H, W], got {tuple(images.shape)}")
         h, w = images.shape[-2:]
         long_side = max(h, w)
-        if long_side > self.max_resolution:
+        if min(h, w) < MIN_VGG_SIDE:  # two 2x2 max-pools before relu3_3: tiny images would pool to nothing
+            s = MIN_VGG_SIDE / min(h, w)
+            size = (max(MIN_VGG_SIDE, round(h * s)), max(MIN_VGG_SIDE, round(w * s)))
+            images = F.interpolate(images, size=size, mode="bilinear", align_corners=False)
+        elif long_side > self.max_resolution:
             s = self.max_resolution / long_side
             size = (max(1, round(h * s)), max(1, round(w * s)))
             images = F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)

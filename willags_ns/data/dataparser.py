@@ -415,6 +415,11 @@ class WillagsDataParser(DataParser):
         else:
             outputs = _select_tsv_split(delegate.get_dataparser_outputs("train"), self._tsv, split)
         assert self._root is not None
+        if split == "train" and len(outputs.image_filenames) == 0:
+            raise WillagsDataError(
+                f"{self._root}: the training split has no images: check train_filenames / the *.tsv split / "
+                "--pipeline.datamanager.dataparser.eval-mode (eval-mode all trains on every image)"
+            )
         metadata = dict(outputs.metadata)
         metadata["data_dir"] = self._root
         for key, name in EVAL_ONLY_DIRS.items():
@@ -470,8 +475,21 @@ def _check_transforms(json_path: Path, downscale_factor: int | None = None) -> d
             pose = np.zeros(0)
         if pose.shape not in ((4, 4), (3, 4)) or not np.isfinite(pose).all():
             raise WillagsDataError(
-                f"{json_path}: frames[{i}] ({frame['file_path']}) needs a finite 4x4 transform_matrix"
+                f"{json_path}: frames[{i}] ({frame['file_path']}) needs a finite 4x4 transform_matrix "
+                "(it has NaN / Inf or the wrong shape): fix or remove that frame"
             )
+        _check_rotation(pose[:3, :3], f"{json_path}: frames[{i}] ({frame['file_path']})")
+        for key in ("fl_x", "fl_y", "w", "h"):
+            value = frame.get(key, meta.get(key))
+            try:
+                ok = value is None or (np.isfinite(float(value)) and float(value) > 0)
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise WillagsDataError(
+                    f"{json_path}: frames[{i}] ({frame['file_path']}) has {key} = {value!r}; it must be a number > 0: "
+                    f"fix '{key}' (in the frame or at the top level of {json_path.name})"
+                )
         for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
             if key not in meta and key not in frame:
                 raise WillagsDataError(
@@ -494,6 +512,21 @@ def _check_transforms(json_path: Path, downscale_factor: int | None = None) -> d
         if unknown:
             raise WillagsDataError(f"{json_path}: {s}_filenames lists files with no frame: {unknown[:5]}")
     return meta
+
+
+ROTATION_TOL = 1e-3
+"""Largest |R^T R - I| entry and |det R - 1| accepted for a pose's rotation block (see willags_ns.checks)."""
+
+
+def _check_rotation(R: np.ndarray, where: str) -> None:
+    """Raise WillagsDataError unless R (3x3) is a proper rotation: R^T R = I and det R = +1 (within ROTATION_TOL)."""
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if err > ROTATION_TOL or abs(det - 1.0) > ROTATION_TOL:
+        raise WillagsDataError(
+            f"{where}: the 3x3 block of transform_matrix is not a rotation (max |R^T R - I| = {err:.3g}, "
+            f"det = {det:.4g}; want 0 and +1): remove any scale, shear or mirroring (scale belongs in the translation)"
+        )
 
 
 def _check_colmap(root: Path, model: Path, images_dir: Path, need_points: bool) -> None:

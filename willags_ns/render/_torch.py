@@ -67,6 +67,10 @@ def quat_scale_to_matrix(quats: Tensor, scales: Tensor) -> Tensor:
     return R * scales[..., None, :]
 
 
+MAX_RADIUS = 2.0**30
+"""Pixel radii are capped here so they fit in int32 (a footprint of 2^30 px already covers any image)."""
+
+
 def project_gaussians(
     means: Tensor,  # [N, 3]
     quats: Tensor,  # [N, 4]
@@ -111,8 +115,13 @@ def project_gaussians(
     # J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]]; cov2d = (J Mc)(J Mc)^T
     j00, j02 = fx * rz, -fx * tx * rz * rz
     j11, j12 = fy * rz, -fy * ty * rz * rz
-    B0 = j00[..., None] * Mc[..., 0, :] + j02[..., None] * Mc[..., 2, :]  # [C, N, 3]
-    B1 = j11[..., None] * Mc[..., 1, :] + j12[..., None] * Mc[..., 2, :]  # [C, N, 3]
+    # The 2D covariance block runs in float64 (only [C, N] values): a Gaussian whose footprint is ~1e10 px (huge scale,
+    # long focal length) squares past float32's 3e38 in c00 * c11, and inf - inf = NaN reaches the conics and, through
+    # 0 * inf, the gradients of every Gaussian (found by tests/test_reliability_rasterizer.py).
+    dt = means_c.dtype
+    Mc64 = Mc.double()
+    B0 = j00.double()[..., None] * Mc64[..., 0, :] + j02.double()[..., None] * Mc64[..., 2, :]  # [C, N, 3]
+    B1 = j11.double()[..., None] * Mc64[..., 1, :] + j12.double()[..., None] * Mc64[..., 2, :]  # [C, N, 3]
     c00 = (B0 * B0).sum(-1)
     c01 = (B0 * B1).sum(-1)
     c11 = (B1 * B1).sum(-1)
@@ -127,12 +136,14 @@ def project_gaussians(
     if calc_compensations:
         # gsplat: sqrt(max(0, det_orig / det)); the floor keeps the sqrt's gradient finite for degenerate splats
         compensations = torch.sqrt(torch.clamp(det_orig / det, min=1e-12))
-    conics = torch.stack([c11 / det, -c01 / det, c00 / det], dim=-1)  # [C, N, 3]
+    conics = torch.stack([c11 / det, -c01 / det, c00 / det], dim=-1).to(dt)  # [C, N, 3]
+    if compensations is not None:
+        compensations = compensations.to(dt)
 
     with torch.no_grad():
         b = 0.5 * (c00 + c11)
         v1 = b + torch.sqrt(torch.clamp(b * b - det, min=0.01))
-        radius = torch.ceil(3.0 * torch.sqrt(v1))
+        radius = torch.ceil(3.0 * torch.sqrt(v1)).clamp(max=MAX_RADIUS).to(dt)
         mx, my = means2d.unbind(-1)
         valid = (
             in_depth
@@ -211,6 +222,8 @@ def bin_pairs(
     t = torch.log(opacities * 255.0)
     det = a * c - b * b
     hy = torch.sqrt(2.0 * t.clamp_min(0.0) * a / det) * 1.0001 + 1e-3
+    # a near-degenerate conic (det ~ 0 after float32 rounding) gives NaN / inf: fall back to the tile box
+    hy = torch.where(torch.isfinite(hy), hy, torch.full_like(hy, float(height)))
     y0 = torch.maximum(torch.ceil(my - hy - 0.5), ty0 * tile_size)
     y1 = torch.minimum(torch.floor(my + hy - 0.5), torch.clamp(ty1 * tile_size, max=height) - 1)
     ny = (y1 - y0 + 1).clamp(0, height)  # float clamp first: huge boxes must not overflow the int conversion
@@ -231,6 +244,9 @@ def bin_pairs(
     half = torch.sqrt(torch.clamp(2.0 * t_r * a_r - dy * dy * det_r, min=0.0)) / a_r * 1.0001 + 1e-3
     x0 = torch.maximum(torch.ceil(xc - half - 0.5), xa_r)
     x1 = torch.minimum(torch.floor(xc + half - 0.5), xb_r - 1)
+    chord_ok = torch.isfinite(xc) & torch.isfinite(half)  # else (degenerate conic): the whole tile row; alpha decides
+    x0 = torch.where(chord_ok, x0, xa_r)
+    x1 = torch.where(chord_ok, x1, xb_r - 1)
     nx = (x1 - x0 + 1).clamp(0, width).long()
     x0 = x0.clamp(0, width)
     # per row: sigma(dx) = (A dx + B) dx + Cc with A = a / 2, B = b dy, Cc = c dy^2 / 2
