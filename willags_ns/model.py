@@ -42,6 +42,7 @@ from torch.nn import Parameter
 from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig, sh_basis
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField, normalize_points, robust_bounds
 from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, vae_loss
+from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env
 from willags_ns.losses import reconstruction_loss
 from willags_ns.render import rasterize
 from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
@@ -53,7 +54,6 @@ from willags_ns.transient import (
     perceptual_error,
     transient_mask,
 )
-from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env
 from willags_ns.viewer import AppearanceControls
 
 
