@@ -30,6 +30,9 @@ class WillagsPipeline(VanillaPipeline):
         names = [Path(p).name for p in self.datamanager.train_dataparser_outputs.image_filenames]
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
+        controls = getattr(self.model, "viewer_controls", None)
+        if controls is not None:  # the viewer panel shows a training view's transient mask / teacher render
+            controls.set_train_dataset(self.datamanager.train_dataset)
 
     def get_train_loss_dict(self, step: int):
         camera, batch = self.datamanager.next_train(step)
