@@ -121,3 +121,29 @@ def test_cli_photo_with_refinement_and_bad_specs_name_the_bad_part(appearance_ru
         opts = SimpleNamespace(appearance=spec, refine_steps=0, refine_view=None, camera_idx=None)
         with pytest.raises(ValueError, match=msg):
             choose_appearance(pipeline, opts)
+
+
+def test_demo_appearance_grid_is_labelled_and_large(appearance_run, tmp_path):
+    """The demo's picture: rows of labelled tiles (training photos, their appearances, a new photo's, two samples,
+    an interpolation), tiles upscaled 2x."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from willags_ns.scripts.demo import appearance_grid, labelled_grid
+
+    # the layout, known answer: 2 rows of 10x8 tiles at 2x, white background, dark label text under each tile
+    tiles = [("a", np.zeros((8, 10, 3), np.uint8)), ("b", np.full((8, 10, 3), 200, np.uint8))]
+    g = labelled_grid([("row one", tiles), ("row two", tiles[:1])], scale=2, pad=6)
+    assert g.shape == (6 + 2 * (24 + 16 + 20 + 6), 6 + 2 * (20 + 6), 3)
+    assert (g[30:46, 6:26] == 0).all() and (g[30:46, 32:52] == 200).all()  # first row's tiles, upscaled
+    assert (g[46:66, 6:26] < 128).any() and (g[46:66, 6:26] == 255).any()  # a label under the first tile
+
+    cfg, _, _ = appearance_run
+    _, pipeline, _, _ = eval_setup(cfg, test_mode="test")
+    grid = appearance_grid(pipeline, tmp_path)
+    h, w = (
+        pipeline.datamanager.eval_dataset.cameras[0].height.item(),
+        pipeline.datamanager.eval_dataset.cameras[0].width.item(),
+    )
+    assert grid.shape[0] == 6 + 4 * (24 + 2 * h + 20 + 6)  # photos, appearances, new photo + samples, interpolation
+    assert grid.shape[1] == 6 + 5 * (2 * w + 6)  # the widest row: 5 interpolation steps
+    assert (tmp_path / "new_photo.png").exists()

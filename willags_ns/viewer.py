@@ -28,6 +28,7 @@ from torch import nn
 
 from willags_ns.appearance_spec import (
     AppearanceSpecError,
+    ImageSpec,
     image_index,
     interpolate_latents,
     parse_spec,
@@ -259,9 +260,13 @@ class AppearanceControls(nn.Module):
         if not bool(self.p12_show_mask.value):
             panel.set_content("")
             return
-        a = self.p01_a.value
+        try:  # the training image shown: the SPEC's (typed or chosen), else appearance A if it is one
+            parsed = parse_spec(self.spec)
+        except AppearanceSpecError:
+            parsed = None
+        a = parsed.key if isinstance(parsed, ImageSpec) else self.p01_a.value
         if a in SPECIAL:
-            panel.set_content("choose a training image as Appearance A to see its transient mask")
+            panel.set_content("choose a training image as the appearance to see its transient mask")
             return
         if self._train_dataset is None:
             panel.set_content("no training dataset loaded")
@@ -276,4 +281,5 @@ class AppearanceControls(nn.Module):
         except Exception as e:  # the viewer must survive a failing diagnostic
             panel.set_content(f"**training view unavailable: {e}**")
             return
-        panel.set_content(f"{a}: image | teacher | transient mask (red)\n\n![training view]({_png_data_url(img)})")
+        name = self._names[idx]
+        panel.set_content(f"{name}: image | teacher | transient mask (red)\n\n![training view]({_png_data_url(img)})")
