@@ -13,11 +13,12 @@ honours), sweeping T from 0 to 1 along the path.
 
 import contextlib
 import dataclasses
-from typing import Annotated, Union
+from typing import Annotated, Any, Union
 
 import torch
 import tyro
 from nerfstudio.scripts import render as ns_render
+from nerfstudio.utils import install_checks
 
 from willags_ns.appearance_spec import (
     AppearanceSpecError,
@@ -57,7 +58,7 @@ _OPTION_FIELDS = [
 ]
 
 
-def with_appearance_options(cls: type, module=ns_render) -> type:
+def with_appearance_options(cls: type, module: Any = ns_render) -> type:
     """nerfstudio's command dataclass `cls` (defined in `module`) plus the options --appearance, --refine-steps and
     --refine-view; its own `main()` runs inside :func:`appearance_hooks`.
 
@@ -120,7 +121,7 @@ def sweep_latents(pipeline, spec: InterpSpec, n: int, opts, context: str = "--ap
 
 
 @contextlib.contextmanager
-def appearance_hooks(opts, module=ns_render):
+def appearance_hooks(opts: Any, module: Any = ns_render):
     """Run a nerfstudio command of `module` (nerfstudio.scripts.render or .exporter) with the appearance of `opts`.
 
     nerfstudio's commands load the checkpoint and build the camera path inside `main()`, so the appearance is set
@@ -131,7 +132,7 @@ def appearance_hooks(opts, module=ns_render):
     state: dict = {}
     orig_setup = module.eval_setup
     orig_video = getattr(module, "_render_trajectory_video", None)
-    orig_ffmpeg = ns_render.install_checks.check_ffmpeg_installed
+    orig_ffmpeg = install_checks.check_ffmpeg_installed
 
     def eval_setup(*args, **kwargs):
         out = orig_setup(*args, **kwargs)
@@ -146,7 +147,7 @@ def appearance_hooks(opts, module=ns_render):
             raise SystemExit(f"error: {e}") from None
         if state["sweep"] is not None and (isinstance(opts, ns_render.DatasetRender) or orig_video is None):
             raise SystemExit(
-                f"error: --appearance {opts.appearance}: only videos sweep; a still needs the weight: interp:A,B,T"
+                f"error: --appearance {_spec_text(opts)}: only videos sweep; a still needs the weight: interp:A,B,T"
             )
         return out
 
@@ -169,14 +170,14 @@ def appearance_hooks(opts, module=ns_render):
     module.eval_setup = eval_setup
     if orig_video is not None:
         module._render_trajectory_video = render_trajectory_video
-    ns_render.install_checks.check_ffmpeg_installed = check_ffmpeg_installed
+    install_checks.check_ffmpeg_installed = check_ffmpeg_installed
     try:
         yield state
     finally:
         module.eval_setup = orig_setup
         if orig_video is not None:
             module._render_trajectory_video = orig_video
-        ns_render.install_checks.check_ffmpeg_installed = orig_ffmpeg
+        install_checks.check_ffmpeg_installed = orig_ffmpeg
 
 
 RenderCameraPath = with_appearance_options(ns_render.RenderCameraPath)
