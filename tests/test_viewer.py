@@ -31,7 +31,7 @@ def test_panel_sets_the_render_latent_and_changes_the_render(tmp_path):
     ctl.p01_a.value = "b.png"
     ctl.p01_a.cb_hook(ctl.p01_a)
     assert torch.equal(model.render_latent, model.train_latents[1]) and ctl.p09_spec.value == "image:b.png"
-    assert ctl.p10_norm.value == round(float(model.train_latents[1].norm()), 4)
+    assert ctl.p10_norm.value == f"{float(model.train_latents[1].norm()):.4f}"
     with torch.no_grad():
         rgb_b = model.get_outputs(_camera(48, 32))["rgb"]
 

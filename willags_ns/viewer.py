@@ -193,7 +193,8 @@ class AppearanceControls(nn.Module):
         self.p09_spec = ViewerText(
             "Appearance spec", "mean", cb_hook=lambda _: self._on_spec_text(), hint="willags-render --appearance"
         )
-        self.p10_norm = ViewerNumber("Latent norm", 0.0, disabled=True, hint="|z| of the rendered appearance")
+        # text, not a number field: viser rounds a number field to the step it infers from the initial value
+        self.p10_norm = ViewerText("Latent norm", "", disabled=True, hint="|z| of the rendered appearance")
         self.p11_status = _markdown_element("status", "")
         self.p12_show_mask = ViewerCheckbox(
             "Show transient mask / teacher",
@@ -250,7 +251,7 @@ class AppearanceControls(nn.Module):
             m.render_latent = None if spec.strip() == "mean" else z
             self.spec = spec
             self.p09_spec.value = spec
-            self.p10_norm.value = round(float(z.norm()), 4)
+            self.p10_norm.value = f"{float(z.norm()):.4f}"
             self.p11_status.set_content("")
             self._update_training_view()
         return True
