@@ -185,3 +185,33 @@ def test_photo_refinement_lowers_the_loss_on_the_photo():
     assert err1 < 0.8 * err0, (err0, err1)
     for k, v in model.gauss_params.items():
         assert torch.equal(v, before[k]), k
+
+
+def test_photo_refinement_finds_the_photos_view():
+    """Without --refine-view, the training view whose render looks most like the photo is the one refined on."""
+    from nerfstudio.cameras.cameras import Cameras
+
+    from willags_ns.appearance_spec import nearest_view
+
+    model = _model()
+    views = []
+    for dx in (-0.6, 0.0, 0.6):
+        c = _camera(32, 24)
+        c.camera_to_worlds[0, 0, 3] += dx
+        views.append(c)
+    cams = Cameras(
+        camera_to_worlds=torch.cat([c.camera_to_worlds for c in views]),
+        fx=torch.cat([c.fx for c in views]),
+        fy=torch.cat([c.fy for c in views]),
+        cx=torch.cat([c.cx for c in views]),
+        cy=torch.cat([c.cy for c in views]),
+        width=torch.cat([c.width for c in views]),
+        height=torch.cat([c.height for c in views]),
+    )
+    z = model.train_latents[0]
+    for i in range(3):
+        with torch.no_grad():
+            c = cams[i : i + 1]
+            c.metadata = {"appearance_latent": sample_latent(z.shape[0], 2)}
+            photo = model.get_outputs(c)["rgb"]
+        assert nearest_view(model, photo, model.encode_image(photo), cams) == i

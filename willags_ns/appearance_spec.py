@@ -311,6 +311,16 @@ def _render_at(model, camera, z: Tensor, max_size: int) -> Tensor:
     return model.get_outputs(cam)["rgb"]
 
 
+@torch.no_grad()
+def nearest_view(model, photo: Tensor, z: Tensor, cameras: "Cameras", size: int = 48) -> int:
+    """Index of the camera whose render under latent z looks most like `photo` [H, W, 3] (L1 at `size` px)."""
+    errs = []
+    for i in range(len(cameras)):
+        r = _render_at(model, cameras[i : i + 1], z, size)
+        errs.append(float((r - _resized(photo, *r.shape[:2]).to(r.device)).abs().mean()))
+    return int(np.argmin(errs))
+
+
 def refine_photo_latent(model, photo: Tensor, z0: Tensor, cameras: "Cameras", opts: RefineOptions) -> Tensor:
     """The latent z0 optimised so the model's render of the photo's view matches the photo (scene frozen).
 
@@ -319,16 +329,10 @@ def refine_photo_latent(model, photo: Tensor, z0: Tensor, cameras: "Cameras", op
     """
     from willags_ns.eval.protocol import fit_latent, frozen
 
-    names = list(model.image_names)
-    with torch.no_grad():
-        if opts.view is not None:
-            idx = image_index(opts.view, names, context="--refine-view")
-        else:
-            errs = []
-            for i in range(len(cameras)):
-                r = _render_at(model, cameras[i : i + 1], z0, 48)
-                errs.append(float((r - _resized(photo, *r.shape[:2]).to(r.device)).abs().mean()))
-            idx = int(np.argmin(errs))
+    if opts.view is not None:
+        idx = image_index(opts.view, list(model.image_names), context="--refine-view")
+    else:
+        idx = nearest_view(model, photo, z0, cameras)
     cam = cameras[idx : idx + 1]
     was_training = model.training
     model.eval()
