@@ -200,7 +200,7 @@ class AppearanceControls(nn.Module):
             "Show transient mask / teacher",
             False,
             cb_hook=lambda _: self._update_training_view(),
-            hint="appearance A's training view: image | teacher render | transient mask (red)",
+            hint="the chosen training image: image | teacher render | transient mask (red)",
         )
         self.p13_training_view = _markdown_element("training view", "")
 
