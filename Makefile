@@ -8,8 +8,10 @@ DEMO_DIR ?= demo_outputs
 
 .PHONY: demo test install sysdeps lint bench clean-venv
 
-# open3d (imported by `ns-export` and nerfstudio's .ply loading) needs Debian's libusb-1.0-0. Checked on every
-# run (cheap); installed with apt when missing and we may (root); otherwise the command to run is printed.
+# open3d (imported by `ns-export` and nerfstudio's .ply loading) needs Debian's libusb-1.0-0; the viewer's browser
+# test (tests/test_viewer_browser.py) needs Debian's chromium (it speaks the DevTools protocol itself, so no
+# chromium-driver / selenium). Checked on every run (cheap); installed with apt when missing and we may (root);
+# otherwise the command to run is printed.
 sysdeps:
 	@ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || { \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
@@ -17,6 +19,12 @@ sysdeps:
 	    (apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || (apt-get update -q >/dev/null && apt-get install -y -q libusb-1.0-0 >/dev/null)) \
 	      || echo "warning: could not install libusb-1.0-0; ns-export will fail (sudo apt-get install libusb-1.0-0)"; \
 	  else echo "warning: libusb-1.0-0 missing; ns-export needs it: sudo apt-get install libusb-1.0-0"; fi; }
+	@command -v chromium >/dev/null || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing chromium (the viewer panel's browser test drives it headless)"; \
+	    (apt-get install -y -q chromium >/dev/null 2>&1 || (apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null)) \
+	      || echo "warning: could not install chromium; the browser test will skip (sudo apt-get install chromium)"; \
+	  else echo "note: chromium missing; the viewer's browser test skips (sudo apt-get install chromium)"; fi; }
 
 $(STAMP): pyproject.toml constraints-cpu.txt Makefile
 	@$(PY) -c 'import sys; v=sys.version_info[:2]; sys.exit(0 if (3,10)<=v<=(3,12) else "willags needs python 3.10-3.12, got %d.%d (set PY=python3.X)" % v)'

@@ -237,23 +237,6 @@ def test_ns_export_bakes_the_chosen_appearance_into_a_standard_ply(tmp_path):
     assert dc["mean"].shape == dc["sample:3"].shape and not np.allclose(dc["mean"], dc["sample:3"])
 
 
-def test_bad_appearance_spec_names_the_problem():
-    from willags_ns.viewer import latent_from_spec
-
-    names = ["a.png", "b.png"]
-    lat, seen = torch.zeros(2, 4), torch.tensor([True, False])
-    assert latent_from_spec("mean", names, lat, seen) is None
-    assert latent_from_spec("image:a", names, lat, seen).shape == (4,)
-    with pytest.raises(ValueError, match="unknown training image 'zzz'"):
-        latent_from_spec("image:zzz", names, lat, seen)
-    with pytest.raises(ValueError, match="never encoded"):
-        latent_from_spec("image:b.png", names, lat, seen)
-    with pytest.raises(ValueError, match="unknown appearance spec"):
-        latent_from_spec("bogus:1", names, lat, seen)
-    z = latent_from_spec("interp:0,0,0.5", ["a.png", "b.png"], torch.ones(2, 4), torch.tensor([True, True]))
-    assert torch.allclose(z, torch.ones(4))
-
-
 def test_ns_render_uses_the_chosen_appearance(tmp_path):
     """`ns-render dataset` on a willags checkpoint: WILLAGS_APPEARANCE picks the appearance of the frames."""
 

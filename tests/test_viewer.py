@@ -1,53 +1,85 @@
-"""Appearance controls of the viewer and the latent helpers (no viewer server needed: the elements hold values)."""
+"""The viewer's appearance panel without a server (the elements hold their values; callbacks are called directly).
+The real-browser test is tests/test_viewer_browser.py."""
 
+import numpy as np
 import torch
+from PIL import Image
 
+from tests.test_appearance_spec import _model
 from tests.test_mask_eval import _camera
-from tests.test_model import _tiny_model
-from willags_ns.viewer import MODES, interpolate_latents, sample_latent
+from willags_ns.appearance_spec import sample_latent
+from willags_ns.viewer import MEAN, PHOTO, SAMPLE, filter_names, spec_from_choices
 
 
-def test_interpolation_endpoints_and_seeded_samples():
-    a, b = torch.zeros(4), torch.arange(4.0)
-    assert torch.equal(interpolate_latents(a, b, 0.0), a) and torch.equal(interpolate_latents(a, b, 1.0), b)
-    torch.testing.assert_close(interpolate_latents(a, b, 0.25), 0.25 * b)
-    assert torch.equal(sample_latent(8, 3), sample_latent(8, 3))
-    assert not torch.equal(sample_latent(8, 3), sample_latent(8, 4))
+def test_spec_from_choices_and_search():
+    assert spec_from_choices(MEAN, "b.png", 0.0, "", 0) == "mean"
+    assert spec_from_choices("a.png", "b.png", 1.0, "", 0) == "image:b.png"
+    assert spec_from_choices("a.png", SAMPLE, 0.25, "", 3) == "interp:image:a.png,sample:3,0.25"
+    assert spec_from_choices(PHOTO, "a.png", 0.0, " /p.jpg ", 0) == "photo:/p.jpg"
+    names = [f"IMG_{i:04d}.jpg" for i in range(1200)]
+    assert filter_names(names, "img_11") == [f"IMG_{i:04d}.jpg" for i in range(1100, 1200)]
+    assert len(filter_names(names, "")) == 500  # a long list is narrowed by the search field
 
 
-def test_controls_set_the_render_latent_and_change_the_render():
-    model = _tiny_model()
-    model.eval()
+def test_panel_sets_the_render_latent_and_changes_the_render(tmp_path):
+    model = _model()
     d = model.train_latents.shape[1]
-    with torch.no_grad():
-        g = torch.Generator().manual_seed(6)
-        for p in model.appearance_nets.field.parameters():  # at initialisation the planes barely depend on z
-            p.add_(0.5 * torch.randn(p.shape, generator=g))
-        model.train_latents.copy_(torch.randn(model.train_latents.shape, generator=torch.Generator().manual_seed(5)))
-        model.train_latent_seen.fill_(True)
-    names = ["a.png", "b.png"]
-    model.set_train_image_names(names)
     ctl = model.viewer_controls
+    names = ["a.png", "b.png"]
+    assert ctl.p01_a.options[3:] == names and ctl.p02_b.options[3:] == names  # every training image is listed
 
-    ctl.mode.value, ctl.image_a.value = MODES[1], "b.png"
-    ctl.apply()
-    assert torch.equal(model.render_latent, model.train_latents[1])
+    ctl.p01_a.value = "b.png"
+    ctl.p01_a.cb_hook(ctl.p01_a)
+    assert torch.equal(model.render_latent, model.train_latents[1]) and ctl.p09_spec.value == "image:b.png"
+    assert ctl.p10_norm.value == f"{float(model.train_latents[1].norm()):.4f}"
     with torch.no_grad():
         rgb_b = model.get_outputs(_camera(48, 32))["rgb"]
 
-    ctl.mode.value, ctl.image_a.value, ctl.image_b.value, ctl.t.value = MODES[2], "a.png", "b.png", 0.25
-    ctl.apply()
+    ctl.p01_a.value, ctl.p02_b.value, ctl.p04_t.value = "a.png", "b.png", 0.25
+    ctl.p04_t.cb_hook(ctl.p04_t)
     torch.testing.assert_close(model.render_latent, 0.75 * model.train_latents[0] + 0.25 * model.train_latents[1])
 
-    ctl.mode.value, ctl.seed.value = MODES[0], 7
-    ctl.resample.cb_hook(ctl.resample)  # the "New random appearance" button
-    assert ctl.mode.value == MODES[3] and int(ctl.seed.value) == 8
+    ctl.p07_seed.value = 7
+    ctl.p08_random.cb_hook(ctl.p08_random)  # the "Random appearance" button: next seed, shown as A
+    assert ctl.p01_a.value == SAMPLE and int(ctl.p07_seed.value) == 8 and ctl.spec == "sample:8"
     assert torch.equal(model.render_latent, sample_latent(d, 8))
     with torch.no_grad():
         rgb_s = model.get_outputs(_camera(48, 32))["rgb"]
     assert not torch.allclose(rgb_b, rgb_s, atol=1e-3), "a different appearance must render different colours"
 
-    ctl.mode.value = MODES[0]
-    ctl.apply()
-    assert model.render_latent is None  # back to the mean of the training latents
+    img = (np.random.default_rng(1).random((20, 30, 3)) * 255).astype(np.uint8)
+    Image.fromarray(img).save(tmp_path / "new.jpg")
+    ctl.p05_photo.value = str(tmp_path / "new.jpg")
+    ctl.p06_use_photo.cb_hook(ctl.p06_use_photo)  # "Use photo"
+    assert ctl.p01_a.value == PHOTO and ctl.spec == f"photo:{tmp_path / 'new.jpg'}"
+    torch.testing.assert_close(
+        model.render_latent, model.encode_image(torch.from_numpy(np.asarray(Image.open(tmp_path / "new.jpg"))))
+    )
+
+    # a bad SPEC typed into the spec field: the error names it, the appearance stays
+    kept = model.render_latent.clone()
+    ctl.p09_spec.value = "image:nope"
+    ctl.p09_spec.cb_hook(ctl.p09_spec)
+    assert "unknown training image 'nope'" in ctl.p11_status.content and torch.equal(model.render_latent, kept)
+    ctl.p09_spec.value = "interp:a,b,0.5"
+    ctl.p09_spec.cb_hook(ctl.p09_spec)
+    torch.testing.assert_close(model.render_latent, 0.5 * (model.train_latents[0] + model.train_latents[1]))
+    assert ctl.p11_status.content == ""
+
+    ctl.p01_a.value, ctl.p04_t.value = MEAN, 0.0
+    ctl.p01_a.cb_hook(ctl.p01_a)
+    assert model.render_latent is None  # back to the model's default, the mean of the training latents
     torch.testing.assert_close(model.current_latent(), model.train_latents.mean(0))
+
+
+def test_search_narrows_both_lists_and_keeps_the_choice():
+    model = _model()
+    ctl = model.viewer_controls
+    ctl.set_image_names([f"IMG_{i}.jpg" for i in range(30)])
+    ctl.p01_a.value = "IMG_3.jpg"
+    ctl.p03_search.value = "IMG_2"
+    ctl.p03_search.cb_hook(ctl.p03_search)
+    listed = ctl.p01_a.options[3:]
+    assert "IMG_2.jpg" in listed and "IMG_21.jpg" in listed and "IMG_5.jpg" not in listed
+    assert "IMG_3.jpg" in listed  # the chosen entry stays selectable
+    assert "IMG_3.jpg" not in ctl.p02_b.options[3:]

@@ -43,6 +43,7 @@ from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig, sh_b
 from willags_ns.appearance.modulation import ColorModulation, ColorModulationConfig, local_penalty
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField, normalize_points, robust_bounds
 from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, vae_loss
+from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env
 from willags_ns.losses import reconstruction_loss
 from willags_ns.render import rasterize
 from willags_ns.render.sh import spherical_harmonics
@@ -55,7 +56,7 @@ from willags_ns.transient import (
     perceptual_error,
     transient_mask,
 )
-from willags_ns.viewer import APPEARANCE_ENV, AppearanceControls, latent_from_spec
+from willags_ns.viewer import AppearanceControls
 
 
 def viewmat_from_c2w(c2w: Tensor) -> Tensor:
@@ -471,10 +472,11 @@ class WillagsModel(SplatfactoModel):
     def current_latent(self) -> Tensor:
         """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
         if self.render_latent is not None:
+            self.render_latent = checked_latent(self.render_latent, "render_latent")  # no NaN pixels, ever
             return self.render_latent.to(self.device)
         spec = os.environ.get(APPEARANCE_ENV)
         if spec:
-            z = latent_from_spec(spec, self.image_names, self.train_latents, self.train_latent_seen)
+            z = latent_from_env(spec, self)
             if z is not None:
                 self.render_latent = z
                 return z.to(self.device)

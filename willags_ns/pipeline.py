@@ -166,6 +166,9 @@ class WillagsPipeline(VanillaPipeline):
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
         self._last_mask_warning = -float("inf")
+        controls = getattr(self.model, "viewer_controls", None)
+        if controls is not None:  # the viewer panel shows a training view's transient mask / teacher render
+            controls.set_train_dataset(self.datamanager.train_dataset)
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes):
         cbs = super().get_training_callbacks(training_callback_attributes)

@@ -1,30 +1,147 @@
-"""Appearance controls for the nerfstudio viewer: pick any training image's appearance, interpolate two,
-or sample a new one (z ~ N(0, I)).
+"""The appearance panel of nerfstudio's viewer (`ns-viewer` and during training).
 
-The controls only set `model.render_latent`; rendering recomputes the tri-plane features once per latent change
-(the model caches f_d), so moving the camera costs only the view-dependent decoder and the rasteriser.
+Every control writes an appearance SPEC (willags_ns.appearance_spec, the same parser as `willags-render
+--appearance`), shown and editable in "Appearance spec"; the SPEC's latent becomes `model.render_latent`. The model
+caches the colour field per latent, so moving the camera afterwards costs only the rasteriser.
+
+Controls (in panel order; nerfstudio lists a module's viewer elements sorted by attribute name, hence the
+numbered attribute names):
+
+- Appearance A / Appearance B: the mean, a photo (path field), a random sample (seed), or any training image;
+- Search training images: filters both lists (all training images, not only the frustums drawn);
+- A -> B: the interpolation weight (0 shows A);
+- Photo path + Use photo: a new photo's appearance through the VAE encoder;
+- Random seed + Random appearance: z ~ N(0, I), the button draws the next seed;
+- Show transient mask / teacher: for appearance A's training view, the training image, the EMA teacher's render
+  and the transient mask the model computes for it (as training does), shown as a picture in the panel;
+- Latent norm and a status line (errors of a bad SPEC name the bad part; the previous appearance stays).
 """
 
+import base64
+import io
+import threading
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import nn
+
+from willags_ns.appearance_spec import (
+    AppearanceSpecError,
+    ImageSpec,
+    image_index,
+    interpolate_latents,
+    parse_spec,
+    resolve_latent,
+    sample_latent,
+)
 
 if TYPE_CHECKING:
     from willags_ns.model import WillagsModel
 
-MODES = ("mean of training images", "training image", "interpolate A -> B", "random sample")
+__all__ = ["AppearanceControls", "interpolate_latents", "sample_latent", "spec_from_choices"]
+
+MEAN = "mean of training images"
+PHOTO = "photo (path below)"
+SAMPLE = "random sample (seed below)"
+SPECIAL = (MEAN, PHOTO, SAMPLE)
+MAX_LISTED = 500
+"""At most this many training images are listed at once (the search field narrows a longer list)."""
 
 
-def interpolate_latents(z_a: Tensor, z_b: Tensor, t: float) -> Tensor:
-    """Linear interpolation between two latents; t=0 gives z_a, t=1 gives z_b."""
-    return (1.0 - t) * z_a + t * z_b
+def spec_from_choices(a: str, b: str, t: float, photo: str, seed: int) -> str:
+    """The SPEC of the panel's state: entry A, entry B (SPECIAL entries or training image names), weight t."""
+
+    def one(entry: str) -> str:
+        if entry == MEAN:
+            return "mean"
+        if entry == PHOTO:
+            return f"photo:{photo.strip()}"
+        if entry == SAMPLE:
+            return f"sample:{int(seed)}"
+        return f"image:{entry}"
+
+    t = float(t)
+    if t <= 0.0 or a == b:
+        return one(a)
+    if t >= 1.0:
+        return one(b)
+    return f"interp:{one(a)},{one(b)},{t:.3g}"
 
 
-def sample_latent(dim: int, seed: int, device: "torch.device | str" = "cpu") -> Tensor:
-    """A new appearance: z ~ N(0, I), reproducible from the seed."""
-    g = torch.Generator().manual_seed(int(seed))
-    return torch.randn(dim, generator=g).to(device)
+def filter_names(names: list[str], query: str, limit: int = MAX_LISTED) -> list[str]:
+    """Training image names containing `query` (case-insensitive), at most `limit`."""
+    q = query.strip().lower()
+    return [n for n in names if q in n.lower()][:limit]
+
+
+def _png_data_url(img: np.ndarray) -> str:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+@torch.no_grad()
+def training_view_panels(model: "WillagsModel", train_dataset, idx: int, max_width: int = 320) -> np.ndarray:
+    """[training image | teacher render | transient mask] of training image `idx` as one uint8 picture.
+
+    The mask is computed as training computes it at the model's current step (teacher latent from the image,
+    VGG perceptual error against the teacher render, the threshold rule and the rejection of mostly-flagged images).
+    """
+    from willags_ns.eval.mask_eval import predicted_transient, teacher_render, training_view
+    from willags_ns.transient import mask_threshold
+
+    cam, image, _ = training_view(train_dataset, idx)
+    gt = torch.from_numpy(image).float().div(255.0).to(model.device)
+    teacher = teacher_render(model, cam, gt, idx)
+    cfg = model.config
+    if model.perceptual is not None:
+        thr = mask_threshold(model.step, cfg.mask.threshold, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
+        transient, rejected, _ = predicted_transient(
+            model.perceptual, gt, teacher, thr, cfg.max_masked_fraction, cfg.mask.threshold_rule, cfg.mask.robust_k
+        )
+        if rejected:
+            transient = torch.zeros_like(transient)
+    else:  # use_mask=False: no mask, every pixel is supervised
+        transient = torch.zeros(gt.shape[:2], dtype=torch.bool, device=gt.device)
+    overlay = gt.clone()
+    overlay[transient] = 0.5 * overlay[transient] + 0.5 * torch.tensor([1.0, 0.0, 0.0], device=gt.device)
+    strip = torch.cat([gt, teacher, overlay], dim=1).clamp(0, 1)
+    out = (strip.cpu().numpy() * 255).round().astype(np.uint8)
+    if out.shape[1] > max_width:
+        from PIL import Image
+
+        h = max(1, round(out.shape[0] * max_width / out.shape[1]))
+        out = np.asarray(Image.fromarray(out).resize((max_width, h), Image.Resampling.LANCZOS))
+    return out
+
+
+def _markdown_element(name: str, content: str):
+    """A markdown ViewerElement (nerfstudio has none): status lines and the mask / teacher picture."""
+    from nerfstudio.viewer.viewer_elements import ViewerElement
+
+    class ViewerMarkdown(ViewerElement[str]):
+        def __init__(self, name: str, content: str):
+            super().__init__(name)
+            self.content = content
+
+        def _create_gui_handle(self, viser_server) -> None:
+            from pathlib import Path
+
+            # image_root only silences viser's warning: our pictures are inline data URLs
+            self.gui_handle = viser_server.gui.add_markdown(self.content, image_root=Path.cwd())  # type: ignore
+
+        def install(self, viser_server) -> None:
+            self._create_gui_handle(viser_server)
+
+        def set_content(self, content: str) -> None:
+            self.content = content
+            if self.gui_handle is not None:
+                self.gui_handle.content = content  # type: ignore[union-attr]
+
+    return ViewerMarkdown(name, content)
 
 
 class AppearanceControls(nn.Module):
@@ -39,99 +156,131 @@ class AppearanceControls(nn.Module):
     def __init__(self, model: "WillagsModel", image_names: list[str] | None = None):
         super().__init__()
         object.__setattr__(self, "_model", model)
+        self._train_dataset = None
+        self._lock = threading.RLock()  # viser runs each callback in its own thread
+        self._photo_cache: dict = {}
+        self.spec = "mean"
+        """The SPEC now rendered."""
         self.set_image_names(image_names or [f"image {i}" for i in range(max(model.num_train_data, 1))])
+
+    def set_train_dataset(self, dataset) -> None:
+        """The training dataset (images and cameras) for the transient mask / teacher view."""
+        self._train_dataset = dataset
 
     def set_image_names(self, names: list[str]) -> None:
         from nerfstudio.viewer.viewer_elements import (
             ViewerButton,
+            ViewerCheckbox,
             ViewerDropdown,
             ViewerNumber,
             ViewerSlider,
+            ViewerText,
         )
 
         self._names = list(names)
-        opts = self._names
-        self.mode = ViewerDropdown("Appearance", MODES[0], list(MODES), cb_hook=lambda _: self.apply())
-        self.image_a = ViewerDropdown("Appearance image A", opts[0], opts, cb_hook=lambda _: self.apply())
-        self.image_b = ViewerDropdown("Appearance image B", opts[-1], opts, cb_hook=lambda _: self.apply())
-        self.t = ViewerSlider("Interpolation t", 0.5, 0.0, 1.0, 0.01, cb_hook=lambda _: self.apply())
-        self.seed = ViewerNumber("Sample seed", 0, cb_hook=lambda _: self.apply())
-        self.resample = ViewerButton("New random appearance", cb_hook=lambda _: self._next_seed())
-
-    def _next_seed(self) -> None:
-        self.seed.value = int(self.seed.value) + 1
-        self.mode.value = MODES[3]
-        self.apply()
-
-    def latent_for(self, mode: str, a: str, b: str, t: float, seed: int) -> Tensor | None:
-        """The latent the controls describe (None = the model's default, the mean training latent)."""
-        m = self._model
-        names = self._names
-        if mode == MODES[1]:
-            return m.train_latents[names.index(a)].clone()
-        if mode == MODES[2]:
-            return interpolate_latents(m.train_latents[names.index(a)], m.train_latents[names.index(b)], float(t))
-        if mode == MODES[3]:
-            return sample_latent(int(m.train_latents.shape[1]), seed, m.device)
-        return None
-
-    def apply(self) -> None:
-        self._model.render_latent = self.latent_for(
-            self.mode.value, self.image_a.value, self.image_b.value, self.t.value, int(self.seed.value)
+        opts = list(SPECIAL) + filter_names(self._names, "")
+        ctl = lambda _: self._on_controls()  # noqa: E731
+        self.p01_a = ViewerDropdown("Appearance A", MEAN, opts, cb_hook=ctl, hint="shown at A -> B = 0")
+        self.p02_b = ViewerDropdown("Appearance B", opts[-1], opts, cb_hook=ctl, hint="shown at A -> B = 1")
+        self.p03_search = ViewerText(
+            "Search training images", "", cb_hook=lambda _: self._on_search(), hint="filters both lists"
         )
+        self.p04_t = ViewerSlider("A -> B", 0.0, 0.0, 1.0, 0.01, cb_hook=ctl, hint="interpolation weight")
+        self.p05_photo = ViewerText("Photo path", "", hint="any photo: its appearance through the VAE encoder")
+        self.p06_use_photo = ViewerButton("Use photo", cb_hook=lambda _: self._choose(PHOTO))
+        self.p07_seed = ViewerNumber("Random seed", 0, cb_hook=ctl, hint="z ~ N(0, I) from this seed")
+        self.p08_random = ViewerButton("Random appearance", cb_hook=lambda _: self._next_sample())
+        self.p09_spec = ViewerText(
+            "Appearance spec", "mean", cb_hook=lambda _: self._on_spec_text(), hint="willags-render --appearance"
+        )
+        # text, not a number field: viser rounds a number field to the step it infers from the initial value
+        self.p10_norm = ViewerText("Latent norm", "", disabled=True, hint="|z| of the rendered appearance")
+        self.p11_status = _markdown_element("status", "")
+        self.p12_show_mask = ViewerCheckbox(
+            "Show transient mask / teacher",
+            False,
+            cb_hook=lambda _: self._update_training_view(),
+            hint="the chosen training image: image | teacher render | transient mask (red)",
+        )
+        self.p13_training_view = _markdown_element("training view", "")
 
+    # ------------------------------------------------------------------ callbacks
+    def _on_search(self) -> None:
+        opts = list(SPECIAL) + filter_names(self._names, str(self.p03_search.value))
+        for dd in (self.p01_a, self.p02_b):
+            keep = dd.value
+            dd.set_options(opts if keep in opts else opts + [keep])  # the chosen entry stays selectable
 
-APPEARANCE_ENV = "WILLAGS_APPEARANCE"
-"""Environment variable read by the model when no appearance was chosen in code: lets nerfstudio's own
-`ns-render`, `ns-export gaussian-splat` and `ns-viewer` use a chosen appearance (they take no model options)."""
+    def _choose(self, entry: str) -> None:
+        """Show `entry` as appearance A (buttons)."""
+        with self._lock:
+            if entry not in self.p01_a.options:
+                self.p01_a.set_options(self.p01_a.options + [entry])
+            self.p01_a.value = entry
+            self.p04_t.value = 0.0
+            self._on_controls()
 
+    def _next_sample(self) -> None:
+        with self._lock:
+            self.p07_seed.value = int(self.p07_seed.value) + 1
+            self._choose(SAMPLE)
 
-def latent_from_spec(spec: str, image_names: list[str], train_latents: Tensor, seen: Tensor) -> Tensor | None:
-    """Parse an appearance spec into a latent ([D]) or None for the default (mean of training latents).
+    def _on_controls(self) -> None:
+        spec = spec_from_choices(
+            self.p01_a.value, self.p02_b.value, self.p04_t.value, str(self.p05_photo.value), int(self.p07_seed.value)
+        )
+        self.apply_spec(spec)
 
-    Specs: ``mean`` | ``image:NAME_OR_INDEX`` | ``sample:SEED`` | ``interp:A,B,T`` (A, B names or indices).
-    Raises ValueError naming the bad part.
-    """
+    def _on_spec_text(self) -> None:
+        text = str(self.p09_spec.value).strip()
+        if text and text != self.spec:
+            self.apply_spec(text)
 
-    def index_of(key: str) -> int:
-        key = key.strip()
-        if key in image_names:
-            i = image_names.index(key)
-        elif key.isdigit() and int(key) < len(image_names):
-            i = int(key)
-        else:
-            stems = [n.rsplit(".", 1)[0] for n in image_names]
-            if key not in stems:
-                raise ValueError(
-                    f"{APPEARANCE_ENV}: unknown training image {key!r}; known: {', '.join(image_names[:8])}"
-                    + (" ..." if len(image_names) > 8 else "")
-                )
-            i = stems.index(key)
-        if not bool(seen[i]):
-            raise ValueError(f"{APPEARANCE_ENV}: training image {image_names[i]!r} was never encoded during training")
-        return i
+    # ------------------------------------------------------------------ the one place the latent is set
+    def apply_spec(self, spec: str) -> bool:
+        """Render `spec` from now on; on a bad SPEC keep the current appearance and show the error. True if applied."""
+        m = self._model
+        with self._lock:
+            try:
+                parsed = parse_spec(spec, "viewer")
+                z = resolve_latent(parsed, m, cache=self._photo_cache, context="viewer")
+            except AppearanceSpecError as e:
+                self.p11_status.set_content(f"**{e}**")
+                return False
+            # the mean stays the model's default (None): it follows training as latents are refreshed
+            m.render_latent = None if spec.strip() == "mean" else z
+            self.spec = spec
+            self.p09_spec.value = spec
+            self.p10_norm.value = f"{float(z.norm()):.4f}"
+            self.p11_status.set_content("")
+            self._update_training_view()
+        return True
 
-    spec = spec.strip()
-    kind, _, arg = spec.partition(":")
-    if kind in ("", "mean"):
-        return None
-    if kind == "image":
-        return train_latents[index_of(arg)].clone()
-    if kind == "sample":
+    def _update_training_view(self) -> None:
+        panel = self.p13_training_view
+        if not bool(self.p12_show_mask.value):
+            panel.set_content("")
+            return
+        try:  # the training image shown: the SPEC's (typed or chosen), else appearance A if it is one
+            parsed = parse_spec(self.spec)
+        except AppearanceSpecError:
+            parsed = None
+        a = parsed.key if isinstance(parsed, ImageSpec) else self.p01_a.value
+        if a in SPECIAL:
+            panel.set_content("choose a training image as the appearance to see its transient mask")
+            return
+        if self._train_dataset is None:
+            panel.set_content("no training dataset loaded")
+            return
+        m = self._model
         try:
-            seed = int(arg or 0)
-        except ValueError:
-            raise ValueError(f"{APPEARANCE_ENV}: sample seed must be an integer, got {arg!r}") from None
-        return sample_latent(int(train_latents.shape[1]), seed, train_latents.device)
-    if kind == "interp":
-        parts = arg.split(",")
-        if len(parts) != 3:
-            raise ValueError(f"{APPEARANCE_ENV}: interp needs 'interp:A,B,T', got {spec!r}")
-        try:
-            t = float(parts[2])
-        except ValueError:
-            raise ValueError(f"{APPEARANCE_ENV}: interpolation T must be a number, got {parts[2]!r}") from None
-        return interpolate_latents(train_latents[index_of(parts[0])], train_latents[index_of(parts[1])], t)
-    raise ValueError(
-        f"{APPEARANCE_ENV}: unknown appearance spec {spec!r} (mean | image:NAME | sample:SEED | interp:A,B,T)"
-    )
+            idx = image_index(a, self._names)
+            was_training = m.training
+            m.eval()
+            img = training_view_panels(m, self._train_dataset, idx)
+            m.train(was_training)
+        except Exception as e:  # the viewer must survive a failing diagnostic
+            panel.set_content(f"**training view unavailable: {e}**")
+            return
+        name = self._names[idx]
+        panel.set_content(f"{name}: image | teacher | transient mask (red)\n\n![training view]({_png_data_url(img)})")

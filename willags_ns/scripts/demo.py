@@ -1,5 +1,7 @@
 """`make demo`: train willags on the embedded default scene on CPU, then render test views next to ground truth
-and an appearance strip (3 training appearances, an interpolation, 3 samples z ~ N(0, I)).
+and a labelled appearance grid: one test view under training images' appearances, a new photo's (a test image the
+model never trained on, through the encoder), two samples z ~ N(0, I) and an interpolation. Each tile is labelled
+with the SPEC that renders it (`willags-render ... --appearance SPEC`).
 
 Training goes through nerfstudio's own `ns-train` (a subprocess, exactly what a user runs); rendering loads the
 checkpoint through nerfstudio's `eval_setup`.
@@ -89,6 +91,78 @@ def grid(rows: list[list[np.ndarray]], pad: int = 2) -> np.ndarray:
     return out
 
 
+def _font(size: int):
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)  # Pillow >= 10.1 with FreeType: a scalable font
+    except TypeError:
+        return ImageFont.load_default()
+
+
+def labelled_grid(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], scale: int = 2, pad: int = 6) -> np.ndarray:
+    """Rows of labelled tiles: (row title, [(label, image [H, W, 3] uint8)]). Tiles are upscaled `scale` times
+    (nearest) so colour differences are visible; the label sits under each tile, the title above each row."""
+    from PIL import ImageDraw
+
+    h, w = (int(x) * scale for x in rows[0][1][0][1].shape[:2])
+    label_h, title_h = 20, 24
+    ncol = max(len(tiles) for _, tiles in rows)
+    width = pad + ncol * (w + pad)
+    height = pad + sum(title_h + h + label_h + pad for _ in rows)
+    canvas = Image.new("RGB", (width, height), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    font, title_font = _font(13), _font(16)
+    y = pad
+    for title, tiles in rows:
+        draw.text((pad, y + 2), title, fill=(0, 0, 0), font=title_font)
+        y += title_h
+        for j, (label, img) in enumerate(tiles):
+            x = pad + j * (w + pad)
+            canvas.paste(Image.fromarray(img).resize((w, h), Image.Resampling.NEAREST), (x, y))
+            while draw.textlength(label, font=font) > w and len(label) > 4:  # long paths: keep the end
+                label = "..." + label[4:]
+            draw.text((x, y + h + 3), label, fill=(40, 40, 40), font=font)
+        y += h + label_h + pad
+    return np.asarray(canvas)
+
+
+def appearance_grid(pipeline, out_dir: Path, n_train: int = 4, n_interp: int = 5) -> np.ndarray:
+    """The labelled appearance grid of the demo (see the module docstring); every latent comes from a SPEC."""
+    from willags_ns.appearance_spec import resolve_latent
+
+    model = pipeline.model
+    test = pipeline.datamanager.eval_dataset
+    cam = test.cameras[0:1]
+    names = list(model.image_names)
+    seen = torch.nonzero(model.train_latent_seen).flatten().tolist()
+    picks = [seen[int(k)] for k in np.linspace(0, len(seen) - 1, min(n_train, len(seen)))] if seen else []
+
+    def tile(spec: str) -> tuple[str, np.ndarray]:
+        return spec, to_uint8(render(pipeline, cam, resolve_latent(spec, model, context="demo")))
+
+    rows = []
+    if picks:
+        train = pipeline.datamanager.train_dataset
+        photos = [(names[i], to_uint8(train.get_image_float32(i)[..., :3])) for i in picks]
+        rows.append(("training photos (their own views)", photos))
+        rows.append(("their appearances, on test view 0", [tile(f"image:{names[i]}") for i in picks]))
+    row = []
+    if model.appearance_nets.vae is not None and len(test) > 1:
+        # a photo the model never trained on: another test image, through the encoder
+        photo = out_dir / "new_photo.png"
+        Image.fromarray(to_uint8(test.get_image_float32(1)[..., :3])).save(photo)
+        row += [("the new photo (not trained on)", to_uint8(test.get_image_float32(1)[..., :3]))]
+        row += [(f"photo:{photo.name}", tile(f"photo:{photo}")[1])]  # label without the output directory
+    row += [tile("sample:0"), tile("sample:1")]
+    rows.append(("a new photo's appearance; samples z ~ N(0, I)", row))
+    if len(picks) >= 2:
+        a, b = names[picks[0]], names[picks[-1]]
+        interp = [(f"T = {t:.2f}", tile(f"interp:{a},{b},{t:.2f}")[1]) for t in np.linspace(0, 1, n_interp)]
+        rows.append((f"interp:{a},{b},T", interp))
+    return labelled_grid(rows)
+
+
 @torch.no_grad()
 def render(pipeline, camera, latent: torch.Tensor | None = None) -> torch.Tensor:
     cam = camera.to(pipeline.model.device)
@@ -100,8 +174,6 @@ def render(pipeline, camera, latent: torch.Tensor | None = None) -> torch.Tensor
 
 def render_outputs(run_dir: Path, out_dir: Path) -> dict[str, Path]:
     from nerfstudio.utils.eval_utils import eval_setup
-
-    from willags_ns.viewer import interpolate_latents, sample_latent
 
     _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")
     model = pipeline.model
@@ -122,18 +194,8 @@ def render_outputs(run_dir: Path, out_dir: Path) -> dict[str, Path]:
     Image.fromarray(grid(rows)).save(paths["views"])
 
     if model.config.appearance == "willags":
-        cam = test.cameras[0:1]
-        seen = torch.nonzero(model.train_latent_seen).flatten().tolist()
-        picks = [seen[int(k)] for k in np.linspace(0, len(seen) - 1, 3)] if seen else []
-        lat = model.train_latents
-        row_train = [to_uint8(render(pipeline, cam, lat[i])) for i in picks]
-        row_interp = []
-        if len(picks) >= 2:
-            za, zb = lat[picks[0]], lat[picks[-1]]
-            row_interp = [to_uint8(render(pipeline, cam, interpolate_latents(za, zb, t))) for t in np.linspace(0, 1, 5)]
-        row_sample = [to_uint8(render(pipeline, cam, sample_latent(lat.shape[1], s))) for s in range(3)]
-        paths["appearances"] = out_dir / "appearance_strip.png"
-        Image.fromarray(grid([r for r in (row_train, row_interp, row_sample) if r])).save(paths["appearances"])
+        paths["appearances"] = out_dir / "appearance_grid.png"
+        Image.fromarray(appearance_grid(pipeline, out_dir)).save(paths["appearances"])
     return paths
 
 

@@ -1,0 +1,217 @@
+"""Appearance SPECs (willags_ns/appearance_spec.py): parsing, resolving on a tiny model, errors naming the bad part."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from tests.test_mask_eval import _camera
+from tests.test_model import _tiny_model
+from willags_ns.appearance_spec import (
+    APPEARANCE_ENV,
+    MAX_LATENT_NORM,
+    AppearanceSpecError,
+    ImageSpec,
+    InterpSpec,
+    MeanSpec,
+    PhotoSpec,
+    RefineOptions,
+    SampleSpec,
+    checked_latent,
+    interpolate_latents,
+    parse_spec,
+    resolve_latent,
+    sample_latent,
+)
+
+
+def _model():
+    """The tiny model with a latent-dependent field, distinct training latents and file names."""
+    model = _tiny_model()
+    model.eval()
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(6)
+        for p in model.appearance_nets.field.parameters():  # at initialisation the planes barely depend on z
+            p.add_(0.5 * torch.randn(p.shape, generator=g))
+        model.train_latents.copy_(torch.randn(model.train_latents.shape, generator=torch.Generator().manual_seed(5)))
+        model.train_latent_seen.fill_(True)
+    model.set_train_image_names(["a.png", "b.png"])
+    return model
+
+
+def test_parse_each_kind_and_round_trip():
+    cases = {
+        "mean": MeanSpec(),
+        "image:a.png": ImageSpec("a.png"),
+        "sample:7": SampleSpec(7),
+        "photo:/x/y.jpg": PhotoSpec(Path("/x/y.jpg")),
+        "interp:0,1": InterpSpec(ImageSpec("0"), ImageSpec("1"), None),
+        "interp:image:a,sample:2,0.25": InterpSpec(ImageSpec("a"), SampleSpec(2), 0.25),
+    }
+    for text, spec in cases.items():
+        assert parse_spec(text) == spec, text
+        assert parse_spec(str(spec)) == spec, text  # str() writes a SPEC back
+    # a photo path with a comma: split where the second SPEC starts
+    s = parse_spec("interp:photo:a,b.jpg,sample:1")
+    assert s == InterpSpec(PhotoSpec(Path("a,b.jpg")), SampleSpec(1), None)
+
+
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ("sample:x", "seed must be an integer, got 'x'"),
+        ("bogus:1", "unknown appearance kind 'bogus'"),
+        ("interp:a,b,2", "T must be in \\[0, 1\\], got 2"),
+        ("interp:a", "interp needs two appearances"),
+        ("image:", "needs a training image"),
+        ("photo:", "needs a file path"),
+    ],
+)
+def test_parse_errors_name_the_bad_part(text, match):
+    with pytest.raises(AppearanceSpecError, match=match):
+        parse_spec(text, "--appearance")
+    with pytest.raises(ValueError, match="--appearance"):  # the context names where the SPEC came from
+        parse_spec(text, "--appearance")
+
+
+def test_interpolation_endpoints_and_seeded_samples():
+    a, b = torch.zeros(4), torch.arange(4.0)
+    assert torch.equal(interpolate_latents(a, b, 0.0), a) and torch.equal(interpolate_latents(a, b, 1.0), b)
+    torch.testing.assert_close(interpolate_latents(a, b, 0.25), 0.25 * b)
+    assert torch.equal(sample_latent(8, 3), sample_latent(8, 3))
+    assert not torch.equal(sample_latent(8, 3), sample_latent(8, 4))
+
+
+def test_resolve_each_kind_on_a_model(tmp_path):
+    model = _model()
+    lat = model.train_latents
+    d = lat.shape[1]
+    torch.testing.assert_close(resolve_latent("mean", model), lat.mean(0))
+    for key in ("b.png", "b", "1"):  # file name, stem, index
+        assert torch.equal(resolve_latent(f"image:{key}", model), lat[1])
+    assert torch.equal(resolve_latent("sample:4", model), sample_latent(d, 4))
+    z = np.linspace(-1, 1, d).astype(np.float32)
+    np.save(tmp_path / "z.npy", z)
+    np.save(tmp_path / "z2.npy", z[None])
+    assert torch.equal(resolve_latent(f"latent:{tmp_path / 'z.npy'}", model), torch.from_numpy(z))
+    assert torch.equal(resolve_latent(f"latent:{tmp_path / 'z2.npy'}", model), torch.from_numpy(z))
+    torch.testing.assert_close(resolve_latent("interp:a,b,0.25", model), 0.75 * lat[0] + 0.25 * lat[1])
+    torch.testing.assert_close(resolve_latent("interp:a.png,sample:4", model, t=1.0), sample_latent(d, 4))
+    with pytest.raises(AppearanceSpecError, match="a still image needs interp:A,B,T"):
+        resolve_latent("interp:a,b", model)
+    # photo: through the encoder, the same latent as encoding the pixels directly
+    img = (np.random.default_rng(0).random((24, 40, 3)) * 255).astype(np.uint8)
+    Image.fromarray(img).save(tmp_path / "p.png")
+    z_photo = resolve_latent(f"photo:{tmp_path / 'p.png'}", model)
+    torch.testing.assert_close(z_photo, model.encode_image(torch.from_numpy(img)))
+
+
+def test_resolve_errors_name_the_bad_part(tmp_path):
+    model = _model()
+    with pytest.raises(AppearanceSpecError, match="unknown training image 'zzz'"):
+        resolve_latent("image:zzz", model)
+    with pytest.raises(AppearanceSpecError, match="unknown training image 'zzz'"):
+        resolve_latent("interp:a.png,zzz,0.5", model)
+    model.train_latent_seen[1] = False
+    with pytest.raises(AppearanceSpecError, match="'b.png' was never encoded"):
+        resolve_latent("image:b.png", model)
+    with pytest.raises(AppearanceSpecError, match="missing.jpg.*no such file"):
+        resolve_latent(f"photo:{tmp_path / 'missing.jpg'}", model)
+    (tmp_path / "junk.jpg").write_bytes(b"not an image")
+    with pytest.raises(AppearanceSpecError, match="junk.jpg' as an image"):
+        resolve_latent(f"photo:{tmp_path / 'junk.jpg'}", model)
+    d = model.train_latents.shape[1]
+    z = np.zeros(d, np.float32)
+    z[2] = np.nan
+    np.save(tmp_path / "nan.npy", z)
+    with pytest.raises(AppearanceSpecError, match="nan.npy' holds NaN or Inf"):
+        resolve_latent(f"latent:{tmp_path / 'nan.npy'}", model)
+    np.save(tmp_path / "short.npy", np.zeros(d + 1, np.float32))
+    with pytest.raises(AppearanceSpecError, match=f"short.npy' has shape \\({d + 1},\\); this model needs \\[{d}\\]"):
+        resolve_latent(f"latent:{tmp_path / 'short.npy'}", model)
+
+
+def test_huge_latents_are_clamped_with_a_warning_and_never_render_nan(tmp_path):
+    model = _model()
+    d = model.train_latents.shape[1]
+    np.save(tmp_path / "big.npy", np.full(d, 1e3, np.float32))
+    with pytest.warns(UserWarning, match="scaled down to 100"):
+        z = resolve_latent(f"latent:{tmp_path / 'big.npy'}", model)
+    assert float(z.norm()) == pytest.approx(MAX_LATENT_NORM, rel=1e-5)
+    model.render_latent = torch.full((d,), 1e3)  # set in code: the model checks it too
+    with pytest.warns(UserWarning, match="render_latent: latent norm"):
+        z = model.current_latent()
+    assert float(z.norm()) == pytest.approx(MAX_LATENT_NORM, rel=1e-5)
+    with torch.no_grad():
+        assert torch.isfinite(model.get_outputs(_camera(24, 16))["rgb"]).all()
+    with pytest.raises(AppearanceSpecError, match="render_latent: the latent holds NaN"):
+        checked_latent(torch.tensor([0.0, float("nan")]), "render_latent")
+
+
+def test_environment_variable_uses_the_same_parser(monkeypatch):
+    model = _model()
+    monkeypatch.setenv(APPEARANCE_ENV, "image:b")
+    assert torch.equal(model.current_latent(), model.train_latents[1])
+    model.render_latent = None
+    monkeypatch.setenv(APPEARANCE_ENV, "sample:x")
+    with pytest.raises(ValueError, match=f"{APPEARANCE_ENV}: sample seed must be an integer, got 'x'"):
+        model.current_latent()
+    monkeypatch.setenv(APPEARANCE_ENV, "mean")
+    torch.testing.assert_close(model.current_latent(), model.train_latents.mean(0))
+    assert os.environ[APPEARANCE_ENV] == "mean"
+
+
+def test_photo_refinement_lowers_the_loss_on_the_photo():
+    """photo: with refinement fits the latent to the photo seen from a training camera (the scene stays frozen)."""
+    from willags_ns.appearance_spec import _render_at, refine_photo_latent
+
+    model = _model()
+    cam = _camera(32, 24)
+    target = sample_latent(model.train_latents.shape[1], 11)
+    with torch.no_grad():
+        c = cam.to(model.device)
+        c.metadata = {"appearance_latent": target}
+        photo = model.get_outputs(c)["rgb"].clone()  # a "photo" of this view under another appearance
+    z0 = model.encode_image(photo)
+    before = {k: v.detach().clone() for k, v in model.gauss_params.items()}
+
+    z = refine_photo_latent(model, photo, z0, cam, RefineOptions(steps=25, lr=0.05, view="0"))
+    with torch.no_grad():
+        err0 = float((_render_at(model, cam, z0, 128) - photo).abs().mean())
+        err1 = float((_render_at(model, cam, z, 128) - photo).abs().mean())
+    assert err1 < 0.8 * err0, (err0, err1)
+    for k, v in model.gauss_params.items():
+        assert torch.equal(v, before[k]), k
+
+
+def test_photo_refinement_finds_the_photos_view():
+    """Without --refine-view, the training view whose render looks most like the photo is the one refined on."""
+    from nerfstudio.cameras.cameras import Cameras
+
+    from willags_ns.appearance_spec import nearest_view
+
+    model = _model()
+    views = []
+    for dx in (-0.6, 0.0, 0.6):
+        c = _camera(32, 24)
+        c.camera_to_worlds[0, 0, 3] += dx
+        views.append(c)
+    cams = Cameras(
+        camera_to_worlds=torch.cat([c.camera_to_worlds for c in views]),
+        fx=torch.cat([c.fx for c in views]),
+        fy=torch.cat([c.fy for c in views]),
+        cx=torch.cat([c.cx for c in views]),
+        cy=torch.cat([c.cy for c in views]),
+        width=torch.cat([c.width for c in views]),
+        height=torch.cat([c.height for c in views]),
+    )
+    z = model.train_latents[0]
+    for i in range(3):
+        with torch.no_grad():
+            c = cams[i : i + 1]
+            c.metadata = {"appearance_latent": sample_latent(z.shape[0], 2)}
+            photo = model.get_outputs(c)["rgb"]
+        assert nearest_view(model, photo, model.encode_image(photo), cams) == i

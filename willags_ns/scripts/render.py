@@ -1,0 +1,205 @@
+"""`willags-render`: nerfstudio's `ns-render` (same subcommands and options) plus `--appearance SPEC`.
+
+    willags-render camera-path --load-config run/config.yml --camera-path-filename path.json --appearance image:IMG_0042
+    willags-render interpolate --load-config run/config.yml --appearance interp:image:3,sample:1   # a sweep
+    willags-render dataset --load-config run/config.yml --split test --appearance photo:new.jpg --refine-steps 50
+
+SPECs are parsed by willags_ns.appearance_spec (see its docstring). The render classes are nerfstudio's own,
+subclassed with the appearance options; their `main()` is run unchanged inside :func:`appearance_hooks`, which
+chooses the appearance right after nerfstudio loads the checkpoint (its `eval_setup`) and, for `interp:A,B`
+without T, gives each camera of the path its own latent (camera metadata `appearance_latent`, which the model
+honours), sweeping T from 0 to 1 along the path.
+"""
+
+import contextlib
+import dataclasses
+from typing import Annotated, Any, Union
+
+import torch
+import tyro
+from nerfstudio.scripts import render as ns_render
+from nerfstudio.utils import install_checks
+
+from willags_ns.appearance_spec import (
+    AppearanceSpecError,
+    InterpSpec,
+    MeanSpec,
+    RefineOptions,
+    interpolate_latents,
+    parse_spec,
+    resolve_latent,
+)
+
+APPEARANCE_HELP = (
+    "Appearance SPEC: mean | image:NAME|STEM|INDEX | photo:PATH | sample:SEED | latent:FILE.npy | interp:A,B[,T] "
+    "(A, B any of the others; without T a video sweeps T from 0 to 1 along the camera path). Default: mean, or "
+    "training image N's appearance with --camera-idx N."
+)
+
+
+_OPTION_FIELDS = [
+    ("appearance", Annotated[str | None, tyro.conf.arg(help=APPEARANCE_HELP)], None),
+    (
+        "refine_steps",
+        Annotated[int, tyro.conf.arg(help="photo: SPECs: Adam steps refining the encoder's latent on the photo.")],
+        0,
+    ),
+    (
+        "refine_view",
+        Annotated[
+            str | None,
+            tyro.conf.arg(
+                help="photo: refinement: training image (name, stem or index) seen from the photo's viewpoint; "
+                "default: the training view whose render looks most like the photo."
+            ),
+        ],
+        None,
+    ),
+]
+
+
+def with_appearance_options(cls: type, module: Any = ns_render) -> type:
+    """nerfstudio's command dataclass `cls` (defined in `module`) plus the options --appearance, --refine-steps and
+    --refine-view; its own `main()` runs inside :func:`appearance_hooks`.
+
+    A generated subclass (rather than a hand-written one per command) keeps the options identical everywhere."""
+
+    def main(self) -> None:
+        try:  # a SPEC with a syntax error fails before the checkpoint is loaded
+            parse_spec(_spec_text(self), "--appearance")
+        except AppearanceSpecError as e:
+            raise SystemExit(f"error: {e}") from None
+        with appearance_hooks(self, module):
+            cls.main(self)
+
+    fields = [(n, t, dataclasses.field(default=d)) for n, t, d in _OPTION_FIELDS]
+    sub = dataclasses.make_dataclass(cls.__name__, fields, bases=(cls,), namespace={"main": main})
+    sub.__doc__ = cls.__doc__
+    sub.__module__ = __name__
+    return sub
+
+
+def _spec_text(opts) -> str:
+    if opts.appearance is not None:
+        return opts.appearance
+    cam_idx = getattr(opts, "camera_idx", None)
+    return f"image:{cam_idx}" if cam_idx is not None else "mean"  # ns-render --camera-idx N: image N's look
+
+
+def _training_cameras(pipeline):
+    ds = getattr(pipeline.datamanager, "train_dataset", None)
+    return None if ds is None else ds.cameras
+
+
+def choose_appearance(pipeline, opts, context: str = "--appearance") -> InterpSpec | None:
+    """Set the model's appearance from `opts` (a command with the appearance options). Returns the SPEC when it is a sweep (interp
+    without T: each frame needs its own latent), else None."""
+    model = pipeline.model
+    text = _spec_text(opts)
+    spec = parse_spec(text, context)
+    if isinstance(spec, InterpSpec) and spec.t is None:
+        return spec
+    if isinstance(spec, MeanSpec):
+        model.render_latent = None
+        return None
+    refine = RefineOptions(steps=opts.refine_steps, view=opts.refine_view)
+    model.render_latent = resolve_latent(
+        spec, model, refine=refine, cameras=_training_cameras(pipeline), context=context
+    )
+    return None
+
+
+def sweep_latents(pipeline, spec: InterpSpec, n: int, opts, context: str = "--appearance") -> torch.Tensor:
+    """Latents [n, D] for n frames: T = 0 at the first frame, 1 at the last."""
+    model = pipeline.model
+    refine = RefineOptions(steps=opts.refine_steps, view=opts.refine_view)
+    cams = _training_cameras(pipeline)
+    za = resolve_latent(spec.a, model, refine=refine, cameras=cams, context=context)
+    zb = resolve_latent(spec.b, model, refine=refine, cameras=cams, context=context)
+    ts = torch.linspace(0.0, 1.0, n) if n > 1 else torch.zeros(1)
+    return torch.stack([interpolate_latents(za, zb, float(t)) for t in ts])
+
+
+@contextlib.contextmanager
+def appearance_hooks(opts: Any, module: Any = ns_render):
+    """Run a nerfstudio command of `module` (nerfstudio.scripts.render or .exporter) with the appearance of `opts`.
+
+    nerfstudio's commands load the checkpoint and build the camera path inside `main()`, so the appearance is set
+    through module-level functions of that module, wrapped for the duration: `eval_setup` (choose the appearance
+    once the model exists) and, for renders, `_render_trajectory_video` (per-frame latents of a sweep). Writing
+    images (`--output-format images`) does not need ffmpeg, so its check only runs for videos.
+    """
+    state: dict = {}
+    orig_setup = module.eval_setup
+    orig_video = getattr(module, "_render_trajectory_video", None)
+    orig_ffmpeg = install_checks.check_ffmpeg_installed
+
+    def eval_setup(*args, **kwargs):
+        out = orig_setup(*args, **kwargs)
+        pipeline = out[1]
+        if getattr(pipeline.model.config, "appearance", None) != "willags":
+            if opts.appearance is not None:
+                raise SystemExit("--appearance: this checkpoint has no appearance model (willags-3dgs)")
+            return out
+        try:
+            state["sweep"] = choose_appearance(pipeline, opts)
+        except AppearanceSpecError as e:
+            raise SystemExit(f"error: {e}") from None
+        if state["sweep"] is not None and (isinstance(opts, ns_render.DatasetRender) or orig_video is None):
+            raise SystemExit(
+                f"error: --appearance {_spec_text(opts)}: only videos sweep; a still needs the weight: interp:A,B,T"
+            )
+        return out
+
+    def render_trajectory_video(pipeline, cameras, *args, **kwargs):
+        spec = state.get("sweep")
+        if spec is not None:
+            try:
+                z = sweep_latents(pipeline, spec, int(cameras.size), opts)
+            except AppearanceSpecError as e:
+                raise SystemExit(f"error: {e}") from None
+            # indexed with the cameras (nerfstudio's TensorDataclass slices metadata tensors per camera)
+            cameras.metadata = {**(cameras.metadata or {}), "appearance_latent": z.to(cameras.device)}
+        assert orig_video is not None
+        return orig_video(pipeline, cameras, *args, **kwargs)
+
+    def check_ffmpeg_installed():
+        if getattr(opts, "output_format", "video") == "video":
+            orig_ffmpeg()
+
+    module.eval_setup = eval_setup
+    if orig_video is not None:
+        module._render_trajectory_video = render_trajectory_video
+    install_checks.check_ffmpeg_installed = check_ffmpeg_installed
+    try:
+        yield state
+    finally:
+        module.eval_setup = orig_setup
+        if orig_video is not None:
+            module._render_trajectory_video = orig_video
+        install_checks.check_ffmpeg_installed = orig_ffmpeg
+
+
+RenderCameraPath = with_appearance_options(ns_render.RenderCameraPath)
+RenderInterpolated = with_appearance_options(ns_render.RenderInterpolated)
+SpiralRender = with_appearance_options(ns_render.SpiralRender)
+DatasetRender = with_appearance_options(ns_render.DatasetRender)
+
+Commands = tyro.conf.FlagConversionOff[
+    Union[
+        Annotated[RenderCameraPath, tyro.conf.subcommand(name="camera-path")],
+        Annotated[RenderInterpolated, tyro.conf.subcommand(name="interpolate")],
+        Annotated[SpiralRender, tyro.conf.subcommand(name="spiral")],
+        Annotated[DatasetRender, tyro.conf.subcommand(name="dataset")],
+    ]
+]
+
+
+def entrypoint() -> None:
+    """Entrypoint for use with pyproject scripts."""
+    tyro.extras.set_accent_color("bright_yellow")
+    tyro.cli(Commands).main()
+
+
+if __name__ == "__main__":
+    entrypoint()
