@@ -51,7 +51,9 @@ def _value_noise(p: np.ndarray, seed: int = 1) -> np.ndarray:
     return out
 
 
-def render_textured_views(n: int = NUM_VIEWS, width: int = 400, height: int = 300) -> tuple[list[np.ndarray], np.ndarray]:
+def render_textured_views(
+    n: int = NUM_VIEWS, width: int = 400, height: int = 300
+) -> tuple[list[np.ndarray], np.ndarray]:
     """`n` views of the generator's scene (its geometry, shading and ray caster) along a 120-degree arc, with a 3D
     noise texture multiplied onto every surface. Why the texture: the generator's checkers and bricks repeat, and
     SIFT's ratio test rejects repeated patterns (16 plain views gave < 60 matches per pair and no model); a texture

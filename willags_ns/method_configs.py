@@ -66,7 +66,9 @@ def _trainer(name: str, model: WillagsModelConfig, steps: int) -> TrainerConfig:
             model=model,
         ),
         optimizers=_optimizers(steps),
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),  # LAN: --viewer.websocket-host 0.0.0.0
+        viewer=ViewerConfig(
+            num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"
+        ),  # LAN: --viewer.websocket-host 0.0.0.0
         vis="viewer+tensorboard",
     )
 

@@ -314,9 +314,8 @@ def _cancellable() -> Iterator[Any]:
 
 
 def _progress():
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
     from nerfstudio.utils.rich_utils import CONSOLE
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     return Progress(
         TextColumn("[bold blue]{task.description:<22}"),
@@ -650,9 +649,8 @@ def reconstruction_stats(rec, all_names: Sequence[str]) -> dict[str, Any]:
 
 
 def print_summary(summary: dict[str, Any]) -> None:
-    from rich.table import Table
-
     from nerfstudio.utils.rich_utils import CONSOLE
+    from rich.table import Table
 
     table = Table(title="willags-process", show_header=False)
     table.add_row("images registered / total", f"{summary['registered']} / {summary['total']}")
@@ -662,7 +660,9 @@ def print_summary(summary: dict[str, Any]) -> None:
     table.add_row("camera model", summary["camera_model"])
     table.add_row("matching", f"{summary['matching']} ({summary['num_pairs']:,} pairs)")
     table.add_row("split", f"{summary['num_train']} train / {summary['num_test']} test ({summary['split_file']})")
-    table.add_row("wall time", f"{summary['wall_s']:.0f} s " + str({k: round(v) for k, v in summary["stage_s"].items()}))
+    table.add_row(
+        "wall time", f"{summary['wall_s']:.0f} s " + str({k: round(v) for k, v in summary["stage_s"].items()})
+    )
     unreg = summary["unregistered"]
     table.add_row("unregistered", ", ".join(unreg) if unreg else "none")
     CONSOLE.print(table)
@@ -673,7 +673,6 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     """The whole pipeline (see the module docstring). Returns the summary (also written to process_summary.json).
     Raises ProcessError on unusable input or too few registered images, KeyboardInterrupt on Ctrl-C."""
     import pycolmap
-
     from nerfstudio.utils.rich_utils import CONSOLE
 
     log = log or (lambda msg: CONSOLE.print(msg))
@@ -707,7 +706,9 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         stage_s["extraction"] = time.time() - t
         for name in readable:
             if name not in extracted:
-                log(f"[yellow]warning: no SIFT features in {cfg.images / name} (COLMAP could not read it or it is blank)")
+                log(
+                    f"[yellow]warning: no SIFT features in {cfg.images / name} (COLMAP could not read it or it is blank)"
+                )
         if len(extracted) < cfg.min_registered:
             raise ProcessError(f"only {len(extracted)} photo(s) gave SIFT features; SfM needs {cfg.min_registered}")
         t = time.time()
@@ -759,4 +760,3 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     }
     (cfg.output / SUMMARY).write_text(json.dumps(summary, indent=1) + "\n")
     return summary
-
