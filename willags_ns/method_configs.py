@@ -64,8 +64,9 @@ def _trainer(name: str, model: WillagsModelConfig, steps: int) -> TrainerConfig:
             model=model,
         ),
         optimizers=_optimizers(steps),
-        # local only (nerfstudio binds 0.0.0.0); --viewer.websocket-host 0.0.0.0 exposes it
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"),
+        viewer=ViewerConfig(
+            num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"
+        ),  # LAN: --viewer.websocket-host 0.0.0.0
         vis="viewer+tensorboard",
     )
 
