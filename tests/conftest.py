@@ -31,18 +31,14 @@ cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GP
 
 @pytest.fixture(scope="session")
 def appearance_run(tmp_path_factory):
-    """A 6-step willags run (through nerfstudio's trainer) whose colour field depends on the latent (at 6 steps the
-    planes barely do yet): (config.yml, training image names, indices of encoded training images)."""
-    from tests.test_train import _train
+    """A 6-step willags run (through nerfstudio's trainer) whose colours depend on the latent (at 6 steps the colour
+    transform is still ~the identity): (config.yml, training image names, indices of encoded training images)."""
+    from tests.test_train import _look_trained, _train
 
     tmp = tmp_path_factory.mktemp("appearance_run")
     config, trainer, _ = _train(tmp, "willags", steps=6)
     model = trainer.pipeline.model
-    with torch.no_grad():
-        g = torch.Generator().manual_seed(0)
-        for p in model.appearance_nets.field.parameters():
-            p.add_(0.5 * torch.randn(p.shape, generator=g))
-    trainer.save_checkpoint(trainer.config.max_num_iterations)
+    _look_trained(trainer)  # a latent-dependent colour transform, as after training; saves the checkpoint
     seen = model.train_latent_seen.nonzero().flatten().tolist()
     assert len(seen) >= 2, "the fixture needs two encoded training images"
     return config.get_base_dir() / "config.yml", list(model.image_names), seen
