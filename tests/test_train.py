@@ -191,8 +191,10 @@ def _look_trained(trainer) -> None:
     model = trainer.pipeline.model
     with torch.no_grad():
         g = torch.Generator().manual_seed(0)
-        for p in model.appearance_nets.parameters():
-            p.add_(0.3 * torch.randn(p.shape, generator=g))
+        for name, p in model.appearance_nets.named_parameters():
+            # the colour transform takes z ~ N(0, I) of 64 dims: a small perturbation already changes colours by
+            # tens of 8-bit levels without saturating them
+            p.add_((0.05 if name.startswith("modulation") else 0.3) * torch.randn(p.shape, generator=g))
         if "features_rest" in model.gauss_params:
             model.gauss_params["features_rest"].add_(
                 0.05 * torch.randn(model.gauss_params["features_rest"].shape, generator=g)
