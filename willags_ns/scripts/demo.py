@@ -28,7 +28,7 @@ class DemoConfig:
     """Where the run (checkpoint, config.yml, tensorboard) and the PNGs go."""
     method: str = "willags"
     """Method to train (willags, willags-lite, willags-3dgs)."""
-    steps: int = 600
+    steps: int = 500
     """Training iterations."""
     data: Path | None = None
     """Scene directory; None = the embedded synthetic in-the-wild scene."""
