@@ -331,7 +331,16 @@ def _state_equal(a, b, path="") -> None:
         assert a == b, (path, a, b)
 
 
-def test_row15_sigint_writes_a_checkpoint_and_load_dir_resumes_the_same_state(tiny_scene_src, tmp_path):
+@pytest.fixture
+def default_sigint():
+    """Python's own SIGINT handler for the test: a suite started as a background job inherits SIG_IGN, and the
+    test checks that training restores exactly the handler it found."""
+    prev = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, prev)
+
+
+def test_row15_sigint_writes_a_checkpoint_and_load_dir_resumes_the_same_state(tiny_scene_src, tmp_path, default_sigint):
     from nerfstudio.scripts.train import _set_random_seed
 
     config = _tiny_config(tmp_path, tiny_scene_src, steps=40)
