@@ -79,7 +79,27 @@ METHODS: dict[str, MethodSpec] = {
     "willags-global": MethodSpec(
         "willags", (("modulation.local", False),), note="default, global colour transform only (no local residual)"
     ),
-    "willags-novae": MethodSpec("willags", (("use_vae", False),), note="ablation: per-image embedding, no VAE"),
+    "willags-novae": MethodSpec(
+        "willags", (("use_vae", False),), note="ablation: per-image embedding (lr 0.02), no VAE"
+    ),
+    "willags-novae-slowemb": MethodSpec(
+        "willags",
+        (("use_vae", False), ("optimizers.appearance_embed.lr", 1e-3)),
+        note="per-image embedding at the shared networks' lr 1e-3 (willags-novae before the embed group)",
+    ),
+    "willags-lowlr": MethodSpec(
+        "willags", (("optimizers.means.lr", 1.6e-5),), note="default, means lr 1.6e-5 (10x lower)"
+    ),
+    "willags-novae-lowlr": MethodSpec(
+        "willags",
+        (("use_vae", False), ("optimizers.means.lr", 1.6e-5)),
+        note="per-image embedding, means lr 1.6e-5",
+    ),
+    "willags-fast": MethodSpec(
+        "willags",
+        (("mask_every", 4), ("mask.max_resolution", 256)),
+        note="default, mask refreshed every 4th visit of an image, VGG at 256 px",
+    ),
     "willags-nomask": MethodSpec("willags", (("use_mask", False),), note="ablation: no transient mask"),
     "willags-noteacher": MethodSpec(
         "willags", (("teacher.enabled", False),), note="ablation: the student's own render makes the mask"
@@ -144,6 +164,18 @@ def set_nested(obj, dotted: str, value) -> None:
     setattr(obj, leaf, value)
 
 
+def set_lr(config, dotted: str, lr: float) -> None:
+    """ "optimizers.<group>.lr": that group's Adam learning rate; its scheduler's final rate keeps its ratio."""
+    _, group, leaf = dotted.split(".")
+    if leaf != "lr" or group not in config.optimizers:
+        raise KeyError(f"override {dotted!r}: want optimizers.<group>.lr with group in {sorted(config.optimizers)}")
+    opt = config.optimizers[group]["optimizer"]
+    sched = config.optimizers[group].get("scheduler")
+    if sched is not None and getattr(sched, "lr_final", None) is not None:
+        sched.lr_final = sched.lr_final * lr / opt.lr
+    opt.lr = lr
+
+
 def base_trainer_config(base: str):
     """A fresh TrainerConfig of `base` (our method configs or nerfstudio's splatfacto with our data parser)."""
     from willags_ns import method_configs as mc
@@ -196,7 +228,10 @@ def build_config(
         dm.dataparser.downscale_factor = downscale
     m = config.pipeline.model
     for k, v in spec.overrides:
-        set_nested(m, k, v)
+        if k.startswith("optimizers."):
+            set_lr(config, k, v)
+        else:
+            set_nested(m, k, v)
     if hasattr(m, "log_images_every"):
         m.log_images_every = 0
     return config
@@ -476,14 +511,46 @@ def _patch_stock_splatfacto() -> list[str]:
     return patches
 
 
+def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
+    """The NeRF-W protocol on the test split of a set-up trainer (spec: protocol_steps, protocol_lr,
+    max_test_images, oracle, train_views): aggregate scores, per_image, eval_s and the train-view scores."""
+    import torch
+
+    from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
+
+    def as_float(d):
+        return d["image"].float().div(255.0) if d["image"].dtype == torch.uint8 else d["image"].float()
+
+    dm = trainer.pipeline.datamanager
+    model = trainer.pipeline.model
+    model.eval()
+    # the test images as the model sees them: nerfstudio's cached (undistorted) images and updated cameras
+    images = [as_float(d) for d in dm.cached_eval]
+    names = [Path(p).name for p in dm.eval_dataset.image_filenames]
+    t2 = time.perf_counter()
+    proto = EvalProtocolConfig(
+        steps=spec["protocol_steps"],
+        lr=spec["protocol_lr"],
+        max_images=spec["max_test_images"],
+        oracle=bool(spec.get("oracle", False)),
+    )
+    agg, per_image = evaluate_model(model, dm.eval_dataset.cameras, images, proto, names)
+    rec: dict[str, Any] = dict(agg)
+    rec["per_image"] = per_image
+    rec["eval_s"] = time.perf_counter() - t2
+    if int(spec.get("train_views", 0)) != 0:
+        train_imgs = [as_float(d) for d in dm.cached_train]
+        rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
+    rec["num_test_images"] = len(images)
+    return rec
+
+
 def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     """Train and evaluate one run in this process; returns the result record (see the module docstring)."""
     import random
 
     import numpy as np
     import torch
-
-    from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
 
     threads = int(spec.get("threads") or 0)
     if threads > 0:
@@ -529,31 +596,8 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         rec["peak_mem_kind"] = "cuda max_memory_allocated (training)"
 
     model = trainer.pipeline.model
-    model.eval()
-    # the test images as the model sees them: nerfstudio's cached (undistorted) images and updated cameras
-    cached = dm.cached_eval
-    cams = dm.eval_dataset.cameras
-    images = [d["image"].float().div(255.0) if d["image"].dtype == torch.uint8 else d["image"].float() for d in cached]
-    names = [Path(p).name for p in dm.eval_dataset.image_filenames]
-    t2 = time.perf_counter()
-    proto = EvalProtocolConfig(
-        steps=spec["protocol_steps"],
-        lr=spec["protocol_lr"],
-        max_images=spec["max_test_images"],
-        oracle=bool(spec.get("oracle", False)),
-    )
-    agg, per_image = evaluate_model(model, cams, images, proto, names)
-    eval_s = time.perf_counter() - t2
-    if int(spec.get("train_views", 0)) != 0:
-        train_imgs = [
-            d["image"].float().div(255.0) if d["image"].dtype == torch.uint8 else d["image"].float()
-            for d in dm.cached_train
-        ]
-        rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
-    rec.update({k: v for k, v in agg.items()})
-    rec["per_image"] = per_image
-    rec["eval_s"] = eval_s
-    rec.update(render_fps(model, cams, spec["fps_views"]))
+    rec.update(protocol_scores(trainer, spec))
+    rec.update(render_fps(model, dm.eval_dataset.cameras, spec["fps_views"]))
 
     masks_dir = dm.train_dataset.metadata.get("masks_gt_dir")
     if masks_dir is None and dm.train_dataset.image_filenames:
@@ -583,7 +627,6 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
             "s_per_step": train_s / max(1, spec["steps"]),
             "image_hw": [int(img0.shape[0]), int(img0.shape[1])],
             "num_train_images": len(dm.train_dataset),
-            "num_test_images": len(images),
             "patches": patches,
             "threads": torch.get_num_threads(),
         }

@@ -45,6 +45,8 @@ def _optimizers(max_steps: int) -> dict[str, dict]:
             "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps, warmup_steps=100),
         },
+        # per-image embedding table (use_vae=False): each row sees one gradient per epoch
+        "appearance_embed": adam(0.02, ExponentialDecaySchedulerConfig(lr_final=2e-3, max_steps=max_steps)),
         "camera_opt": adam(
             1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, warmup_steps=1000)
         ),

@@ -1,0 +1,249 @@
+"""A full-length training run (30k steps by default) across several device calls, scored at milestones.
+
+One device call lasts 10 minutes and the machine is given back ~30 s after a call, so a 30k-step run is trained
+in segments: each `train` call resumes from the run's newest checkpoint (nerfstudio's --load-dir mechanism:
+parameters, optimiser and scheduler states), trains until its time budget, writes a checkpoint at the end of the
+last step it finished and stops. Milestone checkpoints (--milestones) are kept; `eval` scores each milestone under
+the NeRF-W protocol once. Everything it learns goes into RUN_DIR/state.json (train seconds per segment, steps,
+scores), which `record` turns into a docs/benchmarks.json record.
+
+    python -m benchmarks.long_run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
+    python -m benchmarks.long_run eval   --run-dir /tmp/lr/willags
+    python -m benchmarks.long_run record --run-dir /tmp/lr/willags --tag h100-30k --out $OUT/willags-30k.json
+
+Methods are benchmarks.harness METHODS (stock schedule: only max_num_iterations is set, as
+`ns-train <method> --max-num-iterations N` does). Train seconds exclude set-up, checkpoint loading and evaluation.
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+STATE = "state.json"
+
+
+def _state(run_dir: Path) -> dict[str, Any]:
+    p = run_dir / STATE
+    return json.loads(p.read_text()) if p.is_file() else {"segments": [], "scores": {}}
+
+
+def _save_state(run_dir: Path, state: dict[str, Any]) -> None:
+    tmp = run_dir / (STATE + ".tmp")
+    tmp.write_text(json.dumps(state, indent=1, default=str))
+    tmp.replace(run_dir / STATE)
+
+
+def _ckpt_dir(run_dir: Path) -> Path:
+    found = sorted(run_dir.glob("out/bench/*/run/nerfstudio_models"))  # <output_dir>/<experiment>/<method>/<ts>
+    return found[0] if found else run_dir / "out" / "none"
+
+
+def _ckpt_steps(run_dir: Path) -> list[int]:
+    d = _ckpt_dir(run_dir)
+    return sorted(int(p.stem.split("-")[1]) for p in d.glob("step-*.ckpt")) if d.is_dir() else []
+
+
+def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_step: int | None, test_mode: str):
+    """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given)."""
+    import random
+
+    import numpy as np
+    import torch
+
+    from benchmarks.harness import METHODS, _patch_stock_splatfacto, build_config
+
+    if METHODS[method].base == "splatfacto":
+        _patch_stock_splatfacto()
+    config = build_config(
+        method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
+    )
+    config.timestamp = "run"
+    config.machine.seed = seed
+    config.steps_per_save = 10**9  # checkpoints are written here: at milestones and at the end of the segment
+    config.save_only_latest_checkpoint = False
+    if load_step is not None:
+        config.load_dir = _ckpt_dir(run_dir)
+        config.load_step = load_step
+    config.save_config()
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup(test_mode=test_mode)
+    return trainer
+
+
+def train(args) -> int:
+    import torch
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+
+    run_dir = Path(args.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    state = _state(run_dir)
+    state.update({"method": args.method, "data": str(args.data), "steps": args.steps, "seed": args.seed})
+    done = _ckpt_steps(run_dir)
+    start = done[-1] if done else None
+    if start is not None and start >= args.steps - 1:
+        print(f"long_run: {args.method} already at step {start}")
+        return 0
+    milestones = {int(m) - 1 for m in args.milestones.split(",")}  # nerfstudio counts steps from 0
+    t_setup = time.perf_counter()
+    trainer = _setup(args.method, Path(args.data), run_dir, args.steps, args.seed, start, "val")
+    _ = trainer.pipeline.datamanager.cached_train
+    setup_s = time.perf_counter() - t_setup
+    seg = {"start_step": (start + 1) if start is not None else 0, "setup_s": setup_s, "budget_s": args.budget_s}
+    t0 = [0.0]
+    last = [seg["start_step"] - 1]
+
+    class Stop(Exception):
+        pass
+
+    def after_step(step: int) -> None:
+        last[0] = step
+        if step in milestones or step == args.steps - 1:
+            trainer.save_checkpoint(step)
+        # nerfstudio's loop runs max_num_iterations steps from wherever it resumed: stop at the run's last step
+        if step >= args.steps - 1 or time.perf_counter() - t0[0] > args.budget_s:
+            raise Stop
+
+    trainer.callbacks.append(
+        TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
+    )
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+    t0[0] = time.perf_counter()
+    stopped = False
+    try:
+        trainer.train()
+    except Stop:
+        stopped = True
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+    seg["train_s"] = time.perf_counter() - t0[0]
+    seg["end_step"] = last[0]
+    if stopped and last[0] not in milestones and last[0] != args.steps - 1:
+        trainer.save_checkpoint(last[0])  # where the next segment resumes
+    seg["num_gaussians"] = int(trainer.pipeline.model.num_points)
+    if torch.cuda.is_available():
+        seg["peak_mem_gb"] = torch.cuda.max_memory_allocated() / 1024**3
+    # keep the milestones and the newest checkpoint only
+    steps = _ckpt_steps(run_dir)
+    for s in steps[:-1]:
+        if s not in milestones:
+            (_ckpt_dir(run_dir) / f"step-{s:09d}.ckpt").unlink()
+    state["segments"].append(seg)
+    _save_state(run_dir, state)
+    print(
+        f"long_run: {args.method} steps {seg['start_step']}..{seg['end_step']} in {seg['train_s']:.0f} s "
+        f"({seg['num_gaussians']:,} Gaussians)"
+    )
+    return 0
+
+
+def evaluate(args) -> int:
+    import gc
+
+    import torch
+
+    from benchmarks.harness import protocol_scores
+
+    run_dir = Path(args.run_dir)
+    state = _state(run_dir)
+    milestones = [int(m) for m in args.milestones.split(",")]
+    have = set(_ckpt_steps(run_dir))
+    for m in milestones:
+        if str(m) in state["scores"] or (m - 1) not in have:
+            continue
+        t = time.perf_counter()
+        trainer = _setup(state["method"], Path(state["data"]), run_dir, state["steps"], state["seed"], m - 1, "test")
+        spec = {
+            "protocol_steps": args.protocol_steps,
+            "protocol_lr": 0.01,
+            "max_test_images": -1,
+            "train_views": args.train_views,
+        }
+        rec = protocol_scores(trainer, spec)
+        rec["num_gaussians"] = int(trainer.pipeline.model.num_points)
+        rec["eval_wall_s"] = time.perf_counter() - t
+        state["scores"][str(m)] = rec
+        _save_state(run_dir, state)
+        print(
+            f"long_run: {state['method']} @ {m}: psnr {rec.get('psnr', float('nan')):.2f} "
+            f"(train views {rec.get('train_psnr', float('nan')):.2f})"
+        )
+        del trainer
+        gc.collect()
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+    return 0
+
+
+def record(args) -> int:
+    """The run as a docs/benchmarks.json record: train wall time summed over segments, PSNR at each milestone."""
+    import datetime as _dt
+
+    from benchmarks.harness import _git_commit, machine_description
+
+    run_dir = Path(args.run_dir)
+    state = _state(run_dir)
+    import torch
+
+    segs = state["segments"]
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    rec: dict[str, Any] = {
+        "scene": Path(state["data"]).name,
+        "method": state["method"],
+        "device": device,
+        "steps": state["steps"],
+        "tag": args.tag,
+        "schedule": "default",
+        "protocol_steps": args.protocol_steps,
+        "kind": "long_run",
+        "train_s": sum(s["train_s"] for s in segs),
+        "segments": segs,
+        "steps_done": (segs[-1]["end_step"] + 1) if segs else 0,
+        "concurrent_runs": args.concurrent,
+        "milestones": {
+            k: {kk: v[kk] for kk in ("psnr", "ssim", "lpips", "train_psnr", "num_gaussians") if kk in v}
+            for k, v in sorted(state["scores"].items(), key=lambda kv: int(kv[0]))
+        },
+        "date": _dt.datetime.now().isoformat(timespec="seconds"),
+        "machine": machine_description(device),
+        "commit": _git_commit(),
+        "status": "ok",
+    }
+    last = state["scores"].get(str(state["steps"]))
+    if last is not None:
+        rec.update({k: last[k] for k in ("psnr", "ssim", "lpips") if k in last})
+    Path(args.out).write_text(json.dumps([rec], indent=1, default=str) + "\n")
+    print(json.dumps({k: rec[k] for k in ("method", "train_s", "steps_done", "milestones")}, default=str))
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for name in ("train", "eval", "record"):
+        p = sub.add_parser(name)
+        p.add_argument("--run-dir", required=True)
+        p.add_argument("--milestones", default="7000,15000,30000", help="steps whose checkpoints are kept and scored")
+        p.add_argument("--protocol-steps", type=int, default=128)
+    t = sub.choices["train"]
+    t.add_argument("--method", required=True)
+    t.add_argument("--data", required=True)
+    t.add_argument("--steps", type=int, default=30000)
+    t.add_argument("--seed", type=int, default=42)
+    t.add_argument("--budget-s", type=float, required=True, help="stop (and checkpoint) after this many train s")
+    sub.choices["eval"].add_argument("--train-views", type=int, default=8)
+    r = sub.choices["record"]
+    r.add_argument("--tag", required=True)
+    r.add_argument("--out", required=True)
+    r.add_argument("--concurrent", type=int, default=1, help="runs sharing the GPU while this one trained")
+    args = ap.parse_args(argv)
+    return {"train": train, "eval": evaluate, "record": record}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
