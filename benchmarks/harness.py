@@ -67,42 +67,26 @@ class MethodSpec:
 
 
 METHODS: dict[str, MethodSpec] = {
-    "willags": MethodSpec("willags", note="default: SH colour x latent colour transform, antialiased, no field"),
-    "willags-paper": MethodSpec("willags-paper", note="the paper: colour decoder over tri-plane + f_s"),
+    "willags": MethodSpec(
+        "willags", note="default: per-image embedding, SH colour x latent colour transform, antialiased, no field"
+    ),
+    "willags-paper": MethodSpec("willags-paper", note="the paper: beta-VAE, colour decoder over tri-plane + f_s"),
     "willags-lite": MethodSpec("willags-lite", note="fast preset"),
     "willags-3dgs": MethodSpec(
         "willags-3dgs", note="plain 3DGS through willags' rasteriser: CPU stand-in for splatfacto"
     ),
-    "willags-field": MethodSpec(
-        "willags", (("use_field", True),), note="default + tri-plane field feeding the local residual"
-    ),
-    "willags-global": MethodSpec(
-        "willags", (("modulation.local", False),), note="default, global colour transform only (no local residual)"
-    ),
-    "willags-novae": MethodSpec(
-        "willags", (("use_vae", False),), note="ablation: per-image embedding (lr 0.02), no VAE"
-    ),
-    "willags-novae-slowemb": MethodSpec(
+    "willags-vae": MethodSpec("willags", (("use_vae", True),), note="default with the paper's beta-VAE latent"),
+    "willags-slowemb": MethodSpec(
         "willags",
-        (("use_vae", False), ("optimizers.appearance_embed.lr", 1e-3)),
-        note="per-image embedding at the shared networks' lr 1e-3 (willags-novae before the embed group)",
+        (("optimizers.appearance_embed.lr", 1e-3),),
+        note="per-image embedding at the shared networks' lr 1e-3 (before the embedding had its own group)",
     ),
-    "willags-lowlr": MethodSpec(
-        "willags", (("optimizers.means.lr", 1.6e-5),), note="default, means lr 1.6e-5 (10x lower)"
-    ),
-    "willags-novae-lowlr": MethodSpec(
-        "willags",
-        (("use_vae", False), ("optimizers.means.lr", 1.6e-5)),
-        note="per-image embedding, means lr 1.6e-5",
-    ),
+    "willags-novae": MethodSpec("willags", (("use_vae", False),), note="= the default (per-image embedding, no VAE)"),
+    "willags-lowlr": MethodSpec("willags", (("optimizers.means.lr", 1.6e-5),), note="default, means lr 1.6e-5"),
     "willags-fast": MethodSpec(
         "willags",
         (("mask_every", 4), ("mask.max_resolution", 256)),
         note="default, mask refreshed every 4th visit of an image, VGG at 256 px",
-    ),
-    "willags-nomask": MethodSpec("willags", (("use_mask", False),), note="ablation: no transient mask"),
-    "willags-noteacher": MethodSpec(
-        "willags", (("teacher.enabled", False),), note="ablation: the student's own render makes the mask"
     ),
     "willags-nofield": MethodSpec(
         "willags-paper", (("use_field", False),), note="paper ablation: decoder without the tri-plane field"
@@ -111,16 +95,31 @@ METHODS: dict[str, MethodSpec] = {
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
     # rasterize_mode "antialiased" (gsplat's opacity compensation for the 2D dilation): consistent renders across
     # resolutions, which the stock schedule (trained at 1/4 and 1/2 resolution, evaluated at full) needs
-    "willags-classic": MethodSpec(
-        "willags", (("rasterize_mode", "classic"),), note="default with classic rasterisation"
-    ),
-    "willags-novae-aa": MethodSpec(
-        "willags", (("use_vae", False), ("rasterize_mode", "antialiased")), note="no VAE, antialiased"
-    ),
     "splatfacto-aa": MethodSpec(
         "splatfacto", (("rasterize_mode", "antialiased"),), note="stock splatfacto, antialiased", needs_cuda=True
     ),
 }
+# Ablations of the VAE-latent default (measured when `willags` used the beta-VAE, up to commit 46d6320): the
+# default with use_vae=True plus the change
+for _name, _over, _note in (
+    ("field", (("use_field", True),), "tri-plane field feeding the local residual"),
+    ("global", (("modulation.local", False),), "global colour transform only (no local residual)"),
+    ("nomask", (("use_mask", False),), "no transient mask"),
+    ("noteacher", (("teacher.enabled", False),), "the student's own render makes the mask"),
+    ("classic", (("rasterize_mode", "classic"),), "classic rasterisation"),
+    ("lowlr", (("optimizers.means.lr", 1.6e-5),), "means lr 1.6e-5"),
+    ("fast", (("mask_every", 4), ("mask.max_resolution", 256)), "mask every 4th visit, VGG at 256 px"),
+):
+    METHODS[f"willags-vae-{_name}"] = MethodSpec("willags", (("use_vae", True), *_over), note=f"VAE latent, {_note}")
+# ablations of the default itself
+for _name, _over, _note in (
+    ("field", (("use_field", True),), "tri-plane field feeding the local residual"),
+    ("nomask", (("use_mask", False),), "no transient mask"),
+    ("noteacher", (("teacher.enabled", False),), "the student's own render makes the mask"),
+    ("global", (("modulation.local", False),), "global colour transform only"),
+    ("classic", (("rasterize_mode", "classic"),), "classic rasterisation"),
+):
+    METHODS[f"willags-{_name}"] = MethodSpec("willags", _over, note=f"default, {_note}")
 BASELINES = ("splatfacto", "willags-3dgs")
 """Baseline for the goals, in order of preference: stock splatfacto where it ran, else the CPU stand-in."""
 
@@ -950,7 +949,7 @@ def goal_rows(records: list[dict[str, Any]], device: str) -> list[dict[str, Any]
     )
     scenes = ["fox-wild"] + sorted({r["scene"] for r in recs} - {"fox-wild"})
     for sc in scenes:
-        pair = _pair(recs, sc, "willags", "willags-novae")
+        pair = _pair(recs, sc, "willags", "willags-vae")
         if pair is not None or sc == "fox-wild":
             rows.append(_margin_row(f"{sc}: willags >= w/o VAE + 1 dB", pair, "psnr", 1.0, "dB", "PSNR"))
     # mask quality on fox-wild, willags at its largest budget
@@ -1181,7 +1180,7 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
     for r in recs:
         by.setdefault((r["scene"], r["method"]), []).append(r)
     scenes = [s for s in PEER_5000 if any(k[0] == s for k in by)]
-    methods = sorted({k[1] for k in by}, key=lambda m: (m != "willags", m != "willags-classic", m))
+    methods = sorted({k[1] for k in by}, key=lambda m: (m != "willags", m != "willags-vae", m))
 
     def vals(scene, method, key):
         return [float(r[key]) for r in by.get((scene, method), []) if r.get(key) is not None]
@@ -1198,7 +1197,7 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
         "(same protocol), not run by us, except where a `splatfacto (ours)` value is given. Our GPU has no "
         "ImageNet VGG16 weights: the transient mask runs on the seeded VGG fallback (logged in each checkpoint).",
         "",
-        "| scene | splatfacto | peer | **willags** | willags − peer | SSIM | willags-classic | splatfacto (ours) | "
+        "| scene | splatfacto | peer | **willags** | willags − peer | SSIM | willags-vae | splatfacto (ours) | "
         "splatfacto-aa (ours) | willags-paper (42b1c25) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -1217,7 +1216,7 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
         ]
         out.append(
             f"| {sc} | {sf:.2f} | {peer:.2f} | {_mean_spread(w)} | {diff} | {_mean_spread(vals(sc, 'willags', 'ssim'))} "
-            f"| {_mean_spread(vals(sc, 'willags-classic', 'psnr'))} | {_mean_spread(vals(sc, 'splatfacto', 'psnr'))} "
+            f"| {_mean_spread(vals(sc, 'willags-vae', 'psnr'))} | {_mean_spread(vals(sc, 'splatfacto', 'psnr'))} "
             f"| {_mean_spread(vals(sc, 'splatfacto-aa', 'psnr'))} | {_mean_spread(paper)} |"
         )
     out += [
@@ -1246,8 +1245,43 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
                 f"{_mean_spread(o)} | {gap} | {_mean_spread(vals(sc, m, 'encoder_psnr'))} | "
                 f"{_mean_spread(vals(sc, m, 'ssim'))} | {int(sum(g) / len(g)) if g else '–'} | {len(rs)} |"
             )
-    notes = sorted({f"`{r['method']}`: {r.get('method_note', '')}" for r in recs})
+    notes = sorted({f"`{r['method']}`: {METHODS[r['method']].note if r['method'] in METHODS else ''}" for r in recs})
     out += ["", "Methods: " + "; ".join(notes) + ".", ""]
+    out += long_run_section(records)
+    return out
+
+
+def long_run_section(records: list[dict[str, Any]]) -> list[str]:
+    """Markdown: full-length runs (benchmarks/long_run.py): PSNR at each milestone and the train time."""
+    recs = [r for r in records if r.get("kind") == "long_run"]
+    if not recs:
+        return []
+    out = [
+        "## Full-length runs (issue 11): `benchmarks/long_run.py`, stock schedule",
+        "",
+        "Trained in checkpointed segments across device calls (`benchmarks/gpu_long.sh`: each call resumes from the "
+        "newest checkpoint, as `--load-dir` does, with the optimiser and scheduler states). train s = the sum of the "
+        "segments' training time (set-up, checkpoint loading and evaluation excluded); the segments say how many "
+        "other runs shared the GPU. Right-half PSNR under the NeRF-W protocol (128 steps) at each milestone.",
+        "",
+        "| scene | method | steps done | train s | PSNR @ milestones | train-view PSNR | Gaussians | segments |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(recs, key=lambda r: (r["scene"], r["method"])):
+        ms = r.get("milestones", {})
+        psnr = ", ".join(f"{int(k) // 1000}k: {v['psnr']:.2f}" for k, v in ms.items() if v.get("psnr") is not None)
+        tv = ", ".join(f"{int(k) // 1000}k: {v['train_psnr']:.2f}" for k, v in ms.items() if v.get("train_psnr"))
+        segs = "; ".join(
+            f"{s['start_step']}-{s['end_step']} in {s['train_s']:.0f} s"
+            + (f" ({s['shared_with']} other runs)" if s.get("shared_with") else "")
+            for s in r.get("segments", [])
+        )
+        g = r.get("segments", [{}])[-1].get("num_gaussians", "–")
+        out.append(
+            f"| {r['scene']} | {r['method']} | {r.get('steps_done')} / {r['steps']} | {r['train_s']:.0f} | {psnr} "
+            f"| {tv or '–'} | {g} | {segs} |"
+        )
+    out += ["", *[f"- `{r['method']}` on {r['scene']}: {r['note']}" for r in recs if r.get("note")], ""]
     return out
 
 

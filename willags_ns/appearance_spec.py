@@ -3,7 +3,7 @@
     mean                      the mean of the training images' latents (the model's default)
     image:<name|stem|index>   a training image's latent (file name, file name without extension, or dataset index)
     photo:<path>              any photo through the VAE encoder (optionally refined on that photo, see below)
-    sample:<seed>             z ~ N(0, I), reproducible from the integer seed
+    sample:<seed>             z ~ N(0, I) (an embedding-table model: the training latents' Gaussian), reproducible
     latent:<file.npy>         a latent saved with numpy ([D] or [1, D])
     interp:<A>,<B>[,T]        (1 - T) z_A + T z_B, A and B any of the above (bare names/indices mean image:);
                               without T a video sweeps T from 0 to 1 along its camera path
@@ -198,6 +198,23 @@ def sample_latent(dim: int, seed: int, device: "torch.device | str" = "cpu") -> 
     return torch.randn(dim, generator=g).to(device)
 
 
+def embedding_sample(model, eps: Tensor) -> Tensor:
+    """eps ~ N(0, I) mapped onto the training latents' own Gaussian (mean + Cholesky of their covariance).
+
+    Why: an embedding table has no prior (a VAE's latents are pulled to N(0, I) by its KL term, an embedding
+    table's are wherever training put them), so N(0, I) itself would be an appearance far from every photo."""
+    seen = model.train_latent_seen
+    lat = model.train_latents[seen] if bool(seen.any()) else model.appearance_nets.embeddings.weight.detach()
+    mu = lat.mean(0)
+    if lat.shape[0] < 2:
+        return mu
+    x = (lat - mu).double()
+    cov = x.T @ x / (lat.shape[0] - 1)
+    cov = cov + 1e-6 * (cov.diagonal().mean() + 1e-12) * torch.eye(cov.shape[0], dtype=cov.dtype, device=cov.device)
+    chol = torch.linalg.cholesky(cov)
+    return (mu.double() + chol @ eps.to(chol)).to(lat.dtype)
+
+
 def checked_latent(z: Tensor, source: str, max_norm: float = MAX_LATENT_NORM) -> Tensor:
     """z unchanged if finite with norm <= max_norm; scaled to max_norm with a warning if larger; an error naming
     `source` if it holds NaN or Inf (a NaN latent would make every pixel NaN)."""
@@ -372,6 +389,8 @@ def resolve_latent(
         z = model.train_latents[i].clone()
     elif isinstance(spec, SampleSpec):
         z = sample_latent(dim, spec.seed, device)
+        if model.appearance_nets.vae is None:
+            z = embedding_sample(model, z)
     elif isinstance(spec, LatentFileSpec):
         z = load_latent_file(spec.path, dim, context).to(device)
     elif isinstance(spec, PhotoSpec):

@@ -127,9 +127,13 @@ def labelled_grid(rows: list[tuple[str, list[tuple[str, np.ndarray]]]], scale: i
     return np.asarray(canvas)
 
 
+PHOTO_REFINE_STEPS = 50
+"""Adam steps fitting the new photo's latent when the model has no encoder (an embedding table)."""
+
+
 def appearance_grid(pipeline, out_dir: Path, n_train: int = 4, n_interp: int = 5) -> np.ndarray:
     """The labelled appearance grid of the demo (see the module docstring); every latent comes from a SPEC."""
-    from willags_ns.appearance_spec import resolve_latent
+    from willags_ns.appearance_spec import RefineOptions, resolve_latent
 
     model = pipeline.model
     test = pipeline.datamanager.eval_dataset
@@ -148,14 +152,19 @@ def appearance_grid(pipeline, out_dir: Path, n_train: int = 4, n_interp: int = 5
         rows.append(("training photos (their own views)", photos))
         rows.append(("their appearances, on test view 0", [tile(f"image:{names[i]}") for i in picks]))
     row = []
-    if model.appearance_nets.vae is not None and len(test) > 1:
-        # a photo the model never trained on: another test image, through the encoder
+    if len(test) > 1:
+        # a photo the model never trained on: another test image, through the encoder or, for an embedding-table
+        # model, fitted to the photo (what `willags-render --appearance photo:P --refine-steps N` does)
         photo = out_dir / "new_photo.png"
         Image.fromarray(to_uint8(test.get_image_float32(1)[..., :3])).save(photo)
+        refine = None if model.appearance_nets.vae is not None else RefineOptions(steps=PHOTO_REFINE_STEPS)
+        cams = pipeline.datamanager.train_dataset.cameras
+        z = resolve_latent(f"photo:{photo}", model, refine=refine, cameras=cams, context="demo")
+        label = f"photo:{photo.name}" + (f" (--refine-steps {PHOTO_REFINE_STEPS})" if refine else "")
         row += [("the new photo (not trained on)", to_uint8(test.get_image_float32(1)[..., :3]))]
-        row += [(f"photo:{photo.name}", tile(f"photo:{photo}")[1])]  # label without the output directory
+        row += [(label, to_uint8(render(pipeline, cam, z)))]
     row += [tile("sample:0"), tile("sample:1")]
-    rows.append(("a new photo's appearance; samples z ~ N(0, I)", row))
+    rows.append(("a new photo's appearance; two sampled appearances", row))
     if len(picks) >= 2:
         a, b = names[picks[0]], names[picks[-1]]
         interp = [(f"T = {t:.2f}", tile(f"interp:{a},{b},{t:.2f}")[1]) for t in np.linspace(0, 1, n_interp)]
@@ -185,10 +194,9 @@ def render_outputs(run_dir: Path, out_dir: Path) -> dict[str, Path]:
     for i in range(n_views):
         cam = test.cameras[i : i + 1]
         gt = test.get_image_float32(i)[..., :3]
+        latent = None
         if model.config.appearance == "willags" and model.appearance_nets.vae is not None:
             latent = model.encode_image(gt)  # the test image's appearance, through the encoder
-        else:
-            latent = None
         rows.append([to_uint8(gt), to_uint8(render(pipeline, cam, latent))])
     paths = {"views": out_dir / "views_gt_vs_render.png"}
     Image.fromarray(grid(rows)).save(paths["views"])
