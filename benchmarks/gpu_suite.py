@@ -76,6 +76,8 @@ VARIANTS = {
     "splatfacto": ("stock", {}, ()),
     "willags-3dgs": ("willags", dict(appearance="sh", use_mask=False, use_vae=False, use_field=False), ()),
     "willags": ("willags", {}, ()),  # the `willags` method's model (method_configs.willags_model_config)
+    "willags-vae": ("willags", {"use_vae": True}, ()),  # ... with the beta-VAE latent
+    "willags-everymask": ("willags", {"mask_every": 1, "mask.max_resolution": 512}, ()),  # the paper's mask cadence
     "willags-paper": ("paper", {}, ()),  # the paper preset (colour decoder + tri-plane field)
     "willags-2raster": ("willags", dict(fuse_teacher_render=False), ()),  # the teacher as a second rasterisation
     "willags-mask4": ("willags", dict(mask_every=4), ()),
@@ -554,7 +556,10 @@ def install_profile(model, timer: RegionTimer, is_willags: bool) -> list:
                 wrap(nets.field, "planes", "hypernetwork planes")
                 wrap(nets.field, "query", "tri-plane query (incl.)")
                 wrap(nets.field.mlp, "forward", "field MLP")
-            wrap(nets.color, "forward", "decoder MLP")
+            if nets.color is not None:
+                wrap(nets.color, "forward", "decoder MLP")
+            if nets.modulation is not None:  # SH evaluation + local residual + colour transform, student and teacher
+                wrap(model, "appearance_colors", "appearance colours (SH + modulation)")
         if model.teacher is not None:
 
             def enter():
@@ -603,7 +608,7 @@ def profile_table(totals: dict, steps: int, step_ms: float) -> list[tuple[str, f
     if "tri-plane query (incl.)" in t:
         rows.append(("tri-plane sampling (grid_sample)", t["tri-plane query (incl.)"] - t.get("field MLP", 0.0)))
         rows.append(("field MLP (planes -> f_d)", t.get("field MLP", 0.0)))
-    for k in ("decoder MLP", "rasterize", "teacher render"):
+    for k in ("decoder MLP", "appearance colours (SH + modulation)", "rasterize", "teacher render"):
         if k in t:
             rows.append((k, t[k]))
     fwd_known = sum(
@@ -613,6 +618,7 @@ def profile_table(totals: dict, steps: int, step_ms: float) -> list[tuple[str, f
             "hypernetwork planes",
             "tri-plane query (incl.)",
             "decoder MLP",
+            "appearance colours (SH + modulation)",
             "rasterize",
             "teacher render",
         )

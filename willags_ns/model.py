@@ -238,14 +238,17 @@ class AppearanceNetworks(nn.Module):
         sh: Tensor | None = None,
         sh_degree: int = 0,
         residual: Tensor | None = None,
+        base: Tensor | None = None,
     ) -> Tensor:
         """Per-Gaussian RGB [N, 3] from f_d [N, F] (or None), f_s [N, Fs] (or None), view directions [N, 3] and,
         for color_mode='modulated', the Gaussians' SH coefficients sh [N, K, 3] evaluated up to sh_degree
-        (``residual``: a precomputed local residual, see ColorModulation.forward)."""
+        (``residual``: a precomputed local residual, see ColorModulation.forward; ``base``: the SH colours
+        already evaluated, which then replace sh)."""
         if self.modulation is not None:
-            if sh is None:
-                raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
-            base = (spherical_harmonics(sh_degree, dirs, sh) + 0.5).clamp_min(0.0)  # gsplat's SH colour
+            if base is None:
+                if sh is None:
+                    raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
+                base = (spherical_harmonics(sh_degree, dirs, sh) + 0.5).clamp_min(0.0)  # gsplat's SH colour
             # clamped like gsplat clamps SH colours, so the exact render and the SH bake agree
             return self.modulation(z, base, f_s, f_d, residual=residual).clamp_min(0.0)
         assert self.color is not None and f_s is not None
@@ -538,10 +541,12 @@ class WillagsModel(SplatfactoModel):
         nets: AppearanceNetworks | None = None,
         cacheable: bool = False,
         sh: Tensor | None = None,
+        base: Tensor | None = None,
     ) -> Tensor:
         """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D].
 
         `sh` [N, K, 3]: the Gaussians' SH coefficients (color_mode='modulated'); default: all the model's Gaussians.
+        `base` [N, 3]: their SH colours from cam_center, already evaluated (then sh is not used).
         When the student's networks run in training, the local residual is kept for its penalty."""
         nets = nets if nets is not None else self.appearance_nets
         assert nets is not None
@@ -550,11 +555,17 @@ class WillagsModel(SplatfactoModel):
         if nets.modulation is None:
             assert f_s is not None
             return nets.colors(z, f_d, f_s, dirs)
-        sh = self.sh_coeffs() if sh is None else sh
         residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0])
-        if self.training and nets is self.appearance_nets and torch.is_grad_enabled():
+        student_step = self.training and nets is self.appearance_nets and torch.is_grad_enabled()
+        if student_step:
             self._step_cache["local_residual"] = residual  # type: ignore[assignment]
-        return nets.colors(z, f_d, f_s, dirs, sh=sh, sh_degree=self.active_sh_degree(), residual=residual)
+        if base is None:
+            sh = self.sh_coeffs() if sh is None else sh
+            base = (spherical_harmonics(self.active_sh_degree(), dirs, sh) + 0.5).clamp_min(0.0)
+            if student_step:
+                # the teacher colours the same Gaussians' SH from the same camera: it reuses these (detached)
+                self._step_cache["sh_base"] = base.detach()  # type: ignore[assignment]
+        return nets.colors(z, f_d, f_s, dirs, residual=residual, base=base)
 
     def _sh_key(self, z: Tensor, means: Tensor, degree: int) -> tuple:
         return (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step, degree)
@@ -814,9 +825,12 @@ class WillagsModel(SplatfactoModel):
         else:
             z = teacher.embeddings.weight[int(self._step_cache["image_idx"])]  # type: ignore[union-attr]
         f_s = gp["features"].detach() if "features" in gp else None
-        sh = self.sh_coeffs(gp)
-        sh = sh.detach() if sh is not None else None
-        return self.appearance_colors(z, gp["means"].detach(), f_s, cam_center, nets=teacher, sh=sh)
+        base = self._step_cache.pop("sh_base", None)  # the student's SH colours of this step (same Gaussians)
+        sh = None
+        if base is None:
+            sh = self.sh_coeffs(gp)
+            sh = sh.detach() if sh is not None else None
+        return self.appearance_colors(z, gp["means"].detach(), f_s, cam_center, nets=teacher, sh=sh, base=base)
 
     @torch.no_grad()
     def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background) -> Tensor:
