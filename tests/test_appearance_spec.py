@@ -215,3 +215,40 @@ def test_photo_refinement_finds_the_photos_view():
             c.metadata = {"appearance_latent": sample_latent(z.shape[0], 2)}
             photo = model.get_outputs(c)["rgb"]
         assert nearest_view(model, photo, model.encode_image(photo), cams) == i
+
+
+def test_embedding_model_latents_are_the_table_rows_and_samples_follow_their_spread():
+    """An embedding-table model (the default): image:/mean read the table's current rows (not the value recorded
+    at the image's last visit), and sample: draws from the rows' own Gaussian, not N(0, I)."""
+    from tests.test_mask_eval import _tiny_model as tiny
+
+    model = tiny(use_vae=False)
+    model.eval()
+    model.set_train_image_names(["a.png", "b.png"])
+    emb = model.appearance_nets.embeddings.weight
+    with torch.no_grad():  # trained rows far from N(0, I); train_latents keeps its stale zeros
+        emb.copy_(
+            3.0 + torch.tensor([[0.5], [-0.5]]) * torch.randn(emb.shape[1], generator=torch.Generator().manual_seed(1))
+        )
+    assert torch.equal(resolve_latent("image:b", model), emb[1].detach())
+    torch.testing.assert_close(resolve_latent("mean", model), emb.mean(0).detach())
+    s = torch.stack([resolve_latent(f"sample:{k}", model) for k in range(64)])
+    assert torch.equal(s[3], resolve_latent("sample:3", model))  # reproducible
+    # every sample lies on the line through the two rows (their covariance has rank 1), near their mean
+    mid, half = emb.mean(0).detach(), (emb[1] - emb[0]).detach() / 2
+    t = ((s - mid) @ half) / (half @ half)
+    torch.testing.assert_close(s, mid + t[:, None] * half, atol=1e-3, rtol=1e-3)
+    assert 0.3 < float(t.abs().mean()) < 3.0
+
+
+def test_embedding_table_has_its_own_optimiser_group():
+    from tests.test_mask_eval import _tiny_model as tiny
+    from willags_ns.method_configs import willags_config
+
+    model = tiny(use_vae=False)
+    groups = model.get_param_groups()
+    emb = model.appearance_nets.embeddings.weight
+    assert [p is emb for p in groups["appearance_embed"]] == [True]
+    assert all(p is not emb for p in groups["appearance"])
+    assert willags_config().optimizers["appearance_embed"]["optimizer"].lr == 0.02
+    assert "appearance_embed" not in tiny(use_vae=True).get_param_groups()

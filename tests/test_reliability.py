@@ -623,7 +623,8 @@ def test_row6_all_black_and_all_white_training_images_train_finite_through_nerfs
     meta = _frames(scene)
     for i, name in enumerate(meta["train_filenames"]):
         Image.new("RGB", (32, 24), (0, 0, 0) if i % 2 else (255, 255, 255)).save(scene / name)
-    _, _, losses = _train(tmp_path / "out", scene, steps=6)  # mask (teacher + VGG) active from step 2
+    # with the VAE latent: its KL term must stay finite too (the default's embedding table has no KL)
+    _, _, losses = _train(tmp_path / "out", scene, steps=6, use_vae=True)  # mask (teacher + VGG) from step 2
     assert len(losses) == 6 and all(math.isfinite(v) for v, _ in losses)
     masked = [m for _, m in losses if "masked_fraction" in m]
     assert masked and all(math.isfinite(m["vae_kl"]) and math.isfinite(m["masked_fraction"]) for m in masked)

@@ -68,7 +68,10 @@ def test_willags_trains_saves_and_reloads(tmp_path):
     _check_finite(losses)
     metrics = [m for _, m in losses]
     assert any("masked_fraction" in m for m in metrics), "the transient mask never ran after its warm-up"
-    assert any("vae_kl" in m for m in metrics)
+    # the default latent is a per-image embedding table (no VAE, no KL term)
+    assert not any("vae_kl" in m for m in metrics)
+    nets = trainer.pipeline.model.appearance_nets
+    assert nets.vae is None and nets.embeddings is not None
     run_dir = config.get_base_dir()
     ckpts = list((run_dir / "nerfstudio_models").glob("*.ckpt"))
     assert ckpts, "no checkpoint written"

@@ -203,8 +203,8 @@ def embedding_sample(model, eps: Tensor) -> Tensor:
 
     Why: an embedding table has no prior (a VAE's latents are pulled to N(0, I) by its KL term, an embedding
     table's are wherever training put them), so N(0, I) itself would be an appearance far from every photo."""
-    seen = model.train_latent_seen
-    lat = model.train_latents[seen] if bool(seen.any()) else model.appearance_nets.embeddings.weight.detach()
+    lat, seen = model.image_latents()
+    lat = lat[seen]
     mu = lat.mean(0)
     if lat.shape[0] < 2:
         return mu
@@ -232,13 +232,10 @@ def checked_latent(z: Tensor, source: str, max_norm: float = MAX_LATENT_NORM) ->
 
 def mean_latent(model) -> Tensor:
     """The mean of the training images' latents (what the model renders when nothing is chosen)."""
-    seen = model.train_latent_seen
+    lat, seen = model.image_latents()
     if bool(seen.any()):
-        return model.train_latents[seen].mean(0)
-    emb = getattr(model.appearance_nets, "embeddings", None)
-    if emb is not None:
-        return emb.weight.mean(0).detach()
-    return torch.zeros(model.train_latents.shape[1], device=model.train_latents.device)
+        return lat[seen].mean(0)
+    return torch.zeros(lat.shape[1], device=lat.device)
 
 
 def image_index(key: str, image_names: list[str], seen: Tensor | None = None, context: str = "image") -> int:
@@ -385,8 +382,9 @@ def resolve_latent(
     if isinstance(spec, MeanSpec):
         z = mean_latent(model)
     elif isinstance(spec, ImageSpec):
-        i = image_index(spec.key, list(model.image_names), model.train_latent_seen, context)
-        z = model.train_latents[i].clone()
+        lat, seen = model.image_latents()
+        i = image_index(spec.key, list(model.image_names), seen, context)
+        z = lat[i].clone()
     elif isinstance(spec, SampleSpec):
         z = sample_latent(dim, spec.seed, device)
         if model.appearance_nets.vae is None:

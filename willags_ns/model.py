@@ -468,14 +468,24 @@ class WillagsModel(SplatfactoModel):
         img = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
         return img[..., :3].permute(2, 0, 1).to(self.device)  # [3, H, W]
 
+    def image_latents(self) -> tuple[Tensor, Tensor]:
+        """(latents [num_train, D], known [num_train] bool) of the training images, detached.
+
+        An embedding table's rows are the latents (current values; every row exists from the start). With the VAE,
+        the encoder's mean recorded at each image's last training visit, known once the image was drawn."""
+        assert self.appearance_nets is not None
+        emb = self.appearance_nets.embeddings
+        if emb is not None:
+            lat = emb.weight.detach()
+            return lat, torch.ones(lat.shape[0], dtype=torch.bool, device=lat.device)
+        return self.train_latents, self.train_latent_seen
+
     def default_latent(self) -> Tensor:
         """The appearance used when none is chosen: the mean of the training images' latents."""
         assert self.appearance_nets is not None
-        seen = self.train_latent_seen
+        lat, seen = self.image_latents()
         if seen.any():
-            return self.train_latents[seen].mean(0)
-        if self.appearance_nets.embeddings is not None:
-            return self.appearance_nets.embeddings.weight.mean(0).detach()
+            return lat[seen].mean(0)
         return torch.zeros(self.appearance_nets.latent_dim, device=self.device)
 
     def current_latent(self) -> Tensor:

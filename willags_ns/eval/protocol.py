@@ -152,9 +152,10 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
     k = n if max_images < 0 else min(max_images, n)
     idx = sorted({round(i * (n - 1) / max(1, k - 1)) for i in range(k)})
     appearance = getattr(model.config, "appearance", "sh") == "willags"
+    latents = model.image_latents()[0] if appearance else None
     scores = []
     for i in idx:
-        z = model.train_latents[i] if appearance else None
+        z = latents[i] if latents is not None else None
         pred = render_with_latent(model, cameras[i : i + 1].to(model.device), z)
         gt = images[i][..., :3].float().to(model.device)
         scores.append(image_scores(pred, gt))

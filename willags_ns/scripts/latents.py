@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 import tyro
 
 
@@ -30,12 +29,7 @@ def training_latents(model) -> tuple[np.ndarray, list[str], np.ndarray]:
     """(latents [N, D] float32, names [N], seen [N] bool) of a WillagsModel's training images."""
     if getattr(model.config, "appearance", None) != "willags" or model.appearance_nets is None:
         raise SystemExit("error: this checkpoint has no appearance model (willags-3dgs): no latents")
-    emb = model.appearance_nets.embeddings
-    if emb is not None:  # embedding-table models: the rows are the latents (every row is trained)
-        lat = emb.weight.detach()
-        seen = torch.ones(lat.shape[0], dtype=torch.bool)
-    else:
-        lat, seen = model.train_latents, model.train_latent_seen
+    lat, seen = model.image_latents()  # embedding-table models: the rows (every row is trained)
     names = list(model.image_names)[: lat.shape[0]]
     return lat.detach().cpu().float().numpy(), names, seen.cpu().numpy().astype(bool)
 
