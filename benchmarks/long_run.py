@@ -45,6 +45,24 @@ def _ckpt_steps(run_dir: Path) -> list[int]:
     return sorted(int(p.stem.split("-")[1]) for p in d.glob("step-*.ckpt")) if d.is_dir() else []
 
 
+def _patch_splatfacto_resume() -> None:
+    """Stock splatfacto's load_state_dict replaces its Parameter objects with new ones of the checkpoint's size, but
+    nerfstudio's Trainer built the optimisers (and loads their state) on the old ones: a resumed run optimises
+    tensors the model no longer uses and gsplat's densification indexes mismatched states (a device-side assert,
+    seen here). Resize the Parameters in place instead, as WillagsModel.load_state_dict does."""
+    import torch
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
+    def load_state_dict(self, state, **kwargs):
+        self.step = 30000  # as stock: the trainer's step callback sets the real step before the next iteration
+        n = state["gauss_params.means"].shape[0]
+        for param in self.gauss_params.values():
+            param.data = torch.zeros((n,) + param.shape[1:], device=self.device)
+        torch.nn.Module.load_state_dict(self, state, **kwargs)
+
+    SplatfactoModel.load_state_dict = load_state_dict
+
+
 def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_step: int | None, test_mode: str):
     """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given)."""
     import random
@@ -56,6 +74,7 @@ def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_s
 
     if METHODS[method].base == "splatfacto":
         _patch_stock_splatfacto()
+        _patch_splatfacto_resume()
     config = build_config(
         method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
     )
