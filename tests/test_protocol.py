@@ -122,16 +122,21 @@ def _state(model):
     return {k: v.detach().clone() for k, v in model.state_dict().items() if torch.is_tensor(v)}
 
 
+def _render_under(model, cam, z):
+    """The model's own render of `cam` under latent z: a ground truth whose appearance is known."""
+    c = cam.to("cpu")
+    c.metadata = {"appearance_latent": z}
+    with torch.no_grad():
+        return model.get_outputs(c)["rgb"].clone()
+
+
 def test_protocol_fits_the_latent_and_leaves_the_scene_untouched():
     model = _tiny_model()
     cam = _camera()
     model.eval()
     # ground truth: the model's own render under a latent far from the encoder's guess
     z_true = 3.0 * torch.randn(8, generator=torch.Generator().manual_seed(1))
-    c = cam.to("cpu")
-    c.metadata = {"appearance_latent": z_true}
-    with torch.no_grad():
-        gt = model.get_outputs(c)["rgb"].clone()
+    gt = _render_under(model, cam, z_true)
     assert gt.std() > 0.01
     before = _state(model)
     flags = {n: p.requires_grad for n, p in model.named_parameters()}
@@ -152,10 +157,7 @@ def test_protocol_without_vae_starts_from_the_mean_embedding():
     model = _tiny_model(use_vae=False)
     cam = _camera()
     model.eval()
-    c = cam.to("cpu")
-    c.metadata = {"appearance_latent": torch.full((8,), 2.0)}
-    with torch.no_grad():
-        gt = model.get_outputs(c)["rgb"].clone()
+    gt = _render_under(model, cam, torch.full((8,), 2.0))
     before = _state(model)
     agg, _ = evaluate_model(model, cam, [gt], EvalProtocolConfig(steps=15, lr=0.1))
     assert agg["left_loss_after"] < agg["left_loss_before"]
@@ -187,10 +189,7 @@ def test_oracle_latent_and_train_view_scores():
     cam = _camera()
     model.eval()
     z_true = 3.0 * torch.randn(8, generator=torch.Generator().manual_seed(1))
-    c = cam.to("cpu")
-    c.metadata = {"appearance_latent": z_true}
-    with torch.no_grad():
-        gt = model.get_outputs(c)["rgb"].clone()
+    gt = _render_under(model, cam, z_true)
     agg, _ = evaluate_model(model, cam, [gt], EvalProtocolConfig(steps=25, lr=0.1, oracle=True))
     assert math.isfinite(agg["oracle_psnr"]) and agg["oracle_psnr"] >= agg["psnr"] - 0.5
     model.train_latents[0] = z_true

@@ -513,20 +513,10 @@ def _seeded_losses(out: Path, data: Path, steps: int) -> list[float]:
 
     # densification at steps 30, 60, 90 (every 3 steps, tuned for real images, grows 32x24 scenes 100-fold)
     config = _tiny_config(out, data, steps=steps, refine_every=30)
+    from tests.test_train import train_recording
+
     _set_random_seed(config.machine.seed)  # what ns-train's train_loop does
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    losses = []
-    orig = trainer.train_iteration
-
-    def spy(step):
-        loss, loss_dict, metrics = orig(step)
-        losses.append(float(loss))
-        return loss, loss_dict, metrics
-
-    trainer.train_iteration = spy
-    trainer.train()
-    return losses
+    return [loss for loss, _ in train_recording(config)[1]]
 
 
 def test_row20_same_seed_twice_gives_the_same_losses_for_100_steps(tiny_scene_src, tmp_path):

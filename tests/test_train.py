@@ -43,6 +43,12 @@ def _train(tmp_path: Path, method: str = "willags", steps: int = 20, data=None, 
         setattr(m, k, v)
     config.set_timestamp()
     config.save_config()
+    trainer, losses = train_recording(config)
+    return config, trainer, losses
+
+
+def train_recording(config):
+    """Set up and train `config` with nerfstudio's Trainer; returns (trainer, [(loss, scalar metrics)] per step)."""
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     losses = []
@@ -55,7 +61,7 @@ def _train(tmp_path: Path, method: str = "willags", steps: int = 20, data=None, 
 
     trainer.train_iteration = spy
     trainer.train()
-    return config, trainer, losses
+    return trainer, losses
 
 
 def _check_finite(losses):

@@ -18,9 +18,9 @@ This module imports neither the model nor the viewer (both import it), so there 
 import math
 import re
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Union
+from typing import TYPE_CHECKING, ClassVar, Union
 
 import numpy as np
 import torch
@@ -54,40 +54,41 @@ class MeanSpec:
         return "mean"
 
 
+class _OneArgSpec:
+    """A SPEC of one argument: prints back as `<KIND>:<argument>`."""
+
+    KIND: ClassVar[str] = ""
+
+    def __str__(self) -> str:
+        return f"{self.KIND}:{getattr(self, fields(self)[0].name)}"  # type: ignore[arg-type]
+
+
 @dataclass(frozen=True)
-class ImageSpec:
+class ImageSpec(_OneArgSpec):
+    KIND: ClassVar[str] = "image"
     key: str
     """Training image file name, stem or dataset index."""
 
-    def __str__(self) -> str:
-        return f"image:{self.key}"
-
 
 @dataclass(frozen=True)
-class PhotoSpec:
+class PhotoSpec(_OneArgSpec):
+    KIND: ClassVar[str] = "photo"
     path: Path
-    """Any photo; encoded by the VAE encoder."""
-
-    def __str__(self) -> str:
-        return f"photo:{self.path}"
+    """Any photo: fitted to (--refine-steps) and/or encoded by the VAE encoder."""
 
 
 @dataclass(frozen=True)
-class SampleSpec:
+class SampleSpec(_OneArgSpec):
+    KIND: ClassVar[str] = "sample"
     seed: int
-    """Seed of z ~ N(0, I)."""
-
-    def __str__(self) -> str:
-        return f"sample:{self.seed}"
+    """Seed of the draw (z ~ N(0, I), or the embedding rows' Gaussian)."""
 
 
 @dataclass(frozen=True)
-class LatentFileSpec:
+class LatentFileSpec(_OneArgSpec):
+    KIND: ClassVar[str] = "latent"
     path: Path
     """A .npy file holding one latent."""
-
-    def __str__(self) -> str:
-        return f"latent:{self.path}"
 
 
 @dataclass(frozen=True)

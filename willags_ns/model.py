@@ -580,15 +580,18 @@ class WillagsModel(SplatfactoModel):
     def _sh_key(self, z: Tensor, means: Tensor, degree: int) -> tuple:
         return (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step, degree)
 
-    def _frame_sh(self, z: Tensor, means: Tensor, f_s: Tensor | None, degree: int, sh: Tensor | None) -> Tensor | None:
+    def _frame_sh(self, z: Tensor, means: Tensor, f_s: Tensor | None, degree: int, gp: dict) -> Tensor | None:
         """The baked SH for this frame, or None to run the decoder. Bakes on the second frame with the same (latent,
         Gaussians): a viewer refreshing during training, where the Gaussians change every step, keeps the exact
-        decoder instead of paying a bake per frame."""
+        decoder instead of paying a bake per frame. The Gaussians' own SH (`gp`) is gathered only for a bake: a
+        cached frame costs no [N, 16, 3] copy."""
         key = self._sh_key(z, means, degree)
-        if self._sh_seen != key and (self._sh_cache is None or self._sh_cache[0] != key):
+        if self._sh_cache is not None and self._sh_cache[0] == key:
+            return self._sh_cache[1]
+        if self._sh_seen != key:
             self._sh_seen = key
             return None
-        return self.baked_sh(z, means, f_s, degree, key, sh=sh)
+        return self.baked_sh(z, means, f_s, degree, key, sh=self.sh_coeffs(gp))
 
     @torch.no_grad()
     def baked_sh(
@@ -741,7 +744,7 @@ class WillagsModel(SplatfactoModel):
             deg = cfg.render_sh_degree
             sh = None
             if fixed and deg >= 0 and "appearance_latent" not in (camera.metadata or {}):
-                sh = self._frame_sh(z, gp["means"], gp.get("features"), deg, self.sh_coeffs(gp))
+                sh = self._frame_sh(z, gp["means"], gp.get("features"), deg, gp)
             if sh is not None:
                 colors, sh_degree = sh, deg
             else:
