@@ -83,3 +83,41 @@ def test_search_narrows_both_lists_and_keeps_the_choice():
     assert "IMG_2.jpg" in listed and "IMG_21.jpg" in listed and "IMG_5.jpg" not in listed
     assert "IMG_3.jpg" in listed  # the chosen entry stays selectable
     assert "IMG_3.jpg" not in ctl.p02_b.options[3:]
+
+
+def test_use_photo_fits_the_latent_on_an_embedding_table_model(tmp_path):
+    """The default model has no encoder: "Use photo" fits the photo's latent (as --refine-steps does) from the
+    training cameras the pipeline gives the panel, instead of failing."""
+    from types import SimpleNamespace
+
+    from tests.test_mask_eval import _tiny_model as tiny
+    from willags_ns.viewer import AppearanceControls
+
+    model = tiny(use_vae=False)
+    model.eval()
+    model.set_train_image_names(["a.png", "b.png"])
+    with torch.no_grad():
+        model.appearance_nets.modulation.global_mlp[-1].weight.normal_(0.0, 0.3)  # colours depend on z
+    ctl = AppearanceControls(model, ["a.png", "b.png"])
+    ctl.set_train_dataset(SimpleNamespace(cameras=_camera(48, 32)))
+    c = _camera(48, 32)
+    c.metadata = {"appearance_latent": torch.full((8,), 1.5)}
+    with torch.no_grad():  # the "photo": the model's own render under a latent far from the mean
+        photo = (model.get_outputs(c)["rgb"].clamp(0, 1) * 255).to(torch.uint8).numpy()
+    Image.fromarray(photo).save(tmp_path / "p.png")
+    ctl.p05_photo.value = str(tmp_path / "p.png")
+    ctl.p06_use_photo.cb_hook(ctl.p06_use_photo)
+    assert ctl.p11_status.content == "" and ctl.spec == f"photo:{tmp_path / 'p.png'}"
+    mean = model.image_latents()[0].mean(0)
+
+    @torch.no_grad()
+    def err(z):
+        return float((model.get_outputs(_with(z))["rgb"] - torch.from_numpy(photo) / 255.0).abs().mean())
+
+    assert err(model.render_latent) < 0.7 * err(mean)
+
+
+def _with(z):
+    c = _camera(48, 32)
+    c.metadata = {"appearance_latent": z}
+    return c

@@ -29,6 +29,7 @@ from torch import nn
 from willags_ns.appearance_spec import (
     AppearanceSpecError,
     ImageSpec,
+    RefineOptions,
     image_index,
     interpolate_latents,
     parse_spec,
@@ -144,6 +145,10 @@ def _markdown_element(name: str, content: str):
     return ViewerMarkdown(name, content)
 
 
+VIEWER_PHOTO_REFINE_STEPS = 50
+"""Adam steps fitting a photo's latent in the viewer when the model has no encoder (`photo:P --refine-steps 50`)."""
+
+
 class AppearanceControls(nn.Module):
     """Holds the viewer elements (nerfstudio finds ViewerElements on nn.Modules under the pipeline).
 
@@ -186,7 +191,9 @@ class AppearanceControls(nn.Module):
             "Search training images", "", cb_hook=lambda _: self._on_search(), hint="filters both lists"
         )
         self.p04_t = ViewerSlider("A -> B", 0.0, 0.0, 1.0, 0.01, cb_hook=ctl, hint="interpolation weight")
-        self.p05_photo = ViewerText("Photo path", "", hint="any photo: its appearance through the VAE encoder")
+        self.p05_photo = ViewerText(
+            "Photo path", "", hint="any photo: its appearance fitted to it (or through the VAE encoder)"
+        )
         self.p06_use_photo = ViewerButton("Use photo", cb_hook=lambda _: self._choose(PHOTO))
         self.p07_seed = ViewerNumber("Random seed", 0, cb_hook=ctl, hint="z ~ N(0, I) from this seed")
         self.p08_random = ViewerButton("Random appearance", cb_hook=lambda _: self._next_sample())
@@ -243,7 +250,11 @@ class AppearanceControls(nn.Module):
         with self._lock:
             try:
                 parsed = parse_spec(spec, "viewer")
-                z = resolve_latent(parsed, m, cache=self._photo_cache, context="viewer")
+                refine, cams = None, None
+                if m.appearance_nets.vae is None and self._train_dataset is not None:
+                    # no encoder (an embedding-table model, the default): a photo's latent is fitted to it
+                    refine, cams = RefineOptions(steps=VIEWER_PHOTO_REFINE_STEPS), self._train_dataset.cameras
+                z = resolve_latent(parsed, m, refine=refine, cameras=cams, cache=self._photo_cache, context="viewer")
             except AppearanceSpecError as e:
                 self.p11_status.set_content(f"**{e}**")
                 return False
