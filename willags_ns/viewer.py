@@ -195,7 +195,9 @@ class AppearanceControls(nn.Module):
             "Photo path", "", hint="any photo: its appearance fitted to it (or through the VAE encoder)"
         )
         self.p06_use_photo = ViewerButton("Use photo", cb_hook=lambda _: self._choose(PHOTO))
-        self.p07_seed = ViewerNumber("Random seed", 0, cb_hook=ctl, hint="a new appearance drawn from this seed (sample:SEED)")
+        self.p07_seed = ViewerNumber(
+            "Random seed", 0, cb_hook=ctl, hint="a new appearance drawn from this seed (sample:SEED)"
+        )
         self.p08_random = ViewerButton("Random appearance", cb_hook=lambda _: self._next_sample())
         self.p09_spec = ViewerText(
             "Appearance spec", "mean", cb_hook=lambda _: self._on_spec_text(), hint="willags-render --appearance"
