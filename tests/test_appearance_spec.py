@@ -252,3 +252,34 @@ def test_embedding_table_has_its_own_optimiser_group():
     assert all(p is not emb for p in groups["appearance"])
     assert willags_config().optimizers["appearance_embed"]["optimizer"].lr == 0.02
     assert "appearance_embed" not in tiny(use_vae=True).get_param_groups()
+
+
+def test_ns_render_camera_idx_renders_that_training_images_appearance(monkeypatch):
+    """nerfstudio's `ns-render camera-path --camera-idx N` puts cam_idx N in the cameras' metadata: the render
+    takes training image N's latent, unless an appearance was chosen (render_latent, $WILLAGS_APPEARANCE) or the
+    viewer is open (its cameras carry cam_idx too; its panel decides)."""
+    from tests.test_mask_eval import _tiny_model as tiny
+
+    monkeypatch.delenv(APPEARANCE_ENV, raising=False)
+    model = tiny(use_vae=False)
+    model.eval()
+    model.set_train_image_names(["a.png", "b.png"])
+    with torch.no_grad():
+        model.appearance_nets.modulation.global_mlp[-1].weight.normal_(0.0, 0.5)
+        model.appearance_nets.embeddings.weight.normal_(0.0, 2.0)
+    lat = model.image_latents()[0]
+
+    @torch.no_grad()
+    def render(**md):
+        c = _camera(48, 32)
+        c.metadata = md
+        return model.get_outputs(c)["rgb"]
+
+    torch.testing.assert_close(render(cam_idx=1), render(appearance_latent=lat[1]))
+    assert not torch.allclose(render(cam_idx=1), render(cam_idx=0), atol=1e-3)
+    mean = render()
+    model.render_latent = lat[0].clone()  # a chosen appearance wins
+    torch.testing.assert_close(render(cam_idx=1), render(appearance_latent=lat[0]))
+    model.render_latent = None
+    model.viewer_controls.p01_a.gui_handle = object()  # the viewer is open: the panel (here: the mean) decides
+    torch.testing.assert_close(render(cam_idx=1), mean)

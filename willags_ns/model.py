@@ -488,6 +488,22 @@ class WillagsModel(SplatfactoModel):
             return lat[seen].mean(0)
         return torch.zeros(self.appearance_nets.latent_dim, device=self.device)
 
+    def _camera_idx_latent(self, cam_idx) -> Tensor | None:
+        """Training image `cam_idx`'s latent when nothing else chose the appearance: `ns-render camera-path
+        --camera-idx N` (nerfstudio's convention: that image's appearance). Not while the viewer is open: its cameras
+        carry cam_idx too (0, or the last training frustum clicked) and the panel's choice, the mean included, is
+        what it shows."""
+        if cam_idx is None or self.render_latent is not None or os.environ.get(APPEARANCE_ENV):
+            return None
+        controls = getattr(self, "viewer_controls", None)
+        if controls is not None and getattr(controls.p01_a, "gui_handle", None) is not None:
+            return None
+        lat, known = self.image_latents()
+        i = int(cam_idx)
+        if not (0 <= i < lat.shape[0]) or not bool(known[i]):
+            return None
+        return lat[i].to(self.device)
+
     def current_latent(self) -> Tensor:
         """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
         if self.render_latent is not None:
@@ -794,7 +810,8 @@ class WillagsModel(SplatfactoModel):
         if not self.training:
             if "appearance_latent" in md:
                 return torch.as_tensor(md["appearance_latent"], device=self.device).reshape(-1).float()
-            return self.current_latent()
+            z = self._camera_idx_latent(md.get("cam_idx"))
+            return z if z is not None else self.current_latent()
         batch = self._train_batch
         if batch is None:
             raise RuntimeError(
