@@ -572,8 +572,13 @@ def test_photo_collection_foreign_photo_and_duplicate_run_finite_with_a_warning(
     shutil.copy(scene / "images" / dup_of, scene / "images" / dup)
     warns = _validate(scene)
     assert any(dup in w and dup_of in w and "byte-identical" in w for w in warns), warns
-    with pytest.warns(UserWarning, match="byte-identical"):
+    with pytest.warns(UserWarning) as record:
         _, _, losses = _train(tmp_path / "out", scene, steps=3, num_downscales=3, resolution_schedule=10**9)
+    texts = [str(w.message) for w in record]
+    assert any("byte-identical" in t for t in texts), texts
+    # the photo of another place: named before training; no genuine photo of the collection is
+    flagged = [t for t in texts if "photo of another place" in t]
+    assert len(flagged) == 1 and foreign in flagged[0], flagged
     assert len(losses) == 3 and all(math.isfinite(v) for v, _ in losses)
 
 

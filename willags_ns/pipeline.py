@@ -13,6 +13,8 @@ It is also where every willags method checks its inputs and guards training, wha
   files exist, decode, match their camera's size; poses finite and rotations proper; fx, fy > 0; >= 1 image;
 - during training: a clear error when every Gaussian was pruned; a (rate-limited) warning when the transient mask
   was rejected because it flagged most of an image;
+- before training, a warning for a photo whose colours do not follow the SfM points it should show (a photo of
+  another place under a registered frame: `check_photo_content`);
 - Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
   at the next step with the same parameters and optimiser state (`InterruptCheckpoint`).
 """
@@ -32,6 +34,7 @@ from willags_ns.checks import (
     validate_dataparser_outputs,
     warn_all,
 )
+from willags_ns.data.consistency import foreign_photo_warnings
 from willags_ns.eval.protocol import EvalProtocolConfig, eval_split_images, evaluate_model
 
 MASK_REJECTED_WARN_EVERY_S = 60.0
@@ -48,6 +51,10 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     check_inputs: bool = True
     """Before training: check every training image (exists, decodes, matches its camera's size), the poses
     (finite, proper rotations) and the intrinsics (fx, fy > 0); stop with a message naming the file / frame."""
+    check_photo_content: bool = True
+    """Before training: warn about training photos whose colours do not follow the SfM points they should show (a
+    photo of another place under a registered frame; willags_ns/data/consistency.py). Needs SfM points; ~2 s per 50
+    photos on a CPU."""
     checkpoint_on_interrupt: bool = True
     """Ctrl-C finishes the current step, writes a checkpoint and exits; resume with --load-dir. A second Ctrl-C
     interrupts at once."""
@@ -155,6 +162,8 @@ class WillagsPipeline(VanillaPipeline):
                 device = kwargs.get("device", args[0] if args else None)
                 outputs = self.datamanager.train_dataparser_outputs
                 warn_all(validate_dataparser_outputs(outputs, device=str(device) if device is not None else None))
+                if config.check_photo_content:
+                    warn_all(foreign_photo_warnings(outputs))
             return original_setup(**model_kwargs)
 
         model_config.setup = setup_after_checks  # type: ignore[method-assign]
