@@ -283,3 +283,28 @@ def test_ns_render_camera_idx_renders_that_training_images_appearance(monkeypatc
     model.render_latent = None
     model.viewer_controls.p01_a.gui_handle = object()  # the viewer is open: the panel (here: the mean) decides
     torch.testing.assert_close(render(cam_idx=1), mean)
+
+
+def test_photo_on_an_embedding_model_is_fitted_without_refine_steps(tmp_path):
+    """No encoder: photo:P fits the latent to the photo (PHOTO_FIT_STEPS) instead of failing; it needs the
+    training cameras, and says so without them."""
+    from tests.test_mask_eval import _tiny_model as tiny
+    from willags_ns.appearance_spec import PHOTO_FIT_STEPS
+
+    model = tiny(use_vae=False)
+    model.eval()
+    model.set_train_image_names(["a.png", "b.png"])
+    with torch.no_grad():
+        model.appearance_nets.modulation.global_mlp[-1].weight.normal_(0.0, 0.3)
+    c = _camera(48, 32)
+    c.metadata = {"appearance_latent": torch.full((8,), 1.5)}
+    with torch.no_grad():
+        photo = (model.get_outputs(c)["rgb"].clamp(0, 1) * 255).to(torch.uint8).numpy()
+    Image.fromarray(photo).save(tmp_path / "p.png")
+    spec = f"photo:{tmp_path / 'p.png'}"
+    with pytest.raises(AppearanceSpecError, match="needs the training cameras"):
+        resolve_latent(spec, model)
+    z = resolve_latent(spec, model, cameras=_camera(48, 32))
+    z_ref = resolve_latent(spec, model, refine=RefineOptions(steps=PHOTO_FIT_STEPS), cameras=_camera(48, 32))
+    torch.testing.assert_close(z, z_ref)  # the same fit as --refine-steps PHOTO_FIT_STEPS
+    assert not torch.allclose(z, model.image_latents()[0].mean(0))

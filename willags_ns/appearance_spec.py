@@ -297,6 +297,10 @@ def load_latent_file(path: Path, dim: int, context: str = "latent") -> Tensor:
 # ---------------------------------------------------------------------------------------------- resolving
 
 
+PHOTO_FIT_STEPS = 50
+"""Adam steps fitting a photo's latent when the model has no encoder and no --refine-steps was given."""
+
+
 @dataclass
 class RefineOptions:
     """Latent refinement of `photo:` SPECs: the encoder's latent, then Adam on the photo (NeRF-W protocol's fit)."""
@@ -400,16 +404,17 @@ def resolve_latent(
         photo = load_photo(spec.path, context)
         if model.appearance_nets.vae is not None:
             z = model.encode_image(photo)
-        elif steps > 0:
-            z = mean_latent(model)  # no encoder (embedding-table model): refinement starts from the mean
         else:
-            raise AppearanceSpecError(
-                f"{context}: photo:{spec.path} needs the VAE encoder (this model uses an embedding table); "
-                "add --refine-steps N to fit a latent to the photo instead"
-            )
+            z = mean_latent(model)  # no encoder (embedding-table model): the latent is fitted, from the mean
+            if steps == 0:
+                steps = PHOTO_FIT_STEPS
+                refine = RefineOptions(steps=steps, view=refine.view if refine is not None else None)
         if steps > 0:
             if cameras is None:
-                raise AppearanceSpecError(f"{context}: refining photo:{spec.path} needs the training cameras")
+                raise AppearanceSpecError(
+                    f"{context}: photo:{spec.path} is fitted to the photo from a training view, which needs the "
+                    "training cameras (use willags-render / willags-export, or the viewer's 'Use photo')"
+                )
             assert refine is not None
             z = refine_photo_latent(model, photo, z, cameras, refine)
         z = checked_latent(z.detach(), f"{context}: photo:{spec.path}")

@@ -41,7 +41,13 @@ _OPTION_FIELDS = [
     ("appearance", Annotated[str | None, tyro.conf.arg(help=APPEARANCE_HELP)], None),
     (
         "refine_steps",
-        Annotated[int, tyro.conf.arg(help="photo: SPECs: Adam steps refining the encoder's latent on the photo.")],
+        Annotated[
+            int,
+            tyro.conf.arg(
+                help="photo: SPECs: Adam steps fitting the latent to the photo (from the encoder's latent, or the "
+                "mean; 0 = the encoder's latent as it is, or 50 steps for a model without an encoder)."
+            ),
+        ],
         0,
     ),
     (
