@@ -121,3 +121,23 @@ def _with(z):
     c = _camera(48, 32)
     c.metadata = {"appearance_latent": z}
     return c
+
+
+def test_ns_viewer_of_a_willags_checkpoint_listens_on_localhost_unless_asked(monkeypatch):
+    """ns-viewer swaps the run's saved host for its own default 0.0.0.0; the guard a willags pipeline installs in
+    test mode keeps the viewer on 127.0.0.1 unless $WILLAGS_VIEWER_HOST or an explicit other host says otherwise."""
+    from nerfstudio.configs.base_config import ViewerConfig
+    from nerfstudio.viewer import viewer as ns_viewer
+
+    from willags_ns.viewer import VIEWER_HOST_ENV, guard_viewer_host
+
+    seen = []
+    monkeypatch.setattr(ns_viewer.Viewer, "__init__", lambda self, config, *a, **k: seen.append(config.websocket_host))
+    monkeypatch.delenv(VIEWER_HOST_ENV, raising=False)
+    guard_viewer_host()
+    guard_viewer_host()  # installed once
+    for host in ("0.0.0.0", "192.168.1.7"):
+        ns_viewer.Viewer(ViewerConfig(websocket_host=host), None, None, None)
+    monkeypatch.setenv(VIEWER_HOST_ENV, "0.0.0.0")
+    ns_viewer.Viewer(ViewerConfig(websocket_host="0.0.0.0"), None, None, None)
+    assert seen == ["127.0.0.1", "192.168.1.7", "0.0.0.0"]

@@ -36,6 +36,7 @@ from willags_ns.checks import (
 )
 from willags_ns.data.consistency import foreign_photo_warnings
 from willags_ns.eval.protocol import EvalProtocolConfig, eval_split_images, evaluate_model
+from willags_ns.viewer import guard_viewer_host
 
 MASK_REJECTED_WARN_EVERY_S = 60.0
 """At most one 'mask rejected' warning per this many seconds (it is normal early in training)."""
@@ -149,6 +150,8 @@ class WillagsPipeline(VanillaPipeline):
         install_cli_excepthook()
         test_mode = kwargs.get("test_mode", args[1] if len(args) > 1 else "val")
         checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
+        if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default
+            guard_viewer_host()
         if checking:
             precheck_dataparser_config(config.datamanager)
         # The model is built inside VanillaPipeline.__init__ right after the datamanager parses the scene; the

@@ -19,6 +19,7 @@ numbered attribute names):
 
 import base64
 import io
+import os
 import threading
 from typing import TYPE_CHECKING
 
@@ -40,7 +41,38 @@ from willags_ns.appearance_spec import (
 if TYPE_CHECKING:
     from willags_ns.model import WillagsModel
 
-__all__ = ["AppearanceControls", "interpolate_latents", "sample_latent", "spec_from_choices"]
+__all__ = ["AppearanceControls", "guard_viewer_host", "interpolate_latents", "sample_latent", "spec_from_choices"]
+
+VIEWER_HOST_ENV = "WILLAGS_VIEWER_HOST"
+"""Host the viewer of a willags checkpoint listens on under `ns-viewer` (default 127.0.0.1; 0.0.0.0 exposes it)."""
+
+
+def guard_viewer_host() -> None:
+    """`ns-viewer` replaces the host saved in a run's config with its own default, 0.0.0.0: anyone on the network
+    could drive the viewer. Installed when a willags pipeline loads for viewing (test mode), so only willags
+    checkpoints are affected: the viewer then listens on 127.0.0.1, unless $WILLAGS_VIEWER_HOST names a host
+    (WILLAGS_VIEWER_HOST=0.0.0.0 exposes it) or --viewer.websocket-host names one other than 0.0.0.0."""
+    from nerfstudio.utils.rich_utils import CONSOLE
+    from nerfstudio.viewer import viewer as ns_viewer
+
+    original = ns_viewer.Viewer.__init__
+    if getattr(original, "_willags_host_guard", False):
+        return
+
+    def __init__(self, config, *args, **kwargs):
+        host = os.environ.get(VIEWER_HOST_ENV)
+        if host:
+            config.websocket_host = host
+        elif config.websocket_host == "0.0.0.0":
+            config.websocket_host = "127.0.0.1"
+            CONSOLE.log(
+                f"willags: the viewer listens on 127.0.0.1 only; {VIEWER_HOST_ENV}=0.0.0.0 opens it to the network"
+            )
+        original(self, config, *args, **kwargs)
+
+    __init__._willags_host_guard = True  # type: ignore[attr-defined]
+    ns_viewer.Viewer.__init__ = __init__  # type: ignore[method-assign]
+
 
 MEAN = "mean of training images"
 PHOTO = "photo (path below)"
