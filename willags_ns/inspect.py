@@ -6,11 +6,11 @@ split), measures three things on CPU in seconds, and turns them into a recommend
 
 Evidence 1, appearance variation (`appearance_score`, 8-bit colour levels). The SfM points are the scene's shared
 ground truth: a static point has one colour, so what differs between the images that see it is the photograph, not
-the scene. Every point is projected into every image that sees it (in the frustum, in front of the camera; for
-COLMAP scenes also only from a direction within `max_view_angle_deg` of a camera of its track, a cheap stand-in for
-a visibility test), and the image's colour is sampled there (3x3 box filter, images downscaled to `max_side`). Each
+the scene. Every point is projected into every image that sees it (in the frustum, in front of the camera, not behind a nearer point
+in a coarse point z-buffer of `zbuffer_cell` px cells; for COLMAP scenes also only from a direction within
+`max_view_angle_deg` of a camera of its track), and the image's colour is sampled there (3x3 box filter, images downscaled to `max_side`). Each
 point gets a reference colour m_p (the median over the images that see it) and each image i a per-channel affine
-transform c_ip ~= a_i m_p + b_i, fitted by least squares with one robust re-fit (residuals beyond 3 MADs dropped);
+transform c_ip ~= a_i m_p + b_i, fitted robustly (start from the pure gain, then rounds of least squares without the residuals beyond 2.5 MADs);
 then the references are recomputed from the images' colours with their transforms undone, and the transforms
 re-fitted (`iterations` rounds). An image's appearance change is the mean, over its points and channels, of
 |a_i m_p + b_i - m_p| (how far its global transform moves the scene's colours), in 8-bit levels; the scene's score is
@@ -18,14 +18,16 @@ the median over images. Why a per-image affine transform: exposure, white balanc
 are (nearly) per-image global colour transforms, which is what the latent of WilLaGS models first; content (people,
 cars, view-dependent highlights) is not, and robust fitting keeps it out of the transform.
 
-Evidence 2, transients (`transient_score`, a fraction of observations). With every image's transform undone, the
-colour of a point should agree across the images that see it. An observation is an outlier when its distance to the
-point's median colour exceeds max(`outlier_k` x 1.4826 x MAD of the point's observations, `outlier_floor`). The
-per-image outlier fraction is what an occluder covering part of the image raises; a scene's baseline (parallax,
-misregistration, self-occlusion the frustum test misses, specularities) raises it everywhere. The score is the mean
-over images of the outlier fraction above the scene's 25th percentile of image fractions (clipped at 0): the excess
-of the images that are worse than the best quarter. It does not reach transients in scenes where (nearly) every
-image is occluded by the same amount; those look like baseline. Read it next to the raw fractions (reported too).
+Evidence 2, transients (`transient_score`, a share of images). With every image's transform undone, the colour of
+a point should agree across the images that see it. An observation is an outlier when its RMS colour distance to the
+point's median colour exceeds `outlier_floor` (0.2, ~51 levels; optionally also `outlier_k` MADs of the point). An
+outlier is a *transient* observation only when it also disagrees (same limit) with each of the `neighbours` nearest
+cameras (by centre) that see the point: parallax, visibility errors the z-buffer misses and view-dependent colour are
+shared by nearby views, an occluder in one photo is not (without this test fox-clean's top-down views, where the
+wall hides behind the fox, scored like the occluded scenes). An image is occluded when at least
+`image_transient_level` (5%) of its observations are transient; the score is the share of occluded images. It cannot
+see occluders that sit where there are no SfM points (people in front of a facade's base, sky) nor occluders that
+recur at the same place in nearby views.
 
 Without SfM points (a transforms.json scene without a ply), the fallback is honest but weaker: per-image global
 colour statistics of images downscaled to 64 px (the spread across images of each image's mean colour, 8-bit
@@ -50,6 +52,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -94,16 +97,20 @@ class InspectConfig:
     """A point is used only when at least this many analysed images see it."""
     iterations: int = 2
     """Rounds of (reference colours, per-image transforms)."""
-    outlier_k: float = 3.0
-    """An observation is an outlier beyond this many robust standard deviations (1.4826 MAD) of its point."""
-    outlier_floor: float = 0.1
-    """... and beyond this colour distance (RMS over channels, colours in [0, 1]): ignores quantisation-level noise."""
-    appearance_threshold: float = 6.0
+    outlier_k: float = 0.0
+    """An observation is an outlier beyond this many robust standard deviations (1.4826 MAD) of its point's
+    observations (0: the fixed limit below alone, the default: per-point MADs grow with residual appearance change
+    and hid the occluders of fox-wild)."""
+    outlier_floor: float = 0.2
+    """... and beyond this colour distance (RMS over channels, colours in [0, 1]; 0.2 ~ 51 levels)."""
+    image_transient_level: float = 0.05
+    """An image counts as occluded when at least this fraction of its observations are transient."""
+    appearance_threshold: float = 12.0
     """appearance_score (8-bit levels) at or above which the appearance latent is recommended (SfM evidence)."""
     fallback_appearance_threshold: float = 12.0
     """The same threshold for the no-points fallback evidence (spread of per-image mean colours, 8-bit levels)."""
-    transient_threshold: float = 0.03
-    """transient_score at or above which the transient mask (and its teacher) is recommended."""
+    transient_threshold: float = 0.2
+    """transient_score (share of occluded images) at or above which the transient mask (and its teacher) is recommended."""
     gaussians_per_point: float = 10.0
     """Resource estimate: expected final Gaussians per SfM point (clipped to [1e5, 1.5e6])."""
     steps: int = 30000
@@ -193,6 +200,9 @@ def read_transforms_scene(root: Path, tf_path: Path) -> SceneViews:
         split = ["train" if n in train else "test" for n in names]
     elif any(root.glob("*.tsv")):
         split = _tsv_split(root, [Path(n).name for n in names])
+    missing = [p for p in paths if not p.is_file()]
+    if missing:
+        raise InspectError(f"{len(missing)} image(s) of {tf_path} are missing, e.g. {missing[0]}")
     points = None
     if meta.get("ply_file_path"):
         try:
@@ -451,7 +461,9 @@ def appearance_and_transients(colors: np.ndarray, cfg: InspectConfig, neighbours
             for m in range(M)
         ]
     )
-    dist = np.sqrt(np.nanmean((norm - ref[:, None]) ** 2, axis=-1))  # [P, M] RMS over channels
+    with warnings.catch_warnings():  # unseen observations are all-NaN rows
+        warnings.simplefilter("ignore", RuntimeWarning)
+        dist = np.sqrt(np.nanmean((norm - ref[:, None]) ** 2, axis=-1))  # [P, M] RMS over channels
     mad = np.nanmedian(dist, axis=1) * 1.4826
     limit = np.maximum(cfg.outlier_k * mad, cfg.outlier_floor)
     outlier = (dist > limit[:, None]) & seen
@@ -470,10 +482,9 @@ def appearance_and_transients(colors: np.ndarray, cfg: InspectConfig, neighbours
         checked |= both
     isolated &= checked
     tfrac = isolated.sum(axis=0) / np.maximum(seen.sum(axis=0), 1)
-    q25 = float(np.quantile(tfrac, 0.25))
     return {
         "appearance_score": float(np.nanmedian(per_image_change)),
-        "transient_score": float(np.mean(np.clip(tfrac - q25, 0, None))),
+        "transient_score": float(np.mean(tfrac >= cfg.image_transient_level)),
         "transient_fraction_mean": float(np.mean(tfrac)),
         "per_image_transient_fraction": tfrac.tolist(),
         "per_image_color_change": per_image_change.tolist(),
@@ -492,7 +503,11 @@ def global_color_evidence(paths: list[Path]) -> dict[str, Any]:
     levels, median over channels. Mixes appearance with content; transients are not measured."""
     means = np.stack([load_image(p, 64).reshape(-1, 3).mean(axis=0) for p in paths])
     spread = np.median(np.abs(means - np.median(means, axis=0)), axis=0) * 1.4826 * 255.0
-    return {"appearance_score": float(np.median(spread)), "transient_score": None, "per_image_mean_color": means.tolist()}
+    return {
+        "appearance_score": float(np.median(spread)),
+        "transient_score": None,
+        "per_image_mean_color": means.tolist(),
+    }
 
 
 def image_sizes(paths: list[Path]) -> np.ndarray:
@@ -555,9 +570,9 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
     else:
         mask = tr >= cfg.transient_threshold
         mask_reason = (
-            f"excess outlier fraction {tr:.3f} {'>=' if mask else '<'} threshold {cfg.transient_threshold:g} "
-            f"(median image {evidence['outlier_fraction_median']:.3f}, 90th percentile "
-            f"{evidence['outlier_fraction_p90']:.3f})"
+            f"{tr:.2f} of the images have >= {cfg.image_transient_level:g} of their observations transient "
+            f"{'>=' if mask else '<'} threshold {cfg.transient_threshold:g} (mean transient fraction "
+            f"{evidence['transient_fraction_mean']:.3f})"
         )
     if appearance:
         latent = 64 if n_train >= 30 else 32
@@ -576,7 +591,9 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
             preset_reason += "; willags cannot switch the latent off while keeping the mask, so the latent stays small"
     elif appearance:
         preset = "willags"
-        flags = ["--pipeline.model.use-mask False"] + ([] if latent == 64 else [f"--pipeline.model.vae.latent-dim {latent}"])
+        flags = ["--pipeline.model.use-mask False"] + (
+            [] if latent == 64 else [f"--pipeline.model.vae.latent-dim {latent}"]
+        )
         preset_reason = "appearance latent without the mask (and so without the teacher's renders)"
     else:
         preset, flags = "willags-3dgs", []
@@ -660,7 +677,7 @@ def format_report(report: dict[str, Any]) -> str:
         f"  rough estimate: ~{est['expected_gaussians']:,} Gaussians, GPU ~{est['gpu_memory_gb']} GB / "
         f"~{est['gpu_hours']} h, CPU ~{est['cpu_memory_gb']} GB / ~{est['cpu_hours']} h for {est['steps']} steps",
         f"  evidence ({e['method']}): appearance {e['appearance_score']:.2f} levels, transients "
-        + ("not measured" if ts is None else f"{ts:.4f}"),
+        + ("not measured" if ts is None else f"{ts:.2f} of the images occluded"),
     ]
     for key in ("appearance_latent", "mask", "teacher", "triplane_field"):
         lines.append(f"  {key}: {'ON ' if r[key]['on'] else 'off'}  ({r[key]['reason']})")
