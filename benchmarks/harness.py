@@ -101,6 +101,16 @@ METHODS: dict[str, MethodSpec] = {
         (("mask_every", 4), ("mask.max_resolution", 256)),
         note="= the default's mask cadence (every 4th visit of an image, VGG at 256 px)",
     ),
+    "willags-auto": MethodSpec(
+        "willags",
+        (("auto_config", True),),
+        note="default with auto_config: willags-inspect's recommendation switches latent / mask / field",
+    ),
+    "willags-plain": MethodSpec(
+        "willags",
+        (("appearance", "sh"), ("use_mask", False)),
+        note="plain 3DGS colours with the default's antialiased rasterisation (what auto picks for a static scene)",
+    ),
     "willags-nofield": MethodSpec(
         "willags-paper", (("use_field", False),), note="paper ablation: decoder without the tri-plane field"
     ),
@@ -593,6 +603,10 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     dm = trainer.pipeline.datamanager
     _ = dm.cached_train  # load + undistort now, not inside the timed loop
     setup_s = time.perf_counter() - t0
+    auto = getattr(trainer.pipeline, "auto_config_summary", None)
+    if auto is not None:  # willags-auto: what the inspector chose (its time is part of setup_s)
+        rec["auto_config"] = {k: auto.get(k) for k in ("applied", "settings", "switches", "error")}
+        rec["auto_inspect_s"] = (auto.get("report") or {}).get("wall_s")
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     _sync(device)

@@ -144,11 +144,25 @@ def willags_3dgs_config() -> TrainerConfig:
     return _trainer("willags-3dgs", model, 30000)
 
 
+def willags_auto_config() -> TrainerConfig:
+    """The default willags with `auto_config`: the scene is inspected before the model is built and the latent,
+    the mask (with its teacher) and the field are switched off where the evidence says the scene does not need
+    them (willags_ns/autoconfig.py, docs/inspect.md)."""
+    model = willags_model_config()
+    model.auto_config = True
+    return _trainer("willags-auto", model, 30000)
+
+
 willags_method = MethodSpecification(
     config=willags_config(),
-    description="WilLaGS: beta-VAE appearance latent transforming each Gaussian's SH colour + EMA teacher + "
+    description="WilLaGS: per-image appearance latent transforming each Gaussian's SH colour + EMA teacher + "
     "perceptual transient mask (Gaussian splatting in the wild). Trains on CPU or CUDA. willags-paper: the paper's "
-    "exact configuration.",
+    "exact configuration (beta-VAE, tri-plane field); willags-auto: only what the scene needs.",
+)
+willags_auto_method = MethodSpecification(
+    config=willags_auto_config(),
+    description="WilLaGS with an automatic configuration: willags-inspect's evidence decides the appearance "
+    "latent, the transient mask and its teacher before training (logged with the reasons).",
 )
 willags_paper_method = MethodSpecification(
     config=willags_paper_config(),

@@ -155,6 +155,11 @@ class WillagsModelConfig(SplatfactoModelConfig):
     training, where the Gaussians change every step, keeps the exact decoder). -1 = the decoder every frame."""
     export_view_samples: int = 26
     """Number of view directions averaged when baking the view-dependent colour into a PLY (ns-export)."""
+    auto_config: bool = False
+    """Before the model is built, inspect the scene (willags-inspect) and switch off what it does not need: the
+    appearance latent, the transient mask and its teacher, the tri-plane field; the latent size follows the image
+    count (willags_ns/autoconfig.py). The choice is printed, logged to tensorboard and written to auto_config.json;
+    config.yml is rewritten with the resolved switches. Method `willags-auto` turns it on."""
 
 
 class AppearanceNetworks(nn.Module):

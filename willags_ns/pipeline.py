@@ -15,10 +15,13 @@ It is also where every willags method checks its inputs and guards training, wha
   was rejected because it flagged most of an image;
 - before training, a warning for a photo whose colours do not follow the SfM points it should show (a photo of
   another place under a registered frame: `check_photo_content`);
+- with `--pipeline.model.auto-config True` (method willags-auto), the scene is inspected and the model's switches
+  set before the model is built (willags_ns/autoconfig.py);
 - Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
   at the next step with the same parameters and optimiser state (`InterruptCheckpoint`).
 """
 
+import json
 import signal
 import time
 from dataclasses import dataclass, field
@@ -28,6 +31,7 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from willags_ns.autoconfig import AUTO_CONFIG_FILE, apply_auto_config, format_summary, scene_dir, tensorboard_entries
 from willags_ns.checks import (
     check_gaussians_alive,
     install_cli_excepthook,
@@ -154,6 +158,14 @@ class WillagsPipeline(VanillaPipeline):
             guard_viewer_host()
         if checking:
             precheck_dataparser_config(config.datamanager)
+        self.auto_config_summary = None
+        if getattr(config.model, "auto_config", False):
+            # before the model exists: the switches decide which modules and parameters it has
+            summary = apply_auto_config(config.model, scene_dir(config.datamanager))
+            CONSOLE.print(format_summary(summary))
+            if summary["applied"]:
+                config.model.auto_config = False  # resolved: what config.yml is rewritten with
+            self.auto_config_summary = summary
         # The model is built inside VanillaPipeline.__init__ right after the datamanager parses the scene; the
         # outputs are validated in between (a NaN pose would otherwise surface in the model's kNN as a sklearn
         # error). The hook is an instance attribute on this config only, removed again below.
@@ -185,6 +197,8 @@ class WillagsPipeline(VanillaPipeline):
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes):
         cbs = super().get_training_callbacks(training_callback_attributes)
         trainer = training_callback_attributes.trainer
+        if self.auto_config_summary is not None and trainer is not None:
+            cbs.append(self._record_auto_config(trainer))
         if self.config.checkpoint_on_interrupt and trainer is not None:
             ic = InterruptCheckpoint(trainer)
             self.interrupt_checkpoint = ic
@@ -192,6 +206,29 @@ class WillagsPipeline(VanillaPipeline):
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], ic.after_step))
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], ic.uninstall))
         return cbs
+
+    def _record_auto_config(self, trainer) -> TrainingCallback:
+        """auto_config.json and the resolved config.yml now; tensorboard at the first step (writers are set up)."""
+        summary = self.auto_config_summary
+        base = Path(trainer.base_dir)
+        base.mkdir(parents=True, exist_ok=True)
+        (base / AUTO_CONFIG_FILE).write_text(json.dumps(summary, indent=1, default=str))
+        if summary["applied"]:
+            trainer.config.save_config()  # config.yml: the resolved switches, auto_config False
+        text, scalars = tensorboard_entries(summary)
+        logged = []
+
+        def log_once(step: int) -> None:
+            if logged:
+                return
+            from nerfstudio.utils import writer
+
+            writer.put_config(name="auto_config", config_dict=text, step=step)
+            for name, value in scalars.items():
+                writer.put_scalar(name=name, scalar=value, step=step)
+            logged.append(step)
+
+        return TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], log_once)
 
     def get_train_loss_dict(self, step: int):
         check_gaussians_alive(self.model.num_points, step)

@@ -1,0 +1,132 @@
+"""willags-auto / --pipeline.model.auto-config: the inspector's recommendation sets the model's switches before the
+model is built, is logged (console, tensorboard, auto_config.json) and is what config.yml reloads."""
+
+import json
+
+import pytest
+import torch
+import yaml
+
+from willags_ns.autoconfig import (
+    AUTO_CONFIG_FILE,
+    apply_auto_config,
+    format_summary,
+    overrides_from_recommendation,
+    tensorboard_entries,
+)
+from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
+from willags_ns.method_configs import willags_auto_config, willags_model_config
+
+SMALL = dict(num_train=20, num_test=2, width=96, height=72, num_points=3000, supersample=1)
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("auto_scenes")
+    out = {}
+    for name, app, tr in (("static", 0.0, 0.0), ("appearance", 1.0, 0.0), ("wild", 1.0, 0.6)):
+        cfg = SyntheticSceneConfig(appearance_strength=app, transient_fraction=tr, **SMALL)
+        out[name] = write_scene(make_scene(cfg), root / name)
+    return out
+
+
+def _rec(preset: str, latent: bool, mask: bool, dim: int) -> dict:
+    on = lambda v: {"on": v, "reason": "r"}  # noqa: E731
+    return {
+        "appearance_latent": on(latent),
+        "mask": on(mask),
+        "teacher": on(mask),
+        "triplane_field": on(False),
+        "latent_dim": {"value": dim, "reason": "r"},
+        "preset": {"value": preset, "flags": [], "reason": "r"},
+    }
+
+
+def test_overrides_map_each_recommendation():
+    assert overrides_from_recommendation(_rec("willags-3dgs", False, False, 0)) == {
+        "appearance": "sh",
+        "use_mask": False,
+        "use_field": False,
+    }
+    assert overrides_from_recommendation(_rec("willags", True, False, 64)) == {
+        "appearance": "willags",
+        "use_mask": False,
+        "use_field": False,
+        "vae.latent_dim": 64,
+    }
+    assert overrides_from_recommendation(_rec("willags", False, True, 8))["use_mask"] is True
+
+
+def test_apply_follows_the_scene(scenes):
+    static, appearance, wild = (willags_model_config() for _ in range(3))
+    s = apply_auto_config(static, scenes["static"])
+    assert s["applied"] and static.appearance == "sh" and not static.use_mask
+    assert s["changes"]["appearance"] == ["willags", "sh"]
+    a = apply_auto_config(appearance, scenes["appearance"])
+    assert appearance.appearance == "willags" and appearance.use_mask is False
+    assert appearance.vae.latent_dim == 32  # 20 training images: the smaller latent
+    assert a["changes"]["use_mask"] == [True, False] and "threshold" in a["reasons"]["mask"]
+    w = apply_auto_config(wild, scenes["wild"])
+    assert wild.appearance == "willags" and wild.use_mask is True and not wild.use_field
+    assert w["switches"] == {"appearance_latent": True, "mask": True, "teacher": True, "triplane_field": False}
+    text, scalars = tensorboard_entries(w)
+    assert scalars["auto_config/mask"] == 1.0 and scalars["auto_config/latent_dim"] == 32.0
+    assert "mask: ON" in text["auto_config"] and "appearance_latent: ON" in text["auto_config"]
+
+
+def test_uninspectable_scene_keeps_the_method(tmp_path):
+    cfg = willags_model_config()
+    before = (cfg.appearance, cfg.use_mask, cfg.vae.latent_dim)
+    s = apply_auto_config(cfg, tmp_path / "nope")
+    assert not s["applied"] and str(tmp_path / "nope") in s["error"]
+    assert (cfg.appearance, cfg.use_mask, cfg.vae.latent_dim) == before
+    assert "not applied" in format_summary(s)
+
+
+def test_willags_auto_method_is_registered():
+    from nerfstudio.plugins.registry import discover_methods
+
+    methods, _ = discover_methods()
+    assert "willags-auto" in methods and methods["willags-auto"].pipeline.model.auto_config is True
+    assert willags_auto_config().pipeline.model.use_mask is True  # before inspection: the full default
+
+
+@pytest.mark.slow
+def test_training_applies_logs_and_reloads(tmp_path, scenes, monkeypatch):
+    """ns-train willags-auto on a scene with appearance change and no transients: no mask, no teacher; the choice
+    goes to tensorboard and auto_config.json; config.yml reloads the trained model without inspecting again."""
+    from nerfstudio.utils import writer
+
+    from tests.test_train import _train
+
+    logged = []
+    orig = writer.put_config
+    monkeypatch.setattr(
+        writer, "put_config", lambda name, config_dict, step: (logged.append((name, config_dict)), orig(name, config_dict, step))
+    )
+    config, trainer, losses = _train(tmp_path, "willags", steps=6, data=scenes["appearance"], auto_config=True)
+    model = trainer.pipeline.model
+    assert model.teacher is None and not model.config.use_mask
+    assert model.appearance_nets.latent_dim == 32
+    assert not any("masked_fraction" in m for _, m in losses)
+    ours = [c for n, c in logged if n == "auto_config"]  # nerfstudio logs its own "config" too
+    assert len(ours) == 1 and "mask: off" in ours[0]["auto_config"]
+
+    run_dir = config.get_base_dir()
+    saved = json.loads((run_dir / AUTO_CONFIG_FILE).read_text())
+    assert saved["applied"] and saved["settings"]["use_mask"] is False
+    assert saved["report"]["evidence"]["transient_score"] < 0.2
+    text = (run_dir / "config.yml").read_text()
+    reloaded = yaml.load(text, Loader=yaml.Loader)
+    assert reloaded.pipeline.model.auto_config is False and reloaded.pipeline.model.use_mask is False
+
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    import willags_ns.autoconfig as ac
+
+    monkeypatch.setattr(ac, "inspect_scene", lambda *a, **k: pytest.fail("reload must not inspect again"))
+    _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")
+    assert pipeline.model.num_points == model.num_points and pipeline.model.teacher is None
+    cam = pipeline.datamanager.eval_dataset.cameras[0:1]
+    with torch.no_grad():
+        assert torch.isfinite(pipeline.model.get_outputs_for_camera(cam)["rgb"]).all()

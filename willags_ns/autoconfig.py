@@ -1,0 +1,124 @@
+"""Automatic configuration: apply `willags-inspect`'s recommendation to the model before it is built.
+
+`ns-train willags-auto --data DIR` (or any willags method with `--pipeline.model.auto-config True`) inspects the
+scene (willags_ns/inspect.py: appearance change measured on the SfM points, transients as occluded observations
+that nearby views disagree with) and switches off what the evidence says the scene does not need:
+
+- no appearance change and no transients: plain 3DGS colours (`appearance='sh'`: no latent, no mask, no teacher);
+- appearance change without transients: the latent without the mask (and so without the EMA teacher and VGG);
+- transients: the mask and its teacher (with the latent: the mask is part of the willags model);
+- the tri-plane field stays off (measured: it did not help); the latent size follows the image count.
+
+Only those switches change (`overrides_from_recommendation`); every other setting is the method's own (the
+resolution schedule, rasterisation mode, learning rates...). What was chosen, and why, is printed, written to
+tensorboard (a text entry and `auto_config/*` scalars) and to `auto_config.json` beside `config.yml`; `config.yml`
+is then rewritten with the resolved switches and `auto_config=False`, so `ns-render`, `ns-eval`, `ns-viewer` and
+`--load-dir` rebuild exactly the trained model without inspecting again.
+
+If the scene cannot be inspected (a layout the inspector does not read), training goes on with the method's own
+configuration and a warning says why: the automatic mode never stops a run the plain method would train.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from willags_ns.inspect import InspectConfig, InspectError, inspect_scene
+
+AUTO_CONFIG_FILE = "auto_config.json"
+"""Written beside config.yml: the inspector's evidence, the recommendation and the switches applied."""
+
+
+def overrides_from_recommendation(rec: dict[str, Any]) -> dict[str, Any]:
+    """The model-config fields (dotted paths) a recommendation sets. Pure: the mapping is tested on its own."""
+    if rec["preset"]["value"] == "willags-3dgs":
+        # plain 3DGS colours: appearance='sh' also turns the latent, the mask and the teacher off in the model
+        return {"appearance": "sh", "use_mask": False, "use_field": False}
+    return {
+        "appearance": "willags",
+        "use_mask": bool(rec["mask"]["on"]),
+        "use_field": bool(rec["triplane_field"]["on"]),
+        "vae.latent_dim": int(rec["latent_dim"]["value"]),
+    }
+
+
+def _get(obj, dotted: str):
+    for part in dotted.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _set(obj, dotted: str, value) -> None:
+    *parents, last = dotted.split(".")
+    for part in parents:
+        obj = getattr(obj, part)
+    setattr(obj, last, value)
+
+
+def scene_dir(datamanager_config) -> Path | None:
+    """The directory ns-train was pointed at (`--data`, or the dataparser's own `data`)."""
+    data = datamanager_config.data if datamanager_config.data is not None else None
+    if data is None:
+        data = getattr(datamanager_config.dataparser, "data", None)
+    return None if data is None else Path(data)
+
+
+def apply_auto_config(model_config, data: Path | None, inspect_config: InspectConfig | None = None) -> dict[str, Any]:
+    """Inspect `data`, set the recommended switches on `model_config` (in place) and return a summary.
+
+    The summary: {"applied": bool, "changes": {field: [before, after]}, "settings": {field: value},
+    "reasons": {switch: sentence}, "command": equivalent ns-train line, "report": inspector report or None,
+    "error": why nothing was applied or None}."""
+    if data is None:
+        return {"applied": False, "error": "no --data given", "changes": {}, "settings": {}, "reasons": {}}
+    icfg = inspect_config if inspect_config is not None else InspectConfig()
+    icfg.data = data
+    try:
+        report = inspect_scene(icfg)
+    except InspectError as e:
+        return {"applied": False, "error": str(e), "changes": {}, "settings": {}, "reasons": {}, "report": None}
+    rec = report["recommendation"]
+    overrides = overrides_from_recommendation(rec)
+    changes = {}
+    for key, value in overrides.items():
+        before = _get(model_config, key)
+        if before != value:
+            changes[key] = [before, value]
+        _set(model_config, key, value)
+    reasons = {k: rec[k]["reason"] for k in ("appearance_latent", "mask", "teacher", "triplane_field", "latent_dim")}
+    reasons["preset"] = rec["preset"]["reason"]
+    return {
+        "applied": True,
+        "error": None,
+        "changes": changes,
+        "settings": overrides,
+        "reasons": reasons,
+        "switches": {k: bool(rec[k]["on"]) for k in ("appearance_latent", "mask", "teacher", "triplane_field")},
+        "command": rec["command"],
+        "report": report,
+    }
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """The lines printed to the console when training starts."""
+    if not summary["applied"]:
+        return f"willags auto-config: not applied ({summary['error']}); training with the method's own configuration"
+    lines = ["willags auto-config: " + ", ".join(f"{k}={v}" for k, v in summary["settings"].items())]
+    for k, v in summary["switches"].items():
+        lines.append(f"  {k}: {'ON' if v else 'off'} - {summary['reasons'][k]}")
+    lines.append(f"  latent_dim: {summary['reasons']['latent_dim']}")
+    if summary["changes"]:
+        lines.append("  changed: " + ", ".join(f"{k} {a} -> {b}" for k, (a, b) in summary["changes"].items()))
+    else:
+        lines.append("  changed: nothing (the method's own switches are what the scene needs)")
+    return "\n".join(lines)
+
+
+def tensorboard_entries(summary: dict[str, Any]) -> tuple[dict[str, Any], dict[str, float]]:
+    """(text dict for writer.put_config, scalars for writer.put_scalar) describing the choice."""
+    text = {"auto_config": format_summary(summary)}
+    scalars = {f"auto_config/{k}": float(v) for k, v in summary.get("switches", {}).items()}
+    if summary["applied"]:
+        scalars["auto_config/latent_dim"] = float(summary["settings"].get("vae.latent_dim", 0))
+    return text, scalars
