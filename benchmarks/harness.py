@@ -145,6 +145,11 @@ for _name, _over, _note in (
     ("noteacher", (("teacher.enabled", False),), "the student's own render makes the mask"),
     ("global", (("modulation.local", False),), "global colour transform only"),
     ("classic", (("rasterize_mode", "classic"),), "classic rasterisation"),
+    ("sh1", (("sh_degree", 1),), "SH degree 1 (less view-dependent colour to overfit)"),
+    ("sh0", (("sh_degree", 0),), "SH degree 0 (no view-dependent colour)"),
+    ("scalereg", (("use_scale_regularization", True),), "splatfacto's scale regularisation"),
+    ("dense", (("densify_grad_thresh", 0.0004),), "densify at half splatfacto's gradient threshold"),
+    ("sparse", (("densify_grad_thresh", 0.0016),), "densify at twice splatfacto's gradient threshold"),
 ):
     METHODS[f"willags-{_name}"] = MethodSpec("willags", _over, note=f"default, {_note}")
 BASELINES = ("splatfacto", "willags-3dgs")
