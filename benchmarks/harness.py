@@ -150,6 +150,13 @@ for _name, _over, _note in (
     ("scalereg", (("use_scale_regularization", True),), "splatfacto's scale regularisation"),
     ("dense", (("densify_grad_thresh", 0.0004),), "densify at half splatfacto's gradient threshold"),
     ("sparse", (("densify_grad_thresh", 0.0016),), "densify at twice splatfacto's gradient threshold"),
+    ("sky", (("sky.enabled", True),), "appearance-conditioned sky behind the Gaussians"),
+    (
+        "skyalpha",
+        (("sky.enabled", True), ("sky.alpha_penalty", 0.1)),
+        "sky, Gaussians pay alpha where the sky alone explains the photo",
+    ),
+    ("sky-sh1", (("sky.enabled", True), ("sh_degree", 1)), "sky and SH degree 1"),
 ):
     METHODS[f"willags-{_name}"] = MethodSpec("willags", _over, note=f"default, {_note}")
 BASELINES = ("splatfacto", "willags-3dgs")

@@ -102,7 +102,9 @@ def test_training_applies_logs_and_reloads(tmp_path, scenes, monkeypatch):
     logged = []
     orig = writer.put_config
     monkeypatch.setattr(
-        writer, "put_config", lambda name, config_dict, step: (logged.append((name, config_dict)), orig(name, config_dict, step))
+        writer,
+        "put_config",
+        lambda name, config_dict, step: (logged.append((name, config_dict)), orig(name, config_dict, step)),
     )
     config, trainer, losses = _train(tmp_path, "willags", steps=6, data=scenes["appearance"], auto_config=True)
     model = trainer.pipeline.model

@@ -41,6 +41,7 @@ from torch.nn import Parameter
 
 from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig, sh_basis
 from willags_ns.appearance.modulation import ColorModulation, ColorModulationConfig, local_penalty
+from willags_ns.appearance.sky import SkyConfig, SkyModel, background_alpha_penalty, pixel_directions
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField, normalize_points, robust_bounds
 from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, vae_loss
 from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env
@@ -107,6 +108,8 @@ class WillagsModelConfig(SplatfactoModelConfig):
     the paper's T_color MLP regresses the colour from (f_d, f_s, view direction) (method willags-paper)."""
     modulation: ColorModulationConfig = field(default_factory=ColorModulationConfig)
     """The colour transform of color_mode='modulated' (global transform, local residual and its penalty)."""
+    sky: SkyConfig = field(default_factory=SkyConfig)
+    """Appearance-conditioned background bg(z, ray direction) behind the Gaussians (appearance/sky.py)."""
     use_vae: bool = True
     """Appearance latent from the beta-VAE encoder. Off: a per-image embedding table (NeRF-W / Splatfacto-W style)."""
     use_field: bool = True
@@ -201,6 +204,7 @@ class AppearanceNetworks(nn.Module):
             if cfg.use_field
             else None
         )
+        self.sky = SkyModel(d, cfg.sky) if cfg.sky.enabled else None
         self.color: ColorDecoder | None = None
         self.modulation: ColorModulation | None = None
         if cfg.color_mode == "decoder":
@@ -753,6 +757,7 @@ class WillagsModel(SplatfactoModel):
         cam_center = c2w[0, :3, 3]
 
         outputs: dict[str, Union[Tensor, list]] = {}
+        z: Tensor | None = None
         if cfg.appearance == "sh":
             colors = torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
             if cfg.sh_degree > 0:
@@ -785,27 +790,42 @@ class WillagsModel(SplatfactoModel):
             self.strategy.step_pre_backward(
                 self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
             )
-        background = self._get_background_color()
+        dirs = None
+        if z is not None and self.appearance_nets is not None and self.appearance_nets.sky is not None:
+            dirs = pixel_directions(c2w[0], K[0], W, H)
+        background = self._background(self.appearance_nets, z, dirs)
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
 
+        teacher_bg = background
+        if fused and dirs is not None:  # the teacher's own sky under the teacher's latent (set with its colours)
+            teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs).detach()
         if fused:
-            teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * background
+            teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * teacher_bg
             outputs["teacher_rgb"] = torch.clamp(teacher, 0.0, 1.0).squeeze(0)
         elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render
             outputs["teacher_rgb"] = rgb.detach().squeeze(0)
         elif teacher_needed:
-            outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background)
+            outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background, dirs)
 
         depth_im = None
         if render_mode == "RGB+ED":
             depth_im = render[..., -1:]  # gsplat appends expected depth after the colour channels
             depth_im = torch.where(alpha > 0, depth_im, depth_im.detach().max()).squeeze(0)
-        if background.shape[0] == 3 and not self.training:
+        if background.dim() == 1 and not self.training:
             background = background.expand(H, W, 3)
+        elif background.dim() == 4:  # the sky: [1, H, W, 3]
+            background = background.squeeze(0)
         outputs.update(
             {"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background}  # type: ignore[dict-item]
         )
         return outputs
+
+    def _background(self, nets: "AppearanceNetworks | None", z: Tensor | None, dirs: Tensor | None) -> Tensor:
+        """What shows behind the Gaussians: the sky of `nets` under latent z along the pixel directions `dirs`
+        [H, W, 3] as [1, H, W, 3], or splatfacto's background colour [3] (random while training) without a sky."""
+        if nets is not None and nets.sky is not None and z is not None and dirs is not None:
+            return nets.sky(z, dirs)[None]
+        return self._get_background_color()
 
     def _latent_for_forward(self, camera: Cameras, outputs: dict) -> Tensor:
         """Training: encode this step's image (reparameterised). Otherwise: camera metadata / chosen / default."""
@@ -859,6 +879,7 @@ class WillagsModel(SplatfactoModel):
             z = mu[0]
         else:
             z = teacher.embeddings.weight[int(self._step_cache["image_idx"])]  # type: ignore[union-attr]
+        self._step_cache["teacher_z"] = z
         f_s = gp["features"].detach() if "features" in gp else None
         base = self._step_cache.pop("sh_base", None)  # the student's SH colours of this step (same Gaussians)
         sh = None
@@ -868,10 +889,13 @@ class WillagsModel(SplatfactoModel):
         return self.appearance_colors(z, gp["means"].detach(), f_s, cam_center, nets=teacher, sh=sh, base=base)
 
     @torch.no_grad()
-    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background) -> Tensor:
+    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background, dirs=None) -> Tensor:
         """Pseudo-GT [H, W, 3] from the EMA teacher networks with the student's current Gaussians (no grad): a
-        second rasterisation (fuse_teacher_render=False; the fused path renders the same image)."""
+        second rasterisation (fuse_teacher_render=False; the fused path renders the same image). With a sky
+        (`dirs` given), the teacher's own sky replaces `background`."""
         colors = self._teacher_colors(gp, cam_center)
+        if dirs is not None:
+            background = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs)
         render, alpha, _ = self._rasterize(
             gp["means"].detach(),
             gp["quats"].detach(),
@@ -958,6 +982,13 @@ class WillagsModel(SplatfactoModel):
                 metrics_dict["vae_kl"] = parts["vae_kl"].detach()
                 metrics_dict["vae_recon"] = parts["vae_recon"].detach()
             sc["vae_recon_img"] = recon.detach()
+
+        if self.training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:
+            pen_sky = background_alpha_penalty(
+                outputs["accumulation"], gt_img, outputs["background"], cfg.sky.alpha_tol, mask
+            )
+            if pen_sky is not None:
+                loss_dict["sky_alpha"] = cfg.sky.alpha_penalty * pen_sky
 
         pen = local_penalty(self._step_cache.get("local_residual")) if self.training else None
         if pen is not None and cfg.modulation.local_penalty > 0:

@@ -180,7 +180,7 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
 
     As in training (WillagsModel._teacher_render): the teacher's latent (VAE mean of the image, or its embedding
     row), the student's current Gaussians, the camera after the camera optimiser. Background: the model's fixed
-    one (training draws a random one per step, which only shows where alpha < 1). Without a teacher (teacher
+    one (training draws a random one per step, which only shows where alpha < 1), or the teacher's sky. Without a teacher (teacher
     disabled) the student's networks are used.
     """
     nets = model.teacher if model.teacher is not None else model.appearance_nets
@@ -205,6 +205,10 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
         gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, "RGB"
     )
     background = model.background_color.to(model.device)
+    if nets.sky is not None:  # the appearance-conditioned background, as in training
+        from willags_ns.appearance.sky import pixel_directions
+
+        background = nets.sky(z, pixel_directions(c2w[0], K[0], W, H))[None]
     return torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0).squeeze(0)
 
 

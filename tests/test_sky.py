@@ -1,0 +1,133 @@
+"""The appearance-conditioned background (willags_ns/appearance/sky.py) and its wiring in the model."""
+
+import math
+
+import pytest
+import torch
+
+from tests.test_mask_eval import _camera
+from tests.test_model import _tiny_model
+from willags_ns.appearance.sky import SkyConfig, SkyModel, background_alpha_penalty, pixel_directions
+
+
+def test_pixel_directions_match_nerfstudio_rays():
+    cam = _camera(12, 8)
+    c2w = cam.camera_to_worlds.clone()
+    # a rotated, translated camera: the directions must follow the rotation and ignore the translation
+    ang = 0.7
+    R = torch.tensor([[math.cos(ang), 0.0, math.sin(ang)], [0.0, 1.0, 0.0], [-math.sin(ang), 0.0, math.cos(ang)]])
+    c2w[0, :3, :3] = R
+    c2w[0, :3, 3] = torch.tensor([3.0, -1.0, 2.0])
+    cam.camera_to_worlds = c2w
+    want = cam.generate_rays(camera_indices=0, keep_shape=True).directions  # [H, W, 3]
+    got = pixel_directions(c2w[0], cam.get_intrinsics_matrices()[0], 12, 8)
+    assert got.shape == (8, 12, 3)
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(got.norm(dim=-1), torch.ones(8, 12))
+
+
+def test_sky_starts_grey_and_learns_a_latent_dependent_gradient():
+    torch.manual_seed(0)
+    sky = SkyModel(4, SkyConfig(enabled=True, sh_degree=2, hidden=16))
+    dirs = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    z_a, z_b = torch.zeros(4), torch.ones(4)
+    torch.testing.assert_close(sky(z_a, dirs), torch.full((64, 3), 0.5))  # grey, direction-independent
+    # target: photo A has a blue sky brightening upwards, photo B an orange one
+    up = dirs[:, 1:2].clamp(-1, 1)
+    tgt_a = torch.cat([0.3 + 0.2 * up, 0.5 + 0.2 * up, 0.8 + 0.1 * up], -1)
+    tgt_b = torch.tensor([0.9, 0.6, 0.3]).expand(64, 3)
+    opt = torch.optim.Adam(sky.parameters(), lr=1e-2)
+    for _ in range(400):
+        loss = (sky(z_a, dirs) - tgt_a).square().mean() + (sky(z_b, dirs) - tgt_b).square().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert (sky(z_a, dirs) - tgt_a).abs().max() < 0.03
+    assert (sky(z_b, dirs) - tgt_b).abs().max() < 0.03
+
+
+def test_sky_is_bounded_for_huge_latents_and_rejects_bad_degrees():
+    sky = SkyModel(4, SkyConfig(enabled=True))
+    with torch.no_grad():
+        for p in sky.parameters():
+            p.normal_()
+    out = sky(torch.full((4,), 1e6), torch.nn.functional.normalize(torch.randn(10, 3), dim=-1))
+    assert torch.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
+    with pytest.raises(ValueError, match="sky.sh_degree"):
+        SkyModel(4, SkyConfig(enabled=True, sh_degree=5))
+
+
+def test_background_alpha_penalty_only_where_the_background_explains_the_photo():
+    h, w = 20, 20
+    bg = torch.full((h, w, 3), 0.6)
+    gt = bg.clone()
+    gt[10:] = 0.1  # the lower half is a building the sky does not explain
+    alpha = torch.zeros(h, w, 1)
+    alpha[:, :] = 0.25
+    alpha[10:] = 1.0
+    pen = background_alpha_penalty(alpha, gt, bg, tol=0.03)
+    # rows well inside the sky (the 5x5 window keeps the two rows next to the edge out) carry alpha 0.25
+    assert pen is not None and abs(float(pen) - 0.25) < 1e-6
+    assert background_alpha_penalty(alpha, torch.zeros(h, w, 3), bg, tol=0.03) is None  # nothing explained: no 0/0
+    mask = torch.zeros(h, w)
+    assert background_alpha_penalty(alpha, gt, bg, tol=0.03, mask=mask) is None  # all transient: nothing
+    # the gradient reaches alpha, not the background
+    a = alpha.clone().requires_grad_(True)
+    b = bg.clone().requires_grad_(True)
+    background_alpha_penalty(a, gt, b, tol=0.03).backward()
+    assert a.grad.abs().sum() > 0 and b.grad is None
+
+
+def _sky_model():
+    model = _tiny_model("modulated")
+    from willags_ns.appearance.sky import SkyModel as _Sky
+
+    model.config.sky = SkyConfig(enabled=True, sh_degree=2, alpha_penalty=0.1)
+    d = model.appearance_nets.latent_dim
+    torch.manual_seed(5)
+    for nets in (model.appearance_nets, model.teacher):
+        nets.sky = _Sky(d, model.config.sky)
+        with torch.no_grad():
+            for p in nets.sky.parameters():
+                p.normal_(0.0, 0.2)
+    return model
+
+
+def test_model_composites_over_the_sky_of_the_latent_and_the_teacher_uses_its_own():
+    model = _sky_model()
+    model.eval()
+    cam = _camera(24, 16)
+    with torch.no_grad():
+        model.gauss_params["opacities"].fill_(-20.0)  # no Gaussian visible: the render is the sky alone
+        z1, z2 = torch.zeros(model.appearance_nets.latent_dim), torch.ones(model.appearance_nets.latent_dim)
+        outs = []
+        for z in (z1, z2):
+            cam.metadata = {"appearance_latent": z}
+            outs.append(model.get_outputs(cam))
+    dirs = pixel_directions(cam.camera_to_worlds[0], cam.get_intrinsics_matrices()[0], 24, 16)
+    torch.testing.assert_close(outs[0]["rgb"], model.appearance_nets.sky(z1, dirs), atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(outs[0]["rgb"], outs[1]["rgb"], atol=1e-3)  # the latent chooses the sky
+    assert outs[0]["background"].shape == (16, 24, 3)
+
+    # training: the fused teacher channels sit over the teacher's sky, the student's over its own
+    model.train()
+    model.config.fuse_teacher_render = True
+    image = (torch.rand(16, 24, 3, generator=torch.Generator().manual_seed(1)) * 255).to(torch.uint8)
+    model.set_train_batch({"image": image, "image_idx": 0})
+    out = model.get_outputs(_camera(24, 16))
+    z_s = model.appearance_nets.latent_stats(model._image_chw(image), 0)[0]
+    z_t = model._step_cache["teacher_z"]
+    with torch.no_grad():
+        torch.testing.assert_close(out["teacher_rgb"], model.teacher.sky(z_t, dirs), atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(out["rgb"].detach(), out["teacher_rgb"], atol=1e-3)
+    assert z_s.shape == z_t.shape
+    # the loss has the alpha term (the photo equals the sky somewhere once the sky matches it) and backpropagates
+    batch = {"image": (out["rgb"].detach() * 255).to(torch.uint8), "image_idx": 0}
+    losses = model.get_loss_dict(out, batch, {})
+    assert "sky_alpha" in losses and torch.isfinite(losses["sky_alpha"])
+    total = sum(losses.values())
+    total.backward()
+    grads = [p.grad for p in model.appearance_nets.sky.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+    model._end_step(0)

@@ -1,0 +1,110 @@
+"""Appearance-conditioned background ("sky"): what a pixel shows where no Gaussian covers it, as a function of the
+image's appearance latent and the ray direction.
+
+Tourist photos are mostly sky above a building, and the sky is the part of a photo that changes most between
+photos (sun, overcast, dusk, clouds) while carrying no geometry. Splatfacto composites a constant (random while
+training) colour behind the Gaussians, so the Gaussians must paint every photo's sky themselves: they grow into the
+sky at whatever depth fits the training views, carry one photo's clouds into another's, and a new view shows them
+as blobs. Here the background is a smooth function at infinity whose colour follows the latent:
+
+    bg(z, d) = clamp( sum_k c_k(z) Y_k(d) + 0.5, 0, 1 )        c(z) = MLP(z) in R^{K x 3}, K = (degree + 1)^2
+
+- ``Y_k``: real spherical harmonics of the world-space ray direction up to ``sh_degree`` (low degree: a sky is a
+  gradient, not a texture; a cloud pattern that differs in every photo is not predictable from the left half of a
+  test photo, so a smooth mean is the best a model can do there).
+- ``c(z)``: zero at initialisation (a grey background), learnt with the latent: under the NeRF-W protocol the latent
+  fitted on a test photo's left half sets its sky's colour on the right half too.
+- ``alpha_penalty`` (optional): where the background alone already reproduces the photo, Gaussians covering those
+  pixels pay ``alpha_penalty * mean(alpha)`` there, so the sky stays background instead of being painted over.
+
+Pure functions: :func:`pixel_directions` (camera -> world ray directions), :func:`background_alpha_penalty`.
+"""
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from willags_ns.render.sh import eval_sh_bases, num_sh_bases
+
+
+@dataclass
+class SkyConfig:
+    """The appearance-conditioned background."""
+
+    enabled: bool = False
+    """Composite the Gaussians over bg(z, ray direction) instead of splatfacto's constant (random while training)
+    colour."""
+    sh_degree: int = 3
+    """Degree of the real SH basis of the ray direction (0..4; (degree + 1)**2 coefficients per colour channel)."""
+    hidden: int = 64
+    """Width of the hidden layer of z -> SH coefficients."""
+    alpha_penalty: float = 0.0
+    """Weight of the mean accumulated alpha over pixels that the background alone reproduces (0 = off)."""
+    alpha_tol: float = 0.03
+    """A pixel counts as reproduced by the background when |photo - bg|, averaged over the colour channels and a
+    5x5 window, is below this."""
+
+
+class SkyModel(nn.Module):
+    """z [D] -> SH coefficients [K, 3] of the background; (z, directions [..., 3]) -> RGB [..., 3]."""
+
+    def __init__(self, latent_dim: int, cfg: SkyConfig):
+        super().__init__()
+        if not 0 <= cfg.sh_degree <= 4:
+            raise ValueError(f"sky.sh_degree must be in 0..4, got {cfg.sh_degree}")
+        if latent_dim <= 0:
+            raise ValueError(f"latent_dim must be > 0, got {latent_dim}")
+        self.sh_degree = cfg.sh_degree
+        self.num_coeffs = num_sh_bases(cfg.sh_degree)
+        self.mlp = nn.Sequential(
+            nn.Linear(latent_dim, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, self.num_coeffs * 3)
+        )
+        # grey at initialisation, and no direction dependence until the data asks for it
+        nn.init.zeros_(self.mlp[-1].weight)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+    def coefficients(self, z: Float[Tensor, " D"]) -> Float[Tensor, "K 3"]:
+        return self.mlp(z).reshape(self.num_coeffs, 3)
+
+    def forward(self, z: Float[Tensor, " D"], dirs: Float[Tensor, "*B 3"]) -> Float[Tensor, "*B 3"]:
+        """Background colour in [0, 1] along unit world directions ``dirs``."""
+        basis = eval_sh_bases(self.sh_degree, dirs)  # [*B, K]
+        return (basis @ self.coefficients(z) + 0.5).clamp(0.0, 1.0)
+
+
+def pixel_directions(
+    c2w: Float[Tensor, "3 4"], K: Float[Tensor, "3 3"], width: int, height: int
+) -> Float[Tensor, "H W 3"]:
+    """Unit world-space directions of the rays through the pixel centres of a nerfstudio camera (OpenGL axes:
+    +x right, +y up, -z forward; the same rays as ``Cameras.generate_rays``)."""
+    dev, dt = c2w.device, c2w.dtype
+    v, u = torch.meshgrid(
+        torch.arange(height, device=dev, dtype=dt) + 0.5, torch.arange(width, device=dev, dtype=dt) + 0.5, indexing="ij"
+    )
+    x = (u - K[0, 2]) / K[0, 0]
+    y = -(v - K[1, 2]) / K[1, 1]
+    d_cam = torch.stack([x, y, -torch.ones_like(x)], dim=-1)  # [H, W, 3]
+    d = d_cam @ c2w[:3, :3].T
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+def background_alpha_penalty(
+    alpha: Float[Tensor, "H W 1"],
+    gt: Float[Tensor, "H W 3"],
+    background: Float[Tensor, "H W 3"],
+    tol: float,
+    mask: Float[Tensor, "H W"] | None = None,
+) -> Tensor | None:
+    """Mean alpha over the pixels the background alone reproduces (|gt - bg| averaged over channels and a 5x5
+    window below ``tol``; within ``mask`` when given), or None when there are none (no 0/0)."""
+    err = (gt - background.detach()).abs().mean(-1)[None, None]  # [1, 1, H, W]
+    err = F.avg_pool2d(err, 5, stride=1, padding=2, count_include_pad=False)[0, 0]
+    explained = err < tol
+    if mask is not None:
+        explained = explained & (mask > 0.5)
+    if not bool(explained.any()):
+        return None
+    return alpha[..., 0][explained].mean()
