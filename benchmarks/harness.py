@@ -572,7 +572,19 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         max_images=spec["max_test_images"],
         oracle=bool(spec.get("oracle", False)),
     )
-    agg, per_image = evaluate_model(model, dm.eval_dataset.cameras, images, proto, names)
+    shown: list[tuple[Any, Any]] = []
+    renders_dir = os.environ.get(RENDERS_ENV)
+
+    def keep(i, pred, gt):
+        w = pred.shape[1]
+        shown.append((gt[:, w // 2 :].cpu(), pred[:, w // 2 :].cpu()))
+
+    agg, per_image = evaluate_model(
+        model, dm.eval_dataset.cameras, images, proto, names, on_prediction=keep if renders_dir else None
+    )
+    if renders_dir and shown:
+        name = f"{spec['scene_name']}-{spec['method']}{('-' + spec['tag']) if spec.get('tag') else ''}"
+        save_right_halves(Path(renders_dir) / f"{name}.png", shown, [r["psnr"] for r in per_image])
     rec: dict[str, Any] = dict(agg)
     rec["per_image"] = per_image
     rec["eval_s"] = time.perf_counter() - t2
@@ -581,6 +593,62 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
     rec["num_test_images"] = len(images)
     return rec
+
+
+RENDERS_ENV = "WILLAGS_BENCH_RENDERS"
+"""When set to a folder, each run writes <scene>-<method>[-<tag>].png there: the right halves of its test images
+(ground truth above, the protocol's render below, PSNR on each), for looking at what a number means."""
+
+
+def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[float], height: int = 200) -> Path:
+    """A contact sheet of (ground truth, render) right halves [H, W, 3] in [0, 1], one column per test image, each
+    scaled to `height` pixels; the render's PSNR written on it."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    def tile(t):
+        im = Image.fromarray((t.clamp(0, 1).numpy() * 255).astype(np.uint8))
+        return im.resize((max(1, round(im.width * height / im.height)), height), Image.Resampling.BILINEAR)
+
+    cols = [(tile(g), tile(p)) for g, p in pairs]
+    sheet = Image.new("RGB", (sum(g.width for g, _ in cols), 2 * height), "white")
+    x = 0
+    draw = ImageDraw.Draw(sheet)
+    for (g, p), v in zip(cols, psnrs, strict=False):
+        sheet.paste(g, (x, 0))
+        sheet.paste(p, (x, height))
+        draw.text((x + 4, height + 4), f"{v:.2f} dB", fill=(255, 255, 0))
+        x += g.width
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(path)
+    return path
+
+
+def save_masks(path: Path, pairs: list[tuple[Any, Any]], height: int = 200) -> Path:
+    """Training images [H, W, 3] in [0, 1] above the same images with their transient pixels (mask [h, w] bool,
+    True = static, any resolution) tinted red: what the model was not taught from."""
+    import numpy as np
+    import torch.nn.functional as F
+    from PIL import Image
+
+    tiles = []
+    for img, static in pairs:
+        m = F.interpolate(static[None, None].float(), size=img.shape[:2], mode="nearest")[0, 0, ..., None]
+        tinted = img * m + (0.35 * img + 0.65 * img.new_tensor([1.0, 0.0, 0.0])) * (1 - m)
+        row = []
+        for t in (img, tinted):
+            im = Image.fromarray((t.clamp(0, 1).numpy() * 255).astype(np.uint8))
+            row.append(im.resize((max(1, round(im.width * height / im.height)), height), Image.Resampling.BILINEAR))
+        tiles.append(row)
+    sheet = Image.new("RGB", (sum(r[0].width for r in tiles), 2 * height), "white")
+    x = 0
+    for a, b in tiles:
+        sheet.paste(a, (x, 0))
+        sheet.paste(b, (x, height))
+        x += a.width
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(path)
+    return path
 
 
 def run_child(spec: dict[str, Any]) -> dict[str, Any]:
@@ -640,6 +708,16 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     model = trainer.pipeline.model
     rec.update(protocol_scores(trainer, spec))
     rec.update(render_fps(model, dm.eval_dataset.cameras, spec["fps_views"]))
+    masks = getattr(model, "_mask_cache", None)
+    if os.environ.get(RENDERS_ENV) and masks:
+        name = f"{spec['scene_name']}-{spec['method']}{('-' + spec['tag']) if spec.get('tag') else ''}-masks.png"
+        picks = sorted(masks)[:: max(1, len(masks) // 4)][:4]
+        imgs = [dm.cached_train[i]["image"] for i in picks]
+        imgs = [im.float().div(255.0) if im.dtype == torch.uint8 else im.float() for im in imgs]
+        save_masks(
+            Path(os.environ[RENDERS_ENV]) / name,
+            [(im[..., :3].cpu(), masks[i].cpu()) for im, i in zip(imgs, picks, strict=True)],
+        )
 
     masks_dir = dm.train_dataset.metadata.get("masks_gt_dir")
     if masks_dir is None and dm.train_dataset.image_filenames:

@@ -164,12 +164,20 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
     }
 
 
-def evaluate_model(model, cameras, images: list[Tensor], cfg: EvalProtocolConfig, names: list[str] | None = None):
+def evaluate_model(
+    model,
+    cameras,
+    images: list[Tensor],
+    cfg: EvalProtocolConfig,
+    names: list[str] | None = None,
+    on_prediction: Callable[[int, Tensor, Tensor], None] | None = None,
+):
     """Run the protocol over test `cameras` (nerfstudio Cameras, one per image) and GT `images` [H, W, 3] in [0, 1].
 
     Returns (aggregate dict, per-image list). Keys: `psnr`/`ssim`/`lpips` (right half, fitted latent: the
     headline numbers), `encoder_*` (right half, encoder latent, no optimisation), `full_*` (whole image, fitted
-    latent), `left_loss_before` / `left_loss_after`.
+    latent), `left_loss_before` / `left_loss_after`. `on_prediction(i, pred, gt)` sees each scored render (whole
+    image, fitted latent) and its ground truth, e.g. to save pictures.
     """
     model.eval()
     lpips_fn = model.lpips_metric() if hasattr(model, "lpips_metric") else None
@@ -213,6 +221,8 @@ def evaluate_model(model, cameras, images: list[Tensor], cfg: EvalProtocolConfig
                 z = None
             with torch.no_grad():
                 pred = render_fn(z)
+            if on_prediction is not None:
+                on_prediction(i, pred.detach(), gt)
             rec.update(image_scores(pred[:, right], gt[:, right], lpips_fn))
             rec.update({f"full_{k}": v for k, v in image_scores(pred, gt, lpips_fn).items()})
             if names is not None:
