@@ -116,6 +116,11 @@ METHODS: dict[str, MethodSpec] = {
     ),
     "willags-paper-novae": MethodSpec("willags-paper", (("use_vae", False),), note="paper ablation: no VAE"),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
+    "peer": MethodSpec(
+        "peer",
+        note="the peer Splatfacto-W, light preset (KevinXu02/splatfacto-w, fetched and run beside ours)",
+        needs_cuda=True,
+    ),
     # rasterize_mode "antialiased" (gsplat's opacity compensation for the 2D dilation): consistent renders across
     # resolutions, which the stock schedule (trained at 1/4 and 1/2 resolution, evaluated at full) needs
     "splatfacto-aa": MethodSpec(
@@ -219,6 +224,10 @@ def base_trainer_config(base: str):
     from willags_ns import method_configs as mc
     from willags_ns.data.dataparser import WillagsDataParserConfig
 
+    if base == "peer":
+        from benchmarks.peer import peer_trainer_config
+
+        return peer_trainer_config()
     if base == "splatfacto":
         from nerfstudio.configs.method_configs import method_configs as ns_methods
 
@@ -561,6 +570,10 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
 
     dm = trainer.pipeline.datamanager
     model = trainer.pipeline.model
+    if METHODS[spec["method"]].base == "peer":
+        from benchmarks.peer import PeerForProtocol
+
+        model = PeerForProtocol(model)
     model.eval()
     # the test images as the model sees them: nerfstudio's cached (undistorted) images and updated cameras
     images = [as_float(d) for d in dm.cached_eval]
@@ -663,7 +676,12 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         torch.set_num_threads(threads)
     device = spec["device"]
     rec: dict[str, Any] = {}
-    patches = _patch_stock_splatfacto() if METHODS[spec["method"]].base == "splatfacto" else []
+    base = METHODS[spec["method"]].base
+    patches = _patch_stock_splatfacto() if base in ("splatfacto", "peer") else []
+    if base == "peer":
+        from benchmarks.peer import patch_peer
+
+        patches += patch_peer()
     data = Path(spec["data"]) if spec.get("data") else None
     config = build_config(
         spec["method"], spec["steps"], device, data, spec.get("downscale"), spec["schedule"], Path(spec["work_dir"])
