@@ -81,21 +81,25 @@ class ColorModulation(nn.Module):
         """Per-Gaussian (s, o) [N, 6], or None when the local residual is off."""
         if self.local_mlp is None or self.latent_proj is None:
             return None
-        parts = []
+        if self.intrinsic_dim > 0 and (f_s is None or f_s.shape[-1] != self.intrinsic_dim):
+            raise ValueError(f"f_s must be [N, {self.intrinsic_dim}], got {None if f_s is None else tuple(f_s.shape)}")
+        if self.dynamic_dim > 0 and (f_d is None or f_d.shape[-1] != self.dynamic_dim):
+            raise ValueError(f"f_d must be [N, {self.dynamic_dim}], got {None if f_d is None else tuple(f_d.shape)}")
+        # The first layer on [f_s, P z, f_d] split by its input columns: the z part is the same for every Gaussian,
+        # so it is one [hidden] vector added as a bias instead of a [N, latent_proj] copy concatenated to each
+        # Gaussian (same numbers, N x latent_proj less memory and compute per step).
+        first, act, last = self.local_mlp
+        w, ni, nz = first.weight, self.intrinsic_dim, self.latent_proj.out_features
+        h = first.bias + w[:, ni : ni + nz] @ self.latent_proj(z)  # [hidden]
         if self.intrinsic_dim > 0:
-            if f_s is None or f_s.shape[-1] != self.intrinsic_dim:
-                raise ValueError(
-                    f"f_s must be [N, {self.intrinsic_dim}], got {None if f_s is None else tuple(f_s.shape)}"
-                )
-            parts.append(f_s)
-        parts.append(self.latent_proj(z).expand(n, -1))
+            assert f_s is not None
+            h = torch.nn.functional.linear(f_s, w[:, :ni], h)
+        else:
+            h = h.expand(n, -1)
         if self.dynamic_dim > 0:
-            if f_d is None or f_d.shape[-1] != self.dynamic_dim:
-                raise ValueError(
-                    f"f_d must be [N, {self.dynamic_dim}], got {None if f_d is None else tuple(f_d.shape)}"
-                )
-            parts.append(f_d)
-        return self.local_mlp(torch.cat(parts, dim=-1))
+            assert f_d is not None
+            h = h + torch.nn.functional.linear(f_d, w[:, ni + nz :])
+        return last(act(h))
 
     def forward(
         self,

@@ -1,0 +1,56 @@
+"""The latent-conditioned colour transform (willags_ns/appearance/modulation.py)."""
+
+import pytest
+import torch
+
+from willags_ns.appearance.modulation import ColorModulation, ColorModulationConfig, local_penalty
+
+
+def _randomised(latent, intrinsic, dynamic):
+    torch.manual_seed(0)
+    m = ColorModulation(latent, intrinsic, dynamic, ColorModulationConfig())
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0.0, 0.3)  # a trained transform, not the zero-initialised identity
+    return m
+
+
+@pytest.mark.parametrize("intrinsic,dynamic", [(16, 0), (0, 0), (8, 32)])
+def test_local_residual_is_the_mlp_over_the_concatenated_features(intrinsic, dynamic):
+    """The split first layer (z's share added as one bias) gives exactly the MLP of the formula, and the same
+    gradients to every input and weight."""
+    m = _randomised(12, intrinsic, dynamic)
+    n = 50
+    z = torch.randn(12, requires_grad=True)
+    f_s = torch.randn(n, intrinsic, requires_grad=True) if intrinsic else None
+    f_d = torch.randn(n, dynamic, requires_grad=True) if dynamic else None
+    got = m.local_residual(z, f_s, f_d, n)
+    parts = ([f_s] if intrinsic else []) + [m.latent_proj(z).expand(n, -1)] + ([f_d] if dynamic else [])
+    want = m.local_mlp(torch.cat(parts, -1))
+    assert got.shape == (n, 6)
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    inputs = [t for t in (z, f_s, f_d) if t is not None] + list(m.parameters())
+    g_got = torch.autograd.grad(got.square().sum(), inputs, allow_unused=True)
+    g_want = torch.autograd.grad(want.square().sum(), inputs, allow_unused=True)
+    for a, b in zip(g_got, g_want, strict=True):
+        if b is None:
+            assert a is None or a.abs().max() == 0
+        else:
+            torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+
+
+def test_identity_at_initialisation_and_the_penalty():
+    m = ColorModulation(8, 4, 0, ColorModulationConfig())
+    base = torch.rand(20, 3)
+    out = m(torch.randn(8), base, torch.randn(20, 4))
+    torch.testing.assert_close(out, base)  # a fresh model is plain 3DGS
+    assert local_penalty(torch.zeros(0, 6)) is None and local_penalty(None) is None
+    assert float(local_penalty(torch.ones(3, 6))) == pytest.approx(6.0)
+
+
+def test_wrong_feature_sizes_are_named():
+    m = ColorModulation(8, 4, 2, ColorModulationConfig())
+    with pytest.raises(ValueError, match=r"f_s must be \[N, 4\]"):
+        m.local_residual(torch.zeros(8), torch.zeros(5, 3), torch.zeros(5, 2), 5)
+    with pytest.raises(ValueError, match=r"f_d must be \[N, 2\]"):
+        m.local_residual(torch.zeros(8), torch.zeros(5, 4), None, 5)
