@@ -83,6 +83,7 @@ VARIANTS = {
     "willags-mask4": ("willags", dict(mask_every=4), ()),
     "willags-vgg256": ("willags", {"mask.max_resolution": 256}, ()),
     "willags-nomask": ("willags", dict(use_mask=False), ()),
+    "willags-sky": ("willags", {"sky.enabled": True}, ()),  # + the appearance-conditioned sky
     "willags-bf16": ("willags", {}, ("bf16",)),
     "willags-ckpt": ("willags", {}, ("ckpt",)),
     "willags-fast": ("willags", _FAST, ()),  # mask every 4th visit of an image, VGG at 256 px
