@@ -181,8 +181,8 @@ def test_willags_pipeline_refuses_several_devices_without_a_process_group():
 
 # ---------------------------------------------------------------------------------------------------- training
 STEPS = 14
-"""Steps of the tiny run: refinements at steps 9 and 12 (refine_every 3; gsplat pauses refinement for
-num_train + refine_every = 9 steps after the opacity reset of step 0)."""
+"""Steps of the tiny run: refinements at steps 6, 9 and 12 (refine_every 3; after the opacity reset of step 0 gsplat
+waits one epoch, 6 images / 2 ranks = 3 steps, + refine_every)."""
 
 
 def _tiny_config(tmp_path: Path, scene: Path):
@@ -241,8 +241,9 @@ def test_launch_trains_on_two_ranks_with_their_own_images(launched_run):
     assert all(i % 2 == 0 for i in imgs0) and all(i % 2 == 1 for i in imgs1), (imgs0, imgs1)
     assert set(imgs0) | set(imgs1) == set(range(6))
     assert records[0]["refine_seed"] == records[1]["refine_seed"]
+    assert records[0]["pause_refine_after_reset"] == 3 + 3  # one epoch of each rank's 3 images + refine_every
     counts, n0 = records[0]["num_points"], records[0]["initial"]["gauss_params.means"].shape[0]
-    assert counts[8] == n0 and counts[9] != n0, f"no refinement at step 9: {counts} (from {n0})"
+    assert counts[5] == n0 and counts[6] != n0, f"no refinement at step 6: {counts} (from {n0})"
     assert counts == records[1]["num_points"]
     ckpts = list((Path(config.get_base_dir()) / "nerfstudio_models").glob("*.ckpt"))
     assert len(ckpts) == 1  # rank 0 alone writes checkpoints
@@ -276,7 +277,12 @@ def _reference(config, records):
     with torch.no_grad():
         for k, v in records[0]["initial"].items():
             model.state_dict()[k].copy_(v)
-    strategy = synced_strategy(model.strategy, records[0]["refine_seed"], world_size=1)
+    from gsplat.strategy import DefaultStrategy
+
+    assert type(model.strategy) is DefaultStrategy, "one process must keep gsplat's strategy"
+    assert not hasattr(optimizers.optimizer_scaler_step_some, "willags_averages_gradients")
+    strategy = synced_strategy(model.strategy, records[0]["refine_seed"], world_size=1)  # the ranks' seeded splits
+    strategy.pause_refine_after_reset = records[0]["pause_refine_after_reset"]  # the ranks' schedule
     model.strategy = strategy
     callbacks = trainer.callbacks  # the model's (step, densification, teacher EMA) and the pipeline's
     groups = list(optimizers.parameters.keys())

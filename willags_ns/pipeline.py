@@ -26,6 +26,7 @@ its own image, gradients are averaged before the optimiser step and densificatio
 """
 
 import json
+import math
 import signal
 import time
 from dataclasses import dataclass, field
@@ -233,10 +234,15 @@ class WillagsPipeline(VanillaPipeline):
     def _setup_data_parallel(self, world_size: int) -> None:
         """Same model on every rank, a share of the images per rank, densification that agrees over the ranks."""
         rank, _ = rank_and_world_size()
-        validate_train_images(len(self.datamanager.train_dataset), world_size)
+        num_images = len(self.datamanager.train_dataset)
+        validate_train_images(num_images, world_size)
         shard_train_images(self.datamanager, rank, world_size)
         broadcast_module(self.model)  # nerfstudio seeds rank r with seed + r: rank 0's initialisation wins
-        self.model.strategy = synced_strategy(self.model.strategy, draw_refine_seed(), world_size)
+        strategy = synced_strategy(self.model.strategy, draw_refine_seed(), world_size)
+        # after an opacity reset gsplat waits one epoch (splatfacto: num_train_data + refine_every steps) before
+        # refining again, so that every image is seen once; with one image per rank an epoch is N times shorter
+        strategy.pause_refine_after_reset -= num_images - math.ceil(num_images / world_size)
+        self.model.strategy = strategy
         if rank == 0:
             CONSOLE.log(
                 f"willags: data-parallel training on {world_size} devices: one image per device per step, gradients "
