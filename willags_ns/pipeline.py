@@ -19,16 +19,24 @@ It is also where every willags method checks its inputs and guards training, wha
   set before the model is built (willags_ns/autoconfig.py);
 - Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
   at the next step with the same parameters and optimiser state (`InterruptCheckpoint`).
+
+With `--machine.num-devices N` (N > 1) it trains data-parallel without nerfstudio's DDP wrapper: each rank renders
+its own image, gradients are averaged before the optimiser step and densification agrees over the ranks
+(willags_ns/distributed.py, docs/distributed.md).
 """
 
 import json
+import math
 import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.autoconfig import AUTO_CONFIG_FILE, apply_auto_config, format_summary, scene_dir, tensorboard_entries
@@ -39,6 +47,18 @@ from willags_ns.checks import (
     warn_all,
 )
 from willags_ns.data.consistency import foreign_photo_warnings
+from willags_ns.distributed import (
+    average_gradients,
+    broadcast_module,
+    draw_refine_seed,
+    optimizer_parameters,
+    rank_and_world_size,
+    shard_train_images,
+    share_train_latents,
+    synced_strategy,
+    validate_data_parallel,
+    validate_train_images,
+)
 from willags_ns.eval.protocol import EvalProtocolConfig, eval_split_images, evaluate_model
 from willags_ns.viewer import guard_viewer_host
 
@@ -152,7 +172,20 @@ class WillagsPipeline(VanillaPipeline):
 
     def __init__(self, config: WillagsPipelineConfig, *args, **kwargs):
         install_cli_excepthook()
-        test_mode = kwargs.get("test_mode", args[1] if len(args) > 1 else "val")
+        # VanillaPipeline's arguments by name: (device, test_mode, world_size, local_rank, grad_scaler)
+        setup_kwargs = dict(
+            zip(("device", "test_mode", "world_size", "local_rank", "grad_scaler"), args, strict=False), **kwargs
+        )
+        test_mode = setup_kwargs.get("test_mode", "val")
+        world_size = int(setup_kwargs.get("world_size", 1))
+        if world_size > 1:
+            validate_data_parallel(world_size, setup_kwargs.get("device"), config.datamanager)
+            device = torch.device(str(setup_kwargs.get("device")))
+            if device.type == "cuda" and device.index is not None:
+                torch.cuda.set_device(device)  # NCCL and gsplat's launches follow the current device
+            # no DistributedDataParallel wrapper: its fixed buckets break when densification replaces the
+            # Gaussians; gradients are averaged by hand before each optimiser step (willags_ns/distributed.py)
+            setup_kwargs["world_size"] = 1
         checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
         if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default
             guard_viewer_host()
@@ -174,7 +207,7 @@ class WillagsPipeline(VanillaPipeline):
 
         def setup_after_checks(**model_kwargs):
             if checking:
-                device = kwargs.get("device", args[0] if args else None)
+                device = setup_kwargs.get("device")
                 outputs = self.datamanager.train_dataparser_outputs
                 warn_all(validate_dataparser_outputs(outputs, device=str(device) if device is not None else None))
                 if config.check_photo_content:
@@ -183,9 +216,10 @@ class WillagsPipeline(VanillaPipeline):
 
         model_config.setup = setup_after_checks  # type: ignore[method-assign]
         try:
-            super().__init__(config, *args, **kwargs)
+            super().__init__(config, **setup_kwargs)
         finally:
             del model_config.setup
+        self.world_size = world_size
         names = [Path(p).name for p in self.datamanager.train_dataparser_outputs.image_filenames]
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
@@ -193,13 +227,42 @@ class WillagsPipeline(VanillaPipeline):
         controls = getattr(self.model, "viewer_controls", None)
         if controls is not None:  # the viewer panel shows a training view's transient mask / teacher render
             controls.set_train_dataset(self.datamanager.train_dataset)
+        self._step_image_idx = -1
+        if world_size > 1:
+            self._setup_data_parallel(world_size)
+
+    def _setup_data_parallel(self, world_size: int) -> None:
+        """Same model on every rank, a share of the images per rank, densification that agrees over the ranks."""
+        rank, _ = rank_and_world_size()
+        num_images = len(self.datamanager.train_dataset)
+        validate_train_images(num_images, world_size)
+        shard_train_images(self.datamanager, rank, world_size)
+        broadcast_module(self.model)  # nerfstudio seeds rank r with seed + r: rank 0's initialisation wins
+        strategy = synced_strategy(self.model.strategy, draw_refine_seed(), world_size)
+        # after an opacity reset gsplat waits one epoch (splatfacto: num_train_data + refine_every steps) before
+        # refining again, so that every image is seen once; with one image per rank an epoch is N times shorter
+        strategy.pause_refine_after_reset -= num_images - math.ceil(num_images / world_size)
+        self.model.strategy = strategy
+        if rank == 0:
+            CONSOLE.log(
+                f"willags: data-parallel training on {world_size} devices: one image per device per step, gradients "
+                "averaged before each optimiser step, densification statistics all-reduced before each refinement"
+            )
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes):
         cbs = super().get_training_callbacks(training_callback_attributes)
         trainer = training_callback_attributes.trainer
         if self.auto_config_summary is not None and trainer is not None:
             cbs.append(self._record_auto_config(trainer))
-        if self.config.checkpoint_on_interrupt and trainer is not None:
+        optimizers = training_callback_attributes.optimizers
+        if self.world_size > 1 and optimizers is not None:
+            self._average_gradients_before_step(optimizers)
+        if self.config.checkpoint_on_interrupt and trainer is not None and self.world_size > 1:
+            # nerfstudio's launcher terminates every rank on Ctrl-C (the parent gets the SIGINT too), so a rank
+            # cannot finish its step first: resume from the last periodic checkpoint instead
+            if comms.is_main_process():
+                CONSOLE.log("willags: several devices: Ctrl-C stops at once (no interrupt checkpoint)")
+        elif self.config.checkpoint_on_interrupt and trainer is not None:
             ic = InterruptCheckpoint(trainer)
             self.interrupt_checkpoint = ic
             cbs.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], ic.install))
@@ -207,14 +270,33 @@ class WillagsPipeline(VanillaPipeline):
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], ic.uninstall))
         return cbs
 
+    def _average_gradients_before_step(self, optimizers: Optimizers) -> None:
+        """Data-parallel: the trainer's optimiser step first averages every gradient over the ranks (after the
+        backward pass, which nerfstudio runs between get_train_loss_dict and this step) and shares this step's
+        image latents."""
+        step_some = optimizers.optimizer_scaler_step_some
+        if getattr(step_some, "willags_averages_gradients", False):
+            return  # already installed (callbacks requested twice)
+
+        def averaged_step_some(grad_scaler, param_groups):
+            average_gradients(optimizer_parameters(optimizers.optimizers), self.world_size)
+            model = self.model
+            if hasattr(model, "train_latents"):
+                share_train_latents(model.train_latents, model.train_latent_seen, self._step_image_idx)
+            return step_some(grad_scaler, param_groups)
+
+        averaged_step_some.willags_averages_gradients = True  # type: ignore[attr-defined]
+        optimizers.optimizer_scaler_step_some = averaged_step_some  # type: ignore[method-assign]
+
     def _record_auto_config(self, trainer) -> TrainingCallback:
         """auto_config.json and the resolved config.yml now; tensorboard at the first step (writers are set up)."""
         summary = self.auto_config_summary
         base = Path(trainer.base_dir)
-        base.mkdir(parents=True, exist_ok=True)
-        (base / AUTO_CONFIG_FILE).write_text(json.dumps(summary, indent=1, default=str))
-        if summary["applied"]:
-            trainer.config.save_config()  # config.yml: the resolved switches, auto_config False
+        if comms.is_main_process():  # one writer when several devices train (every rank resolved the same)
+            base.mkdir(parents=True, exist_ok=True)
+            (base / AUTO_CONFIG_FILE).write_text(json.dumps(summary, indent=1, default=str))
+            if summary["applied"]:
+                trainer.config.save_config()  # config.yml: the resolved switches, auto_config False
         text, scalars = tensorboard_entries(summary)
         logged = []
 
@@ -233,6 +315,7 @@ class WillagsPipeline(VanillaPipeline):
     def get_train_loss_dict(self, step: int):
         check_gaussians_alive(self.model.num_points, step)
         camera, batch = self.datamanager.next_train(step)
+        self._step_image_idx = int(batch.get("image_idx", -1))  # shared with the other ranks (several devices)
         self.model.set_train_batch(batch)  # type: ignore[attr-defined]
         model_outputs = self._model(camera)
         metrics_dict = self.model.get_metrics_dict(model_outputs, batch)

@@ -1,0 +1,329 @@
+"""Data-parallel training (willags_ns/distributed.py, `--machine.num-devices N`) on CPU with gloo and 2 processes.
+
+- the collectives (gradient averaging, densification statistics, latents, broadcast, agreement check, shared RNG) in
+  a bare 2-process gloo group;
+- a tiny willags run launched through nerfstudio's own launcher (`nerfstudio.scripts.train.launch`, num_devices=2,
+  device_type cpu), with densification in between: both ranks end with identical parameters, and one process that
+  trains on the same image pairs with averaged gradients ends where they do;
+- clear errors for settings data-parallel training does not support.
+"""
+
+import socket
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+
+from willags_ns.distributed import (
+    DataParallelError,
+    RankSyncedStrategy,
+    all_reduce_strategy_state,
+    average_gradients,
+    broadcast_module,
+    check_parameters_agree,
+    rank_images,
+    same_rng,
+    shard_train_images,
+    share_train_latents,
+    synced_strategy,
+    validate_data_parallel,
+    validate_train_images,
+)
+
+WORLD = 2
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _gloo_worker(rank: int, port: int, fn) -> None:
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=WORLD)
+    try:
+        fn(rank)
+    finally:
+        dist.destroy_process_group()
+
+
+def _run_gloo(fn) -> None:
+    """fn(rank) in each of WORLD spawned processes sharing a gloo group; an assertion in any fails the test."""
+    mp.spawn(_gloo_worker, args=(_free_port(), fn), nprocs=WORLD, join=True)
+
+
+# ---------------------------------------------------------------------------------------------------- collectives
+def _collectives(rank: int) -> None:
+    # gradients: averaged; a gradient one rank lacks counts as zero there; none anywhere stays None
+    a, b, c = (torch.nn.Parameter(torch.zeros(3)) for _ in range(3))
+    a.grad = torch.full((3,), float(rank + 1))  # 1 and 2 -> mean 1.5
+    if rank == 1:
+        b.grad = torch.tensor([4.0, -2.0, 0.0])  # only rank 1 -> half of it
+    average_gradients([a, b, c], WORLD)
+    assert torch.equal(a.grad, torch.full((3,), 1.5))
+    assert torch.equal(b.grad, torch.tensor([2.0, -1.0, 0.0]))
+    assert c.grad is None
+
+    # densification statistics: grad2d and count summed, radii max
+    state = {
+        "grad2d": torch.tensor([1.0, 0.0]) * (rank + 1),
+        "count": torch.tensor([1.0, float(rank)]),
+        "radii": torch.tensor([0.1, 0.5]) if rank == 0 else torch.tensor([0.3, 0.2]),
+        "scene_scale": 1.0,
+    }
+    all_reduce_strategy_state(state)
+    assert torch.equal(state["grad2d"], torch.tensor([3.0, 0.0]))
+    assert torch.equal(state["count"], torch.tensor([2.0, 1.0]))
+    assert torch.equal(state["radii"], torch.tensor([0.3, 0.5]))
+
+    # latents: each rank's image row reaches every rank
+    latents, seen = torch.zeros(4, 2), torch.zeros(4, dtype=torch.bool)
+    idx = 2 * rank + 1  # rank 0 saw image 1, rank 1 image 3
+    latents[idx], seen[idx] = torch.tensor([float(idx), -1.0]), True
+    share_train_latents(latents, seen, idx)
+    assert seen.tolist() == [False, True, False, True]
+    assert torch.equal(latents[1], torch.tensor([1.0, -1.0])) and torch.equal(latents[3], torch.tensor([3.0, -1.0]))
+
+    # broadcast: rank 0's initialisation everywhere (nerfstudio seeds every rank differently)
+    torch.manual_seed(100 + rank)
+    net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
+    net[1].running_mean.fill_(rank)
+    net.register_buffer("flag", torch.tensor([rank == 0, rank == 1]))
+    broadcast_module(net)
+    check_parameters_agree(dict(net.named_parameters()), "after the broadcast")
+    assert net[1].running_mean.eq(0).all() and net.flag.tolist() == [True, False]
+
+    # ranks that built different models are named, not left to hang or silently diverge
+    other = torch.nn.Linear(3, 4 + rank)
+    with pytest.raises(DataParallelError, match="built different models"):
+        broadcast_module(other)
+
+    # a divergence is reported with the tensor's name
+    means = torch.ones(5, 3)
+    if rank == 1:
+        means[2, 0] = 1.5
+    with pytest.raises(DataParallelError, match="'means'.*rank"):
+        check_parameters_agree({"quats": torch.ones(5, 4), "means": means}, "in the test")
+
+    # shared RNG for the refinement; each rank's own stream is untouched by it
+    torch.manual_seed(7 + rank)
+    expected_own = torch.randn(4, generator=torch.Generator().manual_seed(7 + rank))
+    with same_rng(1234, "cpu"):
+        drawn = torch.randn(6)
+    assert torch.equal(torch.randn(4), expected_own)
+    everyone = [torch.empty(6) for _ in range(WORLD)]
+    dist.all_gather(everyone, drawn)
+    assert torch.equal(everyone[0], everyone[1])
+
+
+def test_collectives_over_two_gloo_ranks():
+    _run_gloo(_collectives)
+
+
+# ---------------------------------------------------------------------------------------------------- pure parts
+def test_each_rank_gets_its_own_images_every_epoch():
+    order = [5, 2, 7, 0, 3, 6, 1, 4]
+    assert rank_images(order, 0, 2) == [2, 0, 6, 4] and rank_images(order, 1, 2) == [5, 7, 3, 1]
+    epochs = iter([[3, 0, 2, 1, 4], [1, 4, 0, 3, 2], [4, 3, 2, 1, 0]])
+
+    class Datamanager:  # nerfstudio's FullImageDatamanager: same seeded shuffles on every rank
+        def __init__(self):
+            self.train_unseen_cameras = next(epochs)
+
+        def sample_train_cameras(self):
+            return next(epochs)
+
+    dm = Datamanager()
+    shard_train_images(dm, 1, 2)
+    assert dm.train_unseen_cameras == [3, 1]
+    assert dm.sample_train_cameras() == [1, 3]
+    dm0 = SimpleNamespace(train_unseen_cameras=[0, 1, 2], sample_train_cameras=lambda: [2, 1, 0])
+    shard_train_images(dm0, 0, 1)  # one process: untouched
+    assert dm0.train_unseen_cameras == [0, 1, 2] and dm0.sample_train_cameras() == [2, 1, 0]
+
+
+def test_unsupported_settings_are_named():
+    dm = SimpleNamespace(train_cameras_sampling_strategy="random")
+    validate_data_parallel(1, "cpu", dm)  # one process: nothing to check
+    with pytest.raises(DataParallelError, match="train-cameras-sampling-strategy fps"):
+        validate_data_parallel(2, "cpu", SimpleNamespace(train_cameras_sampling_strategy="fps"))
+    with pytest.raises(DataParallelError, match="full-image datamanager"):
+        validate_data_parallel(2, "cpu", SimpleNamespace())
+    with pytest.raises(DataParallelError, match="not mps"):
+        validate_data_parallel(2, "mps", dm)
+    with pytest.raises(DataParallelError, match="--machine.num-devices 2"):
+        validate_data_parallel(2, "cpu", dm)  # no process group: not launched by nerfstudio's launcher
+    validate_train_images(3, 2)
+    with pytest.raises(DataParallelError, match="at least 4 training images"):
+        validate_train_images(3, 4)
+
+
+def test_synced_strategy_keeps_the_settings():
+    from gsplat.strategy import DefaultStrategy
+
+    base = DefaultStrategy(refine_every=7, grow_grad2d=0.123, refine_start_iter=3)
+    s = synced_strategy(base, refine_seed=11, world_size=2)
+    assert isinstance(s, RankSyncedStrategy) and isinstance(s, DefaultStrategy)
+    assert (s.refine_every, s.grow_grad2d, s.refine_start_iter, s.refine_seed, s.world_size) == (7, 0.123, 3, 11, 2)
+
+
+def test_willags_pipeline_refuses_several_devices_without_a_process_group():
+    from willags_ns import method_configs
+
+    config = method_configs.willags_config()
+    with pytest.raises(DataParallelError, match="ns-train willags --machine.num-devices 2"):
+        config.pipeline.setup(device="cpu", test_mode="val", world_size=2, local_rank=0)
+
+
+# ---------------------------------------------------------------------------------------------------- training
+STEPS = 14
+"""Steps of the tiny run: refinements at steps 6, 9 and 12 (refine_every 3; after the opacity reset of step 0 gsplat
+waits one epoch, 6 images / 2 ranks = 3 steps, + refine_every)."""
+
+
+def _tiny_config(tmp_path: Path, scene: Path):
+    from willags_ns import method_configs
+
+    config = method_configs.willags_config()
+    config.max_num_iterations = STEPS
+    config.steps_per_save = 1000  # the final checkpoint only
+    config.steps_per_eval_image = 1000
+    config.vis = "tensorboard"
+    config.output_dir = tmp_path
+    config.experiment_name = "ddp"
+    config.timestamp = "t"
+    config.machine.device_type = "cpu"
+    config.pipeline.datamanager.data = scene
+    config.pipeline.check_photo_content = False
+    m = config.pipeline.model
+    m.num_downscales = 0
+    m.warmup_length = 2
+    m.refine_every = 3
+    m.reset_alpha_every = 100
+    m.densify_grad_thresh = 2e-5  # grow many Gaussians (split: random offsets) in a few steps
+    m.background_color = "black"  # "random" draws per rank; the single-process reference must draw the same
+    m.mask.warmup_steps = 4
+    m.mask.vgg_weights = "seeded"
+    m.log_images_every = 0
+    return config
+
+
+@pytest.fixture(scope="module")
+def launched_run(tmp_path_factory):
+    """Launch a tiny willags run on 2 CPU ranks through nerfstudio's launcher; (config, [rank0 record, rank1])."""
+    from nerfstudio.scripts.train import launch
+
+    from tests._distributed_launch import record_path, train_and_record
+    from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
+
+    tmp = tmp_path_factory.mktemp("ddp")
+    scene_cfg = SyntheticSceneConfig(num_train=6, num_test=1, width=32, height=24, num_points=400, supersample=1)
+    scene = ensure_default_scene(scene_cfg, root=tmp / "scenes")
+    config = _tiny_config(tmp, scene)
+    config.set_timestamp()
+    config.save_config()
+    launch(main_func=train_and_record, num_devices_per_machine=WORLD, device_type="cpu", config=config)
+    return config, [torch.load(record_path(config, r), weights_only=False) for r in range(WORLD)]
+
+
+@pytest.mark.slow
+def test_launch_trains_on_two_ranks_with_their_own_images(launched_run):
+    config, records = launched_run
+    for rec in records:
+        assert rec["wrapped"] == "WillagsModel", "the model must not be wrapped in DistributedDataParallel"
+        assert rec["strategy"] == "RankSyncedStrategy"
+        assert len(rec["images"]) == STEPS
+    imgs0, imgs1 = records[0]["images"], records[1]["images"]
+    assert all(i % 2 == 0 for i in imgs0) and all(i % 2 == 1 for i in imgs1), (imgs0, imgs1)
+    assert set(imgs0) | set(imgs1) == set(range(6))
+    assert records[0]["refine_seed"] == records[1]["refine_seed"]
+    assert records[0]["pause_refine_after_reset"] == 3 + 3  # one epoch of each rank's 3 images + refine_every
+    counts, n0 = records[0]["num_points"], records[0]["initial"]["gauss_params.means"].shape[0]
+    assert counts[5] == n0 and counts[6] != n0, f"no refinement at step 6: {counts} (from {n0})"
+    assert counts == records[1]["num_points"]
+    ckpts = list((Path(config.get_base_dir()) / "nerfstudio_models").glob("*.ckpt"))
+    assert len(ckpts) == 1  # rank 0 alone writes checkpoints
+    saved = torch.load(ckpts[0], map_location="cpu", weights_only=False)["pipeline"]
+    assert not any(k.startswith("_model.module.") for k in saved)  # loads in a single process as usual
+    torch.testing.assert_close(saved["_model.gauss_params.means"], records[0]["final"]["gauss_params.means"])
+
+
+@pytest.mark.slow
+def test_ranks_end_with_identical_parameters(launched_run):
+    _, (r0, r1) = launched_run
+    for state in ("initial", "final"):
+        assert r0[state].keys() == r1[state].keys()
+        for k in r0[state]:
+            assert torch.equal(r0[state][k], r1[state][k]), f"{state} {k} differs between the ranks"
+    # the appearances of every training image are known on both ranks (each rank encodes only its own)
+    assert r0["final"]["train_latent_seen"].all()
+
+
+def _reference(config, records):
+    """One process, the same initial state, each step the two ranks' images: forward + backward of each image (its
+    densification statistics recorded after its own backward, as on its rank), gradients divided by 2, one
+    optimiser step, then nerfstudio's after-step callbacks (refinement with the same seed). Returns the model."""
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation
+
+    torch.manual_seed(0)
+    config.pipeline.checkpoint_on_interrupt = False  # no SIGINT handler in the test process
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    pipeline, model, optimizers = trainer.pipeline, trainer.pipeline.model, trainer.optimizers
+    with torch.no_grad():
+        for k, v in records[0]["initial"].items():
+            model.state_dict()[k].copy_(v)
+    from gsplat.strategy import DefaultStrategy
+
+    assert type(model.strategy) is DefaultStrategy, "one process must keep gsplat's strategy"
+    assert not hasattr(optimizers.optimizer_scaler_step_some, "willags_averages_gradients")
+    strategy = synced_strategy(model.strategy, records[0]["refine_seed"], world_size=1)  # the ranks' seeded splits
+    strategy.pause_refine_after_reset = records[0]["pause_refine_after_reset"]  # the ranks' schedule
+    model.strategy = strategy
+    callbacks = trainer.callbacks  # the model's (step, densification, teacher EMA) and the pipeline's
+    groups = list(optimizers.parameters.keys())
+    update_state = strategy._update_state
+    pipeline.train()
+    for step in range(STEPS):
+        for cb in callbacks:
+            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        optimizers.zero_grad_all()
+        for rec in records:
+            pipeline.datamanager.train_unseen_cameras = [rec["images"][step]]
+            _, loss_dict, _ = pipeline.get_train_loss_dict(step)
+            sum(loss_dict.values()).backward()
+            update_state(model.gauss_params, model.strategy_state, model.info, packed=False)
+            model._end_step(step)
+        for opt in optimizers.optimizers.values():
+            for group in opt.param_groups:
+                for p in group["params"]:
+                    if p.grad is not None:
+                        p.grad.div_(len(records))
+        optimizers.optimizer_scaler_step_some(trainer.grad_scaler, groups)
+        optimizers.scheduler_step_all(step)
+        strategy._update_state = lambda *a, **k: None  # already recorded per image above
+        for cb in callbacks:
+            cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+        del strategy._update_state
+    return model
+
+
+@pytest.mark.slow
+def test_two_ranks_equal_one_process_on_the_same_image_pairs(launched_run):
+    config, records = launched_run
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the ranks' reductions ran on one thread each
+    try:
+        model = _reference(config, records)
+    finally:
+        torch.set_num_threads(threads)
+    final = records[0]["final"]
+    ref = model.state_dict()
+    assert ref["gauss_params.means"].shape == final["gauss_params.means"].shape, "densification decided differently"
+    assert ref["gauss_params.means"].shape[0] != records[0]["initial"]["gauss_params.means"].shape[0]
+    for k, v in final.items():
+        torch.testing.assert_close(ref[k], v, rtol=1e-4, atol=1e-6, msg=lambda m, k=k: f"{k}: {m}")
