@@ -613,9 +613,11 @@ RENDERS_ENV = "WILLAGS_BENCH_RENDERS"
 (ground truth above, the protocol's render below, PSNR on each), for looking at what a number means."""
 
 
-def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[float], height: int = 200) -> Path:
-    """A contact sheet of (ground truth, render) right halves [H, W, 3] in [0, 1], one column per test image, each
-    scaled to `height` pixels; the render's PSNR written on it."""
+def save_two_row_sheet(
+    path: Path, columns: list[tuple[Any, Any]], labels: list[str] | None = None, height: int = 200
+) -> Path:
+    """A contact sheet of image pairs [H, W, 3] in [0, 1]: one column per pair (first above, second below), each
+    scaled to `height` pixels; `labels[i]` written on column i's lower image."""
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -623,45 +625,36 @@ def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[floa
         im = Image.fromarray((t.clamp(0, 1).numpy() * 255).astype(np.uint8))
         return im.resize((max(1, round(im.width * height / im.height)), height), Image.Resampling.BILINEAR)
 
-    cols = [(tile(g), tile(p)) for g, p in pairs]
-    sheet = Image.new("RGB", (sum(g.width for g, _ in cols), 2 * height), "white")
-    x = 0
+    tiles = [(tile(a), tile(b)) for a, b in columns]
+    sheet = Image.new("RGB", (sum(a.width for a, _ in tiles), 2 * height), "white")
     draw = ImageDraw.Draw(sheet)
-    for (g, p), v in zip(cols, psnrs, strict=False):
-        sheet.paste(g, (x, 0))
-        sheet.paste(p, (x, height))
-        draw.text((x + 4, height + 4), f"{v:.2f} dB", fill=(255, 255, 0))
-        x += g.width
+    x = 0
+    for i, (a, b) in enumerate(tiles):
+        sheet.paste(a, (x, 0))
+        sheet.paste(b, (x, height))
+        if labels is not None and i < len(labels):
+            draw.text((x + 4, height + 4), labels[i], fill=(255, 255, 0))
+        x += a.width
     path.parent.mkdir(parents=True, exist_ok=True)
     sheet.save(path)
     return path
+
+
+def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[float], height: int = 200) -> Path:
+    """(ground truth, render) right halves [H, W, 3], one column per test image, the render's PSNR on it."""
+    return save_two_row_sheet(path, pairs, [f"{v:.2f} dB" for v in psnrs], height)
 
 
 def save_masks(path: Path, pairs: list[tuple[Any, Any]], height: int = 200) -> Path:
     """Training images [H, W, 3] in [0, 1] above the same images with their transient pixels (mask [h, w] bool,
     True = static, any resolution) tinted red: what the model was not taught from."""
-    import numpy as np
     import torch.nn.functional as F
-    from PIL import Image
 
-    tiles = []
+    columns = []
     for img, static in pairs:
         m = F.interpolate(static[None, None].float(), size=img.shape[:2], mode="nearest")[0, 0, ..., None]
-        tinted = img * m + (0.35 * img + 0.65 * img.new_tensor([1.0, 0.0, 0.0])) * (1 - m)
-        row = []
-        for t in (img, tinted):
-            im = Image.fromarray((t.clamp(0, 1).numpy() * 255).astype(np.uint8))
-            row.append(im.resize((max(1, round(im.width * height / im.height)), height), Image.Resampling.BILINEAR))
-        tiles.append(row)
-    sheet = Image.new("RGB", (sum(r[0].width for r in tiles), 2 * height), "white")
-    x = 0
-    for a, b in tiles:
-        sheet.paste(a, (x, 0))
-        sheet.paste(b, (x, height))
-        x += a.width
-    path.parent.mkdir(parents=True, exist_ok=True)
-    sheet.save(path)
-    return path
+        columns.append((img, img * m + (0.35 * img + 0.65 * img.new_tensor([1.0, 0.0, 0.0])) * (1 - m)))
+    return save_two_row_sheet(path, columns, height=height)
 
 
 def run_child(spec: dict[str, Any]) -> dict[str, Any]:

@@ -334,3 +334,116 @@ def test_learning_rate_overrides_keep_the_schedule_ratio(tmp_path):
     assert abs(means["scheduler"].lr_final - 1.6e-7) < 1e-12
     with pytest.raises(KeyError, match="optimizers.nope.lr"):
         set_lr(cfg, "optimizers.nope.lr", 1.0)
+
+
+# ---------------------------------------------------------------- pictures, the peer, the 15000-step table
+
+
+def test_render_sheets_stack_pairs_and_tint_the_transient_pixels(tmp_path):
+    import torch
+
+    gt, pred = torch.zeros(40, 30, 3), torch.ones(40, 30, 3)
+    p = harness.save_right_halves(tmp_path / "r.png", [(gt, pred), (gt, pred)], [19.0, 18.0], height=20)
+    im = np.asarray(Image.open(p).convert("RGB"))
+    assert im.shape == (40, 30, 3)  # two columns of 15 px (30 px wide at 40 -> 20 px high), two rows
+    assert im[:20].max() == 0 and im[37:].min() == 255  # GT above (black), render below (white, under the label)
+    assert (im[20:37] != 255).any()  # the PSNR label is written on the render
+
+    img = torch.full((20, 20, 3), 0.5)
+    static = torch.ones(10, 10, dtype=torch.bool)
+    static[:5] = False  # the upper half is transient (mask at half resolution)
+    p = harness.save_masks(tmp_path / "m.png", [(img, static)], height=20)
+    im = np.asarray(Image.open(p).convert("RGB")).astype(int)
+    top, tinted_transient, tinted_static = im[10, 10], im[25, 10], im[35, 10]
+    assert abs(top[0] - top[1]) <= 1  # the untouched image is grey
+    assert tinted_transient[0] > tinted_transient[1] + 100  # transient pixels red
+    assert abs(tinted_static[0] - tinted_static[1]) <= 1  # static pixels unchanged
+
+
+def test_peer_adapter_fits_the_latent_through_the_peers_embedding_and_restores_it():
+    import torch
+    from nerfstudio.cameras.cameras import Cameras
+
+    from benchmarks.peer import PeerForProtocol
+    from willags_ns.eval.protocol import fit_latent, render_with_latent
+
+    class FakePeer(torch.nn.Module):
+        """Renders a flat image whose colour is the first 3 entries of its appearance embedding (the peer reads the
+        table by cam_idx, or its mean with use_avg_appearance)."""
+
+        def __init__(self):
+            super().__init__()
+            self.appearance_embeds = torch.nn.Embedding(4, 5)
+            self.config = type("C", (), {"use_avg_appearance": False})()
+            self.seen = []
+
+        @property
+        def device(self):
+            return torch.device("cpu")
+
+        def get_outputs(self, camera):
+            md = camera.metadata or {}
+            if "cam_idx" in md:
+                e = self.appearance_embeds(torch.tensor(md["cam_idx"]))
+            elif self.config.use_avg_appearance:
+                e = self.appearance_embeds.weight.mean(0)
+            else:
+                e = self.appearance_embeds(torch.tensor(0))
+            self.seen.append(tuple(md))
+            return {"rgb": e[:3].expand(6, 8, 3)}
+
+    peer = FakePeer()
+    model = PeerForProtocol(peer)
+    assert model.config.appearance == "willags" and model.appearance_nets.vae is None
+    torch.testing.assert_close(model.default_latent(), peer.appearance_embeds.weight.mean(0))
+    cam = Cameras(camera_to_worlds=torch.eye(4)[:3][None], fx=1.0, fy=1.0, cx=4.0, cy=3.0, width=8, height=6)
+    cam.metadata = {"cam_idx": 2}
+    target = torch.tensor([0.2, 0.7, 0.4]).expand(6, 8, 3)
+    z, hist = fit_latent(
+        lambda z: render_with_latent(model, cam, z), target, model.default_latent(), slice(0, 4), 60, 0.05
+    )
+    assert hist[-1] < 0.2 * hist[0]  # the fitted latent drives the peer's colours
+    torch.testing.assert_close(render_with_latent(model, cam, z)[0, 0], z[:3])
+    assert isinstance(peer.appearance_embeds, torch.nn.Embedding) and peer.config.use_avg_appearance is False
+    assert ("cam_idx",) not in peer.seen[:-1]  # while fitting, the peer never looked its own row up
+    torch.testing.assert_close(model.get_outputs(cam)["rgb"][0, 0], peer.appearance_embeds.weight[2, :3])
+
+
+def test_peer_source_missing_is_a_clear_error(tmp_path, monkeypatch):
+    from benchmarks import peer
+
+    monkeypatch.setenv(peer.PEER_ENV, str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="KevinXu02/splatfacto-w"):
+        peer.peer_source()
+
+
+def test_fifteen_k_table_lists_each_run_once_next_to_its_5000_step_mean():
+    base = {"status": "ok", "device": "cuda", "ssim": 0.9}
+    recs = [
+        {
+            **base,
+            "scene": "fox-wild",
+            "method": "willags",
+            "steps": 15000,
+            "tag": "h100-15k",
+            "psnr": 22.4,
+            "train_psnr": 18.0,
+            "num_gaussians": 100,
+        },
+        {**base, "scene": "fox-wild", "method": "willags", "steps": 5000, "tag": "h100-r1", "psnr": 22.0},
+        {**base, "scene": "fox-wild", "method": "willags", "steps": 5000, "tag": "h100-r2", "psnr": 22.2},
+        {**base, "scene": "reichstag", "method": "splatfacto", "steps": 15000, "tag": "h100-15k", "psnr": 15.1},
+        {
+            "scene": "reichstag",
+            "method": "splatfacto",
+            "kind": "long_run",
+            "steps_done": 15000,
+            "steps": 15000,
+            "milestones": {"15000": {"psnr": 15.1, "train_psnr": 22.0, "num_gaussians": 5}},
+        },
+    ]
+    rows = [ln for ln in harness.fifteen_k_section(recs) if ln.startswith("| fox-wild") or ln.startswith("| reich")]
+    assert rows == [
+        "| fox-wild | willags | 22.40 | 22.10 ±0.10 (n=2) | 18.00 | 100 |",
+        "| reichstag | splatfacto | 15.10 | – | – | – |",
+    ]

@@ -306,8 +306,9 @@ def test_row13_vgg_mask_features_of_a_2x2_image():
 
 
 def test_row8_latent_clamping_of_the_appearance_spec_parser():
-    """Owned by the appearance-SPEC work (willags_ns/appearance_spec.py, another branch): runs once it is merged."""
-    spec = pytest.importorskip("willags_ns.appearance_spec")
+    """Chosen latents pass through the SPEC parser's check: huge ones are scaled down with a warning, NaN is named."""
+    from willags_ns import appearance_spec as spec
+
     z = torch.ones(8) * 1e3 / math.sqrt(8)  # norm 1e3
     with pytest.warns(UserWarning, match="scaled down"):
         out = spec.checked_latent(z, "latent file z.pt")
