@@ -63,12 +63,15 @@ def ema_update_(teacher: nn.Module, student: nn.Module, tau: float) -> None:
         for name in t:
             if t[name].shape != s[name].shape:
                 raise ValueError(f"{kind} {name!r}: teacher {tuple(t[name].shape)} vs student {tuple(s[name].shape)}")
-    for name, p_t in t_params.items():
-        p_s = s_params[name].detach()
-        if tau == 0.0:
-            p_t.copy_(p_s)
-        elif tau < 1.0:
-            # lerp(T, S, w) = T + w * (S - T) = tau * T + (1 - tau) * S with w = 1 - tau.
-            p_t.lerp_(p_s.to(p_t.dtype), 1.0 - tau)
+    if tau < 1.0:
+        # lerp(T, S, w) = T + w * (S - T) = tau * T + (1 - tau) * S with w = 1 - tau (w = 1 copies). One fused
+        # multi-tensor kernel per (device, dtype) instead of one launch per parameter: this runs after every step.
+        groups: dict[tuple, tuple[list[torch.Tensor], list[torch.Tensor]]] = {}
+        for name, p_t in t_params.items():
+            g = groups.setdefault((p_t.device, p_t.dtype), ([], []))
+            g[0].append(p_t)
+            g[1].append(s_params[name].detach().to(p_t.dtype))
+        for ts, ss in groups.values():
+            torch._foreach_lerp_(ts, ss, 1.0 - tau)
     for name, b_t in t_bufs.items():
         b_t.copy_(s_bufs[name])
