@@ -186,29 +186,19 @@ waits one epoch, 6 images / 2 ranks = 3 steps, + refine_every)."""
 
 
 def _tiny_config(tmp_path: Path, scene: Path):
-    from willags_ns import method_configs
+    """test_reliability's tiny in-process config, densifying hard in a few steps."""
+    from tests.test_reliability import _tiny_config as reliability_config
 
-    config = method_configs.willags_config()
-    config.max_num_iterations = STEPS
-    config.steps_per_save = 1000  # the final checkpoint only
-    config.steps_per_eval_image = 1000
-    config.vis = "tensorboard"
-    config.output_dir = tmp_path
+    config = reliability_config(tmp_path, scene, steps=STEPS, refine_every=3)
     config.experiment_name = "ddp"
-    config.timestamp = "t"
-    config.machine.device_type = "cpu"
-    config.pipeline.datamanager.data = scene
     config.pipeline.check_photo_content = False
     m = config.pipeline.model
-    m.num_downscales = 0
     m.warmup_length = 2
-    m.refine_every = 3
     m.reset_alpha_every = 100
     m.densify_grad_thresh = 2e-5  # grow many Gaussians (split: random offsets) in a few steps
     m.background_color = "black"  # "random" draws per rank; the single-process reference must draw the same
     m.mask.warmup_steps = 4
     m.mask.vgg_weights = "seeded"
-    m.log_images_every = 0
     return config
 
 
