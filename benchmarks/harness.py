@@ -596,8 +596,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         model, dm.eval_dataset.cameras, images, proto, names, on_prediction=keep if renders_dir else None
     )
     if renders_dir and shown:
-        name = f"{spec['scene_name']}-{spec['method']}{('-' + spec['tag']) if spec.get('tag') else ''}"
-        save_right_halves(Path(renders_dir) / f"{name}.png", shown, [r["psnr"] for r in per_image])
+        save_right_halves(Path(renders_dir) / f"{_run_name(spec)}.png", shown, [r["psnr"] for r in per_image])
     rec: dict[str, Any] = dict(agg)
     rec["per_image"] = per_image
     rec["eval_s"] = time.perf_counter() - t2
@@ -611,6 +610,11 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
 RENDERS_ENV = "WILLAGS_BENCH_RENDERS"
 """When set to a folder, each run writes <scene>-<method>[-<tag>].png there: the right halves of its test images
 (ground truth above, the protocol's render below, PSNR on each), for looking at what a number means."""
+
+
+def _run_name(spec: dict[str, Any]) -> str:
+    """<scene>-<method>[-<tag>]: how a run's pictures are named."""
+    return f"{spec['scene_name']}-{spec['method']}{('-' + spec['tag']) if spec.get('tag') else ''}"
 
 
 def save_two_row_sheet(
@@ -721,12 +725,11 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     rec.update(render_fps(model, dm.eval_dataset.cameras, spec["fps_views"]))
     masks = getattr(model, "_mask_cache", None)
     if os.environ.get(RENDERS_ENV) and masks:
-        name = f"{spec['scene_name']}-{spec['method']}{('-' + spec['tag']) if spec.get('tag') else ''}-masks.png"
         picks = sorted(masks)[:: max(1, len(masks) // 4)][:4]
         imgs = [dm.cached_train[i]["image"] for i in picks]
         imgs = [im.float().div(255.0) if im.dtype == torch.uint8 else im.float() for im in imgs]
         save_masks(
-            Path(os.environ[RENDERS_ENV]) / name,
+            Path(os.environ[RENDERS_ENV]) / f"{_run_name(spec)}-masks.png",
             [(im[..., :3].cpu(), masks[i].cpu()) for im, i in zip(imgs, picks, strict=True)],
         )
 

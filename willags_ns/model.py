@@ -796,10 +796,10 @@ class WillagsModel(SplatfactoModel):
         background = self._background(self.appearance_nets, z, dirs)
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
 
-        teacher_bg = background
-        if fused and dirs is not None:  # the teacher's own sky under the teacher's latent (set with its colours)
-            teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs).detach()
         if fused:
+            teacher_bg = background
+            if dirs is not None:  # the teacher's own sky under the teacher's latent (set with its colours)
+                teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs).detach()
             teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * teacher_bg
             outputs["teacher_rgb"] = torch.clamp(teacher, 0.0, 1.0).squeeze(0)
         elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render

@@ -179,9 +179,9 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     """The EMA teacher's render [H, W, 3] of `camera` for the training image `image` [H, W, 3] in [0, 1].
 
     As in training (WillagsModel._teacher_render): the teacher's latent (VAE mean of the image, or its embedding
-    row), the student's current Gaussians, the camera after the camera optimiser. Background: the model's fixed
-    one (training draws a random one per step, which only shows where alpha < 1), or the teacher's sky. Without a teacher (teacher
-    disabled) the student's networks are used.
+    row), the student's current Gaussians, the camera after the camera optimiser. Background: the teacher's sky
+    when the model has one, else the model's fixed colour (training draws a random one per step, which only shows
+    where alpha < 1). Without a teacher (teacher disabled) the student's networks are used.
     """
     nets = model.teacher if model.teacher is not None else model.appearance_nets
     if nets.vae is not None:
