@@ -1,9 +1,10 @@
-"""docs/reichstag.png: the right halves of 4 reichstag test views as ground truth | splatfacto | peer | willags,
-and the transient mask of 4 training images, from the sheets that runs with WILLAGS_BENCH_RENDERS write.
+"""docs/real_scene_comparison.png: the right halves of 4 test views of a real scene (default: reichstag) as ground
+truth | splatfacto | peer | willags, and the transient mask of 4 training images, from the sheets that runs with
+WILLAGS_BENCH_RENDERS write.
 
     WILLAGS_BENCH_RENDERS=OUT/renders GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_scenes.sh OUT \\
         reichstag:splatfacto:h100-r3:42 reichstag:peer:h100-r3:42 reichstag:willags:h100-r4:43
-    python benchmarks/reichstag_picture.py OUT/renders --out docs/reichstag.png
+    python benchmarks/real_scene_picture.py OUT/renders --out docs/real_scene_comparison.png
 """
 
 import argparse
@@ -32,18 +33,20 @@ def main(argv=None) -> int:
     ap.add_argument("renders", type=Path, help="the WILLAGS_BENCH_RENDERS folder of the runs")
     ap.add_argument("--scene", type=Path, default=REPO.parent / "shared/data/reichstag")
     ap.add_argument("--views", default="0,1,3,5", help="test views to show (indices in the split's order)")
-    ap.add_argument("--masks", default="reichstag-willags-*-masks.png", help="glob of the mask sheet")
-    ap.add_argument("--out", type=Path, default=REPO / "docs" / "reichstag.png")
+    ap.add_argument("--masks", default="{scene}-willags-*-masks.png", help="glob of the mask sheet ({scene}: its name)")
+    ap.add_argument("--out", type=Path, default=REPO / "docs" / "real_scene_comparison.png")
     args = ap.parse_args(argv)
 
-    split = [ln.split("\t") for ln in (args.scene / "reichstag.tsv").read_text().splitlines()[1:] if ln.strip()]
+    split = [
+        ln.split("\t") for ln in (args.scene / f"{args.scene.name}.tsv").read_text().splitlines()[1:] if ln.strip()
+    ]
     tests = sorted((int(f[1]), f[0]) for f in split if f[2] == "test")  # the parser's order: COLMAP ids
     sizes = [Image.open(args.scene / "images" / name).size for _, name in tests]
     views = [int(v) for v in args.views.split(",")]
 
     sheets = {}
     for key, _ in ROWS:
-        found = sorted(args.renders.glob(f"reichstag-{key}-*.png"))
+        found = sorted(args.renders.glob(f"{args.scene.name}-{key}-*.png"))
         found = [p for p in found if not p.name.endswith("-masks.png")]
         if not found:
             print(f"no sheet for {key} in {args.renders}", file=sys.stderr)
@@ -55,7 +58,7 @@ def main(argv=None) -> int:
     label_w = 150
     tiles_w = sum(cols[v][1] - cols[v][0] for v in views)
     rows = [("ground truth (right half)", first, 0)] + [(label, sheets[k], h) for k, label in ROWS]
-    masks = sorted(args.renders.glob(args.masks))
+    masks = sorted(args.renders.glob(args.masks.format(scene=args.scene.name)))
     mask_sheet = Image.open(masks[0]).convert("RGB") if masks else None
     mask_h = 0
     if mask_sheet is not None:
