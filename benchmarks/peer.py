@@ -35,13 +35,18 @@ def peer_source() -> Path:
     return src
 
 
+def _peer_on_path() -> None:
+    """Make the peer's `splatfactow` package importable."""
+    src = str(peer_source())
+    if src not in sys.path:
+        sys.path.insert(0, src)
+
+
 def peer_trainer_config():
     """The peer's `splatfacto-w-light` TrainerConfig with our data parser (the same splits as every other run)."""
     from willags_ns.data.dataparser import WillagsDataParserConfig
 
-    src = str(peer_source())
-    if src not in sys.path:
-        sys.path.insert(0, src)
+    _peer_on_path()
     from splatfactow.splatfactow_config import splatfactow_light_config  # type: ignore[import-not-found]
 
     config = copy.deepcopy(splatfactow_light_config.config)
@@ -54,7 +59,7 @@ def patch_peer() -> list[str]:
     torch.compile'd viewmat replaced by the same maths. Call before the peer's model is built."""
     from willags_ns.model import viewmat_from_c2w
 
-    peer_trainer_config()  # puts the source on sys.path
+    _peer_on_path()
     import splatfactow.splatfactow_model as pm  # type: ignore[import-not-found]
 
     pm.get_viewmat = viewmat_from_c2w
