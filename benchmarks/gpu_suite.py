@@ -84,6 +84,8 @@ VARIANTS = {
     "willags-vgg256": ("willags", {"mask.max_resolution": 256}, ()),
     "willags-nomask": ("willags", dict(use_mask=False), ()),
     "willags-sky": ("willags", {"sky.enabled": True}, ()),  # + the appearance-conditioned sky
+    # the local residual through plain autograd (keeps [N, hidden] activations; the default recomputes them)
+    "willags-plainres": ("willags", {"modulation.residual_chunk": 0}, ()),
     "willags-bf16": ("willags", {}, ("bf16",)),
     "willags-ckpt": ("willags", {}, ("ckpt",)),
     "willags-fast": ("willags", _FAST, ()),  # mask every 4th visit of an image, VGG at 256 px

@@ -183,3 +183,50 @@ def test_modulated_starts_as_plain_3dgs_and_the_latent_transforms_colour_globall
         mod.global_mlp[-1].bias.copy_(torch.tensor([1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0, 0.1, 0.0, -0.1]))  # 2x + b
         rgb = model.appearance_colors(z, means, f_s, cam_center)
         torch.testing.assert_close(rgb, (2 * ref + torch.tensor([0.1, 0.0, -0.1])).clamp_min(0))
+
+
+def test_render_latent_is_reused_across_frames_and_follows_every_change(monkeypatch):
+    """A fixed appearance renders frame after frame without recomputing (or re-checking) its latent, so the baked
+    SH's cache key costs no copy to the host; an in-place edit, a new tensor or a training update of the
+    latents is seen at the next frame, and a NaN written into the chosen latent is still refused."""
+    from willags_ns.appearance_spec import AppearanceSpecError
+
+    model = _tiny_model("modulated")
+    model.eval()
+    cam = _camera(48, 32)
+    d = model.train_latents.shape[1]
+    with torch.no_grad():
+        model.train_latents.normal_()  # the VAE path's recorded latents: their mean is the default appearance
+        model.train_latent_seen.fill_(True)
+        z0 = model.default_latent()
+        assert model.default_latent() is z0  # memoised: same tensor, nothing recomputed
+        torch.testing.assert_close(z0, model.train_latents.mean(0))
+        model.train_latents[0] += 1.0  # a training visit records a new latent in place
+        z1 = model.default_latent()
+        assert z1 is not z0
+        torch.testing.assert_close(z1, model.train_latents.mean(0))
+
+        model.render_latent = torch.randn(d, generator=torch.Generator().manual_seed(2))
+        chosen = model.current_latent()
+        assert model.current_latent() is chosen
+        key = model._latent_key(chosen)
+        assert key[0] == "render"  # from the memo: no device -> host copy
+        frames = [model.get_outputs(cam)["rgb"] for _ in range(3)]  # exact, bake, cached bake
+        torch.testing.assert_close(frames[1], frames[2])
+        seen = []
+        orig_cpu = torch.Tensor.cpu
+        monkeypatch.setattr(torch.Tensor, "cpu", lambda t, *a, **k: seen.append(t.shape) or orig_cpu(t, *a, **k))
+        model.get_outputs(cam)
+        assert (d,) not in seen, "a cached frame copied its latent to the host"
+        monkeypatch.undo()
+
+        model.render_latent.mul_(-1.0)  # edited in place: a different appearance from the next frame on
+        flipped = model.get_outputs(cam)["rgb"]
+        assert not torch.allclose(flipped, frames[2], atol=1e-4)
+        model.render_latent[0] = float("nan")
+        with pytest.raises(AppearanceSpecError, match="NaN"):
+            model.get_outputs(cam)
+        model.render_latent = None
+        torch.testing.assert_close(model.current_latent(), z1)
+    # a value the memo never handed out is keyed by its bytes
+    assert model._latent_key(torch.zeros(d))[0] == "value"

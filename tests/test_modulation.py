@@ -54,3 +54,55 @@ def test_wrong_feature_sizes_are_named():
         m.local_residual(torch.zeros(8), torch.zeros(5, 3), torch.zeros(5, 2), 5)
     with pytest.raises(ValueError, match=r"f_d must be \[N, 2\]"):
         m.local_residual(torch.zeros(8), torch.zeros(5, 4), None, 5)
+
+
+@pytest.mark.parametrize("chunk", [7, 50, 1000])
+def test_chunked_residual_equals_plain_autograd(chunk):
+    """The local residual's own backward (recomputing the hidden layer chunk by chunk, nothing [N, hidden] kept)
+    gives the plain MLP's values and gradients, whatever the chunk size against N (uneven last chunk, one chunk)."""
+    m = _randomised(12, 16, 0)
+    n = 50
+    z = torch.randn(12, requires_grad=True)
+    f_s = torch.randn(n, 16, requires_grad=True)
+    m.residual_chunk = chunk
+    got = m.local_residual(z, f_s, None, n)
+    m.residual_chunk = 0
+    want = m.local_residual(z, f_s, None, n)
+    assert got.grad_fn is not None and "LocalResidualMLP" in type(got.grad_fn).__name__
+    assert "LocalResidualMLP" not in type(want.grad_fn).__name__
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-6)
+    w = torch.randn(n, 6)  # a loss that weighs every output differently
+    inputs = [z, f_s, *m.parameters()]
+    g_got = torch.autograd.grad((got * w).sum(), inputs, allow_unused=True)
+    g_want = torch.autograd.grad((want * w).sum(), inputs, allow_unused=True)
+    for a, b in zip(g_got, g_want, strict=True):
+        if b is None:
+            assert a is None or a.abs().max() == 0
+        else:
+            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+
+
+def test_chunked_residual_gradcheck_float64():
+    """torch's numerical gradient check of the chunked function (float64, three chunks)."""
+    from willags_ns.appearance.modulation import LocalResidualMLP
+
+    torch.manual_seed(1)
+    f = torch.randn(11, 4, dtype=torch.float64, requires_grad=True)
+    w1 = torch.randn(8, 4, dtype=torch.float64, requires_grad=True)
+    h0 = torch.randn(8, dtype=torch.float64, requires_grad=True)
+    w2 = torch.randn(6, 8, dtype=torch.float64, requires_grad=True)
+    b2 = torch.randn(6, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda *a: LocalResidualMLP.apply(*a, 4), (f, w1, h0, w2, b2))
+
+
+def test_chunked_residual_without_grad_and_frozen_inputs():
+    """No grad (teacher, bake) and inputs that need none (a frozen f_s) take the same path without error."""
+    m = _randomised(12, 16, 0)
+    f_s = torch.randn(30, 16)
+    with torch.no_grad():
+        a = m.local_residual(torch.randn(12), f_s, None, 30)
+    assert a.shape == (30, 6) and not a.requires_grad
+    z = torch.randn(12, requires_grad=True)
+    out = m.local_residual(z, f_s, None, 30)
+    (gz,) = torch.autograd.grad(out.sum(), [z])
+    assert torch.isfinite(gz).all() and gz.abs().sum() > 0

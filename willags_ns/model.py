@@ -79,6 +79,12 @@ RENDER_SH_SAMPLES = 64
 """View directions over which the decoder is fitted by SH when rendering with a fixed appearance."""
 
 
+def _versions(tensors: list[Tensor]) -> tuple:
+    """(storage pointer, version counter) of each tensor: changes when a tensor is replaced or edited in place
+    (optimiser steps, load_state_dict, buffer writes), never otherwise."""
+    return tuple((t.data_ptr(), t._version) for t in tensors)
+
+
 def fibonacci_directions(k: int, device=None) -> Tensor:
     """k unit vectors [k, 3] spread evenly over the sphere (Fibonacci lattice)."""
     i = torch.arange(k, device=device, dtype=torch.float32) + 0.5
@@ -390,6 +396,8 @@ class WillagsModel(SplatfactoModel):
         self._fd_cache: tuple[tuple, Tensor] | None = None
         self._sh_cache: tuple[tuple, Tensor] | None = None
         self._sh_seen: tuple | None = None
+        # latents handed out for rendering, keyed by what they are computed from (see _memo_latent)
+        self._latent_memo: dict[str, tuple[tuple, Tensor]] = {}
         self._absgrad_notice = False
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
         if cfg.appearance == "willags":
@@ -491,11 +499,35 @@ class WillagsModel(SplatfactoModel):
 
     def default_latent(self) -> Tensor:
         """The appearance used when none is chosen: the mean of the training images' latents."""
-        assert self.appearance_nets is not None
-        lat, seen = self.image_latents()
-        if seen.any():
-            return lat[seen].mean(0)
-        return torch.zeros(self.appearance_nets.latent_dim, device=self.device)
+        nets = self.appearance_nets
+        assert nets is not None
+        src = [nets.embeddings.weight] if nets.embeddings is not None else [self.train_latents, self.train_latent_seen]
+
+        def mean() -> Tensor:
+            lat, seen = self.image_latents()
+            if seen.any():
+                return lat[seen].mean(0)
+            return torch.zeros(nets.latent_dim, device=self.device)
+
+        return self._memo_latent("default", _versions(src), mean)
+
+    def _memo_latent(self, name: str, key: tuple, make) -> Tensor:
+        """`make()`, recomputed only when `key` changes. A rendered frame needs its latent twice (to choose it, then
+        to key the per-appearance caches); recomputing it each frame costs host syncs (boolean indexing, value
+        checks, a copy to the host for the cache key) that stall a renderer otherwise bound by kernel launches."""
+        hit = self._latent_memo.get(name)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        z = make()
+        self._latent_memo[name] = (key, z)
+        return z
+
+    def _latent_key(self, z: Tensor) -> tuple:
+        """Cache key of latent z: its memo key when z came from _memo_latent (no host sync), else its bytes."""
+        for name, (key, t) in self._latent_memo.items():
+            if t is z:
+                return (name, *key)
+        return ("value", z.detach().cpu().numpy().tobytes())
 
     def _camera_idx_latent(self, cam_idx) -> Tensor | None:
         """Training image `cam_idx`'s latent when nothing else chose the appearance: `ns-render camera-path
@@ -516,8 +548,15 @@ class WillagsModel(SplatfactoModel):
     def current_latent(self) -> Tensor:
         """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
         if self.render_latent is not None:
-            self.render_latent = checked_latent(self.render_latent, "render_latent")  # no NaN pixels, ever
-            return self.render_latent.to(self.device)
+            chosen = self.render_latent
+
+            def checked() -> Tensor:
+                self.render_latent = checked_latent(chosen, "render_latent")  # no NaN pixels, ever
+                return self.render_latent.to(self.device)
+
+            # keyed by the chosen tensor itself (kept alive by the key, so its id cannot be reused) and its version
+            # counter (bumped by any in-place edit): a new or edited latent is checked again
+            return self._memo_latent("render", (id(chosen), chosen._version, chosen), checked)
         spec = os.environ.get(APPEARANCE_ENV)
         if spec:
             z = latent_from_env(spec, self)
@@ -548,7 +587,7 @@ class WillagsModel(SplatfactoModel):
             return None
         if not cacheable:
             return nets.dynamic_features(z, self._normalized_means(means))
-        key = (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step)
+        key = (self._latent_key(z), means.data_ptr(), means.shape[0], self.step)
         if self._fd_cache is not None and self._fd_cache[0] == key:
             return self._fd_cache[1]
         f_d = nets.dynamic_features(z, self._normalized_means(means))
@@ -603,7 +642,7 @@ class WillagsModel(SplatfactoModel):
         return nets.colors(z, f_d, f_s, dirs, residual=residual, base=base)
 
     def _sh_key(self, z: Tensor, means: Tensor, degree: int) -> tuple:
-        return (z.detach().cpu().numpy().tobytes(), means.data_ptr(), means.shape[0], self.step, degree)
+        return (self._latent_key(z), means.data_ptr(), means.shape[0], self.step, degree)
 
     def _frame_sh(self, z: Tensor, means: Tensor, f_s: Tensor | None, degree: int, gp: dict) -> Tensor | None:
         """The baked SH for this frame, or None to run the decoder. Bakes on the second frame with the same (latent,

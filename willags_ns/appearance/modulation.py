@@ -43,6 +43,11 @@ class ColorModulationConfig:
     local_penalty: float = 0.01
     """Weight of mean(s^2 + o^2) in the loss: the local residual pays for what it adds, so appearance that a global
     transform explains stays global (and transfers across an image under the NeRF-W protocol)."""
+    residual_chunk: int = 131072
+    """Gaussians per chunk of the local residual's own backward (``LocalResidualMLP``): it keeps no [N, hidden]
+    activation between forward and backward and recomputes the hidden layer chunk by chunk, so the MLP's extra
+    memory is three [chunk, hidden] buffers instead of ~3 x [N, hidden] (768 MB at 1M Gaussians, hidden 64).
+    0: plain autograd."""
 
 
 class ColorModulation(nn.Module):
@@ -54,6 +59,7 @@ class ColorModulation(nn.Module):
             raise ValueError(f"latent_dim must be > 0, got {latent_dim}")
         self.intrinsic_dim = intrinsic_dim
         self.dynamic_dim = dynamic_dim
+        self.residual_chunk = cfg.residual_chunk
         self.global_mlp = nn.Sequential(
             nn.Linear(latent_dim, cfg.global_hidden), nn.ReLU(), nn.Linear(cfg.global_hidden, 12)
         )
@@ -91,6 +97,9 @@ class ColorModulation(nn.Module):
         first, act, last = self.local_mlp
         w, ni, nz = first.weight, self.intrinsic_dim, self.latent_proj.out_features
         h = first.bias + w[:, ni : ni + nz] @ self.latent_proj(z)  # [hidden]
+        if self.intrinsic_dim > 0 and self.dynamic_dim == 0 and self.residual_chunk > 0:
+            assert f_s is not None
+            return LocalResidualMLP.apply(f_s, w[:, :ni], h, last.weight, last.bias, self.residual_chunk)
         if self.intrinsic_dim > 0:
             assert f_s is not None
             h = torch.nn.functional.linear(f_s, w[:, :ni], h)
@@ -120,6 +129,57 @@ class ColorModulation(nn.Module):
         if residual is not None:
             c = c * (1.0 + residual[:, :3]) + residual[:, 3:]
         return c
+
+
+class LocalResidualMLP(torch.autograd.Function):
+    """out = W2 relu(f W1^T + h0) + b2 over N Gaussians, with a backward that recomputes the hidden layer chunk by
+    chunk (``ColorModulation.local_residual``'s default path: f = f_s [N, Fs], h0 [hidden] = the layer's bias plus
+    z's share).
+
+    Plain autograd keeps the [N, hidden] ReLU output from forward to backward and then holds it with two more
+    [N, hidden] gradients: the largest transient buffers of a willags step (~0.77 GB at 1M Gaussians, hidden 64),
+    which splatfacto does not have. Here only the inputs are saved; the backward rebuilds each chunk's hidden layer
+    (an [chunk, Fs] x [Fs, hidden] product, cheaper than reading it back from memory at this width) and accumulates
+    the weight gradients chunk by chunk. Same numbers as the plain MLP (``tests/test_modulation.py``)."""
+
+    @staticmethod
+    @torch.amp.custom_fwd(device_type="cuda", cast_inputs=torch.float32)  # float32 in and out under autocast
+    def forward(ctx, f, w1, h0, w2, b2, chunk: int):  # type: ignore[override]
+        n = f.shape[0]
+        out = f.new_empty(n, w2.shape[0])
+        for i in range(0, n, chunk):
+            h = torch.addmm(h0, f[i : i + chunk], w1.t()).relu_()
+            torch.addmm(b2, h, w2.t(), out=out[i : i + chunk])
+        ctx.save_for_backward(f, w1, h0, w2)
+        ctx.chunk = chunk
+        return out
+
+    @staticmethod
+    @torch.amp.custom_bwd(device_type="cuda")
+    def backward(ctx, g):  # type: ignore[override]
+        f, w1, h0, w2 = ctx.saved_tensors
+        chunk, n = ctx.chunk, f.shape[0]
+        g = g.contiguous()
+        need_f, need_w1, need_h0, need_w2, need_b2 = ctx.needs_input_grad[:5]
+        gf = torch.empty_like(f) if need_f else None
+        gw1 = torch.zeros_like(w1) if need_w1 else None
+        gh0 = torch.zeros_like(h0) if need_h0 else None
+        gw2 = torch.zeros_like(w2) if need_w2 else None
+        for i in range(0, n, chunk):
+            fc, gc = f[i : i + chunk], g[i : i + chunk]
+            pre = torch.addmm(h0, fc, w1.t())
+            if gw2 is not None:
+                gw2.addmm_(gc.t(), pre.relu())
+            gh = (gc @ w2).mul_(pre > 0)  # d out / d pre-activation
+            del pre
+            if gh0 is not None:
+                gh0 += gh.sum(0)
+            if gw1 is not None:
+                gw1.addmm_(gh.t(), fc)
+            if gf is not None:
+                torch.mm(gh, w1, out=gf[i : i + chunk])
+        gb2 = g.sum(0) if need_b2 else None
+        return gf, gw1, gh0, gw2, gb2, None
 
 
 def local_penalty(residual: Tensor | None) -> Tensor | None:
