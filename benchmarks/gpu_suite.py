@@ -86,6 +86,8 @@ VARIANTS = {
     "willags-sky": ("willags", {"sky.enabled": True}, ()),  # + the appearance-conditioned sky
     # the local residual through plain autograd (keeps [N, hidden] activations; the default recomputes them)
     "willags-plainres": ("willags", {"modulation.residual_chunk": 0}, ()),
+    "willags-chunk128k": ("willags", {"modulation.residual_chunk": 131072}, ()),
+    "willags-chunk1m": ("willags", {"modulation.residual_chunk": 1 << 20}, ()),  # one chunk at 1M: recompute only
     "willags-bf16": ("willags", {}, ("bf16",)),
     "willags-ckpt": ("willags", {}, ("ckpt",)),
     "willags-fast": ("willags", _FAST, ()),  # mask every 4th visit of an image, VGG at 256 px

@@ -178,6 +178,7 @@ def evaluate(args) -> int:
         t = time.perf_counter()
         trainer = _setup(state["method"], Path(state["data"]), run_dir, state["steps"], state["seed"], m - 1, "test")
         spec = {
+            "method": state["method"],  # protocol_scores picks the peer's adapter by method
             "protocol_steps": args.protocol_steps,
             "protocol_lr": 0.01,
             "max_test_images": -1,
