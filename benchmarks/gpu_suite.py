@@ -86,7 +86,8 @@ VARIANTS = {
     "willags-sky": ("willags", {"sky.enabled": True}, ()),  # + the appearance-conditioned sky
     # the local residual through plain autograd (keeps [N, hidden] activations; the default recomputes them)
     "willags-plainres": ("willags", {"modulation.residual_chunk": 0}, ()),
-    "willags-chunk128k": ("willags", {"modulation.residual_chunk": 131072}, ()),
+    "willags-chunk128k": ("willags", {"modulation.residual_chunk": 131072}, ()),  # = the default
+    "willags-chunk256k": ("willags", {"modulation.residual_chunk": 262144}, ()),
     "willags-chunk1m": ("willags", {"modulation.residual_chunk": 1 << 20}, ()),  # one chunk at 1M: recompute only
     "willags-bf16": ("willags", {}, ("bf16",)),
     "willags-ckpt": ("willags", {}, ("ckpt",)),

@@ -1264,9 +1264,9 @@ def _speed_table(recs: list[dict[str, Any]]) -> list[str]:
     out = [
         f"### Train step / render / memory: {recs[0]['scene']} (benchmarks/gpu_suite.py; details in docs/gpu_notes.md)",
         "",
-        "| variant | step ms | ratio vs splatfacto | extra peak VRAM GB | host syncs/step | render FPS ratio vs gsplat "
-        "| parity fwd / grad rel. err |",
-        "|---|---|---|---|---|---|---|",
+        "| variant | step ms | ratio vs splatfacto | extra peak VRAM GB | host syncs/step | render FPS ratio vs "
+        "splatfacto | render FPS ratio vs gsplat | parity fwd / grad rel. err |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in sorted(recs, key=lambda r: r.get("step_ms") or 0):
         parity = "-"
@@ -1275,6 +1275,7 @@ def _speed_table(recs: list[dict[str, Any]]) -> list[str]:
         out.append(
             f"| {_speed_label(r)} | {_f(r.get('step_ms'), '.2f')} | {_f(r.get('step_ratio_vs_splatfacto'), '.2f')} | "
             f"{_f(r.get('extra_vram_gb'), '+.2f')} | {_f(r.get('host_syncs_per_step'), '.0f')} | "
+            f"{_f(r.get('render_fps_ratio_vs_splatfacto'), '.2f', '-')} | "
             f"{_f(r.get('render_fps_ratio_vs_gsplat'), '.3f', '-')} | {parity} |"
         )
     return out
@@ -1327,12 +1328,13 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
         "",
         "`python benchmarks/run_benchmark.py --grid configs/benchmark_gpu_fidelity.json` (on the lent H100 through "
         "`GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_scenes.sh OUT scene:method:tag:seed ...`, "
-        "5-7 runs concurrent on one GPU, so train times are shared-GPU times). Schedule: splatfacto's stock one "
+        "5-10 runs concurrent on one GPU, so train times are shared-GPU times). Schedule: splatfacto's stock one "
         "(num_downscales 2, resolution_schedule 3000): a 5000-step run trains at 1/4 resolution until step 3000, "
         "then 1/2, and is scored at full resolution. Right-half PSNR; `n` = repeats (seeds 42, 43), ± = half the "
         "range. splatfacto and Splatfacto-W-light (peer) columns are quoted from ../shared/gpu/README.md "
         "(same protocol); `peer (ours)` and `splatfacto (ours)` are the same methods trained and scored by this "
-        "harness beside ours (the peer from its fetched source, benchmarks/peer.py). Our GPU has no "
+        "harness beside ours (the peer from its fetched source, benchmarks/peer.py); `willags − peer` is against "
+        "`peer (ours)` where it ran, else against the quoted number. Our GPU has no "
         "ImageNet VGG16 weights: the transient mask runs on the seeded VGG fallback (logged in each checkpoint).",
         "",
         "| scene | splatfacto | peer | peer (ours) | **willags** | willags − peer | SSIM | willags-everymask | "
@@ -1505,7 +1507,7 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         machines = sorted({r.get("machine", "?") for r in recs})
         commands = sorted({r.get("command", "?") for r in recs})
         dates = sorted({(r.get("date") or "?")[:10] for r in recs})
-        commits = sorted({r.get("commit") or "?" for r in recs})
+        commits = sorted({r.get("commit") or r.get("code_commit") or "?" for r in recs})
         out.append("- machine: " + "; ".join(machines))
         out.append("- command: " + "; ".join(f"`{c}`" for c in commands))
         out.append(f"- dates: {', '.join(dates)}; commits: {', '.join(commits)}")

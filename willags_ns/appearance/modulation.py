@@ -43,12 +43,13 @@ class ColorModulationConfig:
     local_penalty: float = 0.01
     """Weight of mean(s^2 + o^2) in the loss: the local residual pays for what it adds, so appearance that a global
     transform explains stays global (and transfers across an image under the NeRF-W protocol)."""
-    residual_chunk: int = 262144
+    residual_chunk: int = 131072
     """Gaussians per chunk of the local residual's own backward (``LocalResidualMLP``): it keeps no [N, hidden]
     activation between forward and backward and recomputes the hidden layer chunk by chunk, so the MLP's extra
-    memory is two [chunk, hidden] buffers instead of ~3 x [N, hidden] (768 MB at 1M Gaussians, hidden 64). Larger
-    chunks launch fewer kernels (measured at 1M Gaussians on an H100: 131072 cost 1.3 ms per step over plain
-    autograd). 0: plain autograd."""
+    memory is two [chunk, hidden] buffers instead of ~3 x [N, hidden] (768 MB at 1M Gaussians, hidden 64).
+    Measured at 1M Gaussians, 800 px, H100 (docs/gpu_notes.md): extra peak VRAM over splatfacto +0.32-0.35 GB vs
+    +0.77 GB with plain autograd, for 1.1-1.6 ms more per step; 262144 was slower still in two runs of three.
+    0: plain autograd."""
 
 
 class ColorModulation(nn.Module):
