@@ -317,10 +317,13 @@ def test_markdown_renders_gpu_suite_speed_records_as_their_own_table():
         "extra_vram_gb": 1.98,
         "host_syncs_per_step": 26.0,
         "render_fps_ratio_vs_gsplat": 0.293,
+        "render_fps_ratio_vs_splatfacto": 1.09,
+        "code_commit": "abc1234",
     }
     md = render_markdown([speed])
     assert "### Train step / render / memory: synthetic-box-1000000-800px" in md
-    assert "| willags [h100] | 52.60 | 3.14 | +1.98 | 26 | 0.293 | - |" in md
+    assert "| willags [h100] | 52.60 | 3.14 | +1.98 | 26 | 1.09 | 0.293 | - |" in md
+    assert "commits: abc1234" in md  # the suite's records name their commit as code_commit
     assert "### Goals" not in md  # a speed-only section measures none of the accuracy goals
     assert "| PSNR |" not in md
 
