@@ -103,3 +103,35 @@ def test_cuda_matches_cpu():
     ref = reconstruction_loss(pred, gt, mask)
     out = reconstruction_loss(pred.detach().cuda(), gt.cuda(), mask.cuda())
     torch.testing.assert_close(out.cpu(), ref.detach(), atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("h,w", [(24, 32), (7, 9), (3, 5), (2, 2), (64, 48)])
+def test_separable_ssim_map_equals_torchmetrics_map_and_gradients(h, w):
+    """ssim_map (two 1D window passes) is torchmetrics' full SSIM map (one 2D window), values and gradients, at
+    3DGS's window and at the smaller windows of tiny images (ssim_window)."""
+    from willags_ns.losses import ssim_map, ssim_window
+
+    g = torch.Generator().manual_seed(h * 100 + w)
+    x = torch.rand(2, 3, h, w, generator=g, dtype=torch.float64, requires_grad=True)
+    y = torch.rand(2, 3, h, w, generator=g, dtype=torch.float64)
+    k, sigma = ssim_window(h, w)
+    _, want = structural_similarity_index_measure(
+        x, y, data_range=1.0, return_full_image=True, reduction="none", kernel_size=k, sigma=sigma
+    )
+    got = ssim_map(x, y, sigma)
+    assert got.shape == want.shape == x.shape
+    torch.testing.assert_close(got, want, atol=1e-12, rtol=1e-10)
+    wts = torch.rand(got.shape, generator=g, dtype=torch.float64)
+    (ga,) = torch.autograd.grad((got * wts).sum(), [x])
+    (gb,) = torch.autograd.grad((want * wts).sum(), [x])
+    torch.testing.assert_close(ga, gb, atol=1e-12, rtol=1e-10)
+
+
+def test_masked_dssim_without_mask_equals_all_true_mask():
+    pred, gt = _pair(seed=4)
+    ones = torch.ones(2, 24, 32, dtype=torch.bool)
+    a, b = masked_dssim(pred, gt, None), masked_dssim(pred, gt, ones)
+    torch.testing.assert_close(a, b)
+    ga = torch.autograd.grad(a, [pred])[0]
+    gb = torch.autograd.grad(b, [pred])[0]
+    torch.testing.assert_close(ga, gb)

@@ -15,6 +15,7 @@ to the graph (zero gradients), so a fully masked step is a no-op rather than a N
 """
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor
 
@@ -48,27 +49,53 @@ def masked_l1(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], mask
 
 
 def masked_dssim(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], mask: Tensor | None = None) -> Tensor:
-    """``1 - SSIM`` averaged over kept pixels and channels (torchmetrics' per-pixel SSIM map: Gaussian window
-    11, sigma 1.5, reflect padding, data range 1; smaller images use a smaller window, see :func:`ssim_window`).
+    """``1 - SSIM`` averaged over kept pixels and channels (the per-pixel SSIM map of :func:`ssim_map`: Gaussian
+    window 11, sigma 1.5, reflect padding, data range 1; smaller images use a smaller window, see
+    :func:`ssim_window`).
 
     Excluded pixels are zeroed in *both* images before SSIM, so a transient neither enters the window statistics
     of nearby kept pixels nor receives gradient through them. With an all-true mask this equals ``1 - SSIM``.
     """
-    # Lazy: importing torchmetrics imports torchvision (~6 s on a CPU box, and it needs the CPU shim).
-    from torchmetrics.functional.image import structural_similarity_index_measure
-
     m = _check(pred, gt, mask)
-    k, sigma = ssim_window(*pred.shape[-2:])
-    _, ssim_map = structural_similarity_index_measure(
-        pred * m,
-        gt.to(pred.dtype) * m,
-        data_range=1.0,
-        return_full_image=True,
-        reduction="none",
-        kernel_size=k,
-        sigma=sigma,
-    )  # [B, 3, H, W]
-    return _masked_mean(1.0 - ssim_map, m)
+    _, sigma = ssim_window(*pred.shape[-2:])
+    if mask is None:  # nothing to zero: no [B, 3, H, W] products with a mask of ones
+        return 1.0 - ssim_map(pred, gt.to(pred.dtype), sigma).mean()
+    return _masked_mean(1.0 - ssim_map(pred * m, gt.to(pred.dtype) * m, sigma), m)
+
+
+def _gaussian_1d(sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """torchmetrics' SSIM window: int(3.5 sigma + 0.5) * 2 + 1 taps of a normalised Gaussian."""
+    size = int(3.5 * sigma + 0.5) * 2 + 1
+    d = torch.arange((1 - size) / 2, (1 + size) / 2, 1.0, dtype=dtype, device=device)
+    g = torch.exp(-((d / sigma) ** 2) / 2)
+    return g / g.sum()
+
+
+def ssim_map(
+    x: Float[Tensor, "B C H W"], y: Float[Tensor, "B C H W"], sigma: float = 1.5, data_range: float = 1.0
+) -> Float[Tensor, "B C H W"]:
+    """Per-pixel SSIM of x and y: torchmetrics' ``structural_similarity_index_measure(..., return_full_image=True)``
+    (Gaussian window, reflect padding, k1 0.01, k2 0.03) with its 2D window applied as two 1D passes.
+
+    Why not torchmetrics itself: its window is one depthwise 11x11 convolution (121 taps per pixel, forward and
+    backward, over 5 x C planes); a Gaussian is separable, so a row pass and a column pass give the same sums with
+    22 taps (float rounding apart: ``tests/test_losses.py`` compares maps and gradients)."""
+    g = _gaussian_1d(sigma, x.dtype, x.device)
+    pad = (g.numel() - 1) // 2
+    c = x.shape[1]
+    x = F.pad(x, (pad, pad, pad, pad), mode="reflect")
+    y = F.pad(y, (pad, pad, pad, pad), mode="reflect")
+    planes = torch.cat((x, y, x * x, y * y, x * y), dim=1)  # [B, 5C, H + 2p, W + 2p]
+    k = planes.shape[1]
+    blurred = F.conv2d(planes, g.view(1, 1, 1, -1).expand(k, 1, 1, -1), groups=k)  # along rows
+    blurred = F.conv2d(blurred, g.view(1, 1, -1, 1).expand(k, 1, -1, 1), groups=k)  # along columns
+    mu_x, mu_y, e_xx, e_yy, e_xy = blurred.split(c, dim=1)
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    var_x = (e_xx - mu_xx).clamp_min(0.0)
+    var_y = (e_yy - mu_yy).clamp_min(0.0)
+    cov = e_xy - mu_xy
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    return ((2 * mu_xy + c1) * (2 * cov + c2)) / ((mu_xx + mu_yy + c1) * (var_x + var_y + c2))
 
 
 SSIM_WINDOW = 11
