@@ -30,13 +30,18 @@ def test_local_residual_is_the_mlp_over_the_concatenated_features(intrinsic, dyn
     assert got.shape == (n, 6)
     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
     inputs = [t for t in (z, f_s, f_d) if t is not None] + list(m.parameters())
-    g_got = torch.autograd.grad(got.square().sum(), inputs, allow_unused=True)
-    g_want = torch.autograd.grad(want.square().sum(), inputs, allow_unused=True)
+    _assert_same_grads(got.square().sum(), want.square().sum(), inputs, tol=1e-4)
+
+
+def _assert_same_grads(loss_got, loss_want, inputs, tol):
+    """Both losses give the same gradient to every input (an input one of them does not reach: zero or None)."""
+    g_got = torch.autograd.grad(loss_got, inputs, allow_unused=True)
+    g_want = torch.autograd.grad(loss_want, inputs, allow_unused=True)
     for a, b in zip(g_got, g_want, strict=True):
         if b is None:
             assert a is None or a.abs().max() == 0
         else:
-            torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+            torch.testing.assert_close(a, b, atol=tol, rtol=tol)
 
 
 def test_identity_at_initialisation_and_the_penalty():
@@ -72,14 +77,7 @@ def test_chunked_residual_equals_plain_autograd(chunk):
     assert "LocalResidualMLP" not in type(want.grad_fn).__name__
     torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-6)
     w = torch.randn(n, 6)  # a loss that weighs every output differently
-    inputs = [z, f_s, *m.parameters()]
-    g_got = torch.autograd.grad((got * w).sum(), inputs, allow_unused=True)
-    g_want = torch.autograd.grad((want * w).sum(), inputs, allow_unused=True)
-    for a, b in zip(g_got, g_want, strict=True):
-        if b is None:
-            assert a is None or a.abs().max() == 0
-        else:
-            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    _assert_same_grads((got * w).sum(), (want * w).sum(), [z, f_s, *m.parameters()], tol=1e-5)
 
 
 def test_chunked_residual_gradcheck_float64():
