@@ -309,3 +309,26 @@ def test_cuda_features_match_cpu(seeded_features):
         out = perceptual_error(pf(x.cuda()), pf(y.cuda()), (40, 56))
     assert out.is_cuda
     torch.testing.assert_close(out.cpu(), ref, atol=1e-3, rtol=1e-3)
+
+
+def test_image_distance_is_one_batched_pass_equal_to_two_single_passes(seeded_features):
+    """Training and the mask evaluation take D from one VGG pass over the photo and the teacher's render together;
+    it equals the two separate passes (per-image network, no batch statistics), with the normalisation constants
+    kept per device and dtype."""
+    from willags_ns.transient import image_distance
+
+    g = torch.Generator().manual_seed(5)
+    photo = torch.rand(40, 56, 3, generator=g)
+    render = (photo + 0.2 * torch.rand(40, 56, 3, generator=g)).clamp(0, 1)
+    d = image_distance(seeded_features, photo, render)
+    single = perceptual_error(
+        seeded_features(photo.permute(2, 0, 1)[None]), seeded_features(render.permute(2, 0, 1)[None]), (40, 56)
+    )[0]
+    assert d.shape == (40, 56)
+    torch.testing.assert_close(d, single, atol=1e-5, rtol=1e-5)
+    assert float(d.mean()) > 0
+    torch.testing.assert_close(image_distance(seeded_features, photo, photo), torch.zeros(40, 56), atol=1e-6, rtol=0)
+    # float64 inputs get float64 constants (cached per dtype), not the float32 ones cached above
+    d64 = image_distance(seeded_features, photo.double(), render.double())
+    assert d64.dtype == torch.float64
+    torch.testing.assert_close(d64.float(), d, atol=1e-4, rtol=1e-4)

@@ -52,9 +52,9 @@ from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
 from willags_ns.transient import (
     PerceptualFeatures,
     PerceptualMaskConfig,
+    image_distance,
     mask_active,
     mask_threshold,
-    perceptual_error,
     transient_mask,
 )
 from willags_ns.viewer import AppearanceControls
@@ -65,7 +65,9 @@ def viewmat_from_c2w(c2w: Tensor) -> Tensor:
 
     Same maths as splatfacto's `get_viewmat`, without its torch.compile (15-20 s on the first CPU call).
     """
-    R = c2w[:, :3, :3] * torch.tensor([1.0, -1.0, -1.0], device=c2w.device, dtype=c2w.dtype)  # flip y, z
+    # flip the y and z axes (columns 1, 2); negation on the device, not a constant copied from the host (a blocking
+    # copy that drains the GPU's queue once per step)
+    R = torch.cat((c2w[:, :3, :1], -c2w[:, :3, 1:3]), dim=-1)
     T = c2w[:, :3, 3:4]
     R_inv = R.transpose(1, 2)
     viewmat = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
@@ -959,10 +961,7 @@ class WillagsModel(SplatfactoModel):
         H, W = gt_img.shape[:2]
         if "teacher_rgb" in outputs:
             assert self.perceptual is not None
-            gt_b = gt_img.permute(2, 0, 1)[None]
-            te_b = outputs["teacher_rgb"].permute(2, 0, 1)[None]
-            with torch.no_grad():
-                d = perceptual_error(self.perceptual(gt_b), self.perceptual(te_b), (H, W))[0]  # [H, W]
+            d = image_distance(self.perceptual, gt_img, outputs["teacher_rgb"])  # [H, W]
             self._step_cache["D"] = d
             thr = mask_threshold(self.step, cfg.mask.threshold, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
             transient, rejected = transient_mask(

@@ -184,9 +184,18 @@ def _tap_outputs(net: nn.Sequential, x: Tensor, taps: Sequence[int] = TAPS) -> l
     return feats
 
 
+_NORMALIZE: dict[tuple[torch.device, torch.dtype], tuple[Tensor, Tensor]] = {}
+
+
 def _imagenet_normalize(images: Tensor) -> Tensor:
-    mean = torch.tensor(IMAGENET_MEAN, device=images.device, dtype=images.dtype).view(1, 3, 1, 1)
-    std = torch.tensor(IMAGENET_STD, device=images.device, dtype=images.dtype).view(1, 3, 1, 1)
+    # the constants are copied to the device once: a copy from host memory per call blocks until the GPU has
+    # finished all queued work (two pipeline drains per VGG pass otherwise)
+    key = (images.device, images.dtype)
+    if key not in _NORMALIZE:
+        mean = torch.tensor(IMAGENET_MEAN, dtype=images.dtype).view(1, 3, 1, 1).to(images.device)
+        std = torch.tensor(IMAGENET_STD, dtype=images.dtype).view(1, 3, 1, 1).to(images.device)
+        _NORMALIZE[key] = (mean, std)
+    mean, std = _NORMALIZE[key]
     return (images - mean) / std
 
 
@@ -366,6 +375,15 @@ def perceptual_error(
         total = d if total is None else total + d
     assert total is not None
     return total[:, 0]
+
+
+@torch.no_grad()
+def image_distance(perceptual: PerceptualFeatures, image: Tensor, reference: Tensor) -> Float[Tensor, "H W"]:
+    """D [H, W] between two images [H, W, 3] in [0, 1] (a photo and the teacher's render of it): both through one
+    VGG pass (a batch of two), then :func:`perceptual_error`. The one path of training and of the mask evaluation."""
+    H, W = image.shape[:2]
+    feats = perceptual(torch.stack((image, reference.to(image.dtype))).permute(0, 3, 1, 2))
+    return perceptual_error([f[:1] for f in feats], [f[1:] for f in feats], (H, W))[0]
 
 
 def static_mask(D: Float[Tensor, "B H W"], threshold: float | Tensor) -> Bool[Tensor, "B H W"]:

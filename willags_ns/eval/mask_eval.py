@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
-from willags_ns.transient import mask_threshold, perceptual_error, transient_mask
+from willags_ns.transient import image_distance, mask_threshold, transient_mask
 
 
 @dataclass
@@ -107,11 +107,7 @@ def predicted_transient(
     Same rule as training: static = D < threshold (per image for rule "robust", see
     willags_ns.transient.robust_threshold); if more than `max_masked_fraction` of the image would be dropped, the
     mask is rejected (nothing is transient)."""
-    H, W = gt.shape[:2]
-    with torch.no_grad():
-        d = perceptual_error(
-            perceptual(gt.permute(2, 0, 1)[None].float()), perceptual(teacher.permute(2, 0, 1)[None].float()), (H, W)
-        )[0]
+    d = image_distance(perceptual, gt.float(), teacher.float())
     transient, rejected = transient_mask(d, threshold, rule, robust_k, max_masked_fraction)
     return transient, rejected, d
 
