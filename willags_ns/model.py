@@ -237,8 +237,12 @@ class AppearanceNetworks(nn.Module):
             mu, logvar = self.vae.encode(image_chw[None])
             return mu[0], logvar[0]
         assert self.embeddings is not None and image_idx is not None
-        idx = torch.tensor([image_idx], device=self.embeddings.weight.device)
-        return self.embeddings(idx)[0], None
+        # the row by a Python index: an index tensor built on the device is a blocking host -> device copy per step;
+        # the same row and the same (dense) gradient as the module's lookup
+        n = self.embeddings.num_embeddings
+        if not 0 <= image_idx < n:
+            raise IndexError(f"willags: training image index {image_idx} outside the appearance table's {n} rows")
+        return self.embeddings.weight[image_idx], None
 
     def dynamic_features(self, z: Tensor, xyz_norm: Tensor) -> Tensor | None:
         """f_d [N, F] for latent z [D] at normalised means [N, 3]; None without the field."""
