@@ -230,3 +230,20 @@ def test_render_latent_is_reused_across_frames_and_follows_every_change(monkeypa
         torch.testing.assert_close(model.current_latent(), z1)
     # a value the memo never handed out is keyed by its bytes
     assert model._latent_key(torch.zeros(d))[0] == "value"
+
+
+def test_embedding_row_lookup_matches_the_table_and_names_a_bad_index():
+    """The per-image latent is the table's row (and its gradient reaches only that row); an index outside the table
+    is refused with the index and the table size, not read from the end as a negative Python index would be."""
+    from willags_ns.model import AppearanceNetworks, WillagsModelConfig
+
+    nets = AppearanceNetworks(WillagsModelConfig(use_vae=False, use_field=False), num_train=5)
+    mu, logvar = nets.latent_stats(None, 3)
+    assert logvar is None
+    torch.testing.assert_close(mu, nets.embeddings(torch.tensor([3]))[0])
+    mu.sum().backward()
+    grad = nets.embeddings.weight.grad
+    assert grad[3].abs().sum() > 0 and grad[[0, 1, 2, 4]].abs().sum() == 0
+    for bad in (5, -1):
+        with pytest.raises(IndexError, match=rf"index {bad} outside the appearance table's 5 rows"):
+            nets.latent_stats(None, bad)
