@@ -104,3 +104,20 @@ def test_chunked_residual_without_grad_and_frozen_inputs():
     out = m.local_residual(z, f_s, None, 30)
     (gz,) = torch.autograd.grad(out.sum(), [z])
     assert torch.isfinite(gz).all() and gz.abs().sum() > 0
+
+
+def test_chunked_residual_under_autocast_stays_float32():
+    """Under (CPU) bf16 autocast the chunked function computes in float32 and returns float32 values and gradients
+    (the per-chunk writes need one dtype), close to the call without autocast (only z's share of the bias, computed
+    outside it, runs in bf16)."""
+    m = _randomised(12, 16, 0)
+    z = torch.randn(12, requires_grad=True)
+    f_s = torch.randn(40, 16, requires_grad=True)
+    m.residual_chunk = 16
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = m.local_residual(z, f_s, None, 40)
+    want = m.local_residual(z, f_s, None, 40)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got, want, atol=2e-2, rtol=2e-2)
+    (g,) = torch.autograd.grad(got.sum(), [f_s])
+    assert g.dtype == torch.float32 and torch.isfinite(g).all()

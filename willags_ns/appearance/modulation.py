@@ -145,44 +145,49 @@ class LocalResidualMLP(torch.autograd.Function):
     the weight gradients chunk by chunk. Same numbers as the plain MLP (``tests/test_modulation.py``)."""
 
     @staticmethod
-    @torch.amp.custom_fwd(device_type="cuda", cast_inputs=torch.float32)  # float32 in and out under autocast
     def forward(ctx, f, w1, h0, w2, b2, chunk: int):  # type: ignore[override]
-        n = f.shape[0]
-        out = f.new_empty(n, w2.shape[0])
-        for i in range(0, n, chunk):
-            h = torch.addmm(h0, f[i : i + chunk], w1.t()).relu_()
-            torch.addmm(b2, h, w2.t(), out=out[i : i + chunk])
+        ctx.dtypes = [t.dtype for t in (f, w1, h0, w2, b2)]
+        # at least float32 whatever autocast is active (CPU or CUDA): the per-chunk writes below need one dtype
+        dt = torch.promote_types(torch.promote_types(f.dtype, w1.dtype), torch.float32)
+        with torch.autocast(f.device.type, enabled=False):
+            f, w1, h0, w2, b2 = (t.to(dt) for t in (f, w1, h0, w2, b2))
+            n = f.shape[0]
+            out = f.new_empty(n, w2.shape[0])
+            for i in range(0, n, chunk):
+                h = torch.addmm(h0, f[i : i + chunk], w1.t()).relu_()
+                torch.addmm(b2, h, w2.t(), out=out[i : i + chunk])
         ctx.save_for_backward(f, w1, h0, w2)
         ctx.chunk = chunk
         return out
 
     @staticmethod
-    @torch.amp.custom_bwd(device_type="cuda")
     def backward(ctx, g):  # type: ignore[override]
         f, w1, h0, w2 = ctx.saved_tensors
         chunk, n = ctx.chunk, f.shape[0]
-        g = g.contiguous()
         need_f, need_w1, need_h0, need_w2, need_b2 = ctx.needs_input_grad[:5]
-        gf = torch.empty_like(f) if need_f else None
-        gw1 = torch.zeros_like(w1) if need_w1 else None
-        gh0 = torch.zeros_like(h0) if need_h0 else None
-        gw2 = torch.zeros_like(w2) if need_w2 else None
-        for i in range(0, n, chunk):
-            fc, gc = f[i : i + chunk], g[i : i + chunk]
-            act = torch.addmm(h0, fc, w1.t()).relu_()  # the chunk's hidden layer, rebuilt
-            if gw2 is not None:
-                gw2.addmm_(gc.t(), act)
-            # d out / d pre-activation: one fused kernel (ReLU's own backward, masked where act == 0)
-            gh = torch.ops.aten.threshold_backward(gc @ w2, act, 0.0)
-            del act
-            if gh0 is not None:
-                gh0 += gh.sum(0)
-            if gw1 is not None:
-                gw1.addmm_(gh.t(), fc)
-            if gf is not None:
-                torch.mm(gh, w1, out=gf[i : i + chunk])
-        gb2 = g.sum(0) if need_b2 else None
-        return gf, gw1, gh0, gw2, gb2, None
+        with torch.autocast(f.device.type, enabled=False):
+            g = g.to(f.dtype).contiguous()
+            gf = torch.empty_like(f) if need_f else None
+            gw1 = torch.zeros_like(w1) if need_w1 else None
+            gh0 = torch.zeros_like(h0) if need_h0 else None
+            gw2 = torch.zeros_like(w2) if need_w2 else None
+            for i in range(0, n, chunk):
+                fc, gc = f[i : i + chunk], g[i : i + chunk]
+                act = torch.addmm(h0, fc, w1.t()).relu_()  # the chunk's hidden layer, rebuilt
+                if gw2 is not None:
+                    gw2.addmm_(gc.t(), act)
+                # d out / d pre-activation: one fused kernel (ReLU's own backward, masked where act == 0)
+                gh = torch.ops.aten.threshold_backward(gc @ w2, act, 0.0)
+                del act
+                if gh0 is not None:
+                    gh0 += gh.sum(0)
+                if gw1 is not None:
+                    gw1.addmm_(gh.t(), fc)
+                if gf is not None:
+                    torch.mm(gh, w1, out=gf[i : i + chunk])
+            gb2 = g.sum(0) if need_b2 else None
+        grads = (gf, gw1, gh0, gw2, gb2)
+        return (*(None if gr is None else gr.to(dt) for gr, dt in zip(grads, ctx.dtypes, strict=True)), None)
 
 
 def local_penalty(residual: Tensor | None) -> Tensor | None:
