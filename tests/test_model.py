@@ -247,3 +247,18 @@ def test_embedding_row_lookup_matches_the_table_and_names_a_bad_index():
     for bad in (5, -1):
         with pytest.raises(IndexError, match=rf"index {bad} outside the appearance table's 5 rows"):
             nets.latent_stats(None, bad)
+
+
+def test_viewmat_is_the_inverse_of_the_opencv_camera_pose():
+    """viewmat_from_c2w: nerfstudio's OpenGL camera-to-world (y up, -z forward) -> world-to-camera in OpenCV axes,
+    i.e. the inverse of c2w with its y and z axes flipped (splatfacto's get_viewmat), for a batch of poses."""
+    from willags_ns.model import viewmat_from_c2w
+
+    g = torch.Generator().manual_seed(9)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, 3, generator=g))
+    c2w = torch.cat((q, torch.randn(3, 3, 1, generator=g)), dim=-1)  # [3, 3, 4]
+    vm = viewmat_from_c2w(c2w)
+    pose = torch.eye(4).repeat(3, 1, 1)
+    pose[:, :3, :4] = c2w
+    pose[:, :3, 1:3] *= -1.0  # OpenGL -> OpenCV camera axes
+    torch.testing.assert_close(vm, torch.linalg.inv(pose), atol=1e-5, rtol=1e-5)
