@@ -6,6 +6,8 @@
 #   (the .so a previous machine of the same image built: copy /tmp/tex/gsplat_cuda/gsplat_cuda.so, gzipped, to
 #   $OUT once) it loads that build instead, through benchmarks/gsplat_csrc_shim.py (~6 s);
 # - exports PYTHONPATH, MAX_JOBS, TORCH_EXTENSIONS_DIR=/tmp/tex (where a JIT build lands).
+# The machine's copy of the tree does not carry this checkout's git HEAD: start the command with
+# `export WILLAGS_COMMIT=<git rev-parse --short HEAD, run here>` so the records name the right commit.
 python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .whl-gpu/*.whl >/dev/null 2>&1 \
   || { echo "gpu_env: wheel install failed (carry .whl-gpu)"; return 1; }
 export PYTHONPATH=/tmp/site:$PWD/.whl-gpu/stub:$PWD MAX_JOBS=16 PYTHONUNBUFFERED=1 TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 \

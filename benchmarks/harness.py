@@ -788,6 +788,11 @@ def machine_description(device: str) -> str:
 
 
 def _git_commit(repo: Path = REPO) -> str | None:
+    """Short HEAD (+dirty) of the checkout, or $WILLAGS_COMMIT when set: the lent GPU machine runs a copy of the
+    working tree whose git metadata is not the source's (it reported the session's first commit), so GPU commands
+    pass the commit they were written at."""
+    if os.environ.get("WILLAGS_COMMIT"):
+        return os.environ["WILLAGS_COMMIT"]
     try:
         sha = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10

@@ -450,3 +450,14 @@ def test_fifteen_k_table_lists_each_run_once_next_to_its_5000_step_mean():
         "| fox-wild | willags | 22.40 | 22.10 ±0.10 (n=2) | 18.00 | 100 |",
         "| reichstag | splatfacto | 15.10 | – | – | – |",
     ]
+
+
+def test_records_name_the_commit_given_by_the_gpu_command(monkeypatch):
+    """On the lent GPU machine the tree's git metadata is not the source's: $WILLAGS_COMMIT names the commit."""
+    from benchmarks.harness import _git_commit
+
+    monkeypatch.delenv("WILLAGS_COMMIT", raising=False)
+    here = _git_commit()
+    assert here is None or len(here.split("+")[0]) >= 7
+    monkeypatch.setenv("WILLAGS_COMMIT", "abc1234")
+    assert _git_commit() == "abc1234"
