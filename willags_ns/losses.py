@@ -20,14 +20,14 @@ from jaxtyping import Float
 from torch import Tensor
 
 
-def _check(pred: Tensor, gt: Tensor, mask: Tensor | None) -> Tensor:
-    """Validate shapes; return the mask as float [B, 1, H, W] (all ones when ``mask`` is None)."""
+def _check(pred: Tensor, gt: Tensor, mask: Tensor | None) -> Tensor | None:
+    """Validate shapes; return the mask as float [B, 1, H, W] (None when ``mask`` is None: every pixel kept)."""
     if pred.dim() != 4 or pred.shape[1] != 3 or pred.shape != gt.shape:
         raise ValueError(
             f"expected pred and gt [B, 3, H, W] of equal shape, got {tuple(pred.shape)}, {tuple(gt.shape)}"
         )
     if mask is None:
-        return pred.new_ones(pred.shape[0], 1, *pred.shape[2:])
+        return None
     if mask.dim() == 3:
         mask = mask.unsqueeze(1)
     if mask.shape != (pred.shape[0], 1, *pred.shape[2:]):
@@ -35,8 +35,11 @@ def _check(pred: Tensor, gt: Tensor, mask: Tensor | None) -> Tensor:
     return mask.to(pred.dtype).detach()
 
 
-def _masked_mean(per_pixel: Tensor, m: Tensor) -> Tensor:
-    """Mean of ``per_pixel`` [B, C, H, W] over the pixels where ``m`` [B, 1, H, W] > 0, weighted by ``m``."""
+def _masked_mean(per_pixel: Tensor, m: Tensor | None) -> Tensor:
+    """Mean of ``per_pixel`` [B, C, H, W] over the pixels where ``m`` [B, 1, H, W] > 0, weighted by ``m``; the plain
+    mean without a mask (no [B, 1, H, W] of ones to multiply and sum)."""
+    if m is None:
+        return per_pixel.mean()
     denom = m.sum() * per_pixel.shape[1]
     return (per_pixel * m).sum() / denom.clamp_min(torch.finfo(per_pixel.dtype).eps)
 
@@ -58,9 +61,10 @@ def masked_dssim(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], m
     """
     m = _check(pred, gt, mask)
     _, sigma = ssim_window(*pred.shape[-2:])
-    if mask is None:  # nothing to zero: no [B, 3, H, W] products with a mask of ones
-        return 1.0 - ssim_map(pred, gt.to(pred.dtype), sigma).mean()
-    return _masked_mean(1.0 - ssim_map(pred * m, gt.to(pred.dtype) * m, sigma), m)
+    gt = gt.to(pred.dtype)
+    if m is not None:
+        pred, gt = pred * m, gt * m
+    return _masked_mean(1.0 - ssim_map(pred, gt, sigma), m)
 
 
 def _gaussian_1d(sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
