@@ -44,7 +44,7 @@ from willags_ns.appearance.modulation import ColorModulation, ColorModulationCon
 from willags_ns.appearance.sky import SkyConfig, SkyModel, background_alpha_penalty, pixel_directions
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField, normalize_points, robust_bounds
 from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, vae_loss
-from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env
+from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env, mean_latent
 from willags_ns.losses import reconstruction_loss
 from willags_ns.render import rasterize
 from willags_ns.render.sh import spherical_harmonics
@@ -508,14 +508,7 @@ class WillagsModel(SplatfactoModel):
         nets = self.appearance_nets
         assert nets is not None
         src = [nets.embeddings.weight] if nets.embeddings is not None else [self.train_latents, self.train_latent_seen]
-
-        def mean() -> Tensor:
-            lat, seen = self.image_latents()
-            if seen.any():
-                return lat[seen].mean(0)
-            return torch.zeros(nets.latent_dim, device=self.device)
-
-        return self._memo_latent("default", _versions(src), mean)
+        return self._memo_latent("default", _versions(src), lambda: mean_latent(self))
 
     def _memo_latent(self, name: str, key: tuple, make) -> Tensor:
         """`make()`, recomputed only when `key` changes. A rendered frame needs its latent twice (to choose it, then
