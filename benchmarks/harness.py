@@ -558,15 +558,18 @@ def _patch_stock_splatfacto() -> list[str]:
     return patches
 
 
+def _as_float(image):
+    """A datamanager's cached image (uint8 or float) as float in [0, 1]."""
+    import torch
+
+    return image.float().div(255.0) if image.dtype == torch.uint8 else image.float()
+
+
 def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     """The NeRF-W protocol on the test split of a set-up trainer (spec: protocol_steps, protocol_lr,
     max_test_images, oracle, train_views): aggregate scores, per_image, eval_s and the train-view scores."""
-    import torch
 
     from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
-
-    def as_float(d):
-        return d["image"].float().div(255.0) if d["image"].dtype == torch.uint8 else d["image"].float()
 
     dm = trainer.pipeline.datamanager
     model = trainer.pipeline.model
@@ -576,7 +579,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         model = PeerForProtocol(model)
     model.eval()
     # the test images as the model sees them: nerfstudio's cached (undistorted) images and updated cameras
-    images = [as_float(d) for d in dm.cached_eval]
+    images = [_as_float(d["image"]) for d in dm.cached_eval]
     names = [Path(p).name for p in dm.eval_dataset.image_filenames]
     t2 = time.perf_counter()
     proto = EvalProtocolConfig(
@@ -601,7 +604,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     rec["per_image"] = per_image
     rec["eval_s"] = time.perf_counter() - t2
     if int(spec.get("train_views", 0)) != 0:
-        train_imgs = [as_float(d) for d in dm.cached_train]
+        train_imgs = [_as_float(d["image"]) for d in dm.cached_train]
         rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
     rec["num_test_images"] = len(images)
     return rec
@@ -726,8 +729,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     masks = getattr(model, "_mask_cache", None)
     if os.environ.get(RENDERS_ENV) and masks:
         picks = sorted(masks)[:: max(1, len(masks) // 4)][:4]
-        imgs = [dm.cached_train[i]["image"] for i in picks]
-        imgs = [im.float().div(255.0) if im.dtype == torch.uint8 else im.float() for im in imgs]
+        imgs = [_as_float(dm.cached_train[i]["image"]) for i in picks]
         save_masks(
             Path(os.environ[RENDERS_ENV]) / f"{_run_name(spec)}-masks.png",
             [(im[..., :3].cpu(), masks[i].cpu()) for im, i in zip(imgs, picks, strict=True)],
