@@ -49,7 +49,7 @@ class ColorModulationConfig:
     memory is two [chunk, hidden] buffers instead of ~3 x [N, hidden] (768 MB at 1M Gaussians, hidden 64).
     Measured at 1M Gaussians, 800 px, H100 (docs/gpu_notes.md): extra peak VRAM over splatfacto +0.32-0.35 GB vs
     +0.77 GB with plain autograd, for 1.1-1.6 ms more per step; 262144 was slower still in two runs of three.
-    0: plain autograd."""
+    0: plain autograd (also what runs with the tri-plane field, whose feature enters the hidden layer per Gaussian)."""
 
 
 class ColorModulation(nn.Module):
