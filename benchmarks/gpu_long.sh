@@ -1,30 +1,45 @@
 #!/usr/bin/env bash
-# One device call's share of the 30k-step runs (benchmarks/long_run.py), optionally beside grid pairs.
-# Source benchmarks/gpu_env.sh first. Run state lives in /tmp/long on the device machine: it survives between
-# back-to-back calls on the same machine (given back ~30 s after a call), not a new machine.
+# One device call's share of long runs (benchmarks/long_run.py: checkpointed segments, resumed by the next call),
+# optionally beside grid pairs. Source benchmarks/gpu_env.sh first. Run state lives in /tmp/long on the device
+# machine: it survives between back-to-back calls on the same machine (given back ~30 s after a call), not a new
+# machine.
 #   LONG_BUDGET_S=400 LONG_METHODS="willags splatfacto" bash benchmarks/gpu_long.sh OUT [scene:method[:tag[:seed]] ...]
+#   LONG_RUNS="fox-clean:peer sacre-coeur-mini:willags" LONG_STEPS=15000 LONG_MILESTONES=15000 LONG_TAG=h100-15k \
+#     LONG_BUDGET_S=450 bash benchmarks/gpu_long.sh OUT           # several scenes; scenes from $LONG_DATA_ROOT
 set -u
 final=$1; shift
 out=/tmp/long-call-out
 rm -rf "$out"
 budget=${LONG_BUDGET_S:-400}
-methods=${LONG_METHODS:-"willags splatfacto"}
-data=${LONG_DATA:-.gpu-data/reichstag}
+steps=${LONG_STEPS:-30000}
+milestones=${LONG_MILESTONES:-7000,15000,30000}
+root=${LONG_DATA_ROOT:-.gpu-data}
 tag=${LONG_TAG:-h100-30k}
+if [ -z "${LONG_RUNS:-}" ]; then  # the 30k-step form: methods on one scene
+  data=${LONG_DATA:-$root/reichstag}
+  LONG_RUNS=""
+  for m in ${LONG_METHODS:-willags splatfacto}; do LONG_RUNS="$LONG_RUNS $(basename "$data"):$m"; done
+fi
 mkdir -p "$out" /tmp/long
 python3 -c "from benchmarks.harness import _warm_gsplat; _warm_gsplat()" || exit 1
-n=$(( $(echo $methods | wc -w) + $# ))
-for m in $methods; do
-  ( python3 -m benchmarks.long_run train --method "$m" --data "$data" --run-dir "/tmp/long/$m" --budget-s "$budget" \
-      >> "/tmp/long/$m.log" 2>&1
-    python3 -m benchmarks.long_run eval --run-dir "/tmp/long/$m" >> "/tmp/long/$m.log" 2>&1 ) &
+n=$(( $(echo $LONG_RUNS | wc -w) + $# ))
+for run in $LONG_RUNS; do
+  IFS=: read -r scene m <<< "$run"
+  d=/tmp/long/$scene-$m
+  ( python3 -m benchmarks.long_run train --method "$m" --data "$root/$scene" --run-dir "$d" --budget-s "$budget" \
+      --steps "$steps" --milestones "$milestones" >> "$d.log" 2>&1
+    python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$milestones" >> "$d.log" 2>&1 ) &
 done
 [ $# -gt 0 ] && { GRID=${GRID:-configs/benchmark_gpu_fidelity.json} JOBS=${JOBS:-8} bash benchmarks/gpu_scenes.sh "$out/grid" "$@" > "$out/grid.log" 2>&1 & }
 wait
-for m in $methods; do
-  python3 -m benchmarks.long_run record --run-dir "/tmp/long/$m" --tag "$tag" --concurrent "$n" --out "$out/long-$m.json"
-  grep "long_run:" "/tmp/long/$m.log" | tail -n 5
+for run in $LONG_RUNS; do
+  IFS=: read -r scene m <<< "$run"
+  d=/tmp/long/$scene-$m
+  python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent "$n" --milestones "$milestones" \
+    --out "$out/long-$scene-$m.json"
+  grep "long_run:" "$d.log" | tail -n 5
+  tail -n 3 "$d.log" | grep -i "error\|Traceback" && tail -n 30 "$d.log"
+  cp "$d/state.json" "$out/state-$scene-$m.json" 2>/dev/null
 done
 tail -c 3000 "$out/grid.log" 2>/dev/null
-for m in $methods; do cp "/tmp/long/$m/state.json" "$out/state-$m.json"; done
-mkdir -p "$final" && tar czf "$final/results.tgz" -C "$out" . && ls -R "$out" | head -30
+mkdir -p "$final" && tar czf "$final/results.tgz" -C "$out" . && ls -R "$out" | head -40

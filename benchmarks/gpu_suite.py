@@ -594,6 +594,37 @@ def install_profile(model, timer: RegionTimer, is_willags: bool) -> list:
     return undo
 
 
+def kernel_profile(run_step, iters: int, top: int = 25) -> dict:
+    """torch.profiler over `iters` calls of run_step(): device (kernel + copy) time per step, the kernels that take
+    it (ms and launches per step) and the busy share of the wall time. Busy well below the wall time means the
+    step waits on the host (launch-bound); the kernel list says where device time goes."""
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        t0 = time.perf_counter()
+        for _ in range(iters):
+            run_step()
+        torch.cuda.synchronize()
+        wall = (time.perf_counter() - t0) * 1e3 / iters
+    rows = []
+    for e in prof.key_averages():
+        if e.device_type != torch.autograd.DeviceType.CUDA:
+            continue
+        us = getattr(e, "self_device_time_total", None)
+        us = e.self_cuda_time_total if us is None else us
+        rows.append((e.key[:120], us / 1e3 / iters, e.count / iters))
+    rows.sort(key=lambda r: -r[1])
+    busy = sum(r[1] for r in rows)
+    return {
+        "iters": iters,
+        "device_busy_ms_per_step": busy,
+        "wall_ms_per_step_profiled": wall,
+        "launches_per_step": sum(r[2] for r in rows),
+        "top_kernels": [(k, round(ms, 4), round(n, 2)) for k, ms, n in rows[:top]],
+    }
+
+
 def remove_profile(undo: list) -> None:
     for item in reversed(undo):
         if len(item) == 3:
@@ -727,6 +758,15 @@ def section_step(args, cuda: bool, dev, backend: str, variants: list[str], memor
                 finally:
                     remove_profile(undo)
                 r["profile_ms"] = profile_table(totals, args.profile_iters, r["step_ms"])
+            if cuda and timing and v in args.kernel_variants:
+                at = [step]
+
+                def one_step(m=model, o=opts, w=is_w, at=at):
+                    train_step(m, o, camera, batch, at[0], w)
+                    at[0] += 1
+
+                r["kernels"] = kernel_profile(one_step, 8)  # two mask steps of four at mask_every=4
+                step = at[0]
             msg = f"{v}: " + ", ".join(
                 f"{k}={r[k]:.2f}"
                 for k in ("step_ms", "step_ms_median", "step_ms_wall", "peak_gb", "static_gb")
@@ -767,6 +807,15 @@ def section_step(args, cuda: bool, dev, backend: str, variants: list[str], memor
                 log("|---|---|---|")
                 for k, ms in r["profile_ms"]:
                     log(f"| {k} | {ms:.2f} | {100 * ms / r['step_ms']:.0f}% |")
+            if "kernels" in r:
+                kp = r["kernels"]
+                log(
+                    f"\n### kernels {v} (torch.profiler, {kp['iters']} steps): device busy "
+                    f"{kp['device_busy_ms_per_step']:.2f} ms/step of {kp['wall_ms_per_step_profiled']:.2f} wall "
+                    f"(profiled), {kp['launches_per_step']:.0f} device ops/step"
+                )
+                for k, ms, n in kp["top_kernels"]:
+                    log(f"| {k} | {ms:.3f} ms | x{n:g} |")
             if r.get("host_sync_sites"):
                 log(f"host-sync sites {v} (per step): " + "; ".join(f"{s} x{c:g}" for s, c in r["host_sync_sites"]))
     if memory and cuda:
@@ -1260,6 +1309,9 @@ def parse_args(argv=None):
     ap.add_argument("--profile-variants", default="willags,willags-3dgs,splatfacto,willags-fast")
     ap.add_argument("--profile-iters", type=int, default=None)
     ap.add_argument(
+        "--kernel-variants", default="", help="comma list: a torch.profiler kernel table for these (CUDA only)"
+    )
+    ap.add_argument(
         "--time-budget",
         type=float,
         default=480.0,
@@ -1280,6 +1332,7 @@ def parse_args(argv=None):
     if bad:
         ap.error(f"unknown variants {bad}; choose from {list(VARIANTS)}")
     args.profile_variants = args.profile_variants.split(",")
+    args.kernel_variants = [v for v in args.kernel_variants.split(",") if v]
     if args.all or not (args.parity or args.step or args.render or args.memory or args.components):
         args.parity = args.step = args.render = args.memory = args.components = True
     return args

@@ -45,13 +45,13 @@ def _ckpt_steps(run_dir: Path) -> list[int]:
     return sorted(int(p.stem.split("-")[1]) for p in d.glob("step-*.ckpt")) if d.is_dir() else []
 
 
-def _patch_splatfacto_resume() -> None:
-    """Stock splatfacto's load_state_dict replaces its Parameter objects with new ones of the checkpoint's size, but
-    nerfstudio's Trainer built the optimisers (and loads their state) on the old ones: a resumed run optimises
-    tensors the model no longer uses and gsplat's densification indexes mismatched states (a device-side assert,
-    seen here). Resize the Parameters in place instead, as WillagsModel.load_state_dict does."""
+def _patch_resume(model_cls) -> None:
+    """Stock splatfacto's load_state_dict (and the peer's, written the same way) replaces its Parameter objects with
+    new ones of the checkpoint's size, but nerfstudio's Trainer built the optimisers (and loads their state) on the
+    old ones: a resumed run optimises tensors the model no longer uses and gsplat's densification indexes mismatched
+    states (a device-side assert, seen here). Resize the Parameters in place instead, as WillagsModel.load_state_dict
+    does."""
     import torch
-    from nerfstudio.models.splatfacto import SplatfactoModel
 
     def load_state_dict(self, state, **kwargs):
         self.step = 30000  # as stock: the trainer's step callback sets the real step before the next iteration
@@ -60,7 +60,22 @@ def _patch_splatfacto_resume() -> None:
             param.data = torch.zeros((n,) + param.shape[1:], device=self.device)
         torch.nn.Module.load_state_dict(self, state, **kwargs)
 
-    SplatfactoModel.load_state_dict = load_state_dict
+    model_cls.load_state_dict = load_state_dict
+
+
+def _patch_splatfacto_resume() -> None:
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
+    _patch_resume(SplatfactoModel)
+
+
+def _patch_peer_resume() -> None:
+    from benchmarks.peer import patch_peer
+
+    patch_peer()  # offline, as in the grid runs; puts the peer's package on the path
+    import splatfactow.splatfactow_model as pm  # type: ignore[import-not-found]
+
+    _patch_resume(pm.SplatfactoWModel)
 
 
 def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_step: int | None, test_mode: str):
@@ -72,9 +87,13 @@ def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_s
 
     from benchmarks.harness import METHODS, _patch_stock_splatfacto, build_config
 
-    if METHODS[method].base == "splatfacto":
-        _patch_stock_splatfacto()
+    base = METHODS[method].base
+    if base in ("splatfacto", "peer"):
+        _patch_stock_splatfacto()  # as the grid runs do (offline LPIPS)
+    if base == "splatfacto":
         _patch_splatfacto_resume()
+    elif base == "peer":
+        _patch_peer_resume()
     config = build_config(
         method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
     )

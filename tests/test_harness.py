@@ -461,3 +461,33 @@ def test_records_name_the_commit_given_by_the_gpu_command(monkeypatch):
     assert here is None or len(here.split("+")[0]) >= 7
     monkeypatch.setenv("WILLAGS_COMMIT", "abc1234")
     assert _git_commit() == "abc1234"
+
+
+def test_long_run_resume_resizes_the_gaussians_in_place_so_the_optimisers_keep_them():
+    import torch
+    from torch import nn
+
+    from benchmarks.long_run import _patch_resume
+
+    class Model(nn.Module):  # the shape of splatfacto's and the peer's gauss_params
+        def __init__(self, n: int):
+            super().__init__()
+            self.device = torch.device("cpu")
+            self.gauss_params = nn.ParameterDict(
+                {"means": nn.Parameter(torch.zeros(n, 3)), "opacities": nn.Parameter(torch.zeros(n, 1))}
+            )
+            self.embed = nn.Embedding(2, 4)
+
+    _patch_resume(Model)
+    saved = Model(7)
+    with torch.no_grad():
+        for p in saved.parameters():
+            p.uniform_()
+    model = Model(3)
+    params = dict(model.gauss_params.items())
+    optimiser = torch.optim.Adam(params.values())
+    model.load_state_dict(saved.state_dict())
+    for name, p in model.gauss_params.items():
+        assert p is params[name] and torch.equal(p, saved.gauss_params[name])  # the objects the optimiser holds
+    assert torch.equal(model.embed.weight, saved.embed.weight) and model.step == 30000
+    assert all(p is q for p, q in zip(optimiser.param_groups[0]["params"], params.values(), strict=True))

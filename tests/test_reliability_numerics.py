@@ -222,6 +222,30 @@ def test_row11_pipeline_warns_when_the_mask_is_rejected():
     assert text.count("transient mask flagged more than 0.5 of y.png") == 1, text
 
 
+def test_row11_the_rejected_flag_is_read_one_step_late_and_only_when_set():
+    from types import SimpleNamespace
+
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    from willags_ns.pipeline import WillagsPipeline
+
+    fake = SimpleNamespace(
+        _last_mask_warning=-float("inf"),
+        _pending_rejected=(3, torch.tensor(0), torch.tensor(False)),
+        datamanager=SimpleNamespace(train_dataparser_outputs=SimpleNamespace(image_filenames=["a/x.png", "a/y.png"])),
+        model=SimpleNamespace(config=SimpleNamespace(max_masked_fraction=0.5)),
+    )
+    fake._warn_mask_rejected = lambda step, batch: WillagsPipeline._warn_mask_rejected(fake, step, batch)
+    with CONSOLE.capture() as cap:
+        WillagsPipeline._report_rejected_mask(fake)  # type: ignore[arg-type]  # not rejected: silent
+        assert fake._pending_rejected is None
+        fake._pending_rejected = (9, torch.tensor(1), torch.tensor(True))
+        WillagsPipeline._report_rejected_mask(fake)  # type: ignore[arg-type]
+        WillagsPipeline._report_rejected_mask(fake)  # type: ignore[arg-type]  # consumed: nothing twice
+    text = cap.get()
+    assert "x.png" not in text and text.count("step 9: the transient mask flagged more than 0.5 of y.png") == 1
+
+
 # ---- row 12: all Gaussians pruned
 
 

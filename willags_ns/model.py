@@ -965,8 +965,7 @@ class WillagsModel(SplatfactoModel):
                 d, thr, cfg.mask.threshold_rule, cfg.mask.robust_k, cfg.max_masked_fraction
             )
             mask = ~transient  # a rejected mask supervises every pixel rather than none
-            if rejected:
-                self._step_cache["mask_rejected"] = torch.tensor(1.0)
+            self._step_cache["mask_rejected"] = rejected.float()  # a device tensor: no wait for VGG here
             self._mask_cache[idx] = mask
         elif idx in self._mask_cache:
             mask = self._mask_cache[idx]

@@ -224,6 +224,7 @@ class WillagsPipeline(VanillaPipeline):
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
         self._last_mask_warning = -float("inf")
+        self._pending_rejected: tuple | None = None  # (step, image_idx, flag tensor) of the last mask step
         controls = getattr(self.model, "viewer_controls", None)
         if controls is not None:  # the viewer panel shows a training view's transient mask / teacher render
             controls.set_train_dataset(self.datamanager.train_dataset)
@@ -316,13 +317,22 @@ class WillagsPipeline(VanillaPipeline):
         check_gaussians_alive(self.model.num_points, step)
         camera, batch = self.datamanager.next_train(step)
         self._step_image_idx = int(batch.get("image_idx", -1))  # shared with the other ranks (several devices)
+        self._report_rejected_mask()
         self.model.set_train_batch(batch)  # type: ignore[attr-defined]
         model_outputs = self._model(camera)
         metrics_dict = self.model.get_metrics_dict(model_outputs, batch)
         loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
         if "mask_rejected" in metrics_dict:
-            self._warn_mask_rejected(step, batch)
+            self._pending_rejected = (step, batch.get("image_idx", -1), metrics_dict["mask_rejected"])
         return model_outputs, loss_dict, metrics_dict
+
+    def _report_rejected_mask(self) -> None:
+        """Warn about the previous mask step's rejected mask, read one step late: reading the device flag in its
+        own step would stall there until the GPU has run VGG; here the queue is about to drain anyway (the step's
+        first host sync is the camera's intrinsics in get_outputs)."""
+        pending, self._pending_rejected = self._pending_rejected, None
+        if pending is not None and bool(pending[2]):
+            self._warn_mask_rejected(pending[0], {"image_idx": pending[1]})
 
     def get_average_eval_image_metrics(self, step=None, output_path=None, get_std: bool = False):
         """`ns-eval`: the NeRF-W protocol over the eval split (see willags_ns/eval/protocol.py).

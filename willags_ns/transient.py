@@ -422,15 +422,19 @@ def transient_threshold(D: Float[Tensor, "B H W"], threshold: float, rule: str =
 
 def transient_mask(
     D: Float[Tensor, "H W"], threshold: float, rule: str = "fixed", k: float = 2.0, max_masked_fraction: float = 1.0
-) -> tuple[Bool[Tensor, "H W"], bool]:
+) -> tuple[Bool[Tensor, "H W"], Bool[Tensor, ""]]:
     """``(transient [H, W], rejected)`` of one image: ``D >= `` the threshold of ``rule`` (see
     :func:`transient_threshold`). When more than ``max_masked_fraction`` of the image would be transient the mask is
     rejected (all False): a teacher that disagrees with most of an image is not yet trained, or cannot explain that
-    appearance; it is not looking at an occluder. The one rule of training and of the mask evaluation."""
+    appearance; it is not looking at an occluder. The one rule of training and of the mask evaluation.
+
+    ``rejected`` is a 0-d bool tensor on D's device, not a Python bool: reading it on the host would make the
+    training step wait there until the GPU has run the teacher and VGG, with the loss and the backward not yet
+    queued (``bool(rejected)`` where a caller needs it on the host)."""
     thr = transient_threshold(D[None], threshold, rule, k)
     transient = ~static_mask(D[None], thr)[0]
-    rejected = bool(transient.float().mean() > max_masked_fraction)
-    return (torch.zeros_like(transient) if rejected else transient), rejected
+    rejected = transient.float().mean() > max_masked_fraction
+    return transient & ~rejected, rejected
 
 
 def mask_active(step: int, warmup_steps: int) -> bool:

@@ -109,7 +109,7 @@ def predicted_transient(
     mask is rejected (nothing is transient)."""
     d = image_distance(perceptual, gt.float(), teacher.float())
     transient, rejected = transient_mask(d, threshold, rule, robust_k, max_masked_fraction)
-    return transient, rejected, d
+    return transient, bool(rejected), d
 
 
 def resize_mask(mask: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -258,7 +258,7 @@ def mask_scores(
             counts.append(c)
             # the paper's fixed rule on the same D, for comparison
             fixed, fixed_rej = transient_mask(d, thr, "fixed", max_masked_fraction=cfg.max_masked_fraction)
-            counts_fixed.append(count_pixels(fixed, gt_t, fixed_rej))
+            counts_fixed.append(count_pixels(fixed, gt_t, bool(fixed_rej)))
             d_cpu = d.float().cpu()
             gt_cpu = gt_t.cpu()
             # subsample D for the medians: 4096 pixels per class and image is plenty
