@@ -395,6 +395,12 @@ MAD_TO_STD = 1.4826
 """MAD of a normal distribution times this is its standard deviation."""
 
 
+def _lower_median(x: Tensor) -> Tensor:
+    """``x.median(dim=1).values`` (the lower median of each row) through a sort: the same value, but CUDA's median
+    kernel selects within one block per row, 1.6 ms for an 800 x 800 image on an H100, the sort a small fraction."""
+    return x.sort(dim=1).values[:, (x.shape[1] - 1) // 2]
+
+
 def robust_threshold(D: Float[Tensor, "B H W"], threshold: float, k: float) -> Float[Tensor, "B 1 1"]:
     """Per-image threshold ``max(threshold, median(D) + k * 1.4826 * MAD(D))``, medians over each image's pixels.
 
@@ -405,8 +411,8 @@ def robust_threshold(D: Float[Tensor, "B H W"], threshold: float, k: float) -> F
     is still flagged. ``threshold = inf`` (mask warming up) stays inf.
     """
     flat = D.flatten(1)
-    med = flat.median(dim=1).values  # [B]
-    mad = (flat - med[:, None]).abs().median(dim=1).values
+    med = _lower_median(flat)  # [B]
+    mad = _lower_median((flat - med[:, None]).abs())
     bar = (med + k * MAD_TO_STD * mad).clamp_min(threshold)
     return bar[:, None, None]
 
