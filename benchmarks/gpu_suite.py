@@ -89,6 +89,7 @@ VARIANTS = {
     "willags-chunk128k": ("willags", {"modulation.residual_chunk": 131072}, ()),  # = the default
     "willags-chunk256k": ("willags", {"modulation.residual_chunk": 262144}, ()),
     "willags-chunk1m": ("willags", {"modulation.residual_chunk": 1 << 20}, ()),  # one chunk at 1M: recompute only
+    "willags-foreachadam": ("willags", {}, ("foreach-adam",)),  # stock torch Adam instead of the fused one
     "willags-bf16": ("willags", {}, ("bf16",)),
     "willags-ckpt": ("willags", {}, ("ckpt",)),
     "willags-fast": ("willags", _FAST, ()),  # mask every 4th visit of an image, VGG at 256 px
@@ -438,13 +439,22 @@ def build_model(variant: str, seeds, n_train: int, dev: torch.device, backend: s
     model = model.to(dev)
     model.train()
     opts = {}
+    # each method's own optimiser: stock splatfacto's torch Adam; willags' FusedAdamOptimizerConfig (fused on CUDA)
+    # unless the variant asks for the stock one ("foreach-adam")
+    fused = is_willags and "foreach-adam" not in wrapper
     for name, params in model.get_param_groups().items():
         params = [p for p in params if p.requires_grad]
         if params:
-            opts[name] = torch.optim.Adam(params, lr=LRS.get(name, 1e-3), eps=1e-15)
+            if fused:
+                from willags_ns.method_configs import FusedAdamOptimizerConfig
+
+                opts[name] = FusedAdamOptimizerConfig(lr=LRS.get(name, 1e-3), eps=1e-15).setup(params)
+            else:
+                opts[name] = torch.optim.Adam(params, lr=LRS.get(name, 1e-3), eps=1e-15)
     model.optimizers = opts
     for w in wrapper:
-        _wrap_appearance(model, w, dev)
+        if w != "foreach-adam":
+            _wrap_appearance(model, w, dev)
     return model, opts, is_willags
 
 
@@ -594,6 +604,15 @@ def install_profile(model, timer: RegionTimer, is_willags: bool) -> list:
     return undo
 
 
+def _allocator_counts(cuda: bool) -> dict[str, int]:
+    """The caching allocator's device allocations, frees and retries so far (CUDA; empty elsewhere)."""
+    if not cuda:
+        return {}
+    st = torch.cuda.memory_stats()
+    keys = ("num_device_alloc", "num_device_free", "num_alloc_retries", "num_sync_all_streams")
+    return {k: int(st.get(k, 0)) for k in keys}
+
+
 def kernel_profile(run_step, iters: int, top: int = 25) -> dict:
     """torch.profiler over `iters` calls of run_step(): device (kernel + copy) time per step, the kernels that take
     it (ms and launches per step) and the busy share of the wall time. Busy well below the wall time means the
@@ -721,14 +740,23 @@ def section_step(args, cuda: bool, dev, backend: str, variants: list[str], memor
             # and runs VGG (iters is a multiple of 4), and the mean is what a training run pays per step. The peak
             # VRAM is taken over the same steps, so it includes a teacher step.
             spans = []
+            host = []
+            alloc0 = _allocator_counts(cuda)
             t0 = time.perf_counter()
             for _ in range(n_it):
                 s = Stamp(cuda)
+                h0 = time.perf_counter()
                 train_step(model, opts, camera, batch, step, is_w)
+                host.append((time.perf_counter() - h0) * 1e3)
                 spans.append((s, Stamp(cuda)))
                 step += 1
             sync(cuda)
             wall = (time.perf_counter() - t0) * 1e3 / n_it
+            # host ms: the CPU's time in the step (launches, Python, and its waits at host syncs); cudaMalloc /
+            # cudaFree calls of the caching allocator (a cudaFree waits for the device) per step
+            r["host_ms_median"] = statistics.median(host)
+            alloc1 = _allocator_counts(cuda)
+            r["allocator_per_step"] = {k: (alloc1[k] - alloc0[k]) / n_it for k in alloc1}
             if timing:
                 ms = [s.ms_until(e) for s, e in spans]
                 r.update(step_ms=statistics.fmean(ms), step_ms_median=statistics.median(ms), step_ms_wall=wall)
@@ -769,11 +797,13 @@ def section_step(args, cuda: bool, dev, backend: str, variants: list[str], memor
                 step = at[0]
             msg = f"{v}: " + ", ".join(
                 f"{k}={r[k]:.2f}"
-                for k in ("step_ms", "step_ms_median", "step_ms_wall", "peak_gb", "static_gb")
+                for k in ("step_ms", "step_ms_median", "step_ms_wall", "host_ms_median", "peak_gb", "static_gb")
                 if k in r
             )
             if "host_syncs_per_step" in r:
                 msg += f", host syncs/step={r['host_syncs_per_step']:.2f}"
+            if r.get("allocator_per_step"):
+                msg += ", allocator/step " + " ".join(f"{k}={v:g}" for k, v in r["allocator_per_step"].items())
             log(msg + f" (build {r['build_s']:.1f}s, warm-up {r['warmup_s']:.1f}s)")
         except Exception as e:
             r["error"] = short_exc(e)

@@ -262,3 +262,32 @@ def test_viewmat_is_the_inverse_of_the_opencv_camera_pose():
     pose[:, :3, :4] = c2w
     pose[:, :3, 1:3] *= -1.0  # OpenGL -> OpenCV camera axes
     torch.testing.assert_close(vm, torch.linalg.inv(pose), atol=1e-5, rtol=1e-5)
+
+
+def test_training_metrics_match_splatfactos_and_the_photo_is_converted_once_per_step(monkeypatch):
+    model = _tiny_model()
+    model.train()
+    cam = _camera(48, 32)
+    image = (torch.rand(32, 48, 3, generator=torch.Generator().manual_seed(2)) * 255).to(torch.uint8)
+    batch = {"image": image, "image_idx": 0}
+    model.set_train_batch(batch)
+    out = model.get_outputs(cam)
+    calls = []
+    orig = type(model).get_gt_img
+    monkeypatch.setattr(type(model), "get_gt_img", lambda self, img: calls.append(1) or orig(self, img))
+    metrics = model.get_metrics_dict(out, batch)
+    losses = model.get_loss_dict(out, batch, metrics)
+    assert len(calls) == 1 and torch.isfinite(losses["main_loss"])
+    gt = model.composite_with_background(orig(model, image), out["background"])
+    torch.testing.assert_close(metrics["psnr"], model.psnr(out["rgb"].detach(), gt), rtol=1e-5, atol=1e-5)
+    assert metrics["gaussian_count"] == model.num_points
+    model._end_step(0)
+    other = torch.zeros_like(image)  # the next step's photo is converted afresh
+    batch2 = {"image": other, "image_idx": 1}
+    model.set_train_batch(batch2)
+    out2 = model.get_outputs(cam)
+    model.get_metrics_dict(out2, batch2)
+    assert len(calls) == 2
+    torch.testing.assert_close(
+        model._gt_image(out2, batch2), model.composite_with_background(orig(model, other), out2["background"])
+    )

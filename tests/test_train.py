@@ -281,3 +281,18 @@ def test_ns_render_uses_the_chosen_appearance(tmp_path):
         frames[spec] = np.asarray(Image.open(pngs[0])).astype(np.float32)
     assert frames["mean"].shape == frames["sample:5"].shape
     assert np.abs(frames["mean"] - frames["sample:5"]).mean() > 0.5  # 8-bit levels: the appearance changed
+
+
+def test_willags_optimisers_are_splatfactos_adam_fused_where_the_parameters_are_on_cuda():
+    import torch
+
+    from willags_ns.method_configs import FusedAdamOptimizerConfig, willags_config, willags_paper_config
+
+    for cfg in (willags_config(), willags_paper_config()):
+        assert all(isinstance(g["optimizer"], FusedAdamOptimizerConfig) for g in cfg.optimizers.values())
+    means = willags_config().optimizers["means"]["optimizer"]
+    opt = means.setup([torch.nn.Parameter(torch.zeros(4, 3))])
+    assert isinstance(opt, torch.optim.Adam) and opt.defaults["eps"] == 1e-15 and opt.defaults["lr"] == means.lr
+    assert not opt.defaults["fused"]  # CPU: torch's default implementation
+    if torch.cuda.is_available():
+        assert means.setup([torch.nn.Parameter(torch.zeros(4, 3, device="cuda"))]).defaults["fused"]

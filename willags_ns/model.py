@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.model_components.lib_bilagrid import color_correct
 from nerfstudio.models.splatfacto import (
     RGB2SH,
     SplatfactoModel,
@@ -975,15 +976,33 @@ class WillagsModel(SplatfactoModel):
             mask = F.interpolate(mask[None, None].float(), size=(H, W), mode="nearest")[0, 0] > 0.5
         return mask.float()
 
+    def _gt_image(self, outputs, batch) -> Tensor:
+        """This step's ground truth [H, W, 3] (float, at the render's resolution, composited on its background),
+        made once for the metrics and the loss: both need it, and each conversion of a cached uint8 photo is a
+        full-image pass."""
+        key = (batch["image"].data_ptr(), tuple(batch["image"].shape), id(outputs))
+        cached = self._step_cache.get("gt_img")
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        self._step_cache["gt_img"] = (key, gt)  # type: ignore[assignment]
+        return gt
+
     def get_metrics_dict(self, outputs, batch) -> dict[str, torch.Tensor]:
-        metrics = super().get_metrics_dict(outputs, batch)
+        """splatfacto's training metrics, with the PSNR as a function: torchmetrics' module updates and resets its
+        state on every call (host work each step, for a number the trainer logs one step in ten). Same value."""
+        pred, gt = outputs["rgb"], self._gt_image(outputs, batch)
+        metrics: dict = {"psnr": -10.0 * torch.log10(F.mse_loss(pred.detach(), gt)), "gaussian_count": self.num_points}
+        if self.config.color_corrected_metrics:
+            metrics["cc_psnr"] = self.psnr(color_correct(pred, gt), gt)
+        self.camera_optimizer.get_metrics_dict(metrics)
         if self.training and "z" in self._step_cache:
             metrics["latent_norm"] = self._step_cache["z"].detach().norm()
         return metrics
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> dict[str, torch.Tensor]:
         cfg = self.config
-        gt_img = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        gt_img = self._gt_image(outputs, batch)
         pred_img = outputs["rgb"]
         mask = self._static_mask(outputs, gt_img) if self.training else None
         if "mask" in batch:  # user-provided masks (nerfstudio convention) combine with ours
