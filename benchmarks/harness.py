@@ -71,6 +71,11 @@ METHODS: dict[str, MethodSpec] = {
         "willags", note="default: per-image embedding, SH colour x latent colour transform, antialiased, no field"
     ),
     "willags-paper": MethodSpec("willags-paper", note="the paper: beta-VAE, colour decoder over tri-plane + f_s"),
+    "willags-foreachadam": MethodSpec(
+        "willags",
+        (("optimizers.stock_adam", True),),
+        note="default with torch's foreach Adam (control of the fused one)",
+    ),
     "willags-lite": MethodSpec("willags-lite", note="fast preset"),
     "willags-3dgs": MethodSpec(
         "willags-3dgs", note="plain 3DGS through willags' rasteriser: CPU stand-in for splatfacto"
@@ -219,6 +224,15 @@ def set_lr(config, dotted: str, lr: float) -> None:
     opt.lr = lr
 
 
+def stock_adam(config) -> None:
+    """Every group's optimiser as splatfacto's torch Adam (foreach), same settings: the control of the fused one."""
+    from nerfstudio.engine.optimizers import AdamOptimizerConfig
+
+    for group in config.optimizers.values():
+        o = group["optimizer"]
+        group["optimizer"] = AdamOptimizerConfig(lr=o.lr, eps=o.eps, max_norm=o.max_norm, weight_decay=o.weight_decay)
+
+
 def base_trainer_config(base: str):
     """A fresh TrainerConfig of `base` (our method configs or nerfstudio's splatfacto with our data parser)."""
     from willags_ns import method_configs as mc
@@ -275,7 +289,9 @@ def build_config(
         dm.dataparser.downscale_factor = downscale
     m = config.pipeline.model
     for k, v in spec.overrides:
-        if k.startswith("optimizers."):
+        if k == "optimizers.stock_adam" and v:
+            stock_adam(config)
+        elif k.startswith("optimizers."):
             set_lr(config, k, v)
         else:
             set_nested(m, k, v)
