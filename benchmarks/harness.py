@@ -1476,10 +1476,11 @@ def long_run_section(records: list[dict[str, Any]]) -> list[str]:
         "segments' training time (set-up, checkpoint loading and evaluation excluded); the segments say how many "
         "other runs shared the GPU. Right-half PSNR under the NeRF-W protocol (128 steps) at each milestone.",
         "",
-        "| scene | method | steps done | train s | PSNR @ milestones | train-view PSNR | Gaussians | segments |",
+        "| scene | method [tag, commit] | steps done | train s | PSNR @ milestones | train-view PSNR | Gaussians "
+        "| segments |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for r in sorted(recs, key=lambda r: (r["scene"], r["method"])):
+    for r in sorted(recs, key=lambda r: (r["scene"], r["method"], str(r.get("tag")))):
         ms = r.get("milestones", {})
         psnr = ", ".join(f"{int(k) // 1000}k: {v['psnr']:.2f}" for k, v in ms.items() if v.get("psnr") is not None)
         tv = ", ".join(f"{int(k) // 1000}k: {v['train_psnr']:.2f}" for k, v in ms.items() if v.get("train_psnr"))
@@ -1490,10 +1491,12 @@ def long_run_section(records: list[dict[str, Any]]) -> list[str]:
         )
         g = r.get("segments", [{}])[-1].get("num_gaussians", "–")
         out.append(
-            f"| {r['scene']} | {r['method']} | {r.get('steps_done')} / {r['steps']} | {r['train_s']:.0f} | {psnr} "
+            f"| {r['scene']} | {r['method']} [{r.get('tag')}, {r.get('commit', '?')}] | {r.get('steps_done')} / "
+            f"{r['steps']} | {r['train_s']:.0f} | {psnr} "
             f"| {tv or '–'} | {g} | {segs} |"
         )
-    out += ["", *[f"- `{r['method']}` on {r['scene']}: {r['note']}" for r in recs if r.get("note")], ""]
+    notes = [f"- `{r['method']}` [{r.get('tag')}] on {r['scene']}: {r['note']}" for r in recs if r.get("note")]
+    out += ["", *notes, ""]
     return out
 
 
