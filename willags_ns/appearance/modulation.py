@@ -47,8 +47,8 @@ class ColorModulationConfig:
     """Gaussians per chunk of the local residual's own backward (``LocalResidualMLP``): it keeps no [N, hidden]
     activation between forward and backward and recomputes the hidden layer chunk by chunk, so the MLP's extra
     memory is two [chunk, hidden] buffers instead of ~3 x [N, hidden] (768 MB at 1M Gaussians, hidden 64).
-    Measured at 1M Gaussians, 800 px, H100 (docs/gpu_notes.md): extra peak VRAM over splatfacto +0.32-0.35 GB vs
-    +0.77 GB with plain autograd, for 1.1-1.6 ms more per step; 262144 was slower still in two runs of three.
+    Measured at 1M Gaussians, 800 px, H100 (docs/gpu_notes.md): extra peak VRAM over splatfacto +0.32-0.39 GB vs
+    +0.77 GB with plain autograd, for 0.5-1.6 ms more per step (0.55 ms in the latest run); 262144 was no faster.
     0: plain autograd (also what runs with the tri-plane field, whose feature enters the hidden layer per Gaussian)."""
 
 
