@@ -282,12 +282,16 @@ def test_training_metrics_match_splatfactos_and_the_photo_is_converted_once_per_
     torch.testing.assert_close(metrics["psnr"], model.psnr(out["rgb"].detach(), gt), rtol=1e-5, atol=1e-5)
     assert metrics["gaussian_count"] == model.num_points
     model._end_step(0)
-    other = torch.zeros_like(image)  # the next step's photo is converted afresh
-    batch2 = {"image": other, "image_idx": 1}
-    model.set_train_batch(batch2)
-    out2 = model.get_outputs(cam)
-    model.get_metrics_dict(out2, batch2)
-    assert len(calls) == 2
-    torch.testing.assert_close(
-        model._gt_image(out2, batch2), model.composite_with_background(orig(model, other), out2["background"])
-    )
+    # the next step converts afresh, also for the same photo object (the resolution schedule may have moved on)
+    for n_calls, photo in ((2, image), (3, torch.zeros_like(image))):
+        batch2 = {"image": photo, "image_idx": 1}
+        model.set_train_batch(batch2)
+        out2 = model.get_outputs(cam)
+        model.get_metrics_dict(out2, batch2)
+        assert len(calls) == n_calls
+        want = model.composite_with_background(orig(model, photo), out2["background"])
+        torch.testing.assert_close(model._gt_image(out2, batch2), want)
+        model._end_step(0)
+    model.eval()  # outside training nothing is kept
+    model._gt_image(out2, batch2)
+    assert "gt_img" not in model._step_cache

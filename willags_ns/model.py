@@ -980,12 +980,13 @@ class WillagsModel(SplatfactoModel):
         """This step's ground truth [H, W, 3] (float, at the render's resolution, composited on its background),
         made once for the metrics and the loss: both need it, and each conversion of a cached uint8 photo is a
         full-image pass."""
-        key = (batch["image"].data_ptr(), tuple(batch["image"].shape), id(outputs))
         cached = self._step_cache.get("gt_img")
-        if cached is not None and cached[0] == key:
-            return cached[1]
+        # keyed by the objects themselves (held, so never a recycled id): this step's render of this photo
+        if cached is not None and cached[0] is outputs and cached[1] is batch["image"]:
+            return cached[2]
         gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        self._step_cache["gt_img"] = (key, gt)  # type: ignore[assignment]
+        if self.training:  # the step cache is emptied after every training step (_end_step)
+            self._step_cache["gt_img"] = (outputs, batch["image"], gt)  # type: ignore[assignment]
         return gt
 
     def get_metrics_dict(self, outputs, batch) -> dict[str, torch.Tensor]:
