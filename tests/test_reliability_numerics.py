@@ -231,7 +231,7 @@ def test_row11_the_rejected_flag_is_read_one_step_late_and_only_when_set():
 
     fake = SimpleNamespace(
         _last_mask_warning=-float("inf"),
-        _pending_rejected=(3, torch.tensor(0), torch.tensor(False)),
+        _pending_rejected=(3, {"image_idx": torch.tensor(0)}, torch.tensor(False)),
         datamanager=SimpleNamespace(train_dataparser_outputs=SimpleNamespace(image_filenames=["a/x.png", "a/y.png"])),
         model=SimpleNamespace(config=SimpleNamespace(max_masked_fraction=0.5)),
     )
@@ -239,7 +239,7 @@ def test_row11_the_rejected_flag_is_read_one_step_late_and_only_when_set():
     with CONSOLE.capture() as cap:
         WillagsPipeline._report_rejected_mask(fake)  # type: ignore[arg-type]  # not rejected: silent
         assert fake._pending_rejected is None
-        fake._pending_rejected = (9, torch.tensor(1), torch.tensor(True))
+        fake._pending_rejected = (9, {"image_idx": torch.tensor(1)}, torch.tensor(True))
         WillagsPipeline._report_rejected_mask(fake)  # type: ignore[arg-type]
         WillagsPipeline._report_rejected_mask(fake)  # type: ignore[arg-type]  # consumed: nothing twice
     text = cap.get()

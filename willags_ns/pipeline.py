@@ -224,7 +224,7 @@ class WillagsPipeline(VanillaPipeline):
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
         self._last_mask_warning = -float("inf")
-        self._pending_rejected: tuple | None = None  # (step, image_idx, flag tensor) of the last mask step
+        self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
         controls = getattr(self.model, "viewer_controls", None)
         if controls is not None:  # the viewer panel shows a training view's transient mask / teacher render
             controls.set_train_dataset(self.datamanager.train_dataset)
@@ -323,7 +323,7 @@ class WillagsPipeline(VanillaPipeline):
         metrics_dict = self.model.get_metrics_dict(model_outputs, batch)
         loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
         if "mask_rejected" in metrics_dict:
-            self._pending_rejected = (step, batch.get("image_idx", -1), metrics_dict["mask_rejected"])
+            self._pending_rejected = (step, batch, metrics_dict["mask_rejected"])
         return model_outputs, loss_dict, metrics_dict
 
     def _report_rejected_mask(self) -> None:
@@ -332,7 +332,7 @@ class WillagsPipeline(VanillaPipeline):
         first host sync is the camera's intrinsics in get_outputs)."""
         pending, self._pending_rejected = self._pending_rejected, None
         if pending is not None and bool(pending[2]):
-            self._warn_mask_rejected(pending[0], {"image_idx": pending[1]})
+            self._warn_mask_rejected(pending[0], pending[1])
 
     def get_average_eval_image_metrics(self, step=None, output_path=None, get_std: bool = False):
         """`ns-eval`: the NeRF-W protocol over the eval split (see willags_ns/eval/protocol.py).
