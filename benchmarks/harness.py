@@ -574,18 +574,11 @@ def _patch_stock_splatfacto() -> list[str]:
     return patches
 
 
-def _as_float(image):
-    """A datamanager's cached image (uint8 or float) as float in [0, 1]."""
-    import torch
-
-    return image.float().div(255.0) if image.dtype == torch.uint8 else image.float()
-
-
 def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     """The NeRF-W protocol on the test split of a set-up trainer (spec: protocol_steps, protocol_lr,
     max_test_images, oracle, train_views): aggregate scores, per_image, eval_s and the train-view scores."""
-
     from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
+    from willags_ns.model import image_as_float
 
     dm = trainer.pipeline.datamanager
     model = trainer.pipeline.model
@@ -595,7 +588,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         model = PeerForProtocol(model)
     model.eval()
     # the test images as the model sees them: nerfstudio's cached (undistorted) images and updated cameras
-    images = [_as_float(d["image"]) for d in dm.cached_eval]
+    images = [image_as_float(d["image"]) for d in dm.cached_eval]
     names = [Path(p).name for p in dm.eval_dataset.image_filenames]
     t2 = time.perf_counter()
     proto = EvalProtocolConfig(
@@ -620,7 +613,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     rec["per_image"] = per_image
     rec["eval_s"] = time.perf_counter() - t2
     if int(spec.get("train_views", 0)) != 0:
-        train_imgs = [_as_float(d["image"]) for d in dm.cached_train]
+        train_imgs = [image_as_float(d["image"]) for d in dm.cached_train]
         rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
     rec["num_test_images"] = len(images)
     return rec
@@ -744,8 +737,10 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     rec.update(render_fps(model, dm.eval_dataset.cameras, spec["fps_views"]))
     masks = getattr(model, "_mask_cache", None)
     if os.environ.get(RENDERS_ENV) and masks:
+        from willags_ns.model import image_as_float
+
         picks = sorted(masks)[:: max(1, len(masks) // 4)][:4]
-        imgs = [_as_float(dm.cached_train[i]["image"]) for i in picks]
+        imgs = [image_as_float(dm.cached_train[i]["image"]) for i in picks]
         save_masks(
             Path(os.environ[RENDERS_ENV]) / f"{_run_name(spec)}-masks.png",
             [(im[..., :3].cpu(), masks[i].cpu()) for im, i in zip(imgs, picks, strict=True)],

@@ -82,6 +82,11 @@ RENDER_SH_SAMPLES = 64
 """View directions over which the decoder is fitted by SH when rendering with a fixed appearance."""
 
 
+def image_as_float(image: Tensor) -> Tensor:
+    """A datamanager's cached image (uint8 or float, [H, W, C]) as float in [0, 1]."""
+    return image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+
+
 def _versions(tensors: list[Tensor]) -> tuple:
     """(storage pointer, version counter) of each tensor: changes when a tensor is replaced or edited in place
     (optimiser steps, load_state_dict, buffer writes), never otherwise."""
@@ -489,8 +494,7 @@ class WillagsModel(SplatfactoModel):
         self._train_batch = batch
 
     def _image_chw(self, image: Tensor) -> Tensor:
-        img = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
-        return img[..., :3].permute(2, 0, 1).to(self.device)  # [3, H, W]
+        return image_as_float(image)[..., :3].permute(2, 0, 1).to(self.device)  # [3, H, W]
 
     def image_latents(self) -> tuple[Tensor, Tensor]:
         """(latents [num_train, D], known [num_train] bool) of the training images, detached.
