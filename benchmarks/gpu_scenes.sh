@@ -9,6 +9,11 @@ grid=${GRID:-configs/benchmark_gpu_scenes.json}
 jobs_max=${JOBS:-12}
 logs=/tmp/willags-gpu-logs
 mkdir -p "$out" "$logs"
+# Each pair's record and work directory are named scene-method-tag: two pairs with the same name (seeds of one
+# tag) would share a work directory and leave one record. Repeats take their own tags (h100-r8, h100-r8b, ...).
+names=$(for pair in "$@"; do IFS=: read -r scene method tag seed <<< "$pair"; echo "$scene-$method${tag:+-$tag}"; done)
+dups=$(echo "$names" | sort | uniq -d)
+[ -n "$dups" ] && { echo "gpu_scenes: pairs share a record name (give each repeat its own tag): $dups" >&2; exit 2; }
 python3 -c "from benchmarks.harness import _warm_gsplat; _warm_gsplat()" || exit 1
 for pair in "$@"; do
   IFS=: read -r scene method tag seed <<< "$pair"

@@ -906,6 +906,7 @@ def run_one(
         "schedule": spec.schedule,
         "protocol_steps": spec.protocol_steps,
         "max_test_images": spec.max_test_images,
+        "seed": spec.seed,
         "method_note": METHODS[spec.method].note,
         "scene_path": spec.scene,
         "date": _dt.datetime.now().isoformat(timespec="seconds"),
