@@ -1409,10 +1409,51 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
                 f"{_mean_spread(o)} | {gap} | {_mean_spread(vals(sc, m, 'encoder_psnr'))} | "
                 f"{_mean_spread(vals(sc, m, 'ssim'))} | {int(sum(g) / len(g)) if g else '–'} | {len(rs)} |"
             )
+    out += ablation_rows(by, scenes)
     notes = sorted({f"`{r['method']}`: {METHODS[r['method']].note if r['method'] in METHODS else ''}" for r in recs})
     out += ["", "Methods: " + "; ".join(notes) + ".", ""]
     out += fifteen_k_section(records)
     out += long_run_section(records)
+    return out
+
+
+ABLATIONS = ("willags-nomask", "willags-noteacher", "willags-field", "willags-vae", "willags-auto", "peer")
+"""Columns of the per-scene ablation table: each component of the default switched (off: mask, teacher; on: the
+tri-plane field, the beta-VAE latent), the automatic configuration, and the peer for scale."""
+
+
+def ablation_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[str]) -> list[str]:
+    """Markdown: per scene, the default's protocol PSNR and each ablation's difference to it (mean of its repeats
+    minus the default's mean), with the ablation's own mean, spread and n: what each component is worth where."""
+
+    def psnrs(scene: str, method: str) -> list[float]:
+        return [float(r["psnr"]) for r in by.get((scene, method), []) if r.get("psnr") is not None]
+
+    out = [
+        "",
+        "### Ablations of the default, per scene",
+        "",
+        "Right-half PSNR of the default, and for each variant its difference to the default's mean (positive: the "
+        "variant scores higher) in bold, then its own mean ± half the range (n). A positive `willags-nomask` means the mask "
+        "costs on that scene; a negative one, that it pays.",
+        "",
+        "| scene | willags | " + " | ".join(ABLATIONS) + " |",
+        "|---|---|" + "---|" * len(ABLATIONS),
+    ]
+    for sc in scenes:
+        base = psnrs(sc, "willags")
+        if not base:
+            continue
+        mean = sum(base) / len(base)
+        cells = []
+        for m in ABLATIONS:
+            v = psnrs(sc, m)
+            if not v:
+                cells.append("–")
+                continue
+            d = round(sum(v) / len(v) - mean, 2) + 0.0  # + 0.0: no "-0.00"
+            cells.append(f"**{d:+.2f}** · {_mean_spread(v)}{'' if len(v) > 1 else ' (n=1)'}")
+        out.append(f"| {sc} | {_mean_spread(base)} | " + " | ".join(cells) + " |")
     return out
 
 

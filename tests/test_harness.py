@@ -452,6 +452,36 @@ def test_fifteen_k_table_lists_each_run_once_next_to_its_5000_step_mean():
     ]
 
 
+def test_ablation_table_gives_each_variant_its_difference_to_the_default_mean():
+    def rec(method, tag, psnr):
+        return {"status": "ok", "scene": "fox-wild", "method": method, "steps": 5000, "tag": tag, "psnr": psnr}
+
+    recs = [
+        rec("willags", "h100-r1", 22.0),
+        rec("willags", "h100-r1b", 22.4),
+        rec("willags-nomask", "h100-r1", 20.0),
+        rec("willags-nomask", "h100-r1b", 20.1),
+        rec("willags-auto", "h100-r1", 22.2),
+        rec("willags-field", "h100-r1", 22.1),
+        rec("willags-field", "h100-r1b", 22.3),
+        {**rec("willags-vae", "h200-x", 30.0)},  # not a fidelity-grid tag: left out
+        {**rec("willags-noteacher", "h100-r1", 0.0), "status": "failed: timeout"},  # failed: left out
+    ]
+    rows = [ln for ln in harness.fidelity_section(recs) if ln.startswith("| fox-wild | 22.20")]
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    # scene, default, then harness.ABLATIONS in order
+    assert dict(zip(("scene", "willags", *harness.ABLATIONS), cells, strict=True)) == {
+        "scene": "fox-wild",
+        "willags": "22.20 ±0.20 (n=2)",
+        "willags-nomask": "**-2.15** · 20.05 ±0.05 (n=2)",
+        "willags-noteacher": "–",
+        "willags-field": "**+0.00** · 22.20 ±0.10 (n=2)",
+        "willags-vae": "–",
+        "willags-auto": "**+0.00** · 22.20 (n=1)",
+        "peer": "–",
+    }
+
+
 def test_records_name_the_commit_given_by_the_gpu_command(monkeypatch):
     """On the lent GPU machine the tree's git metadata is not the source's: $WILLAGS_COMMIT names the commit."""
     from benchmarks.harness import _git_commit
