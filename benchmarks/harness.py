@@ -1350,9 +1350,9 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
         "5-10 runs concurrent on one GPU, so train times are shared-GPU times). Schedule: splatfacto's stock one "
         "(num_downscales 2, resolution_schedule 3000): a 5000-step run trains at 1/4 resolution until step 3000, "
         "then 1/2, and is scored at full resolution. Right-half PSNR; `n` = repeats (seeds 42-47, each with its "
-        "own tag), ± = half the range. splatfacto and Splatfacto-W-light (peer) columns are quoted from ../shared/gpu/README.md "
-        "(same protocol); `peer (ours)` and `splatfacto (ours)` are the same methods trained and scored by this "
-        "harness beside ours (the peer from its fetched source, benchmarks/peer.py); `willags − peer` is against "
+        "own tag), ± = half the range. splatfacto and Splatfacto-W-light (peer) columns are quoted from "
+        "../shared/gpu/README.md (same protocol); `peer (ours)` and `splatfacto (ours)` are the same methods "
+        "trained and scored by this harness beside ours (the peer from its fetched source, benchmarks/peer.py); `willags − peer` is against "
         "`peer (ours)` where it ran, else against the quoted number. Our GPU has no "
         "ImageNet VGG16 weights: the transient mask runs on the seeded VGG fallback (logged in each checkpoint).",
         "",
@@ -1434,8 +1434,8 @@ def ablation_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
         "### Ablations of the default, per scene",
         "",
         "Right-half PSNR of the default, and for each variant its difference to the default's mean (positive: the "
-        "variant scores higher) in bold, then its own mean ± half the range (n). A positive `willags-nomask` means the mask "
-        "costs on that scene; a negative one, that it pays.",
+        "variant scores higher) in bold, then its own mean ± half the range (n). A positive `willags-nomask` means "
+        "the mask costs on that scene; a negative one, that it pays.",
         "",
         "| scene | willags | " + " | ".join(ABLATIONS) + " |",
         "|---|---|" + "---|" * len(ABLATIONS),
