@@ -167,6 +167,7 @@ for _name, _over, _note in (
         "sky, Gaussians pay alpha where the sky alone explains the photo",
     ),
     ("sky-sh1", (("sky.enabled", True), ("sh_degree", 1)), "sky and SH degree 1"),
+    ("gamma", (("modulation.gamma", True),), "per-channel gamma g(z) in the global colour transform"),
 ):
     METHODS[f"willags-{_name}"] = MethodSpec("willags", _over, note=f"default, {_note}")
 BASELINES = ("splatfacto", "willags-3dgs")

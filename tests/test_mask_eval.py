@@ -80,7 +80,7 @@ def _camera(width, height):
     )
 
 
-def _tiny_model(use_vae: bool, color_mode: str = "modulated"):
+def _tiny_model(use_vae: bool, color_mode: str = "modulated", **overrides):
     from nerfstudio.data.scene_box import SceneBox
 
     from willags_ns.appearance.triplane import TriplaneConfig
@@ -104,6 +104,7 @@ def _tiny_model(use_vae: bool, color_mode: str = "modulated"):
         backend="torch",
         background_color="black",
         num_downscales=0,
+        **overrides,
     )
     scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
     with warnings.catch_warnings():

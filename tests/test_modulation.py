@@ -121,3 +121,43 @@ def test_chunked_residual_under_autocast_stays_float32():
     torch.testing.assert_close(got, want, atol=2e-2, rtol=2e-2)
     (g,) = torch.autograd.grad(got.sum(), [f_s])
     assert g.dtype == torch.float32 and torch.isfinite(g).all()
+
+
+def test_gamma_starts_at_one_and_applies_a_per_channel_power_before_the_transform():
+    """With ``gamma`` on, a fresh model is still plain 3DGS (g = 1); a trained g(z) raises each channel of the base
+    colour to its own power before the 3x3 transform: c = A base^g + b."""
+    from willags_ns.appearance.modulation import GAMMA_FLOOR
+
+    m = ColorModulation(8, 4, 0, ColorModulationConfig(gamma=True))
+    assert m.global_mlp[-1].out_features == 15
+    assert ColorModulation(8, 4, 0, ColorModulationConfig()).gamma_of(torch.zeros(8)) is None
+    base = GAMMA_FLOOR + torch.rand(20, 3)
+    z, f_s = torch.randn(8), torch.randn(20, 4)
+    torch.testing.assert_close(m.gamma_of(z), torch.ones(3))
+    torch.testing.assert_close(m(z, base, f_s), base)
+    with torch.no_grad():
+        for p in m.global_mlp.parameters():
+            p.normal_(0.0, 0.3)
+    g = m.gamma_of(z)
+    assert not torch.allclose(g, torch.ones(3), atol=1e-2)
+    A, b = m.global_transform(z)
+    residual = m.local_residual(z, f_s, None, 20)
+    want = (base.pow(g) @ A.T + b) * (1 + residual[:, :3]) + residual[:, 3:]
+    torch.testing.assert_close(m(z, base, f_s), want)
+
+
+@pytest.mark.parametrize("h", [-1e4, -3.0, 0.0, 3.0, 1e4])
+def test_gamma_stays_in_its_range_with_finite_gradients_at_black_and_at_the_extremes(h):
+    """g(z) in [1/3, 3] whatever the MLP outputs, and black base colours (0, where x^g has no finite slope for
+    g < 1) give finite gradients to the base and the networks."""
+    m = ColorModulation(8, 0, 0, ColorModulationConfig(gamma=True, local=False))
+    with torch.no_grad():
+        m.global_mlp[-1].bias[12:].fill_(h)
+    z = torch.randn(8, requires_grad=True)
+    g = m.gamma_of(z)
+    assert ((g >= 1 / 3 - 1e-6) & (g <= 3 + 1e-5)).all(), g
+    base = torch.tensor([[0.0, 0.0, 0.0], [1e-8, 0.5, 1.0], [2.0, 1e-3, 0.25]], requires_grad=True)
+    out = m(z, base)
+    grads = torch.autograd.grad(out.sum(), [base, z, *m.parameters()], allow_unused=True)
+    assert torch.isfinite(out).all()
+    assert all(gr is None or torch.isfinite(gr).all() for gr in grads)

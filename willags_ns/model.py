@@ -21,7 +21,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Union, cast
+from typing import Any, Literal, Union, cast
 
 import torch
 import torch.nn.functional as F
@@ -676,21 +676,30 @@ class WillagsModel(SplatfactoModel):
         (one host sync per frame, not two).
 
         color_mode='modulated': exact (the colour is an affine map of the SH colour: the map is applied to the
-        coefficients). 'decoder': the decoder fitted by least squares over RENDER_SH_SAMPLES directions."""
+        coefficients). 'decoder', and 'modulated' with its gamma (not affine): the colours fitted by least squares
+        over RENDER_SH_SAMPLES directions."""
         nets = self.appearance_nets
         assert nets is not None
         key = self._sh_key(z, means, degree) if key is None else key
         if self._sh_cache is not None and self._sh_cache[0] == key:
             return self._sh_cache[1]
         f_d = self._dynamic_features(nets, z, means, cacheable=True)
-        if nets.modulation is not None:
-            coeffs = self._modulated_sh(nets.modulation, z, means, f_s, f_d, degree, sh)
+        mod = nets.modulation
+        if mod is not None and not mod.gamma:
+            coeffs = self._modulated_sh(mod, z, means, f_s, f_d, degree, sh)
         else:
+            extra: dict[str, Any] = {}
+            if mod is not None:  # the gamma: the Gaussians' own SH colours, transformed per direction
+                extra = {
+                    "sh": self.sh_coeffs() if sh is None else sh,
+                    "sh_degree": self.active_sh_degree(),
+                    "residual": mod.local_residual(z, f_s, f_d, means.shape[0]),
+                }
             dirs = fibonacci_directions(max(RENDER_SH_SAMPLES, 2 * (degree + 1) ** 2), means.device)  # [M, 3]
             proj = torch.linalg.pinv(sh_basis(dirs, degree))  # [K, M]: coefficients from samples
             coeffs = torch.zeros(means.shape[0], proj.shape[0], 3, device=means.device)
             for m in range(dirs.shape[0]):  # one decoder pass per direction: no [M, N, 3] buffer
-                rgb = nets.colors(z, f_d, f_s, dirs[m].expand_as(means)) - 0.5  # gsplat adds 0.5 back
+                rgb = nets.colors(z, f_d, f_s, dirs[m].expand_as(means), **extra) - 0.5  # gsplat adds 0.5 back
                 coeffs += proj[None, :, m, None] * rgb[:, None, :]
         self._sh_cache = (key, coeffs)
         return coeffs

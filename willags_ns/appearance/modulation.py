@@ -7,19 +7,22 @@ views 2.7 dB worse with the tri-plane field than without). Here the scene's colo
 degree 3 per Gaussian: full capacity, view dependence included) and the latent only *transforms* it:
 
     base_i(d) = max(SH_i(d) + 0.5, 0)                                   the Gaussian's own colour (as gsplat)
-    c_i(d)    = (A(z) base_i(d) + b(z)) * (1 + s_i) + o_i               A 3x3, b 3: global (camera, exposure, WB)
+    c_i(d)    = (A(z) base_i(d)^g(z) + b(z)) * (1 + s_i) + o_i          A 3x3, b 3: global (camera, exposure, WB)
     (s_i, o_i) = L([f_s,i, P z, f_d,i])                                 local residual: per-Gaussian, optional
 
-- ``A(z), b(z)``: a small MLP of z (12 outputs), initialised at the identity. A global colour transform is what
+- ``g(z)``: an optional per-channel gamma (``gamma``; off by default: g = 1), from the same MLP.
+- ``A(z), b(z)``: a small MLP of z (12 outputs, 15 with the gamma), initialised at the identity. A global colour transform is what
   changes between tourist photos most (exposure, white balance, camera response, time of day) and, unlike a
   spatial field, a latent fitted on one half of an image carries it to the other half (the NeRF-W protocol).
 - ``(s_i, o_i)``: optional per-Gaussian scale and offset from the Gaussian's intrinsic feature f_s, a projection of
   z and, when the tri-plane field is on, its dynamic feature f_d (``field``: spatially varying light, shadows).
   Initialised at zero and penalised (``local_penalty``): it models only what the global transform cannot.
 
-Linear in the SH coefficients, so rendering with a fixed appearance bakes exactly to SH of the same degree.
+Without the gamma, linear in the SH coefficients, so rendering with a fixed appearance bakes exactly to SH of the
+same degree; with it, the bake is a least-squares fit over view directions (as for the paper's decoder).
 """
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -33,6 +36,12 @@ class ColorModulationConfig:
 
     global_hidden: int = 64
     """Width of the hidden layer of z -> (A, b)."""
+    gamma: bool = False
+    """A per-channel gamma g(z) on the base colour before the 3x3 transform (base^g, g in [1/3, 3], 1 at
+    initialisation). Why: `benchmarks/appearance_ceiling.py` puts the best left-half-fitted *affine* transform of a
+    perfect reconstruction at 23.39 dB on fox-appearance-only / fox-wild and the log-linear one (exposure, white
+    balance, gamma) at 23.75: cameras' tone curves are not affine. Off by default until measured on the GPU grid
+    (`willags-gamma`). With it the SH bake (viewer, export) is a least-squares fit instead of exact."""
     local: bool = True
     """Per-Gaussian residual scale/offset (s_i, o_i) on top of the global transform. Off: global transform only."""
     local_hidden: int = 64
@@ -52,6 +61,12 @@ class ColorModulationConfig:
     0: plain autograd (also what runs with the tri-plane field, whose feature enters the hidden layer per Gaussian)."""
 
 
+GAMMA_LOG_RANGE = math.log(3.0)
+"""g(z) = exp(GAMMA_LOG_RANGE tanh(h)): the gamma stays within [1/3, 3]."""
+GAMMA_FLOOR = 1e-3
+"""Base colours are floored here before the gamma (1e-3^3 = 1e-9: black stays black within 8-bit precision)."""
+
+
 class ColorModulation(nn.Module):
     """(z, base colours, f_s, f_d) -> colours. See the module docstring for the formula."""
 
@@ -62,8 +77,9 @@ class ColorModulation(nn.Module):
         self.intrinsic_dim = intrinsic_dim
         self.dynamic_dim = dynamic_dim
         self.residual_chunk = cfg.residual_chunk
+        self.gamma = cfg.gamma
         self.global_mlp = nn.Sequential(
-            nn.Linear(latent_dim, cfg.global_hidden), nn.ReLU(), nn.Linear(cfg.global_hidden, 12)
+            nn.Linear(latent_dim, cfg.global_hidden), nn.ReLU(), nn.Linear(cfg.global_hidden, 15 if cfg.gamma else 12)
         )
         # identity at initialisation: the model starts as plain 3DGS and the latent learns deviations from it
         nn.init.zeros_(self.global_mlp[-1].weight)
@@ -81,7 +97,14 @@ class ColorModulation(nn.Module):
         """(A, b) of latent z: A = I + dA."""
         h = self.global_mlp(z)
         A = torch.eye(3, device=z.device, dtype=h.dtype) + h[:9].reshape(3, 3)
-        return A, h[9:]
+        return A, h[9:12]
+
+    def gamma_of(self, z: Float[Tensor, " D"]) -> Float[Tensor, " 3"] | None:
+        """The per-channel gamma g(z) (None when ``gamma`` is off): exp(ln 3 tanh(h)), so g stays in [1/3, 3] with a
+        gradient everywhere (a clamp would stop it at the bounds) and is 1 where the MLP's output is 0."""
+        if not self.gamma:
+            return None
+        return torch.exp(GAMMA_LOG_RANGE * torch.tanh(self.global_mlp(z)[12:15]))
 
     def local_residual(
         self, z: Float[Tensor, " D"], f_s: Tensor | None, f_d: Tensor | None, n: int
@@ -125,6 +148,10 @@ class ColorModulation(nn.Module):
         ``residual``: a precomputed :meth:`local_residual` (it does not depend on the view direction, so a caller
         evaluating many directions computes it once)."""
         A, b = self.global_transform(z)
+        g = self.gamma_of(z)
+        if g is not None:
+            # base >= GAMMA_FLOOR: d(x^g)/dx = g x^(g-1) is unbounded at x = 0 for g < 1
+            base = base.clamp_min(GAMMA_FLOOR).pow(g)
         c = base @ A.T + b
         if residual is None:
             residual = self.local_residual(z, f_s, f_d, base.shape[0])
