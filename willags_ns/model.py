@@ -19,9 +19,10 @@ CPU stand-in for splatfacto in benchmarks (method `willags-3dgs`).
 
 import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Union, cast
+from typing import Literal, Union, cast
 
 import torch
 import torch.nn.functional as F
@@ -684,23 +685,14 @@ class WillagsModel(SplatfactoModel):
         if self._sh_cache is not None and self._sh_cache[0] == key:
             return self._sh_cache[1]
         f_d = self._dynamic_features(nets, z, means, cacheable=True)
-        mod = nets.modulation
-        if mod is not None and not mod.gamma:
-            coeffs = self._modulated_sh(mod, z, means, f_s, f_d, degree, sh)
+        if nets.modulation is not None and not nets.modulation.gamma:
+            coeffs = self._modulated_sh(nets.modulation, z, means, f_s, f_d, degree, sh)
         else:
-            extra: dict[str, Any] = {}
-            if mod is not None:  # the gamma: the Gaussians' own SH colours, transformed per direction
-                extra = {
-                    "sh": self.sh_coeffs() if sh is None else sh,
-                    "sh_degree": self.active_sh_degree(),
-                    "residual": mod.local_residual(z, f_s, f_d, means.shape[0]),
-                }
             dirs = fibonacci_directions(max(RENDER_SH_SAMPLES, 2 * (degree + 1) ** 2), means.device)  # [M, 3]
             proj = torch.linalg.pinv(sh_basis(dirs, degree))  # [K, M]: coefficients from samples
             coeffs = torch.zeros(means.shape[0], proj.shape[0], 3, device=means.device)
-            for m in range(dirs.shape[0]):  # one decoder pass per direction: no [M, N, 3] buffer
-                rgb = nets.colors(z, f_d, f_s, dirs[m].expand_as(means), **extra) - 0.5  # gsplat adds 0.5 back
-                coeffs += proj[None, :, m, None] * rgb[:, None, :]
+            for m, rgb in enumerate(self._colors_over_directions(z, means, f_s, f_d, dirs, sh)):
+                coeffs += proj[None, :, m, None] * (rgb - 0.5)[:, None, :]  # gsplat adds 0.5 back
         self._sh_cache = (key, coeffs)
         return coeffs
 
@@ -735,15 +727,26 @@ class WillagsModel(SplatfactoModel):
         k = max(1, self.config.export_view_samples)
         dirs = fibonacci_directions(k, self.device)  # [k, 3]
         acc = torch.zeros(means.shape[0], 3, device=self.device)
+        f_d = self._dynamic_features(self.appearance_nets, z, means, cacheable=False)
+        for rgb in self._colors_over_directions(z, means, f_s, f_d, dirs):
+            acc += rgb
+        return acc / k
+
+    def _colors_over_directions(
+        self, z: Tensor, means: Tensor, f_s: Tensor | None, f_d: Tensor | None, dirs: Tensor, sh: Tensor | None = None
+    ) -> Iterator[Tensor]:
+        """The appearance's colours [N, 3] seen from each of `dirs` [M, 3], one colour pass per direction (no
+        [M, N, 3] buffer). The local residual does not depend on the direction: computed once. The Gaussians' SH
+        (`sh`, gathered here when None) feeds color_mode='modulated'; the decoder does not read it."""
         nets = self.appearance_nets
-        f_d = self._dynamic_features(nets, z, means, cacheable=False)
-        sh = self.sh_coeffs()
-        residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0]) if nets.modulation is not None else None
+        assert nets is not None
+        mod = nets.modulation
+        sh = self.sh_coeffs() if sh is None else sh
+        residual = mod.local_residual(z, f_s, f_d, means.shape[0]) if mod is not None else None
         for d in dirs:
-            acc += nets.colors(
+            yield nets.colors(
                 z, f_d, f_s, d.expand_as(means), sh=sh, sh_degree=self.active_sh_degree(), residual=residual
             )
-        return acc / k
 
     # ------------------------------------------------------------------ rendering
     def _uses_gsplat(self, means: Tensor) -> bool:

@@ -11,8 +11,8 @@ degree 3 per Gaussian: full capacity, view dependence included) and the latent o
     (s_i, o_i) = L([f_s,i, P z, f_d,i])                                 local residual: per-Gaussian, optional
 
 - ``g(z)``: an optional per-channel gamma (``gamma``; off by default: g = 1), from the same MLP.
-- ``A(z), b(z)``: a small MLP of z (12 outputs, 15 with the gamma), initialised at the identity. A global colour transform is what
-  changes between tourist photos most (exposure, white balance, camera response, time of day) and, unlike a
+- ``A(z), b(z)``: a small MLP of z (12 outputs, 15 with the gamma), initialised at the identity. A global colour
+  transform is what changes between tourist photos most (exposure, white balance, camera response, time of day) and, unlike a
   spatial field, a latent fitted on one half of an image carries it to the other half (the NeRF-W protocol).
 - ``(s_i, o_i)``: optional per-Gaussian scale and offset from the Gaussian's intrinsic feature f_s, a projection of
   z and, when the tri-plane field is on, its dynamic feature f_d (``field``: spatially varying light, shadows).
@@ -93,18 +93,23 @@ class ColorModulation(nn.Module):
             nn.init.zeros_(self.local_mlp[-1].weight)
             nn.init.zeros_(self.local_mlp[-1].bias)
 
-    def global_transform(self, z: Float[Tensor, " D"]) -> tuple[Float[Tensor, "3 3"], Float[Tensor, " 3"]]:
-        """(A, b) of latent z: A = I + dA."""
+    def global_params(self, z: Float[Tensor, " D"]) -> tuple[Tensor, Tensor, Tensor | None]:
+        """(A, b, g) of latent z from one pass of the global MLP: A = I + dA; g the per-channel gamma (None when
+        ``gamma`` is off), exp(ln 3 tanh(h)), so g stays in [1/3, 3] with a gradient everywhere (a clamp would stop
+        it at the bounds) and is 1 where the MLP's output is 0."""
         h = self.global_mlp(z)
         A = torch.eye(3, device=z.device, dtype=h.dtype) + h[:9].reshape(3, 3)
-        return A, h[9:12]
+        g = torch.exp(GAMMA_LOG_RANGE * torch.tanh(h[12:15])) if self.gamma else None
+        return A, h[9:12], g
+
+    def global_transform(self, z: Float[Tensor, " D"]) -> tuple[Float[Tensor, "3 3"], Float[Tensor, " 3"]]:
+        """(A, b) of latent z: A = I + dA."""
+        A, b, _ = self.global_params(z)
+        return A, b
 
     def gamma_of(self, z: Float[Tensor, " D"]) -> Float[Tensor, " 3"] | None:
-        """The per-channel gamma g(z) (None when ``gamma`` is off): exp(ln 3 tanh(h)), so g stays in [1/3, 3] with a
-        gradient everywhere (a clamp would stop it at the bounds) and is 1 where the MLP's output is 0."""
-        if not self.gamma:
-            return None
-        return torch.exp(GAMMA_LOG_RANGE * torch.tanh(self.global_mlp(z)[12:15]))
+        """The per-channel gamma g(z), None when ``gamma`` is off (see :meth:`global_params`)."""
+        return self.global_params(z)[2]
 
     def local_residual(
         self, z: Float[Tensor, " D"], f_s: Tensor | None, f_d: Tensor | None, n: int
@@ -147,8 +152,7 @@ class ColorModulation(nn.Module):
 
         ``residual``: a precomputed :meth:`local_residual` (it does not depend on the view direction, so a caller
         evaluating many directions computes it once)."""
-        A, b = self.global_transform(z)
-        g = self.gamma_of(z)
+        A, b, g = self.global_params(z)
         if g is not None:
             # base >= GAMMA_FLOOR: d(x^g)/dx = g x^(g-1) is unbounded at x = 0 for g < 1
             base = base.clamp_min(GAMMA_FLOOR).pow(g)
