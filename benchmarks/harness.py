@@ -1315,6 +1315,11 @@ FIDELITY_TAG = "h100-r"
 """Records of the fidelity grid (configs/benchmark_gpu_fidelity.json) carry tags h100-r1, h100-r2, ...: repeats."""
 
 
+def _values(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str, method: str, key: str) -> list[float]:
+    """`key` of each record of (scene, method) that has it."""
+    return [float(r[key]) for r in by.get((scene, method), []) if r.get(key) is not None]
+
+
 def _mean_spread(vals: list[float]) -> str:
     if not vals:
         return "–"
@@ -1341,7 +1346,7 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
     )
 
     def vals(scene, method, key):
-        return [float(r[key]) for r in by.get((scene, method), []) if r.get(key) is not None]
+        return _values(by, scene, method, key)
 
     out = [
         "## Fidelity grid (issue 10): 5000 steps, stock schedule, NeRF-W protocol",
@@ -1426,10 +1431,6 @@ tri-plane field, the beta-VAE latent), the automatic configuration, and the peer
 def ablation_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[str]) -> list[str]:
     """Markdown: per scene, the default's protocol PSNR and each ablation's difference to it (mean of its repeats
     minus the default's mean), with the ablation's own mean, spread and n: what each component is worth where."""
-
-    def psnrs(scene: str, method: str) -> list[float]:
-        return [float(r["psnr"]) for r in by.get((scene, method), []) if r.get("psnr") is not None]
-
     out = [
         "",
         "### Ablations of the default, per scene",
@@ -1442,13 +1443,13 @@ def ablation_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
         "|---|---|" + "---|" * len(ABLATIONS),
     ]
     for sc in scenes:
-        base = psnrs(sc, "willags")
+        base = _values(by, sc, "willags", "psnr")
         if not base:
             continue
         mean = sum(base) / len(base)
         cells = []
         for m in ABLATIONS:
-            v = psnrs(sc, m)
+            v = _values(by, sc, m, "psnr")
             if not v:
                 cells.append("–")
                 continue
