@@ -1425,6 +1425,7 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
                 f"{_mean_spread(vals(sc, m, 'ssim'))} | {int(sum(g) / len(g)) if g else '–'} | {len(rs)} |"
             )
     out += ablation_rows(by, scenes)
+    out += per_view_rows(by, scenes)
     notes = sorted({f"`{r['method']}`: {METHODS[r['method']].note if r['method'] in METHODS else ''}" for r in recs})
     out += ["", "Methods: " + "; ".join(notes) + ".", ""]
     out += fifteen_k_section(records)
@@ -1465,6 +1466,67 @@ def ablation_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
             d = round(sum(v) / len(v) - mean, 2) + 0.0  # + 0.0: no "-0.00"
             cells.append(f"**{d:+.2f}** · {_mean_spread(v)}{'' if len(v) > 1 else ' (n=1)'}")
         out.append(f"| {sc} | {_mean_spread(base)} | " + " | ".join(cells) + " |")
+    return out
+
+
+PER_VIEW_SCENES = ("reichstag", "sacre-coeur-mini")
+"""Scenes whose test views get a table of their own: the real collections, where a method's mean over a handful
+of views can hide one view that carries the whole difference."""
+PER_VIEW_ROWS = (
+    ("willags", "psnr"),
+    ("willags", "oracle_psnr"),
+    ("peer", "psnr"),
+    ("peer", "oracle_psnr"),
+    ("willags-nomask", "psnr"),
+)
+"""(method, record key) of each row of the per-view tables."""
+
+
+def _per_view(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str, method: str, key: str) -> dict[str, float]:
+    """Test image -> mean over the method's records of that image's `key` (``per_image`` of each record)."""
+    acc: dict[str, list[float]] = {}
+    for r in by.get((scene, method), []):
+        for q in r.get("per_image") or []:
+            if q.get(key) is not None:
+                acc.setdefault(str(q["image"]), []).append(float(q[key]))
+    return {k: sum(v) / len(v) for k, v in acc.items()}
+
+
+def per_view_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[str]) -> list[str]:
+    """Markdown: on the real scenes, right-half PSNR per test view (mean over each method's repeats), protocol and
+    oracle, and the default minus the peer per view."""
+    out: list[str] = []
+    for sc in scenes:
+        views = sorted(_per_view(by, sc, "willags", "psnr")) if sc in PER_VIEW_SCENES else []
+        if not views:
+            continue
+        if not out:
+            out = [
+                "",
+                "### Per test view, real scenes",
+                "",
+                "Right-half PSNR of each test view, mean over the method's repeats (n); `oracle`: the latent fitted "
+                "on the whole test image. The last row is the default minus the peer: where the difference of the "
+                "means comes from.",
+            ]
+        names = [v.rsplit(".", 1)[0] for v in views]  # the file stem: unique within a scene
+        out += ["", f"{sc}:", "", "| method | n | " + " | ".join(names) + " | mean |"]
+        out.append("|---|---|" + "---|" * (len(views) + 1))
+        means: dict[tuple[str, str], dict[str, float]] = {}
+        for m, key in PER_VIEW_ROWS:
+            pv = means[(m, key)] = _per_view(by, sc, m, key)
+            if not pv:
+                continue
+            cells = [f"{pv[v]:.2f}" if v in pv else "–" for v in views]
+            mean = f"{sum(pv[v] for v in views) / len(views):.2f}" if all(v in pv for v in views) else "–"
+            label = m if key == "psnr" else f"{m} oracle"
+            out.append(f"| {label} | {len(by.get((sc, m), []))} | " + " | ".join(cells) + f" | {mean} |")
+        w, p = means[("willags", "psnr")], means[("peer", "psnr")]
+        if p:
+            diffs = {v: round(w[v] - p[v], 2) + 0.0 for v in views if v in p}  # + 0.0: no "-0.00"
+            cells = [f"{diffs[v]:+.2f}" if v in diffs else "–" for v in views]
+            total = f"{sum(diffs.values()) / len(views):+.2f}" if len(diffs) == len(views) else "–"
+            out.append("| willags − peer | | " + " | ".join(cells) + f" | {total} |")
     return out
 
 

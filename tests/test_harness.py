@@ -482,6 +482,40 @@ def test_ablation_table_gives_each_variant_its_difference_to_the_default_mean():
     }
 
 
+def test_per_view_table_shows_which_test_view_carries_the_difference_to_the_peer():
+    def rec(method, tag, views, scene="reichstag"):
+        return {
+            "status": "ok",
+            "scene": scene,
+            "method": method,
+            "steps": 5000,
+            "tag": tag,
+            "psnr": sum(views.values()) / len(views),
+            "per_image": [{"image": k, "psnr": v, "oracle_psnr": v + 1.0} for k, v in views.items()],
+        }
+
+    recs = [
+        rec("willags", "h100-r1", {"a_1.jpg": 20.0, "b_2.jpg": 16.0}),
+        rec("willags", "h100-r1b", {"a_1.jpg": 20.4, "b_2.jpg": 16.2}),
+        rec("peer", "h100-r1", {"a_1.jpg": 20.0, "b_2.jpg": 17.5}),
+        rec("willags", "h100-r1", {"c.jpg": 30.0}, scene="fox-wild"),  # not a real scene: no table
+    ]
+    lines = harness.fidelity_section(recs)
+    start = lines.index("reichstag:")
+    table = lines[start + 2 : start + 8]
+    assert table == [
+        "| method | n | a_1 | b_2 | mean |",
+        "|---|---|---|---|---|",
+        "| willags | 2 | 20.20 | 16.10 | 18.15 |",
+        "| willags oracle | 2 | 21.20 | 17.10 | 19.15 |",
+        "| peer | 1 | 20.00 | 17.50 | 18.75 |",
+        "| peer oracle | 1 | 21.00 | 18.50 | 19.75 |",
+    ]
+    # no willags-nomask records: no row; then the default minus the peer, view by view
+    assert lines[start + 8] == "| willags − peer | | +0.20 | -1.40 | -0.60 |"
+    assert "fox-wild:" not in lines
+
+
 def test_records_name_the_commit_given_by_the_gpu_command(monkeypatch):
     """On the lent GPU machine the tree's git metadata is not the source's: $WILLAGS_COMMIT names the commit."""
     from benchmarks.harness import _git_commit
