@@ -6,6 +6,8 @@
 #   LONG_BUDGET_S=400 LONG_METHODS="willags splatfacto" bash benchmarks/gpu_long.sh OUT [scene:method[:tag[:seed]] ...]
 #   LONG_RUNS="fox-clean:peer sacre-coeur-mini:willags" LONG_STEPS=15000 LONG_MILESTONES=15000 LONG_TAG=h100-15k \
 #     LONG_BUDGET_S=450 bash benchmarks/gpu_long.sh OUT           # several scenes; scenes from $LONG_DATA_ROOT
+# LONG_SEED (default 42): the runs' seed; a repeat takes its own seed and its own LONG_TAG (h100-15k-s43), since
+# records of one (scene, method, steps, tag) replace each other when merged.
 set -u
 final=$1; shift
 out=/tmp/long-call-out
@@ -15,6 +17,7 @@ steps=${LONG_STEPS:-30000}
 milestones=${LONG_MILESTONES:-7000,15000,30000}
 root=${LONG_DATA_ROOT:-.gpu-data}
 tag=${LONG_TAG:-h100-30k}
+seed=${LONG_SEED:-42}
 if [ -z "${LONG_RUNS:-}" ]; then  # the 30k-step form: methods on one scene
   data=${LONG_DATA:-$root/reichstag}
   LONG_RUNS=""
@@ -25,16 +28,16 @@ python3 -c "from benchmarks.harness import _warm_gsplat; _warm_gsplat()" || exit
 n=$(( $(echo $LONG_RUNS | wc -w) + $# ))
 for run in $LONG_RUNS; do
   IFS=: read -r scene m <<< "$run"
-  d=/tmp/long/$scene-$m
+  d=/tmp/long/$scene-$m-s$seed
   ( python3 -m benchmarks.long_run train --method "$m" --data "$root/$scene" --run-dir "$d" --budget-s "$budget" \
-      --steps "$steps" --milestones "$milestones" >> "$d.log" 2>&1
+      --steps "$steps" --milestones "$milestones" --seed "$seed" >> "$d.log" 2>&1
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$milestones" >> "$d.log" 2>&1 ) &
 done
 [ $# -gt 0 ] && { GRID=${GRID:-configs/benchmark_gpu_fidelity.json} JOBS=${JOBS:-8} bash benchmarks/gpu_scenes.sh "$out/grid" "$@" > "$out/grid.log" 2>&1 & }
 wait
 for run in $LONG_RUNS; do
   IFS=: read -r scene m <<< "$run"
-  d=/tmp/long/$scene-$m
+  d=/tmp/long/$scene-$m-s$seed
   python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent "$n" --milestones "$milestones" \
     --out "$out/long-$scene-$m.json"
   grep "long_run:" "$d.log" | tail -n 5

@@ -236,6 +236,7 @@ def record(args) -> int:
         "method": state["method"],
         "device": device,
         "steps": state["steps"],
+        "seed": state.get("seed"),
         "tag": args.tag,
         "schedule": "default",
         "protocol_steps": args.protocol_steps,

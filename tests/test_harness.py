@@ -527,6 +527,36 @@ def test_records_name_the_commit_given_by_the_gpu_command(monkeypatch):
     assert _git_commit() == "abc1234"
 
 
+def test_long_run_record_carries_the_seed_and_the_last_milestone(tmp_path):
+    """A repeat of a long run differs from the first by its seed: the record must say which (gpu_long.sh's
+    LONG_SEED), and its scores are the final milestone's."""
+    from benchmarks import long_run
+
+    run = tmp_path / "fox-clean-willags-s43"
+    run.mkdir()
+    state = {
+        "method": "willags",
+        "data": "/x/fox-clean",
+        "steps": 300,
+        "seed": 43,
+        "segments": [
+            {"start_step": 0, "end_step": 149, "train_s": 2.0},
+            {"start_step": 150, "end_step": 299, "train_s": 3.0},
+        ],
+        "scores": {"300": {"psnr": 30.5, "ssim": 0.9, "train_psnr": 33.0}, "100": {"psnr": 20.0}},
+    }
+    (run / long_run.STATE).write_text(json.dumps(state))
+    out = tmp_path / "rec.json"
+    rc = long_run.main(
+        ["record", "--run-dir", str(run), "--tag", "h100-15k-s43", "--out", str(out), "--milestones", "100,300"]
+    )
+    assert rc == 0
+    (rec,) = json.loads(out.read_text())
+    assert (rec["scene"], rec["method"], rec["seed"], rec["tag"]) == ("fox-clean", "willags", 43, "h100-15k-s43")
+    assert (rec["steps_done"], rec["train_s"], rec["psnr"]) == (300, 5.0, 30.5)
+    assert list(rec["milestones"]) == ["100", "300"]
+
+
 def test_long_run_resume_resizes_the_gaussians_in_place_so_the_optimisers_keep_them():
     import torch
     from torch import nn
