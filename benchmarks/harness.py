@@ -1533,7 +1533,12 @@ def per_view_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
 def fifteen_k_section(records: list[dict[str, Any]]) -> list[str]:
     """Markdown: the 15000-step table (configs/benchmark_gpu_15k.json): where the stock schedule reaches full
     resolution (step 6000), next to the same methods' 5000-step numbers."""
-    recs = [r for r in records if r.get("steps") == 15000 and r.get("status", "ok") == "ok" and r.get("psnr")]
+    recs = [
+        # a long run keeps its train-view PSNR and Gaussian count in its milestone's scores
+        {**r, **((r.get("milestones") or {}).get("15000") or {})} if r.get("kind") == "long_run" else r
+        for r in records
+        if r.get("steps") == 15000 and r.get("status", "ok") == "ok" and r.get("psnr")
+    ]
     recs += [
         {"scene": r["scene"], "method": r["method"], **r["milestones"]["15000"]}
         for r in records
@@ -1561,7 +1566,7 @@ def fifteen_k_section(records: list[dict[str, Any]]) -> list[str]:
         "|---|---|---|---|---|---|",
     ]
     for sc in [s for s in PEER_5000 if any(r["scene"] == s for r in recs)]:
-        for m in ("willags", "splatfacto", "peer"):
+        for m in ("willags", "willags-auto", "splatfacto", "peer"):
             rs = [r for r in recs if r["scene"] == sc and r["method"] == m]
             if not rs:
                 continue
