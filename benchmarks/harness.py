@@ -168,8 +168,9 @@ for _name, _over, _note in (
     ),
     ("sky-sh1", (("sky.enabled", True), ("sh_degree", 1)), "sky and SH degree 1"),
     ("gamma", (("modulation.gamma", True),), "per-channel gamma g(z) in the global colour transform"),
-    # the local residual's price (modulation.local_penalty, 0.01): on reichstag the peer's oracle beats the
-    # default's by 1.4 dB on the one test view with a dark, cloudy sky (06373813): capacity, not inference
+    # the local residual's price and width (modulation.local_penalty 0.01, local_hidden 64): tried because the
+    # peer's oracle beats the default's by 1.7 dB on reichstag's one test view with a dark, cloudy sky (06373813),
+    # a loss of capacity, not inference; measured, none of the three moves it (docs/fidelity.md)
     ("lowpen", (("modulation.local_penalty", 0.001),), "local residual penalised at a tenth (0.001)"),
     ("nopen", (("modulation.local_penalty", 0.0),), "local residual unpenalised"),
     (
