@@ -1330,6 +1330,11 @@ def _values(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str, method:
     return [float(r[key]) for r in by.get((scene, method), []) if r.get(key) is not None]
 
 
+def _signed(d: float) -> str:
+    """A difference to 2 decimals with its sign; + 0.0 turns a rounded -0.0 into 0.0 (no "-0.00")."""
+    return f"{round(d, 2) + 0.0:+.2f}"
+
+
 def _mean_spread(vals: list[float]) -> str:
     if not vals:
         return "–"
@@ -1464,8 +1469,7 @@ def ablation_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
             if not v:
                 cells.append("–")
                 continue
-            d = round(sum(v) / len(v) - mean, 2) + 0.0  # + 0.0: no "-0.00"
-            cells.append(f"**{d:+.2f}** · {_mean_spread(v)}{'' if len(v) > 1 else ' (n=1)'}")
+            cells.append(f"**{_signed(sum(v) / len(v) - mean)}** · {_mean_spread(v)}{'' if len(v) > 1 else ' (n=1)'}")
         out.append(f"| {sc} | {_mean_spread(base)} | " + " | ".join(cells) + " |")
     return out
 
@@ -1498,7 +1502,10 @@ def per_view_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
     oracle, and the default minus the peer per view."""
     out: list[str] = []
     for sc in scenes:
-        views = sorted(_per_view(by, sc, "willags", "psnr")) if sc in PER_VIEW_SCENES else []
+        if sc not in PER_VIEW_SCENES:
+            continue
+        means = {(m, key): _per_view(by, sc, m, key) for m, key in PER_VIEW_ROWS}
+        views = sorted(means[("willags", "psnr")])
         if not views:
             continue
         if not out:
@@ -1513,9 +1520,7 @@ def per_view_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
         names = [v.rsplit(".", 1)[0] for v in views]  # the file stem: unique within a scene
         out += ["", f"{sc}:", "", "| method | n | " + " | ".join(names) + " | mean |"]
         out.append("|---|---|" + "---|" * (len(views) + 1))
-        means: dict[tuple[str, str], dict[str, float]] = {}
-        for m, key in PER_VIEW_ROWS:
-            pv = means[(m, key)] = _per_view(by, sc, m, key)
+        for (m, key), pv in means.items():
             if not pv:
                 continue
             cells = [f"{pv[v]:.2f}" if v in pv else "–" for v in views]
@@ -1524,8 +1529,8 @@ def per_view_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
             out.append(f"| {label} | {len(by.get((sc, m), []))} | " + " | ".join(cells) + f" | {mean} |")
         w, p = means[("willags", "psnr")], means[("peer", "psnr")]
         if p:
-            diffs = {v: round(w[v] - p[v], 2) + 0.0 for v in views if v in p}  # + 0.0: no "-0.00"
-            cells = [f"{diffs[v]:+.2f}" if v in diffs else "–" for v in views]
+            diffs = {v: w[v] - p[v] for v in views if v in p}
+            cells = [_signed(diffs[v]) if v in diffs else "–" for v in views]
             total = f"{sum(diffs.values()) / len(views):+.2f}" if len(diffs) == len(views) else "–"
             out.append("| willags − peer | | " + " | ".join(cells) + f" | {total} |")
     return out
