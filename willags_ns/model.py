@@ -50,6 +50,8 @@ from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_fr
 from willags_ns.losses import reconstruction_loss
 from willags_ns.render import rasterize
 from willags_ns.render.sh import spherical_harmonics
+from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
+from willags_ns.static_support import StaticSupportConfig, apply_support, support_map
 from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
 from willags_ns.transient import (
     PerceptualFeatures,
@@ -143,6 +145,9 @@ class WillagsModelConfig(SplatfactoModelConfig):
     """EMA teacher (decay tau) that renders the pseudo ground truth for the mask."""
     mask: PerceptualMaskConfig = field(default_factory=PerceptualMaskConfig)
     """Perceptual transient mask (VGG16 weights source, threshold 0.85, warm-up)."""
+    static_support: StaticSupportConfig = field(default_factory=StaticSupportConfig)
+    """The mask's safeguard: pixels around observations of SfM points seen by many training images are static and
+    never masked (willags_ns/static_support.py; COLMAP scenes, where the tracks exist)."""
     mask_every: int = 1
     """Recompute an image's mask on every k-th step (teacher render + VGG); other steps reuse that image's last
     mask. 1 = the paper (every step). Larger values trade mask freshness for speed."""
@@ -404,8 +409,11 @@ class WillagsModel(SplatfactoModel):
         self.render_latent: Tensor | None = None  # appearance override for eval/viewer/export ([D])
         self._train_batch: dict | None = None
         self._step_cache: dict[str, Tensor] = {}
-        self._mask_cache: dict[int, Tensor] = {}
+        self._mask_cache: dict[int, Tensor] = {}  # each image's last perceptual mask (True = static), before support
         self._mask_visits: dict[int, int] = {}
+        # SfM observations per training image (COLMAP scenes): the mask's safeguard, built per image on first use
+        self.sfm_observations = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
+        self._support_cache: dict[int, Tensor | None] = {}
         self._fd_cache: tuple[tuple, Tensor] | None = None
         self._sh_cache: tuple[tuple, Tensor] | None = None
         self._sh_seen: tuple | None = None
@@ -990,7 +998,19 @@ class WillagsModel(SplatfactoModel):
             return None
         if mask.shape != (H, W):  # resolution schedule moved on since the mask was cached
             mask = F.interpolate(mask[None, None].float(), size=(H, W), mode="nearest")[0, 0] > 0.5
-        return mask.float()
+        return apply_support(mask, self.static_support(idx, H, W)).float()
+
+    def static_support(self, idx: int, height: int, width: int) -> Tensor | None:
+        """Training image `idx`'s SfM support grid (True = vouched static; willags_ns/static_support.py), or None
+        (safeguard off, no tracks in the scene). Built once per image on the device; the grid's aspect follows the
+        image's, so any resolution of the schedule maps onto it."""
+        cfg = self.config.static_support
+        obs = self.sfm_observations
+        if not cfg.enabled or obs is None or not 0 <= idx < len(obs):
+            return None
+        if idx not in self._support_cache:
+            self._support_cache[idx] = support_map(obs[idx], width, height, cfg).to(self.device)
+        return self._support_cache[idx]
 
     def _gt_image(self, outputs, batch) -> Tensor:
         """This step's ground truth [H, W, 3] (float, at the render's resolution, composited on its background),

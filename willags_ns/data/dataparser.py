@@ -32,6 +32,7 @@ from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.process_data.colmap_utils import parse_colmap_camera_params
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY, read_observations, train_observations
 from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
 
 COLMAP_MODEL_DIRS = ("colmap/sparse/0", "sparse/0", "sparse", "dense/sparse")
@@ -279,6 +280,7 @@ class WillagsDataParser(DataParser):
         self._delegate: DataParser | None = None
         self._tsv: dict[str, str] | None = None
         self._root: Path | None = None
+        self._colmap_model: Path | None = None  # the COLMAP branch's model: its tracks feed the mask's safeguard
 
     # ---- resolution
 
@@ -380,6 +382,7 @@ class WillagsDataParser(DataParser):
 
     def _colmap_parser(self, root: Path, model: Path) -> DataParser:
         self._root = root
+        self._colmap_model = model
         images_path = self.config.images_path
         if not (root / images_path).is_dir() and (root / "dense" / "images").is_dir():
             images_path = Path("dense/images")
@@ -425,6 +428,12 @@ class WillagsDataParser(DataParser):
         for key, name in EVAL_ONLY_DIRS.items():
             if (self._root / name).is_dir():
                 metadata[key] = self._root / name
+        if split == "train" and self._colmap_model is not None:
+            names = [Path(p).name for p in outputs.image_filenames]
+            try:
+                metadata[SFM_OBSERVATIONS_KEY] = train_observations(read_observations(self._colmap_model), names)
+            except Exception as e:  # the mask then runs without its safeguard; training itself needs no tracks
+                CONSOLE.log(f"willags-data: SfM observations of {self._colmap_model} unreadable ({e!r}): no safeguard")
         return dataclasses.replace(outputs, metadata=metadata)
 
 

@@ -1,0 +1,69 @@
+"""SfM observations of the training images: where, in each training photo, COLMAP found a keypoint of a 3D point,
+and how many training photos see that point (its track length over the training split).
+
+A 3D point that several photos matched and triangulated consistently is static by construction: a person, a car or a
+cloud moves between photos and does not give the same feature at one 3D position in five images. Its observations
+are therefore ground truth for "this pixel of this photo shows the static scene", available for every COLMAP scene
+without any labelling. The transient mask's safeguard (willags_ns/static_support.py) and the "static observations
+masked" measurement (benchmarks) read them.
+
+Only the training split counts: a test photo's keypoints never reach training (not even through a track length).
+Coordinates are normalised to [0, 1] by the COLMAP camera's size, so they hold at any image resolution (the
+resolution schedule, a downscale factor). Lens distortion is ignored: the parsers undistort the images, which moves a
+keypoint by a few pixels at most, below the coarse grid the safeguard works on.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+SFM_OBSERVATIONS_KEY = "sfm_observations"
+"""DataparserOutputs.metadata key: a list (one entry per training image, in image order) of float32 arrays [n, 3]
+holding (u, v, track length over the training images), u and v in [0, 1] (x right, y down)."""
+
+
+def read_observations(model: Path) -> dict[str, tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
+    """{image name: (xy [n, 2] pixels, point3D ids [n], (width, height) of its camera)} for every registered image of
+    the COLMAP model in `model` (.bin or .txt), keypoints without a 3D point left out."""
+    from nerfstudio.data.utils import colmap_parsing_utils as cpu
+
+    ext = ".bin" if (model / "images.bin").is_file() else ".txt"
+    cams = (cpu.read_cameras_binary if ext == ".bin" else cpu.read_cameras_text)(model / f"cameras{ext}")
+    ims = (cpu.read_images_binary if ext == ".bin" else cpu.read_images_text)(model / f"images{ext}")
+    out = {}
+    for im in ims.values():
+        ids = np.asarray(im.point3D_ids, dtype=np.int64).reshape(-1)
+        xy = np.asarray(im.xys, dtype=np.float64).reshape(-1, 2)
+        keep = ids >= 0
+        cam = cams[im.camera_id]
+        out[im.name] = (xy[keep], ids[keep], (int(cam.width), int(cam.height)))
+    return out
+
+
+def train_observations(
+    observations: dict[str, tuple[np.ndarray, np.ndarray, tuple[int, int]]], train_names: list[str]
+) -> list[np.ndarray]:
+    """One float32 array [n, 3] (u, v, track length over `train_names`) per name of `train_names`, in that order.
+
+    The track length counts the training images whose keypoints see the point (a name missing from the model
+    contributes nothing and gets an empty array)."""
+    present = [observations.get(n) for n in train_names]
+    # distinct images per point: a point can hold two keypoints of one photo (a merged track)
+    all_ids = [np.unique(o[1]) for o in present if o is not None and len(o[1])]
+    if all_ids:
+        ids = np.concatenate(all_ids)
+        uniq, counts = np.unique(ids, return_counts=True)
+    else:
+        uniq, counts = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    out = []
+    for o in present:
+        if o is None or not len(o[1]):
+            out.append(np.zeros((0, 3), np.float32))
+            continue
+        xy, ids, (w, h) = o
+        track = counts[np.searchsorted(uniq, ids)]
+        uv = xy / np.asarray([w, h], dtype=np.float64)
+        out.append(np.concatenate([uv, track[:, None]], axis=1).astype(np.float32))
+    return out
