@@ -47,10 +47,10 @@ from willags_ns.appearance.sky import SkyConfig, SkyModel, background_alpha_pena
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField, normalize_points, robust_bounds
 from willags_ns.appearance.vae import AppearanceVAE, VAEConfig, reparameterize, vae_loss
 from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env, mean_latent
+from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.losses import reconstruction_loss
 from willags_ns.render import rasterize
 from willags_ns.render.sh import spherical_harmonics
-from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.static_support import StaticSupportConfig, apply_support, support_map
 from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
 from willags_ns.transient import (
