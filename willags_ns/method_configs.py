@@ -17,13 +17,11 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from willags_ns.appearance.sky import SkyConfig
 from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.data.dataparser import WillagsDataParserConfig
 from willags_ns.model import WillagsModelConfig
 from willags_ns.pipeline import WillagsPipelineConfig
-from willags_ns.static_support import StaticSupportConfig
 from willags_ns.transient import PerceptualMaskConfig
 
 
@@ -118,8 +116,6 @@ def willags_model_config() -> WillagsModelConfig:
         rasterize_mode="antialiased",
         mask_every=4,
         mask=PerceptualMaskConfig(max_resolution=256),
-        sky=SkyConfig(enabled=True, alpha_penalty=0.1),
-        static_support=StaticSupportConfig(enabled=True),
     )
 
 
