@@ -132,3 +132,69 @@ def test_training_applies_logs_and_reloads(tmp_path, scenes, monkeypatch):
     cam = pipeline.datamanager.eval_dataset.cameras[0:1]
     with torch.no_grad():
         assert torch.isfinite(pipeline.model.get_outputs_for_camera(cam)["rgb"]).all()
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the sky (inspector's evidence 4)
+
+
+def _rec_sky(preset: str, sky: bool, measured: bool = True) -> dict:
+    rec = _rec(preset, preset != "willags-3dgs", False, 64 if preset != "willags-3dgs" else 0)
+    rec["sky"] = {"on": sky, "measured": measured, "reason": "r"}
+    return rec
+
+
+def test_overrides_map_the_sky():
+    on = overrides_from_recommendation(_rec_sky("willags", True))
+    assert on["sky.enabled"] is True and on["sky.alpha_penalty"] == 0.1
+    off = overrides_from_recommendation(_rec_sky("willags", False))
+    assert off["sky.enabled"] is False and off["sky.alpha_penalty"] == 0.0
+    # not measured (no SfM points): the method's own sky stays
+    assert not any(k.startswith("sky.") for k in overrides_from_recommendation(_rec_sky("willags", True, False)))
+    # plain 3DGS: appearance='sh' builds no sky, nothing to set
+    assert overrides_from_recommendation(_rec_sky("willags-3dgs", False)) == {
+        "appearance": "sh",
+        "use_mask": False,
+        "use_field": False,
+    }
+
+
+@pytest.fixture(scope="module")
+def plane_scenes(tmp_path_factory):
+    from tests.test_inspect import write_plane_scene
+
+    root = tmp_path_factory.mktemp("auto_plane")
+    return {"lower": write_plane_scene(root / "lower", True), "full": write_plane_scene(root / "full", False)}
+
+
+def test_apply_sets_the_sky_from_the_scene(plane_scenes):
+    cfg = willags_model_config()
+    cfg.sky.enabled, cfg.sky.alpha_penalty = False, 0.0
+    s = apply_auto_config(cfg, plane_scenes["lower"])  # the upper half of every image has no SfM point
+    assert cfg.sky.enabled is True and cfg.sky.alpha_penalty == 0.1 and s["sky"] is True
+    assert s["changes"]["sky.enabled"] == [False, True] and "threshold" in s["reasons"]["sky"]
+    text, scalars = tensorboard_entries(s)
+    assert scalars["auto_config/sky"] == 1.0 and "sky: ON" in text["auto_config"]
+
+    cfg = willags_model_config()
+    cfg.sky.enabled, cfg.sky.alpha_penalty = True, 0.1  # the default willags' sky
+    s = apply_auto_config(cfg, plane_scenes["full"])  # points everywhere: no open background
+    assert cfg.sky.enabled is False and cfg.sky.alpha_penalty == 0.0 and s["sky"] is False
+    assert s["changes"]["sky.enabled"] == [True, False]
+    text, scalars = tensorboard_entries(s)
+    assert scalars["auto_config/sky"] == 0.0 and "sky: off" in format_summary(s)
+
+
+def test_scene_without_points_keeps_the_methods_sky(scenes, tmp_path):
+    src = scenes["appearance"]
+    meta = json.loads((src / "transforms.json").read_text())
+    meta.pop("ply_file_path")
+    meta["frames"] = [{**f, "file_path": str(src / f["file_path"])} for f in meta["frames"]]
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    for own in (True, False):
+        cfg = willags_model_config()
+        cfg.sky.enabled, cfg.sky.alpha_penalty = own, 0.05
+        s = apply_auto_config(cfg, tmp_path)
+        assert s["applied"] and cfg.sky.enabled is own and cfg.sky.alpha_penalty == 0.05
+        assert not any(k.startswith("sky") for k in s["changes"]) and s["sky"] is own
+        assert "not measured" in s["reasons"]["sky"] and "method's own setting" in s["reasons"]["sky"]

@@ -1,20 +1,28 @@
-"""willags-inspect: the evidence separates synthetic scenes with and without appearance change / transients, the
-recommendation follows it, bad input gives one clear line (no traceback)."""
+"""willags-inspect: the evidence separates synthetic scenes with and without appearance change / transients / open
+background, the recommendation follows it, bad input gives one clear line (no traceback)."""
 
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
-from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, project, write_scene
+from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, project, write_ply_points, write_scene
 from willags_ns.inspect import (
     InspectConfig,
     InspectError,
+    SceneViews,
+    background_fractions,
+    covered_cells,
+    format_report,
     inspect_scene,
     project_points,
     read_scene,
+    recommend,
+    sky_flags,
     zbuffer_visible,
 )
 from willags_ns.scripts import inspect as cli
@@ -194,3 +202,159 @@ def test_shared_fox_scenes(shared_data):
     drift = (clean["evidence"]["appearance_score"], transient["evidence"]["appearance_score"])
     assert max(drift) + 4 < appearance["evidence"]["appearance_score"], drift
     assert abs(drift[0] - drift[1]) < 2, drift
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# evidence 4: open background (sky)
+
+SKY_OFF = "--pipeline.model.sky.enabled False"
+
+
+def write_plane_scene(root, lower_only: bool, n: int = 8, width: int = 64, height: int = 48):
+    """n cameras looking down +z (OpenCV) from (x, 0, 0), x in [-1, 1], at a grid of points on the plane z = 10
+    spaced 0.3 (1.5 px); lower_only keeps the points with y >= 0, which every camera sees in the lower half of its
+    image (y down, cy = height / 2). Each image is a uniform grey of its own level (an appearance change of ~29
+    levels, no transients), so the preset is willags and the sky switch shows in its command."""
+    root.mkdir(parents=True)
+    (root / "images").mkdir()
+    f = 50.0
+    xs = np.arange(-10.0, 10.0, 0.3)
+    ys = np.arange(0.05, 6.0, 0.3) if lower_only else np.arange(-5.95, 6.0, 0.3)
+    gx, gy = np.meshgrid(xs, ys)
+    pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 10.0)], axis=1)
+    write_ply_points(root / "points.ply", pts.astype(np.float32), np.full((len(pts), 3), 128, dtype=np.uint8))
+    frames = []
+    for i, (x, grey) in enumerate(zip(np.linspace(-1.0, 1.0, n), np.linspace(0.3, 0.7, n), strict=True)):
+        name = f"images/{i:03d}.png"
+        Image.fromarray(np.full((height, width, 3), round(grey * 255), dtype=np.uint8)).save(root / name)
+        c2w = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV identity rotation in nerfstudio's OpenGL axes
+        c2w[0, 3] = x
+        frames.append({"file_path": name, "transform_matrix": c2w.tolist()})
+    meta = dict(fl_x=f, fl_y=f, cx=width / 2, cy=height / 2, w=width, h=height, frames=frames)
+    (root / "transforms.json").write_text(json.dumps({**meta, "ply_file_path": "points.ply"}))
+    return root
+
+
+@pytest.fixture(scope="module")
+def plane_reports(tmp_path_factory):
+    root = tmp_path_factory.mktemp("plane_scenes")
+    return {
+        lower: inspect_scene(InspectConfig(data=write_plane_scene(root / f"lower{int(lower)}", lower)))
+        for lower in (True, False)
+    }
+
+
+def test_covered_cells_known_answers():
+    # a point in the middle of a 32 x 32 grid covers its cell and, dilated, the 8 around it
+    cov = covered_cells(np.array([[16.5, 16.5]]), 32.0, 32.0, grid=32)
+    assert cov.shape == (32, 32) and cov.sum() == 9 and cov[15:18, 15:18].all()
+    # a corner point: 4 cells; points outside the image count for nothing
+    assert covered_cells(np.array([[0.2, 0.2], [-5.0, 3.0], [40.0, 3.0]]), 32.0, 32.0, grid=32).sum() == 4
+    # portrait image: 32 cells along the long (vertical) side, 24 across
+    assert covered_cells(np.zeros((0, 2)), 48.0, 64.0, grid=32).shape == (32, 24)
+    assert not covered_cells(np.zeros((0, 2)), 48.0, 64.0, grid=32).any()
+
+
+def test_lower_half_covered_is_half_background_and_wants_the_sky(plane_reports):
+    report = plane_reports[True]
+    frac = report["per_image"]["per_image_background_fraction"]
+    # 24 cell rows: the points fill rows 12-23, the dilation adds row 11, rows 0-10 are open
+    assert len(frac) == 8 and np.allclose(frac, 11 / 24), frac
+    ev, rec = report["evidence"], report["recommendation"]
+    assert ev["background_score"] == pytest.approx(11 / 24) and ev["background_fraction_mean"] == pytest.approx(11 / 24)
+    assert rec["preset"]["value"] == "willags" and rec["sky"]["on"] is True and rec["sky"]["measured"] is True
+    assert "0.46" in rec["sky"]["reason"] and ">= threshold" in rec["sky"]["reason"]
+    assert SKY_OFF not in rec["command"] and sky_flags(True) == []  # the willags default has the sky
+    assert "sky: ON" in format_report(report)
+
+
+def test_fully_covered_has_no_background_and_no_sky(plane_reports):
+    report = plane_reports[False]
+    assert report["per_image"]["per_image_background_fraction"] == [0.0] * 8
+    rec = report["recommendation"]
+    assert rec["preset"]["value"] == "willags" and rec["sky"]["on"] is False
+    assert "< threshold" in rec["sky"]["reason"]
+    assert SKY_OFF in rec["preset"]["flags"] and SKY_OFF in rec["command"]
+    assert sky_flags(False) == [SKY_OFF]
+
+
+def test_sky_threshold_moves_the_recommendation(tmp_path):
+    scene = write_plane_scene(tmp_path / "lower", lower_only=True)
+    rec = inspect_scene(InspectConfig(data=scene, sky_threshold=0.6))["recommendation"]
+    assert rec["sky"]["on"] is False and SKY_OFF in rec["command"]
+
+
+def test_synthetic_dome_scenes_have_no_open_background(reports):
+    """The synthetic world is closed (a textured dome: every ray hits something), so its points cover the images."""
+    thr = InspectConfig().sky_threshold
+    for key, report in reports.items():
+        assert report["evidence"]["background_score"] < thr / 2, (key, report["evidence"]["background_score"])
+        assert report["recommendation"]["sky"]["on"] is False
+
+
+def test_plain_3dgs_gets_no_sky():
+    """Open background without appearance change or transients: willags-3dgs, which has no latent for a sky."""
+    evidence = dict(
+        data="x",
+        method="sfm-points",
+        appearance_score=0.5,
+        transient_score=0.0,
+        transient_fraction_mean=0.0,
+        background_score=0.5,
+        background_fraction_mean=0.5,
+    )
+    rec = recommend(evidence, 40, InspectConfig())
+    assert rec["preset"]["value"] == "willags-3dgs" and rec["preset"]["flags"] == []
+    assert rec["sky"]["on"] is False and "no latent" in rec["sky"]["reason"]
+    rec = recommend({**evidence, "appearance_score": 20.0}, 40, InspectConfig())
+    assert rec["preset"]["value"] == "willags" and rec["sky"]["on"] is True
+
+
+def test_background_ignores_points_folded_in_by_distortion():
+    """A strong barrel distortion (k1 = -0.3) maps a point far outside the field of view (pinhole u = 132 in a
+    64 px image) back inside; it must not cover the image."""
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    w2c = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
+    point = np.array([[2.0, 0.0, 1.0]])
+    uv, _ = project_points(point, w2c, K, np.array([-0.3, 0.0, 0.0, 0.0]))
+    assert 0 <= uv[0, 0] < 64, uv  # folded in: the case the guard is for
+    scene = SceneViews(
+        kind="transforms",
+        root=Path("."),
+        image_paths=[Path("a.png")],
+        w2c=w2c[None],
+        K=K[None],
+        dist=np.array([[-0.3, 0.0, 0.0, 0.0]]),
+        cam_size=np.array([[64.0, 48.0]]),
+        points=point,
+    )
+    assert background_fractions(scene, np.array([0]), 32).tolist() == [1.0]
+    scene.dist = np.zeros((1, 4))
+    scene.points = np.array([[0.0, 0.0, 1.0]])  # on the optical axis: covered, 3 x 3 of 32 x 24 cells
+    assert background_fractions(scene, np.array([0]), 32)[0] == pytest.approx(1 - 9 / (32 * 24))
+
+
+def test_without_points_the_sky_is_not_measured(scenes, tmp_path):
+    src = scenes[(True, False)]
+    meta = json.loads((src / "transforms.json").read_text())
+    meta.pop("ply_file_path")
+    meta["frames"] = [{**f, "file_path": str(src / f["file_path"])} for f in meta["frames"]]
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    report = inspect_scene(InspectConfig(data=tmp_path))
+    assert report["evidence"]["background_score"] is None
+    sky = report["recommendation"]["sky"]
+    assert sky["measured"] is False and sky["on"] is True and "not measured" in sky["reason"]
+    assert "method's own setting" in sky["reason"] and SKY_OFF not in report["recommendation"]["command"]
+    assert "open background not measured" in format_report(report)
+
+
+@pytest.mark.data
+def test_shared_scenes_sky(shared_data):
+    """The Internet photo collections have open background (sky); the fox close-up and south-building's facade
+    do not (docs/inspect.md)."""
+    thr = InspectConfig().sky_threshold
+    for name, sky in (("fox-clean", False), ("south-building", False), ("reichstag", True), ("sacre-coeur-mini", True)):
+        report = inspect_scene(InspectConfig(data=shared_data / name))
+        score = report["evidence"]["background_score"]
+        assert report["recommendation"]["sky"]["on"] is sky, (name, score)
+        assert (score > 2 * thr) if sky else (score < thr / 2), (name, score)

@@ -7,7 +7,10 @@ that nearby views disagree with) and switches off what the evidence says the sce
 - no appearance change and no transients: plain 3DGS colours (`appearance='sh'`: no latent, no mask, no teacher);
 - appearance change without transients: the latent without the mask (and so without the EMA teacher and VGG);
 - transients: the mask and its teacher (with the latent: the mask is part of the willags model);
-- the tri-plane field stays off (measured: it did not help); the latent size follows the image count.
+- the tri-plane field stays off (measured: it did not help); the latent size follows the image count;
+- the appearance-conditioned sky (`sky.enabled`, with `sky.alpha_penalty` 0.1) where a large share of the photos
+  has no SfM points (sky or far background), off elsewhere; the method's own setting when that was not measured (no
+  SfM points); never with plain 3DGS (no latent to condition it on; `appearance='sh'` builds no sky).
 
 Only those switches change (`overrides_from_recommendation`); every other setting is the method's own (the
 resolution schedule, rasterisation mode, learning rates...). What was chosen, and why, is printed, written to
@@ -24,7 +27,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from willags_ns.inspect import InspectConfig, InspectError, inspect_scene
+from willags_ns.inspect import InspectConfig, InspectError, inspect_scene, sky_settings
 
 AUTO_CONFIG_FILE = "auto_config.json"
 """Written beside config.yml: the inspector's evidence, the recommendation and the switches applied."""
@@ -35,12 +38,16 @@ def overrides_from_recommendation(rec: dict[str, Any]) -> dict[str, Any]:
     if rec["preset"]["value"] == "willags-3dgs":
         # plain 3DGS colours: appearance='sh' also turns the latent, the mask and the teacher off in the model
         return {"appearance": "sh", "use_mask": False, "use_field": False}
-    return {
+    out = {
         "appearance": "willags",
         "use_mask": bool(rec["mask"]["on"]),
         "use_field": bool(rec["triplane_field"]["on"]),
         "vae.latent_dim": int(rec["latent_dim"]["value"]),
     }
+    # unmeasured (no SfM points), or a recommendation written before the sky evidence: the method's own sky stays
+    if rec.get("sky", {}).get("measured"):
+        out.update(sky_settings(bool(rec["sky"]["on"])))
+    return out
 
 
 def _get(obj, dotted: str):
@@ -68,8 +75,9 @@ def apply_auto_config(model_config, data: Path | None, inspect_config: InspectCo
     """Inspect `data`, set the recommended switches on `model_config` (in place) and return a summary.
 
     The summary: {"applied": bool, "changes": {field: [before, after]}, "settings": {field: value},
-    "reasons": {switch: sentence}, "command": equivalent ns-train line, "report": inspector report or None,
-    "error": why nothing was applied or None}."""
+    "reasons": {switch: sentence}, "switches": {component: on}, "sky": whether the model gets the sky,
+    "command": equivalent ns-train line, "report": inspector report or None, "error": why nothing was applied or
+    None}."""
     if data is None:
         return {"applied": False, "error": "no --data given", "changes": {}, "settings": {}, "reasons": {}}
     icfg = inspect_config if inspect_config is not None else InspectConfig()
@@ -86,7 +94,9 @@ def apply_auto_config(model_config, data: Path | None, inspect_config: InspectCo
         if before != value:
             changes[key] = [before, value]
         _set(model_config, key, value)
-    reasons = {k: rec[k]["reason"] for k in ("appearance_latent", "mask", "teacher", "triplane_field", "latent_dim")}
+    reasons = {
+        k: rec[k]["reason"] for k in ("appearance_latent", "mask", "teacher", "triplane_field", "sky", "latent_dim")
+    }
     reasons["preset"] = rec["preset"]["reason"]
     return {
         "applied": True,
@@ -95,9 +105,20 @@ def apply_auto_config(model_config, data: Path | None, inspect_config: InspectCo
         "settings": overrides,
         "reasons": reasons,
         "switches": {k: bool(rec[k]["on"]) for k in ("appearance_latent", "mask", "teacher", "triplane_field")},
+        # the sky as the model will build it (the method's own setting when not measured; appearance='sh' builds
+        # none); beside "switches", whose four keys earlier auto_config.json files and their readers rely on
+        "sky": model_config.appearance == "willags" and bool(model_config.sky.enabled),
         "command": rec["command"],
         "report": report,
     }
+
+
+def _switches(summary: dict[str, Any]) -> dict[str, bool]:
+    """The component switches of a summary, the sky included."""
+    out = dict(summary.get("switches", {}))
+    if summary.get("sky") is not None:
+        out["sky"] = summary["sky"]
+    return out
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -105,7 +126,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     if not summary["applied"]:
         return f"willags auto-config: not applied ({summary['error']}); training with the method's own configuration"
     lines = ["willags auto-config: " + ", ".join(f"{k}={v}" for k, v in summary["settings"].items())]
-    for k, v in summary["switches"].items():
+    for k, v in _switches(summary).items():
         lines.append(f"  {k}: {'ON' if v else 'off'} - {summary['reasons'][k]}")
     lines.append(f"  latent_dim: {summary['reasons']['latent_dim']}")
     if summary["changes"]:
@@ -118,7 +139,7 @@ def format_summary(summary: dict[str, Any]) -> str:
 def tensorboard_entries(summary: dict[str, Any]) -> tuple[dict[str, Any], dict[str, float]]:
     """(text dict for writer.put_config, scalars for writer.put_scalar) describing the choice."""
     text = {"auto_config": format_summary(summary)}
-    scalars = {f"auto_config/{k}": float(v) for k, v in summary.get("switches", {}).items()}
+    scalars = {f"auto_config/{k}": float(v) for k, v in _switches(summary).items()}
     if summary["applied"]:
         scalars["auto_config/latent_dim"] = float(summary["settings"].get("vae.latent_dim", 0))
     return text, scalars

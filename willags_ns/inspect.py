@@ -2,7 +2,7 @@
 
 It reads the scenes `willags-data` reads (a nerfstudio `transforms.json` scene with an optional `ply_file_path`, or a
 COLMAP scene under `colmap/sparse/0`, `sparse/0`, `sparse` or `dense/sparse`, optionally with a NeRF-W `*.tsv`
-split), measures three things on CPU in seconds, and turns them into a recommendation with its reasons.
+split), measures four things on CPU in seconds, and turns them into a recommendation with its reasons.
 
 Evidence 1, appearance variation (`appearance_score`, 8-bit colour levels). The SfM points are the scene's shared
 ground truth: a static point has one colour, so what differs between the images that see it is the photograph, not
@@ -42,9 +42,25 @@ parameters with Adam's two moments, gradients and the rasteriser's buffers), GPU
 0.35 Mpx per image (H100, docs/benchmarks.md) scaled by pixels, CPU step ~ 0.8 s at fox's 0.13 Mpx (2 cores,
 docs/benchmarks.md) scaled by pixels. Rough estimates: step time also grows with the Gaussian count, not modelled.
 
+Evidence 4, open background (`background_score`, a share of the image area). Tourist photos are largely sky, and
+the sky's colour changes with the photo (sun, overcast, dusk); SfM finds no points in the sky (no texture, nothing
+static to match), so the part of a photo that no SfM point covers is sky or far / textureless background, which the
+Gaussians would otherwise have to paint, one photo's sky at a time. Every SfM point of the scene (all of them, no
+visibility test: a hidden point still shows there is geometry along its ray) is projected into each analysed image
+with its camera (points whose pinhole projection lies more than half the image size outside it are dropped: a
+distortion polynomial can fold them back in); the cells of a coarse grid (`background_grid` cells along the long
+side) that hold a point are marked and dilated by one cell, so the gaps between the points of a textured surface do
+not count; the uncovered share of the cells is the image's `background_fraction`, and the scene's score is the median
+over the analysed images (the mean and the per-image values are reported too). It also counts what SfM misses below
+the horizon: a textureless plaza, crowds (on reichstag about half of the uncovered area lies in the lower half of the
+image, docs/inspect.md). Without SfM points it is not measured (None).
+
 The recommendation (see `recommend`): appearance latent on when appearance_score >= `appearance_threshold`; mask (with
 its EMA teacher) on when transient_score >= `transient_threshold`; tri-plane field always off (measured: it did not
-help, docs/benchmarks.md); the latent size; and the preset, each with a sentence quoting the number and threshold.
+help, docs/benchmarks.md); the appearance-conditioned sky (appearance/sky.py, with its alpha penalty) on when
+background_score >= `sky_threshold` (kept as the method's own setting when not measured; never with plain 3DGS, which
+has no latent to condition it on); the latent size; and the preset, each with a sentence quoting the number and
+threshold.
 The thresholds come from the measurements on the shared scenes and synthetic scenes in docs/inspect.md.
 """
 
@@ -114,6 +130,16 @@ class InspectConfig:
     """The same threshold for the no-points fallback evidence (spread of per-image mean colours, 8-bit levels)."""
     transient_threshold: float = 0.2
     """transient_score (share of occluded images) at or above which the transient mask (and its teacher) is recommended."""
+    background_grid: int = 32
+    """Open background: cells of the coverage grid along the image's long side (32: cells of 1/32 of it, 25 px at
+    800 px; one cell of dilation then bridges gaps of up to ~50 px between neighbouring points)."""
+    sky_threshold: float = 0.15
+    """background_score (median share of an image that no SfM point covers) at or above which the
+    appearance-conditioned sky is recommended. Decided by the shared scenes (docs/inspect.md): the Internet photo
+    collections measure 0.37 (sacre-coeur-mini) and 0.39 (reichstag), the scenes without sky 0.003 (the four fox
+    scenes, a close-up of an object) and 0.044 (south-building, a facade filling the frame). 0.15 lies between the
+    gap's log-midpoint (0.13) and its midpoint (0.21), and still separates the two groups with a grid of 16 or 64
+    cells (collections 0.21 / 0.51, south-building 0.00 / 0.12)."""
     gaussians_per_point: float = 10.0
     """Resource estimate: expected final Gaussians per SfM point (clipped to [1e5, 1.5e6])."""
     steps: int = 30000
@@ -513,6 +539,52 @@ def global_color_evidence(paths: list[Path]) -> dict[str, Any]:
     }
 
 
+def covered_cells(uv: np.ndarray, width: float, height: float, grid: int) -> np.ndarray:
+    """[ny, nx] bool: the cells of a coarse grid over a `width` x `height` image (`grid` cells along the long side,
+    the short side's count in proportion, so cells are near-square and of equal area) that hold at least one of the
+    points uv [K, 2] (pixels; outside the image ignored), dilated by one cell (8-neighbourhood): SfM points are
+    sparse even on a textured wall, and the gap between two neighbouring points is not open background."""
+    nx = grid if width >= height else max(1, round(grid * width / height))
+    ny = grid if height > width else max(1, round(grid * height / width))
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+    cx = np.minimum((uv[inside, 0] * nx / width).astype(np.int64), nx - 1)
+    cy = np.minimum((uv[inside, 1] * ny / height).astype(np.int64), ny - 1)
+    hit = np.zeros((ny, nx), dtype=bool)
+    hit[cy, cx] = True
+    p = np.pad(hit, 1)
+    return np.logical_or.reduce([p[dy : dy + ny, dx : dx + nx] for dy in range(3) for dx in range(3)])
+
+
+def background_fractions(scene: SceneViews, images: np.ndarray, grid: int) -> np.ndarray:
+    """[M] share of each selected image's area that no SfM point covers (evidence 4, module docstring): all the
+    scene's points projected with the image's camera (no visibility test: a hidden point still proves there is
+    geometry along that ray, and open sky has none), cells from `covered_cells`. Needs poses and points."""
+    assert scene.points is not None and scene.w2c is not None and scene.K is not None and scene.cam_size is not None
+    out = np.empty(len(images))
+    for m, i in enumerate(images):
+        w, h = scene.cam_size[i]
+        dist = None if scene.dist is None else scene.dist[i]
+        uv, z = project_points(scene.points, scene.w2c[i], scene.K[i], dist)
+        # the distortion polynomial folds points far outside the field of view back into the image (a negative k1
+        # maps a large radius to a small one), which would cover sky with points from behind the camera's edge:
+        # keep only points whose pinhole projection lies within the image plus a margin of half its size
+        pin, _ = project_points(scene.points, scene.w2c[i], scene.K[i], None) if dist is not None else (uv, z)
+        near = (np.abs(pin[:, 0] / w - 0.5) <= 1.0) & (np.abs(pin[:, 1] / h - 0.5) <= 1.0)
+        out[m] = 1.0 - float(covered_cells(uv[(z > 1e-6) & near], w, h, grid).mean())
+    return out
+
+
+def open_background_evidence(scene: SceneViews, images: np.ndarray, cfg: InspectConfig) -> dict[str, Any]:
+    """Evidence 4 (module docstring): the median over the selected images of the uncovered share, the mean and
+    the per-image values."""
+    frac = background_fractions(scene, images, cfg.background_grid)
+    return {
+        "background_score": float(np.median(frac)),
+        "background_fraction_mean": float(np.mean(frac)),
+        "per_image_background_fraction": frac.tolist(),
+    }
+
+
 def image_sizes(paths: list[Path]) -> np.ndarray:
     """[N, 2] (width, height) from the image headers (no decoding)."""
     out = []
@@ -558,6 +630,48 @@ def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: Insp
 # the recommendation
 
 
+WILLAGS_SKY: dict[str, Any] = {"sky.enabled": True, "sky.alpha_penalty": 0.1}
+"""The sky of the default `willags` preset (model fields under pipeline.model): the command line names only what
+differs from it. Keep it in step with method_configs.willags_model_config."""
+
+
+def sky_settings(on: bool) -> dict[str, Any]:
+    """Model fields of the sky switch: the default's sky (with its alpha penalty) when on, neither when off. The one
+    place the switch maps to settings: `sky_flags` and autoconfig.overrides_from_recommendation read it."""
+    return dict(WILLAGS_SKY) if on else {"sky.enabled": False, "sky.alpha_penalty": 0.0}
+
+
+def sky_flags(on: bool) -> list[str]:
+    """ns-train flags that give the willags preset `sky_settings(on)`: the fields that differ from WILLAGS_SKY (the
+    alpha penalty is read only with the sky enabled, so switching the sky off needs the one flag)."""
+    return [
+        f"--pipeline.model.{key.replace('_', '-')} {value}"
+        for key, value in sky_settings(on).items()
+        if value != WILLAGS_SKY[key] and (on or key == "sky.enabled")
+    ]
+
+
+def _sky(evidence: dict[str, Any], preset: str, cfg: InspectConfig) -> dict[str, Any]:
+    """The sky entry of the recommendation (evidence 4): on when background_score >= sky_threshold, for the willags
+    presets; not measured without SfM points (the method's own setting stays)."""
+    bg = evidence.get("background_score")
+    if bg is None:
+        return {
+            "on": bool(WILLAGS_SKY["sky.enabled"]),
+            "measured": False,
+            "reason": "open background not measured (no SfM points): the sky is kept as the method's own setting",
+        }
+    need = bg >= cfg.sky_threshold
+    reason = (
+        f"median share of an image that no SfM point covers {bg:.2f} (mean {evidence['background_fraction_mean']:.2f}) "
+        f"{'>=' if need else '<'} threshold {cfg.sky_threshold:g}"
+    )
+    if need and preset == "willags-3dgs":
+        # the sky's colour is a function of the appearance latent, which plain 3DGS does not have
+        return {"on": False, "measured": True, "reason": reason + "; plain 3DGS has no latent to condition a sky on"}
+    return {"on": bool(need), "measured": True, "reason": reason}
+
+
 def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dict[str, Any]:
     """Switches and preset from the evidence, each with a reason quoting the number and the threshold."""
     app = evidence["appearance_score"]
@@ -601,6 +715,9 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
     else:
         preset, flags = "willags-3dgs", []
         preset_reason = "neither an appearance change nor transients: plain 3DGS through willags' rasteriser"
+    sky = _sky(evidence, preset, cfg)
+    if preset == "willags" and sky["measured"]:
+        flags = flags + sky_flags(sky["on"])
     return {
         "appearance_latent": {"on": appearance, "reason": app_reason},
         "mask": {"on": mask, "reason": mask_reason},
@@ -610,6 +727,7 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
             "reason": "measured, it did not help (docs/benchmarks.md: reichstag willags-vae-field 18.63 dB vs "
             "willags-vae 18.50 +-0.31; fox-wild willags-paper 20.40 vs willags 22.41)",
         },
+        "sky": sky,
         "latent_dim": {"value": latent, "reason": latent_reason},
         "preset": {"value": preset, "flags": flags, "reason": preset_reason},
         "command": " ".join(["ns-train", preset, *flags, "--data", str(evidence["data"])]),
@@ -631,8 +749,10 @@ def inspect_scene(cfg: InspectConfig) -> dict[str, Any]:
         centres = np.stack([-w[:, :3].T @ w[:, 3] for w in scene.w2c[sel]])
         nbrs = nearest_cameras(centres, cfg.neighbours)
         evidence.update(method="sfm-points", **appearance_and_transients(colors, cfg, nbrs))
+        evidence.update(open_background_evidence(scene, sel, cfg))
     else:
         evidence.update(method="global-color-stats", **global_color_evidence([scene.image_paths[i] for i in sel]))
+        evidence.update(background_score=None, background_fraction_mean=None)
     cams = None if scene.w2c is None else np.stack([-w[:, :3].T @ w[:, 3] for w in scene.w2c])
     facts = {
         "kind": scene.kind,
@@ -669,7 +789,7 @@ def format_report(report: dict[str, Any]) -> str:
     """The human-readable summary the CLI prints."""
     f, e, r = report["facts"], report["evidence"], report["recommendation"]
     est = f["estimate"]
-    ts = e["transient_score"]
+    ts, bg = e["transient_score"], e.get("background_score")
     lines = [
         f"willags-inspect {report['data']}  ({report['wall_s']:.1f} s)",
         f"  scene: {f['kind']}, {f['images']} images ({f['train_images']} train, {f['analysed_images']} analysed), "
@@ -680,9 +800,11 @@ def format_report(report: dict[str, Any]) -> str:
         f"  rough estimate: ~{est['expected_gaussians']:,} Gaussians, GPU ~{est['gpu_memory_gb']} GB / "
         f"~{est['gpu_hours']} h, CPU ~{est['cpu_memory_gb']} GB / ~{est['cpu_hours']} h for {est['steps']} steps",
         f"  evidence ({e['method']}): appearance {e['appearance_score']:.2f} levels, transients "
-        + ("not measured" if ts is None else f"{ts:.2f} of the images occluded"),
+        + ("not measured" if ts is None else f"{ts:.2f} of the images occluded")
+        + ", open background "
+        + ("not measured" if bg is None else f"{bg:.2f} of the image (median)"),
     ]
-    for key in ("appearance_latent", "mask", "teacher", "triplane_field"):
+    for key in ("appearance_latent", "mask", "teacher", "triplane_field", "sky"):
         lines.append(f"  {key}: {'ON ' if r[key]['on'] else 'off'}  ({r[key]['reason']})")
     lines.append(f"  latent_dim: {r['latent_dim']['value']}  ({r['latent_dim']['reason']})")
     lines.append(f"  preset: {r['preset']['value']}  ({r['preset']['reason']})")
