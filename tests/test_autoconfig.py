@@ -146,7 +146,7 @@ def _rec_sky(preset: str, sky: bool, measured: bool = True) -> dict:
 
 def test_overrides_map_the_sky():
     on = overrides_from_recommendation(_rec_sky("willags", True))
-    assert on["sky.enabled"] is True and on["sky.alpha_penalty"] == 0.1
+    assert on["sky.enabled"] is True and on["sky.alpha_penalty"] == 0.0
     off = overrides_from_recommendation(_rec_sky("willags", False))
     assert off["sky.enabled"] is False and off["sky.alpha_penalty"] == 0.0
     # not measured (no SfM points): the method's own sky stays
@@ -171,13 +171,13 @@ def test_apply_sets_the_sky_from_the_scene(plane_scenes):
     cfg = willags_model_config()
     cfg.sky.enabled, cfg.sky.alpha_penalty = False, 0.0
     s = apply_auto_config(cfg, plane_scenes["lower"])  # the upper half of every image has no SfM point
-    assert cfg.sky.enabled is True and cfg.sky.alpha_penalty == 0.1 and s["sky"] is True
+    assert cfg.sky.enabled is True and cfg.sky.alpha_penalty == 0.0 and s["sky"] is True
     assert s["changes"]["sky.enabled"] == [False, True] and "threshold" in s["reasons"]["sky"]
     text, scalars = tensorboard_entries(s)
     assert scalars["auto_config/sky"] == 1.0 and "sky: ON" in text["auto_config"]
 
     cfg = willags_model_config()
-    cfg.sky.enabled, cfg.sky.alpha_penalty = True, 0.1  # the default willags' sky
+    cfg.sky.enabled, cfg.sky.alpha_penalty = True, 0.1  # a sky with its penalty, switched off by the scene
     s = apply_auto_config(cfg, plane_scenes["full"])  # points everywhere: no open background
     assert cfg.sky.enabled is False and cfg.sky.alpha_penalty == 0.0 and s["sky"] is False
     assert s["changes"]["sky.enabled"] == [True, False]
@@ -198,3 +198,11 @@ def test_scene_without_points_keeps_the_methods_sky(scenes, tmp_path):
         assert s["applied"] and cfg.sky.enabled is own and cfg.sky.alpha_penalty == 0.05
         assert not any(k.startswith("sky") for k in s["changes"]) and s["sky"] is own
         assert "not measured" in s["reasons"]["sky"] and "method's own setting" in s["reasons"]["sky"]
+
+
+def test_the_inspectors_default_sky_is_the_willags_presets():
+    """inspect.WILLAGS_SKY names the default preset's sky (the recommended command lists only what differs)."""
+    from willags_ns.inspect import WILLAGS_SKY
+
+    cfg = willags_model_config()
+    assert {"sky.enabled": cfg.sky.enabled, "sky.alpha_penalty": cfg.sky.alpha_penalty} == WILLAGS_SKY

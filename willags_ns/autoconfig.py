@@ -8,7 +8,7 @@ that nearby views disagree with) and switches off what the evidence says the sce
 - appearance change without transients: the latent without the mask (and so without the EMA teacher and VGG);
 - transients: the mask and its teacher (with the latent: the mask is part of the willags model);
 - the tri-plane field stays off (measured: it did not help); the latent size follows the image count;
-- the appearance-conditioned sky (`sky.enabled`, with `sky.alpha_penalty` 0.1) where a large share of the photos
+- the appearance-conditioned sky (`sky.enabled`, without the alpha penalty) where a large share of the photos
   has no SfM points (sky or far background), off elsewhere; the method's own setting when that was not measured (no
   SfM points); never with plain 3DGS (no latent to condition it on; `appearance='sh'` builds no sky).
 
