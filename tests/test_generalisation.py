@@ -1,0 +1,97 @@
+"""benchmarks/generalisation.py (the every-scene table that decides a default) and the harness's static-observation
+measurement."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from benchmarks.generalisation import generalisation_section, scene_rows, static_obs_rows
+from benchmarks.harness import static_observation_scores, training_mask
+from willags_ns.static_support import StaticSupportConfig, support_map
+
+
+def _rec(scene, method, psnr, tag="h200-r1", **kw):
+    return {
+        "scene": scene,
+        "method": method,
+        "psnr": psnr,
+        "tag": tag,
+        "steps": 5000,
+        "status": "ok",
+        "device": "cuda",
+        **kw,
+    }
+
+
+def test_scene_rows_pool_seeds_and_compare_with_the_default():
+    recs = [
+        _rec("reichstag", "willags", 19.0),
+        _rec("reichstag", "willags", 19.4, tag="h100-r2"),
+        _rec("reichstag", "peer", 19.5),
+        _rec("reichstag", "willags-auto", 19.1, tree_note="wip"),
+        _rec("reichstag", "willags-skyalpha-support", 18.0),
+        _rec("reichstag", "willags", 30.0, tag="other"),  # not a fidelity-grid tag: left out
+        _rec("reichstag", "willags", 30.0, steps=15000),  # not 5000 steps: left out
+    ]
+    rows = scene_rows(recs)
+    assert "willags-skyalpha-support" in rows[0] and "willags-sky |" not in rows[0]  # only candidates that ran
+    row = next(r for r in rows if r.startswith("| reichstag"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[3] == "19.20 ±0.20 (n=2)"
+    assert cells[4] == "-0.30"  # willags - peer
+    assert cells[5] == "19.10† (n=1)" and cells[6] == "-0.10"
+    assert cells[7] == "18.00 (n=1)" and cells[8] == "-1.20"
+    assert not any(r.startswith("| fox-wild") for r in rows)  # a scene without records has no row
+
+
+def test_section_is_empty_without_grid_records():
+    assert generalisation_section([_rec("reichstag", "willags", 19.0, tag="x")]) == []
+    assert generalisation_section([_rec("reichstag", "willags", 19.0)])[0].startswith("## Every scene at once")
+
+
+def test_static_obs_rows_only_for_real_scenes_that_measured_it():
+    recs = [
+        _rec(
+            "reichstag",
+            "willags",
+            19.0,
+            static_obs_masked=0.001,
+            static_obs_masked_perceptual=0.01,
+            static_obs_count=100,
+            static_obs_images=5,
+        ),
+        _rec(
+            "fox-wild",
+            "willags",
+            22.0,
+            static_obs_masked=0.5,
+            static_obs_masked_perceptual=0.5,
+            static_obs_count=1,
+            static_obs_images=1,
+        ),
+        _rec("sacre-coeur-mini", "willags", 14.0),
+    ]
+    rows = [r for r in static_obs_rows(recs) if r.startswith("| ") and "%" in r]
+    assert len(rows) == 1 and "| 0.10 % | 1.00 % | 100 in 5 images |" in rows[0]
+    assert static_obs_rows([_rec("reichstag", "willags", 19.0)]) == []
+
+
+def _fake_model(enabled: bool):
+    cfg = StaticSupportConfig(enabled=enabled, grid=16)
+    rng = np.random.default_rng(0)
+    uv = np.stack([0.2 + 0.02 * rng.standard_normal(30), 0.5 + 0.02 * rng.standard_normal(30)], 1)
+    obs = [np.concatenate([uv, np.full((30, 1), 6.0)], 1).astype(np.float32)]
+    model = SimpleNamespace(sfm_observations=obs, _mask_cache={0: torch.zeros(40, 80, dtype=torch.bool)})
+    model.static_support = lambda idx, h, w: support_map(obs[idx], w, h, cfg) if enabled else None
+    return model
+
+
+def test_static_observation_scores_with_and_without_the_safeguard():
+    off = static_observation_scores(_fake_model(False))
+    assert off["static_obs_masked"] == 1.0 and off["static_obs_masked_perceptual"] == 1.0
+    assert off["static_obs_count"] == 30 and off["static_obs_images"] == 1
+    on = static_observation_scores(_fake_model(True))
+    assert on["static_obs_masked_perceptual"] == 1.0 and on["static_obs_masked"] < 0.2
+    m = training_mask(_fake_model(True), 0)
+    assert m.shape == (40, 80) and m[20, 16] and not m[20, 70]
