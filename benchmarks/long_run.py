@@ -11,7 +11,7 @@ scores), which `record` turns into a docs/benchmarks.json record.
     python -m benchmarks.long_run eval   --run-dir /tmp/lr/willags
     python -m benchmarks.long_run record --run-dir /tmp/lr/willags --tag h100-30k --out $OUT/willags-30k.json
 
-Methods are benchmarks.harness METHODS (stock schedule: only max_num_iterations is set, as
+Methods are benchmarks.methods METHODS (stock schedule: only max_num_iterations is set, as
 `ns-train <method> --max-num-iterations N` does). Train seconds exclude set-up, checkpoint loading and evaluation.
 """
 
@@ -85,7 +85,8 @@ def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_s
     import numpy as np
     import torch
 
-    from benchmarks.harness import METHODS, _patch_stock_splatfacto, build_config
+    from benchmarks.child import _patch_stock_splatfacto
+    from benchmarks.methods import METHODS, build_config
 
     base = METHODS[method].base
     if base in ("splatfacto", "peer"):
@@ -185,7 +186,7 @@ def evaluate(args) -> int:
 
     import torch
 
-    from benchmarks.harness import protocol_scores
+    from benchmarks.child import protocol_scores
 
     run_dir = Path(args.run_dir)
     state = _state(run_dir)
@@ -223,7 +224,7 @@ def record(args) -> int:
     """The run as a docs/benchmarks.json record: train wall time summed over segments, PSNR at each milestone."""
     import datetime as _dt
 
-    from benchmarks.harness import _git_commit, machine_description
+    from benchmarks.runner import _git_commit, machine_description
 
     run_dir = Path(args.run_dir)
     state = _state(run_dir)

@@ -13,7 +13,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.harness import load_records, merge_records, write_outputs  # noqa: E402
+from benchmarks.records import load_records, merge_records, write_outputs  # noqa: E402
 
 COMMANDS = {
     "train_eval": "python3 benchmarks/train_eval.py --scene <scene> --methods <method> --steps <steps> --protocol-steps 128",

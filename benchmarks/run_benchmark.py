@@ -6,7 +6,7 @@
     python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --dry-run                # list the runs
     python benchmarks/run_benchmark.py --merge gpu_out/benchmarks.json --out docs/benchmarks      # fetched records
 
-Each run trains in its own subprocess (see benchmarks/harness.py); records merge into the existing JSON
+Each run trains in its own subprocess (see benchmarks/runner.py); records merge into the existing JSON
 (same (scene, method, device, steps, tag) replaced, others kept) and the markdown is regenerated after every run.
 """
 
@@ -18,7 +18,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # `python benchmarks/run_benchmark.py` from anywhere
     sys.path.insert(0, str(REPO))
 
-from benchmarks import harness  # noqa: E402
+from benchmarks.records import load_records, merge_records, write_outputs  # noqa: E402
+from benchmarks.runner import run_grid  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -62,21 +63,21 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     out = args.out if args.out.is_absolute() else Path.cwd() / args.out
     if args.merge:
-        recs = harness.load_records(out.with_suffix(".json"))
+        recs = load_records(out.with_suffix(".json"))
         for f in args.merge:
-            recs = harness.merge_records(recs, harness.load_records(f))
-        _, m = harness.write_outputs(recs, out)
+            recs = merge_records(recs, load_records(f))
+        _, m = write_outputs(recs, out)
         print(f"{len(recs)} records -> {out.with_suffix('.json')}, {m}")
         return 0
     if args.render_only:
-        recs = harness.load_records(out.with_suffix(".json"))
-        j, m = harness.write_outputs(recs, out)
+        recs = load_records(out.with_suffix(".json"))
+        j, m = write_outputs(recs, out)
         print(f"{len(recs)} records -> {m}")
         return 0
     if args.grid is None:
         ap.error("--grid is required (unless --render-only)")
     command = "python benchmarks/run_benchmark.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    harness.run_grid(
+    run_grid(
         args.grid,
         out,
         args.work_dir,

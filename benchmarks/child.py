@@ -1,0 +1,325 @@
+"""One benchmark run inside its child process: ``python -m benchmarks.harness child SPEC RESULT``.
+
+:func:`run_child` trains in-process exactly as ``ns-train`` does, then measures on the test split (the NeRF-W
+protocol, render FPS, memory, transient-mask scores; see :mod:`benchmarks.runner`) and returns the result
+record. With ``WILLAGS_BENCH_RENDERS`` set, a run also writes its pictures (test right halves, training masks).
+"""
+
+import json
+import os
+import resource
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+from benchmarks.methods import METHODS, build_config
+from benchmarks.records import _json_default
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        import torch
+
+        torch.cuda.synchronize()
+
+
+def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, float]:
+    """Median ms per `model.get_outputs` over up to n_views test cameras (eval, no grad, one fixed latent)."""
+    import torch
+
+    dev = str(model.device)
+    model.eval()
+    appearance = getattr(model.config, "appearance", "sh") == "willags"
+    if appearance:
+        model.render_latent = model.default_latent()
+    times = []
+    try:
+        with torch.no_grad():
+            for i in range(min(max(1, n_views), len(cameras))):
+                cam = cameras[i : i + 1].to(model.device)
+                model.get_outputs(cam)  # warm-up: allocations, f_d of the fixed latent
+                for _ in range(repeats):
+                    _sync(dev)
+                    t = time.perf_counter()
+                    model.get_outputs(cam)
+                    _sync(dev)
+                    times.append(time.perf_counter() - t)
+    finally:
+        if appearance:
+            model.render_latent = None
+    ms = 1e3 * statistics.median(times)
+    return {"render_ms": ms, "fps": 1e3 / ms}
+
+
+def _peak_rss_gb() -> float:
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
+    return kb / 1024**2
+
+
+def _patch_stock_splatfacto() -> list[str]:
+    """Stock splatfacto offline: LPIPS would download AlexNet weights (unused here: the protocol scores LPIPS
+    through the model's own metric, which splatfacto lacks); get_viewmat's torch.compile is replaced by the same
+    maths (benchmarks/gpu_suite.py does the same)."""
+    import torch
+    import torchmetrics.image.lpip as tm_lpip
+    from nerfstudio.models import splatfacto as sf
+
+    from willags_ns.model import _lpips_weights_cached, viewmat_from_c2w
+
+    patches = []
+    if not _lpips_weights_cached():
+
+        class _NoLPIPS(torch.nn.Module):
+            def __init__(self, *a, **k):
+                super().__init__()
+
+        tm_lpip.LearnedPerceptualImagePatchSimilarity = _NoLPIPS
+        patches.append("LPIPS stubbed (no AlexNet weights)")
+    sf.get_viewmat = viewmat_from_c2w
+    patches.append("get_viewmat without torch.compile")
+    return patches
+
+
+def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
+    """The NeRF-W protocol on the test split of a set-up trainer (spec: protocol_steps, protocol_lr,
+    max_test_images, oracle, train_views): aggregate scores, per_image, eval_s and the train-view scores."""
+    from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
+    from willags_ns.model import image_as_float
+
+    dm = trainer.pipeline.datamanager
+    model = trainer.pipeline.model
+    if METHODS[spec["method"]].base == "peer":
+        from benchmarks.peer import PeerForProtocol
+
+        model = PeerForProtocol(model)
+    model.eval()
+    # the test images as the model sees them: nerfstudio's cached (undistorted) images and updated cameras
+    images = [image_as_float(d["image"]) for d in dm.cached_eval]
+    names = [Path(p).name for p in dm.eval_dataset.image_filenames]
+    t2 = time.perf_counter()
+    proto = EvalProtocolConfig(
+        steps=spec["protocol_steps"],
+        lr=spec["protocol_lr"],
+        max_images=spec["max_test_images"],
+        oracle=bool(spec.get("oracle", False)),
+    )
+    shown: list[tuple[Any, Any]] = []
+    renders_dir = os.environ.get(RENDERS_ENV)
+
+    def keep(i, pred, gt):
+        w = pred.shape[1]
+        shown.append((gt[:, w // 2 :].cpu(), pred[:, w // 2 :].cpu()))
+
+    agg, per_image = evaluate_model(
+        model, dm.eval_dataset.cameras, images, proto, names, on_prediction=keep if renders_dir else None
+    )
+    if renders_dir and shown:
+        save_right_halves(Path(renders_dir) / f"{_run_name(spec)}.png", shown, [r["psnr"] for r in per_image])
+    rec: dict[str, Any] = dict(agg)
+    rec["per_image"] = per_image
+    rec["eval_s"] = time.perf_counter() - t2
+    if int(spec.get("train_views", 0)) != 0:
+        train_imgs = [image_as_float(d["image"]) for d in dm.cached_train]
+        rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
+    rec["num_test_images"] = len(images)
+    return rec
+
+
+RENDERS_ENV = "WILLAGS_BENCH_RENDERS"
+"""When set to a folder, each run writes <scene>-<method>[-<tag>].png there: the right halves of its test images
+(ground truth above, the protocol's render below, PSNR on each), for looking at what a number means."""
+
+
+def _run_name(spec: dict[str, Any]) -> str:
+    """<scene>-<method>[-<tag>]: how a run's pictures are named."""
+    return f"{spec['scene_name']}-{spec['method']}{('-' + spec['tag']) if spec.get('tag') else ''}"
+
+
+def save_two_row_sheet(
+    path: Path, columns: list[tuple[Any, Any]], labels: list[str] | None = None, height: int = 200
+) -> Path:
+    """A contact sheet of image pairs [H, W, 3] in [0, 1]: one column per pair (first above, second below), each
+    scaled to `height` pixels; `labels[i]` written on column i's lower image."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    def tile(t):
+        im = Image.fromarray((t.clamp(0, 1).numpy() * 255).astype(np.uint8))
+        return im.resize((max(1, round(im.width * height / im.height)), height), Image.Resampling.BILINEAR)
+
+    tiles = [(tile(a), tile(b)) for a, b in columns]
+    sheet = Image.new("RGB", (sum(a.width for a, _ in tiles), 2 * height), "white")
+    draw = ImageDraw.Draw(sheet)
+    x = 0
+    for i, (a, b) in enumerate(tiles):
+        sheet.paste(a, (x, 0))
+        sheet.paste(b, (x, height))
+        if labels is not None and i < len(labels):
+            draw.text((x + 4, height + 4), labels[i], fill=(255, 255, 0))
+        x += a.width
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(path)
+    return path
+
+
+def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[float], height: int = 200) -> Path:
+    """(ground truth, render) right halves [H, W, 3], one column per test image, the render's PSNR on it."""
+    return save_two_row_sheet(path, pairs, [f"{v:.2f} dB" for v in psnrs], height)
+
+
+def save_masks(path: Path, pairs: list[tuple[Any, Any]], height: int = 200) -> Path:
+    """Training images [H, W, 3] in [0, 1] above the same images with their transient pixels (mask [h, w] bool,
+    True = static, any resolution) tinted red: what the model was not taught from."""
+    import torch.nn.functional as F
+
+    columns = []
+    for img, static in pairs:
+        m = F.interpolate(static[None, None].float(), size=img.shape[:2], mode="nearest")[0, 0, ..., None]
+        columns.append((img, img * m + (0.35 * img + 0.65 * img.new_tensor([1.0, 0.0, 0.0])) * (1 - m)))
+    return save_two_row_sheet(path, columns, height=height)
+
+
+def training_mask(model, idx: int):
+    """Training image `idx`'s last mask as training used it (True = supervised): the perceptual mask with the SfM
+    safeguard applied."""
+    from willags_ns.static_support import apply_support
+
+    raw = model._mask_cache[idx]
+    return apply_support(raw, model.static_support(idx, *raw.shape))
+
+
+def static_observation_scores(model) -> dict[str, Any]:
+    """ "Static observations masked": the share of the training images' observations of SfM points with a track of
+    >= 5 training images that the last mask of each image flags as transient (each of them shows static scene, so
+    0 is right), for the mask as training used it and for the perceptual mask alone (before the safeguard)."""
+    from willags_ns.static_support import masked_share, observations_masked
+
+    used, raw = [], []
+    for idx, mask in model._mask_cache.items():
+        obs = model.sfm_observations[idx]
+        raw.append(observations_masked(mask, obs, 5))
+        used.append(observations_masked(training_mask(model, idx), obs, 5))
+    return {
+        "static_obs_masked": masked_share(used),
+        "static_obs_masked_perceptual": masked_share(raw),
+        "static_obs_count": sum(t for _, t in used),
+        "static_obs_images": len(used),
+    }
+
+
+def run_child(spec: dict[str, Any]) -> dict[str, Any]:
+    """Train and evaluate one run in this process; returns the result record (see the module docstring)."""
+    import random
+
+    import numpy as np
+    import torch
+
+    threads = int(spec.get("threads") or 0)
+    if threads > 0:
+        torch.set_num_threads(threads)
+    device = spec["device"]
+    rec: dict[str, Any] = {}
+    base = METHODS[spec["method"]].base
+    patches = _patch_stock_splatfacto() if base in ("splatfacto", "peer") else []
+    if base == "peer":
+        from benchmarks.peer import patch_peer
+
+        patches += patch_peer()
+    data = Path(spec["data"]) if spec.get("data") else None
+    config = build_config(
+        spec["method"], spec["steps"], device, data, spec.get("downscale"), spec["schedule"], Path(spec["work_dir"])
+    )
+    config.set_timestamp()
+    config.timestamp = "run"
+    config.machine.seed = int(spec.get("seed", config.machine.seed))
+    config.save_config()
+    seed = config.machine.seed
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+    t0 = time.perf_counter()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup(test_mode="test")
+    dm = trainer.pipeline.datamanager
+    _ = dm.cached_train  # load + undistort now, not inside the timed loop
+    setup_s = time.perf_counter() - t0
+    auto = getattr(trainer.pipeline, "auto_config_summary", None)
+    if auto is not None:  # willags-auto: what the inspector chose (its time is part of setup_s)
+        rec["auto_config"] = {k: auto.get(k) for k in ("applied", "settings", "switches", "error")}
+        rec["auto_inspect_s"] = (auto.get("report") or {}).get("wall_s")
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    _sync(device)
+    ru0 = resource.getrusage(resource.RUSAGE_SELF)
+    load0 = os.getloadavg()[0]
+    t1 = time.perf_counter()
+    trainer.train()
+    _sync(device)
+    train_s = time.perf_counter() - t1
+    ru1 = resource.getrusage(resource.RUSAGE_SELF)
+    # CPU seconds of this process while training, and the machine's load: wall time on a shared CPU machine is
+    # only comparable between runs when the load was the same
+    rec["train_cpu_s"] = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
+    rec["load_avg_1m"] = [load0, os.getloadavg()[0]]
+    if device == "cuda":
+        rec["peak_mem_gb"] = torch.cuda.max_memory_allocated() / 1024**3
+        rec["peak_mem_kind"] = "cuda max_memory_allocated (training)"
+
+    model = trainer.pipeline.model
+    rec.update(protocol_scores(trainer, spec))
+    rec.update(render_fps(model, dm.eval_dataset.cameras, spec["fps_views"]))
+    masks = getattr(model, "_mask_cache", None)
+    if masks and getattr(model, "sfm_observations", None) is not None:
+        rec.update(static_observation_scores(model))
+    if os.environ.get(RENDERS_ENV) and masks:
+        from willags_ns.model import image_as_float
+
+        picks = sorted(masks)[:: max(1, len(masks) // 4)][:4]
+        imgs = [image_as_float(dm.cached_train[i]["image"]) for i in picks]
+        save_masks(
+            Path(os.environ[RENDERS_ENV]) / f"{_run_name(spec)}-masks.png",
+            [(im[..., :3].cpu(), training_mask(model, i).cpu()) for im, i in zip(imgs, picks, strict=True)],
+        )
+
+    masks_dir = dm.train_dataset.metadata.get("masks_gt_dir")
+    if masks_dir is None and dm.train_dataset.image_filenames:
+        guess = Path(dm.train_dataset.image_filenames[0]).parent.parent / "masks_gt"
+        masks_dir = guess if guess.is_dir() else None
+    if masks_dir is not None and getattr(model.config, "appearance", "sh") == "willags":
+        from willags_ns.eval.mask_eval import mask_scores
+
+        t3 = time.perf_counter()
+        ms = mask_scores(model, dm.train_dataset, Path(masks_dir), max_images=spec["mask_max_images"])
+        rec["mask_eval_s"] = time.perf_counter() - t3
+        rec["mask_status"] = ms.pop("status")
+        for k, v in ms.items():
+            rec[f"mask_{k}"] = v
+    elif masks_dir is not None:
+        rec["mask_status"] = "n/a (no transient mask in this method)"
+
+    if device != "cuda":
+        rec["peak_mem_gb"] = _peak_rss_gb()
+        rec["peak_mem_kind"] = "process max RSS (training + evaluation)"
+    img0 = dm.cached_train[0]["image"]
+    rec.update(
+        {
+            "num_gaussians": int(model.num_points),
+            "train_s": train_s,
+            "setup_s": setup_s,
+            "s_per_step": train_s / max(1, spec["steps"]),
+            "image_hw": [int(img0.shape[0]), int(img0.shape[1])],
+            "num_train_images": len(dm.train_dataset),
+            "patches": patches,
+            "threads": torch.get_num_threads(),
+        }
+    )
+    return rec
+
+
+def _child_main(spec_path: str, result_path: str) -> int:
+    spec = json.loads(Path(spec_path).read_text())
+    rec = run_child(spec)
+    Path(result_path).write_text(json.dumps(rec, default=_json_default))
+    return 0
