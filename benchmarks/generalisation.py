@@ -92,7 +92,7 @@ def scene_rows(records: list[dict[str, Any]]) -> list[str]:
 
 def static_obs_rows(records: list[dict[str, Any]]) -> list[str]:
     """Per real scene and method: the share of static observations the mask flags, as training used the mask and
-    for the perceptual mask alone (GPU fidelity runs and the CPU runs of configs/benchmark_cpu_support.json)."""
+    for the perceptual mask alone (every record that measured it)."""
     rows = []
     for r in sorted(records, key=lambda r: (r["scene"], r["device"], r["method"], str(r.get("tag")))):
         if r.get("static_obs_masked") is None or r["scene"] not in REAL:
