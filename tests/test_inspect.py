@@ -109,14 +109,18 @@ def test_thresholds_move_the_recommendation(scenes):
     assert rec["appearance_latent"]["on"] and rec["preset"]["value"] == "willags"
 
 
-def test_fallback_without_points(scenes, tmp_path):
-    """A transforms.json scene without a ply: per-image colour statistics, transients not measured, said so."""
-    src = scenes[(True, False)]
+def _without_ply(src, dst):
+    """A copy of the transforms.json scene `src` in `dst` without its ply (frames point at src's images)."""
     meta = json.loads((src / "transforms.json").read_text())
     meta.pop("ply_file_path")
     meta["frames"] = [{**f, "file_path": str(src / f["file_path"])} for f in meta["frames"]]
-    (tmp_path / "transforms.json").write_text(json.dumps(meta))
-    report = inspect_scene(InspectConfig(data=tmp_path))
+    (dst / "transforms.json").write_text(json.dumps(meta))
+    return dst
+
+
+def test_fallback_without_points(scenes, tmp_path):
+    """A transforms.json scene without a ply: per-image colour statistics, transients not measured, said so."""
+    report = inspect_scene(InspectConfig(data=_without_ply(scenes[(True, False)], tmp_path)))
     assert report["evidence"]["method"] == "global-color-stats"
     assert report["evidence"]["transient_score"] is None
     assert report["recommendation"]["mask"]["on"] and "not measured" in report["recommendation"]["mask"]["reason"]
@@ -335,12 +339,7 @@ def test_background_ignores_points_folded_in_by_distortion():
 
 
 def test_without_points_the_sky_is_not_measured(scenes, tmp_path):
-    src = scenes[(True, False)]
-    meta = json.loads((src / "transforms.json").read_text())
-    meta.pop("ply_file_path")
-    meta["frames"] = [{**f, "file_path": str(src / f["file_path"])} for f in meta["frames"]]
-    (tmp_path / "transforms.json").write_text(json.dumps(meta))
-    report = inspect_scene(InspectConfig(data=tmp_path))
+    report = inspect_scene(InspectConfig(data=_without_ply(scenes[(True, False)], tmp_path)))
     assert report["evidence"]["background_score"] is None
     sky = report["recommendation"]["sky"]
     assert sky["measured"] is False and sky["on"] is False and "not measured" in sky["reason"]
