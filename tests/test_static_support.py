@@ -133,3 +133,21 @@ def test_transforms_scenes_have_no_tracks(shared_data, scene):
 
     train = WillagsDataParserConfig(data=shared_data / scene).setup().get_dataparser_outputs("train")
     assert SFM_OBSERVATIONS_KEY not in train.metadata
+
+
+def test_open_background_is_what_hangs_above_the_skyline():
+    from willags_ns.static_support import open_background_map
+
+    rng = np.random.default_rng(0)
+    # a "building" of keypoints filling rows 0.4-0.7 of the image across its width, nothing below or above
+    uv = np.stack([rng.uniform(0, 1, 3000), rng.uniform(0.4, 0.7, 3000)], 1)
+    obs = np.concatenate([uv, np.full((3000, 1), 6.0)], 1).astype(np.float32)
+    m = open_background_map(obs, 320, 320, grid=32)
+    assert m.shape == (32, 32)
+    assert m[:11].all()  # above the building (rows < 0.4 * 32, less the one-cell dilation)
+    assert not m[13:].any()  # the building and the plaza under it (no points there either) are not open
+    # a column without keypoints takes the others' skyline, not the whole column
+    obs2 = obs[(obs[:, 0] < 0.45) | (obs[:, 0] > 0.55)]
+    m2 = open_background_map(obs2, 320, 320, grid=32)
+    assert m2[:11, 16].all() and not m2[13:, 16].any()
+    assert not open_background_map(np.zeros((0, 3), np.float32), 320, 240).any()

@@ -100,3 +100,29 @@ def masked_share(pairs: list[tuple[int, int]]) -> float | None:
     """Share of observations flagged over (flagged, total) pairs, or None when there are none."""
     total = sum(t for _, t in pairs)
     return None if total == 0 else sum(f for f, _ in pairs) / total
+
+
+def open_background_map(obs: np.ndarray, width: int, height: int, grid: int = 32) -> Bool[Tensor, "rows cols"]:
+    """Cells [rows, cols] of one image above the scene's skyline: in each column, the cells above the first cell
+    that an SfM observation covers (any track length; covered cells dilated by one). A column without any covered
+    cell takes the median skyline of the others; an image without observations has no open cells.
+
+    What hangs above everything SfM reconstructed is open sky or far background. A textureless plaza, a lawn or a
+    crowd below the horizon has no points either, but it lies under the scene's covered cells in its column and is
+    not open. The sky's region option (appearance/sky.py) composites the learnt sky only here while training,
+    keeping splatfacto's random background (which forces the Gaussians to be opaque) everywhere else."""
+    rows, cols = grid_shape(width, height, grid)
+    covered = torch.zeros(rows, cols)
+    if len(obs):
+        o = torch.as_tensor(obs[:, :2], dtype=torch.float32)
+        o = o[(o[:, 0] >= 0) & (o[:, 0] < 1) & (o[:, 1] >= 0) & (o[:, 1] < 1)]
+        r = (o[:, 1] * rows).long().clamp_(0, rows - 1)
+        c = (o[:, 0] * cols).long().clamp_(0, cols - 1)
+        covered.view(-1)[r * cols + c] = 1.0
+    covered = F.max_pool2d(covered[None, None], 3, stride=1, padding=1)[0, 0] > 0
+    has = covered.any(dim=0)  # [cols]
+    if not bool(has.any()):
+        return torch.zeros(rows, cols, dtype=torch.bool)
+    top = covered.float().argmax(dim=0)  # first covered row of each column
+    top = torch.where(has, top, top[has].median())
+    return torch.arange(rows)[:, None] < top[None, :]
