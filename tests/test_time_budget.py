@@ -1,6 +1,7 @@
 """The time budget (willags_ns/time_budget.py, willags_ns/trainer.py): the choice before training (pure, fake step
 times), the adaptation while training (fake clock), bad values, the table against its records, one real CPU run."""
 
+import dataclasses
 import json
 import math
 import statistics
@@ -34,8 +35,14 @@ CAPS = {"willags": 30000, "willags-lite": 7000}
 # ---------------------------------------------------------------------------------------------- the choice (pure)
 
 
+CURRENT = tuple(dataclasses.replace(p, measured_as=p.preset) for p in TABLE)
+"""The table as if today's presets had measured its points (the decision logic, away from the records' gaps)."""
+FAKE = {"willags-lite": 0.1, "willags": 0.3}
+"""Fake CPU step times (seconds)."""
+
+
 def test_tiny_cpu_budget_picks_lite_and_few_steps():
-    c = choose(30.0, "cpu", CAPS, step_s={"willags-lite": 0.1, "willags": 0.3})
+    c = choose(30.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
     assert c.preset == "willags-lite"
     assert c.steps == 300  # 30 s / 0.1 s
     assert c.point is not None and c.point.steps == 300  # lite's 300-step point takes 30 s: it fits, willags' do not
@@ -44,26 +51,42 @@ def test_tiny_cpu_budget_picks_lite_and_few_steps():
 
 
 def test_budget_below_every_point_takes_the_quickest_preset():
-    c = choose(5.0, "cpu", CAPS, step_s={"willags-lite": 0.1, "willags": 0.3})
+    c = choose(5.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
     assert c.preset == "willags-lite" and c.steps == 50 and c.point is None
     assert "no measured point fits" in c.reason
 
 
 def test_large_cpu_budget_picks_the_default_with_its_full_step_count():
-    c = choose(600 * 60.0, "cpu", CAPS, step_s={"willags-lite": 0.1, "willags": 0.3})
+    c = choose(600 * 60.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
     assert c.preset == "willags"
     assert c.steps == 30000  # 36000 s / 0.3 s = 120000 steps, capped at the preset's default
     assert c.point is not None and c.point.steps == max(p.steps for p in TABLE if p.device == "cpu")
 
 
 def test_gpu_switches_preset_where_the_default_first_fits():
-    """On the GPU table, willags' first point is 5000 steps at 14.23 ms/step = 71.2 s: below it only lite's points
-    fit, from it on willags' 5000-step point (22.24 dB) beats every lite point."""
+    """With lite's points counted, willags' first point is 5000 steps at 14.23 ms/step = 71.2 s: below it only lite's
+    points fit, from it on willags' 5000-step point (22.24 dB) beats every lite point."""
     t = 5000 * STEP_TIMES[("willags", "cuda")].seconds
-    below, above = choose(t - 1, "cuda", CAPS), choose(t + 1, "cuda", CAPS)
+    below = choose(t - 1, "cuda", CAPS, current_only=False)
+    above = choose(t + 1, "cuda", CAPS, current_only=False)
     assert below.preset == "willags-lite" and above.preset == "willags"
     assert below.keep_resolution_schedule and above.keep_resolution_schedule  # GPU points: the stock schedule
     assert below.steps <= CAPS["willags-lite"]
+
+
+def test_points_of_earlier_configurations_do_not_decide():
+    """The real table: lite's points are willags-lite-v0's and the CPU's willags points the paper configuration's,
+    so on the GPU willags is the only preset with points, and on the CPU no point counts at all."""
+    for budget in (30.0, 60.0, 600.0, 36000.0):
+        gpu = choose(budget, "cuda", CAPS)
+        assert gpu.preset == "willags" and "willags-lite-v0" in gpu.reason
+        assert gpu.steps == plan_steps(budget, 0, 0, STEP_TIMES[("willags", "cuda")].seconds, CAPS["willags"])
+        cpu = choose(budget, "cpu", CAPS)
+        assert (cpu.preset, cpu.point, cpu.steps, cpu.keep_resolution_schedule) == ("willags", None, 30000, True)
+        assert math.isnan(cpu.step_s)  # no plan before the run has measured its own step time
+        assert "willags-paper" in cpu.reason and "willags-lite-v0" in cpu.reason
+    text = tb.format_choice(choose(60.0, "cpu", CAPS), 1.0, "cpu")
+    assert "set from this run's own step time over steps 20-70" in text
 
 
 def test_caps_limit_the_steps():
@@ -264,8 +287,6 @@ def test_preset_defaults_are_the_method_configs():
 
 def test_presets_differ_only_in_model_steps_and_schedules():
     """apply_budget switches a preset by swapping the model config and the step cap: nothing else may differ."""
-    import dataclasses
-
     from willags_ns import method_configs
 
     a, b = method_configs.willags_config(), method_configs.willags_lite_config()
@@ -281,6 +302,25 @@ def test_presets_differ_only_in_model_steps_and_schedules():
             assert dataclasses.replace(group["scheduler"], max_steps=0) == dataclasses.replace(
                 other["scheduler"], max_steps=0
             ), name
+
+
+def test_apply_budget_switches_the_preset_in_the_config(monkeypatch):
+    """With points of today's lite (here: the table's, relabelled), a tiny CPU budget swaps the model config for the
+    lite preset's, keeps the user's settings, caps the steps at lite's default and trains at full resolution."""
+    from willags_ns import method_configs
+    from willags_ns.trainer import apply_budget
+
+    monkeypatch.setattr(tb, "TABLE", CURRENT)
+    monkeypatch.setattr(tb, "STEP_TIMES", {k: dataclasses.replace(v, measured_as=k[0]) for k, v in STEP_TIMES.items()})
+    config = method_configs.willags_config()
+    config.machine.device_type = "cpu"
+    config.pipeline.model.backend = "torch"
+    choice, notes = apply_budget(config, 20.0)
+    model = config.pipeline.model
+    assert choice.preset == "willags-lite" and model.use_vae and model.backend == "torch"
+    assert model.num_downscales == 0 and config.max_num_iterations == CAPS["willags-lite"]
+    assert config.optimizers["means"]["scheduler"].max_steps == choice.steps < 200  # 20 s at 0.1335 s/step
+    assert config.method_name == "willags" and "your settings kept: backend" in notes[0]
 
 
 def test_switching_preset_keeps_the_users_settings():

@@ -84,11 +84,12 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     """Ctrl-C finishes the current step, writes a checkpoint and exits; resume with --load-dir. A second Ctrl-C
     interrupts at once."""
     time_budget_minutes: float | None = None
-    """Train within this many minutes of training steps (None or 0: off; set-up not counted). Before training the
-    preset (willags-lite or willags), the step count and the resolution schedule are chosen from measured points
-    (willags_ns/time_budget.py); after steps 20-70 the run's own step time sets the last step (never past the
-    preset's default), the learning-rate schedules end there, and the choice is printed and kept in
-    time_budget.json. Other willags methods keep their model; only their step count follows the budget."""
+    """Train within this many minutes of training steps (None or 0: off; set-up not counted). Before training
+    `ns-train willags` chooses the preset (willags-lite or willags), the step count and the resolution schedule from
+    measured points (willags_ns/time_budget.py); after steps 20-70 the run's own step time sets the last step (never
+    past the preset's default), the learning-rate schedules end there, and the choice is printed and kept in
+    time_budget.json. Other methods (willags-lite named explicitly too) keep their model; only their step count
+    follows the budget."""
 
 
 def precheck_dataparser_config(datamanager_config) -> None:

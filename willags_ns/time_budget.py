@@ -2,10 +2,11 @@
 
 Two decisions, both from measurements:
 
-1. **Before training** (:func:`choose`), from the table of measured points below: for each preset, the steps that fit
+1. **Before training** (:func:`choose`; for ``ns-train willags``: a method named explicitly, willags-lite included,
+   keeps its model), from the table of measured points below: for each preset, the steps that fit
    in the budget at its step time; among the measured points that fit, the one with the highest right-half PSNR
-   decides the preset. The run then reproduces that point's resolution schedule (splatfacto's stock one on the GPU,
-   full resolution from the first step on the CPU, as measured). The preset cannot change later: willags-lite and
+   decides the preset. The run then reproduces that point's resolution schedule (splatfacto's stock one on the GPU
+   points, full resolution from the first step on the CPU ones). The preset cannot change later: willags-lite and
    willags build different appearance networks.
 2. **While training** (:class:`TimeBudget`), from the run's own clock: the wall time of steps 20-70 (after the first
    steps' warm-up: allocations, kernel caches) gives the step time on this machine and scene; the last step is set so
@@ -22,10 +23,14 @@ compile) nor the final checkpoint.
 
 - the PSNR of a point is the NeRF-W protocol's right-half PSNR on one reference scene per device class (the GPU:
   fox-wild, the only scene where both presets were measured; the CPU: the embedded default scene);
-- the willags-lite points were measured as ``willags-lite-v0``, the fast preset before the modulated colour path
-  (the paper's colour decoder over a tri-plane field); today's willags-lite has not been measured yet. On the CPU,
-  the willags points were measured as the default of that time, the paper's configuration (records relabelled
-  ``willags-paper``);
+- points of an earlier configuration are in the table (cited) but do not decide (``choose(current_only=True)``):
+  the willags-lite points were measured as ``willags-lite-v0``, the fast preset before the modulated colour path
+  (the paper's colour decoder over a tri-plane field), and the CPU's willags points as the default of that time, the
+  paper's configuration (records relabelled ``willags-paper``). Neither tells today's preset's PSNR or step cost.
+  So, at this commit: on the GPU the choice is always willags (the only preset with points of its own), its steps
+  planned from its step time and then from the run's clock; on the CPU there is no point of today's presets, so
+  willags with its own schedule and the steps from the run's clock alone. The preset choice starts to decide once
+  today's willags-lite has records (the long runs behind benchmarks/curves.py): add them here;
 - GPU step times are of runs alone on one H100 (the other fox-wild runs of willags shared the GPU with 4-12 others,
   so their times are not step costs); the willags step time is reichstag's (splatfacto's step costs 12.7 ms alone on
   fox-wild and 12.2 ms on reichstag, so the step cost carries between these scenes);
@@ -46,7 +51,11 @@ from willags_ns.checks import WillagsTrainingError
 
 OPTION = "--pipeline.time-budget-minutes"
 PRESETS = ("willags-lite", "willags")
-"""The presets the budget chooses between; other willags methods keep their model, only the step count adapts."""
+"""The presets the budget chooses between, for `ns-train willags`; every other method (willags-lite named explicitly
+too) keeps its model and only its step count follows the budget."""
+DEFAULT_PRESET = "willags"
+"""The method whose preset the budget chooses, and the preset when no point of today's presets was measured on the
+device (the best measured configuration)."""
 
 WARMUP_STEPS = 20
 """Steps before the step time is measured (the first steps allocate memory and fill kernel caches)."""
@@ -100,6 +109,8 @@ class StepTime:
     """train_s / steps of the run(s) below."""
     source: str
     """Where it comes from (scene, method, steps, tag, machine)."""
+    measured_as: str
+    """The method name of the records (as MeasuredPoint.measured_as)."""
 
 
 _LITE_V0 = "willags-lite-v0"
@@ -130,16 +141,20 @@ TABLE: tuple[MeasuredPoint, ...] = (
 
 STEP_TIMES: dict[tuple[str, str], StepTime] = {
     ("willags-lite", "cuda"): StepTime(
-        0.0257, "fox-wild, willags-lite-v0, 2000 steps, tags h100-seq and h100-seq2 (51.5 and 51.2 s), alone on an H100"
+        0.0257,
+        "fox-wild, willags-lite-v0, 2000 steps, tags h100-seq and h100-seq2 (51.5 and 51.2 s), alone on an H100",
+        _LITE_V0,
     ),
     ("willags", "cuda"): StepTime(
-        0.01423, "reichstag, willags, 30000 steps, tag h100-30k-s7 (426.9 s), alone on an H100"
+        0.01423, "reichstag, willags, 30000 steps, tag h100-30k-s7 (426.9 s), alone on an H100", "willags"
     ),
     ("willags-lite", "cpu"): StepTime(
-        0.1335, "default scene, willags-lite-v0, 300 steps (40.1 s), 2-core CPU, load 2.1-2.2"
+        0.1335, "default scene, willags-lite-v0, 300 steps (40.1 s), 2-core CPU, load 2.1-2.2", _LITE_V0
     ),
     ("willags", "cpu"): StepTime(
-        0.3305, "default scene, willags-paper (then 'willags'), 600 steps (198.3 s), 2-core CPU, load 1.5-2.0"
+        0.3305,
+        "default scene, willags-paper (then 'willags'), 600 steps (198.3 s), 2-core CPU, load 1.5-2.0",
+        "willags-paper",
     ),
 }
 """Seconds per step of each preset on each device class, before this run has measured its own."""
@@ -206,23 +221,39 @@ def choose(
     device: str,
     max_steps: Mapping[str, int],
     step_s: Mapping[str, float] | None = None,
-    table: tuple[MeasuredPoint, ...] = TABLE,
+    table: tuple[MeasuredPoint, ...] | None = None,
     presets: tuple[str, ...] = PRESETS,
+    current_only: bool = True,
 ) -> BudgetChoice:
     """The preset and the step count for a budget of ``budget_s`` seconds on ``device`` ("cuda" | "cpu").
 
     A point of the table fits when its steps at its preset's step time (``step_s``: seconds per step by preset;
-    default the table's STEP_TIMES) take no longer than the budget. The fitting point with the highest PSNR picks the
-    preset; without one (a budget below every measured point), the preset with the cheapest measured point (the fast
-    one). Steps: as many as the budget affords at that preset's step time, at most ``max_steps[preset]``.
+    default the table's STEP_TIMES) take no longer than the budget (``table``: default TABLE). The fitting point with the highest PSNR picks the
+    preset; without one (a budget below every measured point), the preset with the cheapest measured point. Steps: as
+    many as the budget affords at that preset's step time, at most ``max_steps[preset]``.
+
+    ``current_only``: only points (and step times) measured with today's configuration of their preset take part;
+    those of an earlier configuration (``measured_as`` another method: willags-lite-v0, the paper configuration) say
+    nothing about today's preset, neither its PSNR nor its step cost. With no point left, the default preset, its own
+    resolution schedule, and no step plan before the run has measured its own step time (``step_s`` NaN).
     """
     if not budget_s > 0:
         raise ValueError(f"budget must be > 0 s (got {budget_s})")
+    candidates = [p for p in (TABLE if table is None else table) if p.device == device and p.preset in presets]
+    stale = sorted({p.measured_as for p in candidates if p.measured_as != p.preset})
+    if current_only:
+        candidates = [p for p in candidates if p.measured_as == p.preset]
     if step_s is None:
-        step_s = {p: STEP_TIMES[(p, device)].seconds for p in presets if (p, device) in STEP_TIMES}
-    points = [p for p in table if p.device == device and p.preset in presets and p.preset in step_s]
+        known = {p: STEP_TIMES[(p, device)] for p in presets if (p, device) in STEP_TIMES}
+        step_s = {p: t.seconds for p, t in known.items() if t.measured_as == p or not current_only}
+    not_used = f"; points of earlier configurations not used: {', '.join(stale)}" if stale and current_only else ""
+    points = [p for p in candidates if p.preset in step_s]
     if not points:
-        raise ValueError(f"the time-budget table has no point for {presets} on {device!r}")
+        preset = DEFAULT_PRESET
+        own = step_s.get(preset, math.nan)
+        steps = max_steps[preset] if math.isnan(own) else plan_steps(budget_s, 0.0, 0, own, max_steps[preset])
+        why = f"no point of today's presets measured on {device}{not_used}: the default, its own resolution schedule"
+        return BudgetChoice(preset, steps, own, True, None, why, max_steps[preset])
 
     def cost(p: MeasuredPoint) -> float:
         return p.steps * step_s[p.preset]
@@ -251,21 +282,21 @@ def choose(
         step_s=step_s[preset],
         keep_resolution_schedule=best.schedule == "stock",
         point=best if fits else None,
-        reason=why,
+        reason=why + not_used,
         max_steps=max_steps[preset],
     )
 
 
 def fixed_choice(method: str, max_steps: int) -> BudgetChoice:
-    """The budget of a method outside the table (willags-paper, willags-3dgs, ...): its own model and resolution
-    schedule; only the step count follows the budget, from the run's own step time."""
+    """The budget of a method named explicitly (willags-lite, willags-paper, willags-3dgs, ...): its own model and
+    resolution schedule; only the step count follows the budget, from the run's own step time."""
     return BudgetChoice(
         preset=method,
         steps=max_steps,
         step_s=math.nan,
         keep_resolution_schedule=True,
         point=None,
-        reason=f"kept (the table covers {' and '.join(PRESETS)} only); the steps follow the measured step time",
+        reason=f"kept (the preset is chosen for `ns-train {DEFAULT_PRESET}` only); the steps follow the measured step time",
         max_steps=max_steps,
     )
 
@@ -299,8 +330,8 @@ def format_choice(choice: BudgetChoice, budget_min: float, device: str, notes: l
             f"  steps:    {choice.steps} planned at {choice.step_s * 1000:.1f} ms/step{from_table}"
             + f"; at most {choice.max_steps}; re-planned from {measured}"
         )
-    if math.isnan(choice.step_s):
-        sched = f"{choice.preset}'s own"
+    if choice.point is None and math.isnan(choice.step_s):
+        sched = f"{choice.preset}'s own resolution schedule (no measured point to change it)"
     elif choice.keep_resolution_schedule:
         sched = f"splatfacto's resolution schedule kept (the {device} points were measured with it)"
     else:

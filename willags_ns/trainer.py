@@ -21,6 +21,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from willags_ns import time_budget as tb
 from willags_ns.checks import install_cli_excepthook
 from willags_ns.time_budget import (
+    DEFAULT_PRESET,
     OPTION,
     PRESETS,
     BudgetChoice,
@@ -83,7 +84,7 @@ def apply_budget(
     device = device_class(config.machine.device_type)
     method = str(config.method_name)
     notes: list[str] = []
-    if method not in PRESETS:
+    if method != DEFAULT_PRESET:  # a method named explicitly (willags-lite too) keeps its model
         choice = fixed_choice(method, config.max_num_iterations)
     else:
         defaults = {p: preset_defaults(p) for p in PRESETS}
@@ -134,7 +135,9 @@ class WillagsTrainer(Trainer):
             self._budget_record = {
                 "budget_minutes": minutes,
                 "device_class": device,
-                "choice": dataclasses.asdict(choice),
+                "choice": {
+                    k: (None if v != v else v) for k, v in dataclasses.asdict(choice).items()
+                },  # NaN step time -> null
                 "notes": notes,
             }
             if self.local_rank == 0:
