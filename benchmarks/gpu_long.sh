@@ -30,7 +30,7 @@ for run in $LONG_RUNS; do
   IFS=: read -r scene m <<< "$run"
   d=/tmp/long/$scene-$m-s$seed
   ( python3 -m benchmarks.long_run train --method "$m" --data "$root/$scene" --run-dir "$d" --budget-s "$budget" \
-      --steps "$steps" --milestones "$milestones" --seed "$seed" >> "$d.log" 2>&1
+      --steps "$steps" --milestones "$milestones" --seed "$seed" --concurrent "$n" >> "$d.log" 2>&1
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$milestones" >> "$d.log" 2>&1 ) &
 done
 [ $# -gt 0 ] && { GRID=${GRID:-configs/benchmark_gpu_fidelity.json} JOBS=${JOBS:-8} bash benchmarks/gpu_scenes.sh "$out/grid" "$@" > "$out/grid.log" 2>&1 & }

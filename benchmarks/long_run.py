@@ -3,9 +3,11 @@
 One device call lasts 10 minutes and the machine is given back ~30 s after a call, so a 30k-step run is trained
 in segments: each `train` call resumes from the run's newest checkpoint (nerfstudio's --load-dir mechanism:
 parameters, optimiser and scheduler states), trains until its time budget, writes a checkpoint at the end of the
-last step it finished and stops. Milestone checkpoints (--milestones) are kept; `eval` scores each milestone under
-the NeRF-W protocol once. Everything it learns goes into RUN_DIR/state.json (train seconds per segment, steps,
-scores), which `record` turns into a docs/benchmarks.json record.
+last step it finished and stops. Milestone checkpoints (--milestones) are kept, with the train seconds from the
+run's first step to the end of each milestone's step (measured, so a milestone inside a segment has its own time);
+`eval` scores each milestone under the NeRF-W protocol once. Everything it learns goes into RUN_DIR/state.json (train
+seconds per segment and per milestone, runs sharing the GPU per segment, steps, scores), which `record` turns into a
+docs/benchmarks.json record (benchmarks/curves.py draws PSNR vs time from the milestones).
 
     python -m benchmarks.long_run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
     python -m benchmarks.long_run eval   --run-dir /tmp/lr/willags
@@ -132,7 +134,14 @@ def train(args) -> int:
     trainer = _setup(args.method, Path(args.data), run_dir, args.steps, args.seed, start, "val")
     _ = trainer.pipeline.datamanager.cached_train
     setup_s = time.perf_counter() - t_setup
-    seg = {"start_step": (start + 1) if start is not None else 0, "setup_s": setup_s, "budget_s": args.budget_s}
+    seg = {
+        "start_step": (start + 1) if start is not None else 0,
+        "setup_s": setup_s,
+        "budget_s": args.budget_s,
+        "concurrent_runs": args.concurrent,
+    }
+    before_s = sum(s["train_s"] for s in state["segments"])  # train seconds of the earlier segments
+    milestone_s = state.setdefault("milestone_train_s", {})
     t0 = [0.0]
     last = [seg["start_step"] - 1]
 
@@ -142,6 +151,9 @@ def train(args) -> int:
     def after_step(step: int) -> None:
         last[0] = step
         if step in milestones or step == args.steps - 1:
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()  # the step's work done, then the clock: the milestone's own train time
+            milestone_s[str(step + 1)] = before_s + time.perf_counter() - t0[0]
             trainer.save_checkpoint(step)
         # nerfstudio's loop runs max_num_iterations steps from wherever it resumed: stop at the run's last step
         if step >= args.steps - 1 or time.perf_counter() - t0[0] > args.budget_s:
@@ -232,6 +244,8 @@ def record(args) -> int:
 
     segs = state["segments"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
+    times = state.get("milestone_train_s", {})
+    shared = [s["concurrent_runs"] for s in segs if isinstance(s.get("concurrent_runs"), int)]
     rec: dict[str, Any] = {
         "scene": Path(state["data"]).name,
         "method": state["method"],
@@ -245,9 +259,12 @@ def record(args) -> int:
         "train_s": sum(s["train_s"] for s in segs),
         "segments": segs,
         "steps_done": (segs[-1]["end_step"] + 1) if segs else 0,
-        "concurrent_runs": args.concurrent,
+        "concurrent_runs": max([args.concurrent, *shared]),  # the most runs on the GPU in any segment
         "milestones": {
-            k: {kk: v[kk] for kk in ("psnr", "ssim", "lpips", "train_psnr", "num_gaussians") if kk in v}
+            k: {
+                **{kk: v[kk] for kk in ("psnr", "ssim", "lpips", "train_psnr", "num_gaussians") if kk in v},
+                **({"train_s": times[k]} if k in times else {}),
+            }
             for k, v in sorted(state["scores"].items(), key=lambda kv: int(kv[0]))
         },
         "date": _dt.datetime.now().isoformat(timespec="seconds"),
@@ -277,6 +294,7 @@ def main(argv=None) -> int:
     t.add_argument("--steps", type=int, default=30000)
     t.add_argument("--seed", type=int, default=42)
     t.add_argument("--budget-s", type=float, required=True, help="stop (and checkpoint) after this many train s")
+    t.add_argument("--concurrent", type=int, default=1, help="runs on the GPU during this segment, itself included")
     sub.choices["eval"].add_argument("--train-views", type=int, default=8)
     r = sub.choices["record"]
     r.add_argument("--tag", required=True)

@@ -14,7 +14,6 @@ from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from willags_ns.appearance.triplane import TriplaneConfig
@@ -22,6 +21,7 @@ from willags_ns.appearance.vae import VAEConfig
 from willags_ns.data.dataparser import WillagsDataParserConfig
 from willags_ns.model import WillagsModelConfig
 from willags_ns.pipeline import WillagsPipelineConfig
+from willags_ns.trainer import WillagsTrainerConfig
 from willags_ns.transient import PerceptualMaskConfig
 
 
@@ -72,8 +72,8 @@ def _optimizers(max_steps: int) -> dict[str, dict]:
     }
 
 
-def _trainer(name: str, model: WillagsModelConfig, steps: int) -> TrainerConfig:
-    return TrainerConfig(
+def _trainer(name: str, model: WillagsModelConfig, steps: int) -> WillagsTrainerConfig:
+    return WillagsTrainerConfig(
         method_name=name,
         steps_per_eval_image=500,
         steps_per_eval_batch=0,
@@ -119,7 +119,7 @@ def willags_model_config() -> WillagsModelConfig:
     )
 
 
-def willags_config() -> TrainerConfig:
+def willags_config() -> WillagsTrainerConfig:
     """The default method (see willags_model_config), 30k steps."""
     return _trainer("willags", willags_model_config(), 30000)
 
@@ -129,12 +129,12 @@ def willags_paper_model_config() -> WillagsModelConfig:
     return WillagsModelConfig(color_mode="decoder", use_field=True, intrinsic_dim=32)
 
 
-def willags_paper_config() -> TrainerConfig:
+def willags_paper_config() -> WillagsTrainerConfig:
     """The paper's configuration: 64-d latent, 64x64x32 planes, colour decoder, mask every step, 30k steps."""
     return _trainer("willags-paper", willags_paper_model_config(), 30000)
 
 
-def willags_lite_config() -> TrainerConfig:
+def willags_lite_config() -> WillagsTrainerConfig:
     """Fast preset: 32-d latent, 32x32x16 planes, mask refreshed every 4th visit of an image, 7k steps.
 
     Smaller planes shrink the hypernetwork's last layer 8x (3*16*32*32 outputs); the cheaper mask cadence removes
@@ -156,14 +156,14 @@ def willags_lite_config() -> TrainerConfig:
     return _trainer("willags-lite", model, 7000)
 
 
-def willags_3dgs_config() -> TrainerConfig:
+def willags_3dgs_config() -> WillagsTrainerConfig:
     """Plain 3DGS (splatfacto's colours, losses and densification) through our rasteriser: no appearance
     model, no mask. Use it as the splatfacto baseline where splatfacto's CUDA-only code cannot run."""
     model = WillagsModelConfig(appearance="sh", use_mask=False, use_vae=False, use_field=False)
     return _trainer("willags-3dgs", model, 30000)
 
 
-def willags_auto_config() -> TrainerConfig:
+def willags_auto_config() -> WillagsTrainerConfig:
     """The default willags with `auto_config`: the scene is inspected before the model is built and the latent,
     the mask (with its teacher) and the field are switched off where the evidence says the scene does not need
     them (willags_ns/autoconfig.py, docs/inspect.md)."""

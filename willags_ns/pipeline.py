@@ -83,6 +83,13 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     checkpoint_on_interrupt: bool = True
     """Ctrl-C finishes the current step, writes a checkpoint and exits; resume with --load-dir. A second Ctrl-C
     interrupts at once."""
+    time_budget_minutes: float | None = None
+    """Train within this many minutes of training steps (None or 0: off; set-up not counted). Before training
+    `ns-train willags` chooses the preset (willags-lite or willags), the step count and the resolution schedule from
+    measured points (willags_ns/time_budget.py); after steps 20-70 the run's own step time sets the last step (never
+    past the preset's default), the learning-rate schedules end there, and the choice is printed and kept in
+    time_budget.json. Other methods (willags-lite named explicitly too) keep their model; only their step count
+    follows the budget."""
 
 
 def precheck_dataparser_config(datamanager_config) -> None:
@@ -253,6 +260,13 @@ class WillagsPipeline(VanillaPipeline):
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes):
         cbs = super().get_training_callbacks(training_callback_attributes)
         trainer = training_callback_attributes.trainer
+        if self.config.time_budget_minutes and trainer is not None and not hasattr(trainer, "time_budget"):
+            from willags_ns.time_budget import OPTION, TimeBudgetError
+
+            raise TimeBudgetError(
+                f"{OPTION} needs willags' trainer (willags_ns.trainer.WillagsTrainerConfig, which every willags method "
+                f"uses); this run's trainer is {type(trainer).__name__}"
+            )
         if self.auto_config_summary is not None and trainer is not None:
             cbs.append(self._record_auto_config(trainer))
         optimizers = training_callback_attributes.optimizers

@@ -1,0 +1,507 @@
+"""Speed vs accuracy per scene: right-half PSNR against training wall time, from the run records.
+
+    python -m benchmarks.curves                                   # docs/benchmarks.json -> docs/curves.md + PNGs
+    python -m benchmarks.curves --records docs/benchmarks.json $OUT/long-*.json --scenes reichstag south-building
+
+Points (one per run and step count) come from two kinds of record:
+
+- long runs (``kind: long_run``, benchmarks/long_run.py): one point per scored milestone. Its time is the
+  milestone's own ``train_s`` (recorded since long_run measures it) or, in older records, the summed segments when
+  the milestone is where a segment ended; a milestone inside an older segment has no measured time: it is listed
+  with "time not recorded" and left out of the plot, the Pareto marks and the time-to-quality table;
+- grid runs (benchmarks/run_benchmark.py): one point per record (5000 or 15000 steps, a few 1000/2000).
+
+Each point says whether its time was measured alone on the GPU or shared with other runs (:func:`gpu_sharing`,
+from the record's ``concurrent_runs``, its segments' ``shared_with`` / ``concurrent_runs``, its notes, and the grid
+file's description); shared-GPU times are longer than the method's own cost, so they are drawn hollow and labelled.
+Records with a ``tree_note`` (not a clean record of their method) and failed runs are left out (and counted).
+
+Writes, per scene with a curve (a method timed at two step counts or more), ``<out-dir>/curves_<scene>.png`` (PSNR vs
+minutes, log time axis, a line per method through the mean PSNR at each step count, every run a marker, Pareto-optimal
+runs ringed; matplotlib, Agg backend) and one markdown file with a table per scene and the time each method needs to
+reach the peer's 15000-step PSNR.
+"""
+
+import argparse
+import json
+import re
+import statistics
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+CURVE_METHODS = ("willags-lite", "willags", "willags-paper", "peer", "splatfacto")
+"""The methods of the curves (benchmarks/harness.py METHODS names)."""
+REAL_SCENES = ("reichstag", "sacre-coeur-mini", "south-building")
+"""Scenes of real photo collections (the fox scenes are rendered); the default scenes of the curves."""
+TARGET_METHOD, TARGET_STEPS = "peer", 15000
+"""The quality bar of the time-to-quality table: the peer's mean right-half PSNR at 15000 steps."""
+REACHING = ("willags", "willags-lite", "splatfacto", "willags-paper")
+"""Methods whose time to that bar the table reports (willags first: the issue's question)."""
+MEASURE = (
+    "Milestone times are recorded by `benchmarks/long_run.py` since this tool exists; to fill the curves (1k, 2k, 5k, "
+    "10k, 15k steps, 30k on reichstag), one long run per device call, alone on the GPU: "
+    '`LONG_RUNS="reichstag:willags" LONG_STEPS=30000 LONG_MILESTONES=1000,2000,5000,10000,15000,30000 '
+    "LONG_TAG=h200-curve LONG_BUDGET_S=480 bash benchmarks/gpu_long.sh $OUT/long` (repeated until it records; each "
+    "method, each real scene with LONG_STEPS=15000), then "
+    "`python -m benchmarks.curves --records docs/benchmarks.json <the long-*.json it brought back>`."
+)
+"""How the missing points get measured (printed in the markdown)."""
+COLORS = {"willags": "C0", "willags-lite": "C2", "willags-paper": "C4", "peer": "C1", "splatfacto": "C7"}
+
+
+# ---------------------------------------------------------------------------------------------- GPU sharing
+
+
+@dataclass(frozen=True)
+class Sharing:
+    """Whether a run's train time was measured alone on its GPU."""
+
+    state: str
+    """"alone", "shared" or "unknown"."""
+    runs: int | None
+    """Most runs on the GPU at once while it trained (itself included), when recorded."""
+    why: str
+    """Where that comes from (field or note)."""
+
+    def label(self) -> str:
+        if self.state == "alone":
+            return "alone"
+        if self.state == "shared":
+            return f"shared, up to {self.runs} runs" if self.runs else "shared, count not recorded"
+        return "not recorded"
+
+
+_COUNT = re.compile(r"((?:\d+(?:-\d+)?(?:, | and ))*\d+(?:-\d+)?) (?:scene )?runs (?:at once|concurrent)")
+_OTHERS = re.compile(r"with (\d+) other runs?")
+_SHARED_WORDS = ("shared-gpu", "shared the gpu", "concurrent", "at once")
+_ALONE_WORDS = ("one after another", "alone")
+
+
+def grid_descriptions(repo: Path = REPO) -> dict[str, str]:
+    """configs/<grid>.json -> its description (which says whether its runs shared the GPU)."""
+    out = {}
+    for p in sorted((repo / "configs").glob("*.json")):
+        try:
+            out[f"configs/{p.name}"] = str(json.loads(p.read_text()).get("description", ""))
+        except (OSError, ValueError):
+            continue
+    return out
+
+
+def gpu_sharing(rec: dict[str, Any], grids: dict[str, str] | None = None) -> Sharing:
+    """How many runs shared the GPU while ``rec`` trained, from what the record says.
+
+    Counts: ``concurrent_runs`` (long runs: runs on the GPU in the device call that recorded it), each segment's
+    ``concurrent_runs`` or ``shared_with`` + 1, and numbers in its notes ("12, 9 and 3 runs concurrent", "4-5 runs at
+    once", "with 6 other runs"); the largest wins. Without a count above 1: words in the notes ("shared-GPU",
+    "concurrently" -> shared; "alone", "one after another" -> alone), then the grid file named in ``command``
+    (gpu_scenes.sh grids say their runs are concurrent; the Pareto grid ran one after another).
+    """
+    counts: list[int] = []
+    why: list[str] = []
+    if isinstance(rec.get("concurrent_runs"), int):
+        counts.append(rec["concurrent_runs"])
+        why.append("concurrent_runs")
+    for seg in rec.get("segments") or []:
+        if isinstance(seg.get("concurrent_runs"), int):
+            counts.append(seg["concurrent_runs"])
+            why.append("segments")
+        elif isinstance(seg.get("shared_with"), int):
+            counts.append(seg["shared_with"] + 1)
+            why.append("segments")
+    text = " ".join(str(rec.get(k) or "") for k in ("note", "run_note"))
+    for m in _COUNT.finditer(text):
+        counts += [int(n) for n in re.findall(r"\d+", m.group(1))]
+        why.append("note")
+    for m in _OTHERS.finditer(text):
+        counts.append(int(m.group(1)) + 1)
+        why.append("note")
+    low = text.lower()
+    src = ", ".join(dict.fromkeys(why))
+    if counts and max(counts) > 1:
+        return Sharing("shared", max(counts), src)
+    if any(w in low for w in _SHARED_WORDS):
+        return Sharing("shared", None, "note")
+    if (counts and max(counts) == 1) or any(w in low for w in _ALONE_WORDS):
+        return Sharing("alone", 1, src or "note")
+    grid = re.search(r"--grid (\S+\.json)", str(rec.get("command") or ""))
+    if grid is not None:
+        desc = (grids if grids is not None else grid_descriptions()).get(grid.group(1), "").lower()
+        if "concurrent" in desc:
+            return Sharing("shared", None, f"{grid.group(1)} runs its pairs concurrently")
+        if "one after another" in desc:
+            return Sharing("alone", 1, f"{grid.group(1)} runs one after another")
+    return Sharing("unknown", None, "")
+
+
+# ---------------------------------------------------------------------------------------------- points
+
+
+@dataclass(frozen=True)
+class Point:
+    """One run's PSNR at one step count, with the training time it took (None: not recorded)."""
+
+    scene: str
+    method: str
+    steps: int
+    psnr: float
+    train_s: float | None
+    source: str
+    """"grid" or "long run"."""
+    tag: str
+    gpu: str
+    sharing: Sharing
+
+
+def _gpu(rec: dict[str, Any]) -> str:
+    machine = str(rec.get("machine") or "")
+    name = machine.split("(")[0].replace("NVIDIA", "").split()
+    return name[0] if name else "?"
+
+
+def _usable(rec: dict[str, Any]) -> bool:
+    return rec.get("status", "ok") == "ok" and not rec.get("tree_note")
+
+
+def milestone_train_s(rec: dict[str, Any], milestone: str) -> float | None:
+    """Training seconds to a long run's milestone: its own ``train_s``, else the summed segments that end exactly
+    there; None when the milestone lies inside an older record's segment (never interpolated)."""
+    own = (rec.get("milestones") or {}).get(milestone, {}).get("train_s")
+    if own is not None:
+        return float(own)
+    total = 0.0
+    for seg in rec.get("segments") or []:
+        total += float(seg["train_s"])
+        if int(seg["end_step"]) + 1 == int(milestone):
+            return total
+    return None
+
+
+def scene_points(
+    records: Sequence[dict[str, Any]],
+    scene: str,
+    methods: Sequence[str] = CURVE_METHODS,
+    grids: dict[str, str] | None = None,
+) -> list[Point]:
+    """Every measured (method, steps, train time, PSNR) of ``scene`` on the GPU, one per run and step count."""
+    grids = grid_descriptions() if grids is None else grids
+    out, seen = [], set()
+    for r in records:
+        if r.get("scene") != scene or r.get("method") not in methods or r.get("device") != "cuda" or not _usable(r):
+            continue
+        share, gpu, tag = gpu_sharing(r, grids), _gpu(r), str(r.get("tag") or "")
+        if r.get("kind") == "long_run":
+            for k, ms in (r.get("milestones") or {}).items():
+                if ms.get("psnr") is None:
+                    continue
+                key = (r["method"], int(k), tag)
+                seen.add(key)
+                out.append(
+                    Point(
+                        scene,
+                        r["method"],
+                        int(k),
+                        float(ms["psnr"]),
+                        milestone_train_s(r, k),
+                        "long run",
+                        tag,
+                        gpu,
+                        share,
+                    )
+                )
+        elif r.get("psnr") is not None and int(r.get("steps") or 0) > 0:
+            key = (r["method"], int(r["steps"]), tag)
+            if key in seen:  # the same run merged twice (a long run's final milestone and its grid copy)
+                continue
+            seen.add(key)
+            t = r.get("train_s")
+            out.append(
+                Point(
+                    scene,
+                    r["method"],
+                    int(r["steps"]),
+                    float(r["psnr"]),
+                    None if t is None else float(t),
+                    "grid",
+                    tag,
+                    gpu,
+                    share,
+                )
+            )
+    return sorted(out, key=lambda p: (methods.index(p.method), p.steps, p.train_s or 0.0))
+
+
+def pareto_flags(points: Sequence[Point]) -> list[bool]:
+    """For each point, whether it is Pareto-optimal among the timed ones: no other point is at least as fast and at
+    least as good, and strictly one of them. Untimed points are never optimal."""
+    timed = [p for p in points if p.train_s is not None]
+
+    def dominated(p: Point) -> bool:
+        return any(
+            o is not p
+            and o.train_s <= p.train_s  # type: ignore[operator]
+            and o.psnr >= p.psnr
+            and (o.train_s < p.train_s or o.psnr > p.psnr)  # type: ignore[operator]
+            for o in timed
+        )
+
+    return [p.train_s is not None and not dominated(p) for p in points]
+
+
+@dataclass(frozen=True)
+class StepPoint:
+    """A method at one step count on a scene: the mean PSNR of its runs and their times."""
+
+    method: str
+    steps: int
+    psnr: float
+    n: int
+    times: tuple[float, ...]
+    """Measured train seconds of the runs (untimed runs left out)."""
+    sharing: str
+    """The runs' sharing labels, joined."""
+
+
+def step_curve(points: Sequence[Point], method: str) -> list[StepPoint]:
+    """``method``'s points grouped by step count, in step order."""
+    out = []
+    for steps in sorted({p.steps for p in points if p.method == method}):
+        ps = [p for p in points if p.method == method and p.steps == steps]
+        times = tuple(sorted(p.train_s for p in ps if p.train_s is not None))
+        labels = " / ".join(dict.fromkeys(p.sharing.label() for p in ps if p.train_s is not None)) or "–"
+        out.append(StepPoint(method, steps, statistics.mean(p.psnr for p in ps), len(ps), times, labels))
+    return out
+
+
+def first_reaching(curve: Sequence[StepPoint], target: float) -> StepPoint | None:
+    """The first step count (in steps) whose mean PSNR reaches ``target``; None: not reached."""
+    return next((s for s in curve if s.psnr >= target), None)
+
+
+def has_curve(points: Sequence[Point]) -> bool:
+    """A method timed at two step counts or more: something to draw as a curve."""
+    by: dict[str, set[int]] = {}
+    for p in points:
+        if p.train_s is not None:
+            by.setdefault(p.method, set()).add(p.steps)
+    return any(len(s) >= 2 for s in by.values())
+
+
+# ---------------------------------------------------------------------------------------------- outputs
+
+
+def _times(s: StepPoint) -> str:
+    if not s.times:
+        return "time not recorded"
+    lo, hi = s.times[0], s.times[-1]
+    return f"{lo:.0f} s" if len(s.times) == 1 else f"{lo:.0f}-{hi:.0f} s ({len(s.times)} runs)"
+
+
+def plot_scene(points: Sequence[Point], path: Path) -> Path:
+    """PSNR vs minutes (log axis) for one scene: a line per method through its mean PSNR at each step count (at the
+    median time of those runs), every run a marker (hollow: shared-GPU time), Pareto-optimal runs ringed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
+
+    fig, ax = plt.subplots(figsize=(9.0, 4.8), dpi=120)
+    flags = pareto_flags(points)
+    gpus = sorted({p.gpu for p in points if p.train_s is not None})
+    shapes = dict(zip(gpus, "os^Dv", strict=False))
+    methods = [m for m in CURVE_METHODS if any(p.method == m and p.train_s is not None for p in points)]
+    for m in methods:
+        color = COLORS.get(m, "k")
+        curve = [s for s in step_curve(points, m) if s.times]
+        xs = [statistics.median(s.times) / 60 for s in curve]
+        ax.plot(xs, [s.psnr for s in curve], "-", color=color, label=m, lw=1.5)
+        for s, x in zip(curve, xs, strict=True):
+            label = f"{s.steps // 1000}k" if s.steps >= 1000 else str(s.steps)
+            ax.annotate(label, (x, s.psnr), textcoords="offset points", xytext=(4, 4), fontsize=7, color=color)
+        for p, pareto in zip(points, flags, strict=True):
+            if p.method != m or p.train_s is None:
+                continue
+            alone = p.sharing.state == "alone"
+            ax.plot(p.train_s / 60, p.psnr, shapes.get(p.gpu, "o"), ms=5, color=color, mfc=color if alone else "none")
+            if pareto:
+                ax.plot(p.train_s / 60, p.psnr, "o", ms=12, mfc="none", mec="k", mew=1.0)
+    for g in gpus:
+        ax.plot([], [], shapes[g], color="0.4", label=f"run on {g} (filled: alone)")
+    ax.plot([], [], "o", color="0.4", mfc="none", label="hollow: shared-GPU time")
+    ax.plot([], [], "o", ms=12, mfc="none", mec="k", label="Pareto-optimal run")
+    ax.set_xscale("log")
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    ax.xaxis.set_major_formatter(plain)
+    ax.xaxis.set_minor_formatter(plain)
+    ax.tick_params(axis="x", which="minor", labelsize=7)
+    ax.set_xlabel("training wall time (minutes, log scale)")
+    ax.set_ylabel("right-half PSNR (dB), NeRF-W protocol")
+    scene = points[0].scene if points else "?"
+    ax.set_title(f"{scene}: PSNR vs training time (lines: mean PSNR at each step count, median time)", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def scene_table(points: Sequence[Point]) -> list[str]:
+    """Markdown rows: every run, its time, GPU, sharing and Pareto mark."""
+    flags = pareto_flags(points)
+    out = [
+        "| method | steps | train s | PSNR | GPU | GPU shared | from | tag | Pareto |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for p, pareto in zip(points, flags, strict=True):
+        t = "not recorded" if p.train_s is None else f"{p.train_s:.0f}"
+        share = p.sharing.label() + (f" ({p.sharing.why})" if p.sharing.why else "")
+        out.append(
+            f"| {p.method} | {p.steps} | {t} | {p.psnr:.2f} | {p.gpu} | {share} | {p.source} | {p.tag or '–'} "
+            f"| {'*' if pareto else ''} |"
+        )
+    return out
+
+
+def time_to_target_rows(by_scene: dict[str, list[Point]]) -> list[str]:
+    """Markdown: per scene, the peer's 15000-step PSNR and time, and where each method first reaches it."""
+    out = [
+        f"| scene | {TARGET_METHOD} at {TARGET_STEPS} steps: PSNR (runs), time | "
+        + " | ".join(f"{m}: first reaching it" for m in REACHING)
+        + " |",
+        "|---|---|" + "---|" * len(REACHING),
+    ]
+    for scene, points in by_scene.items():
+        ref = [s for s in step_curve(points, TARGET_METHOD) if s.steps == TARGET_STEPS]
+        if not ref:
+            out.append(f"| {scene} | not measured |" + " – |" * len(REACHING))
+            continue
+        target = ref[0]
+        cells = []
+        for m in REACHING:
+            curve = step_curve(points, m)
+            hit = first_reaching(curve, target.psnr)
+            if not curve:
+                cells.append("not measured")
+            elif hit is None:
+                best = max(curve, key=lambda s: s.psnr)
+                cells.append(f"not reached (best {best.psnr:.2f} at {best.steps} steps)")
+            else:
+                cells.append(f"{hit.steps} steps, {hit.psnr:.2f} (n={hit.n}), {_times(hit)} [{hit.sharing}]")
+        out.append(
+            f"| {scene} | {target.psnr:.2f} (n={target.n}), {_times(target)} [{target.sharing}] | "
+            + " | ".join(cells)
+            + " |"
+        )
+    return out
+
+
+def render_markdown(
+    by_scene: dict[str, list[Point]], pngs: dict[str, Path], skipped: dict[str, int], sources: Sequence[str]
+) -> str:
+    out = [
+        "# Speed vs accuracy: PSNR against training time",
+        "",
+        f"Generated by `python -m benchmarks.curves` from {', '.join(f'`{s}`' for s in sources)}; do not edit by hand. "
+        "Right-half PSNR under the NeRF-W protocol (latent fitted on the left half of each test image). **train s**: "
+        "training wall time (set-up and evaluation excluded). **GPU shared**: runs on the GPU at once while this one "
+        "trained (`alone`: measured alone; `shared`: a shared-GPU time, longer than the method's own cost; the source "
+        "in brackets). Long runs contribute one point per scored milestone; a milestone inside a segment of an older "
+        "record has no measured time (`not recorded`) and stays out of the plot and the Pareto marks. `*`: "
+        "Pareto-optimal among the timed runs of the scene (no run is both faster and better); shared and alone "
+        "times are compared as recorded.",
+        "",
+        "## What the records hold",
+        "",
+        "| scene | runs × step counts (timed) | methods: step counts | plot |",
+        "|---|---|---|---|",
+    ]
+    for scene, points in by_scene.items():
+        timed = sum(p.train_s is not None for p in points)
+        methods = "; ".join(
+            f"{m}: {', '.join(str(s) for s in sorted({p.steps for p in points if p.method == m}))}"
+            for m in CURVE_METHODS
+            if any(p.method == m for p in points)
+        )
+        plot = (
+            f"[curves_{scene}.png]({pngs[scene].name})" if scene in pngs else "none (no method timed at 2 step counts)"
+        )
+        out.append(f"| {scene} | {len(points)} ({timed}) | {methods or '–'} | {plot} |")
+    missing = [m for m in CURVE_METHODS if not any(p.method == m for ps in by_scene.values() for p in ps)]
+    if missing:
+        out += ["", f"No records of {', '.join(missing)} on these scenes."]
+    out += ["", MEASURE]
+    if any(skipped.values()):
+        out += [
+            "",
+            "Left out: " + ", ".join(f"{n} {why}" for why, n in skipped.items() if n) + ".",
+        ]
+    out += [
+        "",
+        f"## Time to the {TARGET_METHOD}'s {TARGET_STEPS}-step PSNR",
+        "",
+        "The first step count (in order of steps) whose mean PSNR over its runs reaches the peer's mean at "
+        f"{TARGET_STEPS} steps, with the measured train times of those runs and whether they shared the GPU.",
+        "",
+        *time_to_target_rows(by_scene),
+        "",
+    ]
+    for scene, points in by_scene.items():
+        out += [f"## {scene}", ""]
+        if scene in pngs:
+            out += [f"![{scene}: PSNR vs training time]({pngs[scene].name})", ""]
+        out += scene_table(points) + [""] if points else ["No records.", ""]
+    return "\n".join(out)
+
+
+def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
+    """Records of several files (each a JSON list); a later record with the same (scene, method, device, steps, tag)
+    replaces an earlier one, as benchmarks/harness.py merges them."""
+    from benchmarks.harness import merge_records
+
+    records: list[dict[str, Any]] = []
+    for p in paths:
+        data = json.loads(Path(p).read_text())
+        records = merge_records(records, data if isinstance(data, list) else [data])
+    return records
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--records", nargs="+", default=[str(REPO / "docs" / "benchmarks.json")])
+    ap.add_argument("--scenes", nargs="+", default=list(REAL_SCENES))
+    ap.add_argument("--out-dir", default=str(REPO / "docs"), help="where curves_<scene>.png go")
+    ap.add_argument("--md", default=None, help="markdown output (default: <out-dir>/curves.md)")
+    args = ap.parse_args(argv)
+    records = load_records([Path(p) for p in args.records])
+    grids = grid_descriptions()
+    skipped = {
+        "failed runs": sum(r.get("status", "ok") != "ok" for r in records if r.get("scene") in args.scenes),
+        "records with a tree_note (not a clean record of their method)": sum(
+            bool(r.get("tree_note")) for r in records if r.get("scene") in args.scenes
+        ),
+    }
+    by_scene = {s: scene_points(records, s, grids=grids) for s in args.scenes}
+    out_dir = Path(args.out_dir)
+    pngs = {s: plot_scene(pts, out_dir / f"curves_{s}.png") for s, pts in by_scene.items() if has_curve(pts)}
+    md = Path(args.md) if args.md else out_dir / "curves.md"
+    sources = [
+        str(Path(p).resolve().relative_to(REPO)) if Path(p).resolve().is_relative_to(REPO) else p for p in args.records
+    ]
+    md.write_text(render_markdown(by_scene, pngs, skipped, sources) + "\n")
+    for s, pts in by_scene.items():
+        print(
+            f"curves: {s}: {len(pts)} points ({sum(p.train_s is not None for p in pts)} timed)"
+            + (f" -> {pngs[s]}" if s in pngs else " (no plot)")
+        )
+    print(f"curves: {md}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

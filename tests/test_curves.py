@@ -1,0 +1,222 @@
+"""benchmarks/curves.py on synthetic records: GPU-sharing labels, milestone times, points, Pareto marks, time to the
+peer's 15k PSNR, the markdown and the PNG; and benchmarks/long_run.py recording what the curves need."""
+
+import json
+
+import pytest
+
+from benchmarks import curves
+from benchmarks.curves import (
+    Point,
+    Sharing,
+    first_reaching,
+    gpu_sharing,
+    has_curve,
+    milestone_train_s,
+    pareto_flags,
+    scene_points,
+    step_curve,
+)
+
+GRIDS = {
+    "configs/concurrent.json": "benchmarks/gpu_scenes.sh runs the pairs concurrently on one GPU",
+    "configs/seq.json": "runs one after another (true times)",
+}
+ALONE = Sharing("alone", 1, "test")
+
+
+def _grid(method, steps, psnr, train_s, tag="t", scene="reichstag", **extra):
+    return {
+        "scene": scene,
+        "method": method,
+        "device": "cuda",
+        "steps": steps,
+        "tag": tag,
+        "psnr": psnr,
+        "train_s": train_s,
+        "status": "ok",
+        "machine": "NVIDIA H100 80GB HBM3 (16 CPU cores)",
+        **extra,
+    }
+
+
+def _long(method, milestones, segments, tag="long", scene="reichstag", **extra):
+    return {
+        "scene": scene,
+        "method": method,
+        "device": "cuda",
+        "kind": "long_run",
+        "steps": 30000,
+        "tag": tag,
+        "status": "ok",
+        "milestones": milestones,
+        "segments": segments,
+        "machine": "NVIDIA H200 (16 CPU cores)",
+        **extra,
+    }
+
+
+# ---------------------------------------------------------------------------------------------- sharing labels
+
+
+@pytest.mark.parametrize(
+    "rec, state, runs",
+    [
+        ({"concurrent_runs": 3, "note": "three segments, 12, 9 and 3 runs concurrent on the GPU"}, "shared", 12),
+        ({"run_note": "4-5 runs at once on one H100 (train times are shared-GPU times)"}, "shared", 5),
+        ({"note": "segments 1-2 shared the GPU with 6 other runs; segments 3-4 ran alone"}, "shared", 7),
+        ({"concurrent_runs": 1, "segments": [{"shared_with": 1}]}, "shared", 2),
+        ({"concurrent_runs": 1, "segments": [{"concurrent_runs": 4}]}, "shared", 4),
+        ({"note": "willags and splatfacto concurrently on one H100"}, "shared", None),
+        ({"concurrent_runs": 1, "note": "trained alone on one H100"}, "alone", 1),
+        ({"run_note": "runs one after another on one H100 (true train times)"}, "alone", 1),
+        ({"command": "python benchmarks/run_benchmark.py --grid configs/concurrent.json --scenes x"}, "shared", None),
+        ({"command": "python benchmarks/run_benchmark.py --grid configs/seq.json"}, "alone", 1),
+        ({"command": "python benchmarks/run_benchmark.py --grid configs/other.json"}, "unknown", None),
+        ({}, "unknown", None),
+    ],
+)
+def test_gpu_sharing_reads_what_the_record_says(rec, state, runs):
+    s = gpu_sharing(rec, GRIDS)
+    assert (s.state, s.runs) == (state, runs)
+
+
+def test_sharing_labels_say_shared_gpu_times():
+    assert Sharing("shared", 12, "note").label() == "shared, up to 12 runs"
+    assert Sharing("shared", None, "grid").label() == "shared, count not recorded"
+    assert Sharing("alone", 1, "x").label() == "alone" and Sharing("unknown", None, "").label() == "not recorded"
+
+
+# ---------------------------------------------------------------------------------------------- points
+
+
+def test_milestone_times_are_measured_never_interpolated():
+    rec = _long(
+        "willags",
+        {"7000": {"psnr": 1}, "15000": {"psnr": 2, "train_s": 150.0}, "24227": {"psnr": 3}, "30000": {"psnr": 4}},
+        [{"end_step": 24226, "train_s": 240.0}, {"end_step": 29999, "train_s": 60.0}],
+    )
+    assert milestone_train_s(rec, "15000") == 150.0  # its own (benchmarks/long_run.py records it now)
+    assert milestone_train_s(rec, "24227") == 240.0 and milestone_train_s(rec, "30000") == 300.0  # segment ends
+    assert milestone_train_s(rec, "7000") is None  # inside an older segment
+
+
+def test_scene_points_from_milestones_and_grid_runs():
+    records = [
+        _grid("willags", 5000, 19.0, 200.0, tag="a", command="x --grid configs/concurrent.json"),
+        _grid("peer", 5000, 19.5, 300.0, tag="a"),
+        _grid("willags", 5000, 30.0, 10.0, tag="dirty", tree_note="not a clean record"),
+        _grid("willags", 5000, 30.0, 10.0, tag="failed", status="failed"),
+        _grid("willags", 5000, 30.0, 10.0, tag="other", scene="fox-wild"),
+        {**_grid("willags", 5000, 30.0, 10.0, tag="cpu"), "device": "cpu"},
+        _grid("willags-3dgs", 5000, 30.0, 10.0),  # not a method of the curves
+        _long(
+            "willags",
+            {"7000": {"psnr": 19.2}, "30000": {"psnr": 19.3}},
+            [{"end_step": 29999, "train_s": 420.0}],
+            concurrent_runs=1,
+        ),
+    ]
+    pts = scene_points(records, "reichstag", grids=GRIDS)
+    got = [(p.method, p.steps, p.train_s, p.source, p.gpu, p.sharing.state) for p in pts]
+    assert got == [
+        ("willags", 5000, 200.0, "grid", "H100", "shared"),
+        ("willags", 7000, None, "long run", "H200", "alone"),
+        ("willags", 30000, 420.0, "long run", "H200", "alone"),
+        ("peer", 5000, 300.0, "grid", "H100", "unknown"),
+    ]
+
+
+def _p(method, steps, psnr, t, sharing=ALONE):
+    return Point("s", method, steps, psnr, t, "grid", "", "H100", sharing)
+
+
+def test_pareto_marks_the_runs_nothing_beats_on_both():
+    pts = [
+        _p("a", 1000, 18.0, 10.0),  # fastest: optimal
+        _p("a", 5000, 19.0, 50.0),  # optimal
+        _p("b", 5000, 18.5, 60.0),  # slower and worse than a@5000
+        _p("b", 15000, 19.0, 50.0),  # ties a@5000 on both: neither dominates the other
+        _p("c", 30000, 20.0, None),  # untimed: never marked
+        _p("c", 30000, 19.5, 100.0),  # best: optimal
+    ]
+    assert pareto_flags(pts) == [True, True, False, True, False, True]
+
+
+def test_time_to_the_peers_psnr():
+    pts = [
+        _p("peer", 15000, 19.2, 480.0),
+        _p("peer", 15000, 19.4, 1000.0),  # target: mean 19.3
+        _p("willags", 5000, 19.35, 160.0),  # one lucky seed reaches it, the step count's mean does not
+        _p("willags", 5000, 19.05, 200.0),
+        _p("willags", 15000, 19.3, 360.0),
+        _p("splatfacto", 30000, 14.2, 365.0),
+    ]
+    target = step_curve(pts, "peer")[0]
+    assert target.psnr == pytest.approx(19.3) and target.n == 2 and target.times == (480.0, 1000.0)
+    hit = first_reaching(step_curve(pts, "willags"), target.psnr)
+    assert hit is not None and hit.steps == 15000 and hit.times == (360.0,)
+    assert first_reaching(step_curve(pts, "splatfacto"), target.psnr) is None
+    rows = curves.time_to_target_rows({"s": pts})
+    assert "15000 steps, 19.30 (n=1), 360 s [alone]" in rows[2]
+    assert "not reached (best 14.20 at 30000 steps)" in rows[2] and "not measured" in rows[2]  # lite: no records
+
+
+def test_has_curve_needs_a_method_timed_at_two_step_counts():
+    assert not has_curve([_p("a", 5000, 1, 10.0), _p("b", 5000, 1, 10.0), _p("a", 15000, 1, None)])
+    assert has_curve([_p("a", 5000, 1, 10.0), _p("a", 15000, 1, 30.0)])
+
+
+# ---------------------------------------------------------------------------------------------- outputs
+
+
+def test_main_writes_the_png_and_labels_shared_times(tmp_path):
+    records = [
+        _grid("willags", 5000, 19.0, 200.0, tag="a", run_note="5 runs at once on one H100"),
+        _grid("peer", 5000, 19.4, 210.0, tag="a", run_note="runs one after another"),
+        _long("peer", {"15000": {"psnr": 19.3}}, [{"end_step": 14999, "train_s": 500.0}], concurrent_runs=1),
+        _long(
+            "willags",
+            {"15000": {"psnr": 19.35, "train_s": 380.0}, "30000": {"psnr": 19.2}},
+            [{"end_step": 29999, "train_s": 760.0, "concurrent_runs": 3}],
+        ),
+        _grid("peer", 5000, 22.0, 300.0, scene="south-building"),  # one step count: no plot
+    ]
+    src = tmp_path / "records.json"
+    src.write_text(json.dumps(records))
+    out = tmp_path / "docs"
+    assert curves.main(["--records", str(src), "--out-dir", str(out), "--scenes", "reichstag", "south-building"]) == 0
+    png = out / "curves_reichstag.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    assert not (out / "curves_south-building.png").exists()
+    md = (out / "curves.md").read_text()
+    assert "| willags | 5000 | 200 | 19.00 | H100 | shared, up to 5 runs (note) |" in md
+    assert "| willags | 15000 | 380 | 19.35 | H200 | shared, up to 3 runs (segments) |" in md
+    assert "| peer | 5000 | 210 | 19.40 | H100 | alone (note) |" in md
+    assert "none (no method timed at 2 step counts)" in md  # south-building
+    assert "15000 steps, 19.35 (n=1), 380 s [shared, up to 3 runs]" in md  # willags reaches the peer's 19.30
+
+
+def test_long_run_record_keeps_milestone_times_and_the_most_runs_sharing(tmp_path):
+    from benchmarks import long_run
+
+    run = tmp_path / "reichstag-willags-s42"
+    run.mkdir()
+    state = {
+        "method": "willags",
+        "data": "/x/reichstag",
+        "steps": 3000,
+        "seed": 42,
+        "segments": [
+            {"start_step": 0, "end_step": 1499, "train_s": 20.0, "concurrent_runs": 3},
+            {"start_step": 1500, "end_step": 2999, "train_s": 25.0, "concurrent_runs": 1},
+        ],
+        "milestone_train_s": {"1000": 13.0, "3000": 45.0},
+        "scores": {"1000": {"psnr": 18.0}, "3000": {"psnr": 19.0}},
+    }
+    (run / long_run.STATE).write_text(json.dumps(state))
+    out = tmp_path / "rec.json"
+    long_run.main(["record", "--run-dir", str(run), "--tag", "t", "--out", str(out), "--milestones", "1000,3000"])
+    (rec,) = json.loads(out.read_text())
+    assert rec["milestones"]["1000"] == {"psnr": 18.0, "train_s": 13.0} and rec["concurrent_runs"] == 3
+    assert milestone_train_s(rec, "1000") == 13.0 and gpu_sharing(rec, {}).label() == "shared, up to 3 runs"

@@ -1,0 +1,379 @@
+"""The time budget (willags_ns/time_budget.py, willags_ns/trainer.py): the choice before training (pure, fake step
+times), the adaptation while training (fake clock), bad values, the table against its records, one real CPU run."""
+
+import dataclasses
+import json
+import math
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+from willags_ns import time_budget as tb
+from willags_ns.time_budget import (
+    OPTION,
+    STEP_TIMES,
+    TABLE,
+    TimeBudget,
+    TimeBudgetError,
+    choose,
+    end_schedules_at,
+    plan_steps,
+    schedule_warmups,
+    validate_minutes,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+CAPS = {"willags": 30000, "willags-lite": 7000}
+
+
+# ---------------------------------------------------------------------------------------------- the choice (pure)
+
+
+CURRENT = tuple(dataclasses.replace(p, measured_as=p.preset) for p in TABLE)
+"""The table as if today's presets had measured its points (the decision logic, away from the records' gaps)."""
+FAKE = {"willags-lite": 0.1, "willags": 0.3}
+"""Fake CPU step times (seconds)."""
+
+
+def test_tiny_cpu_budget_picks_lite_and_few_steps():
+    c = choose(30.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
+    assert c.preset == "willags-lite"
+    assert c.steps == 300  # 30 s / 0.1 s
+    assert c.point is not None and c.point.steps == 300  # lite's 300-step point takes 30 s: it fits, willags' do not
+    assert not c.keep_resolution_schedule  # the CPU points were measured at full resolution from the first step
+    assert "willags-lite" in c.reason
+
+
+def test_budget_below_every_point_takes_the_quickest_preset():
+    c = choose(5.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
+    assert c.preset == "willags-lite" and c.steps == 50 and c.point is None
+    assert "no measured point fits" in c.reason
+
+
+def test_large_cpu_budget_picks_the_default_with_its_full_step_count():
+    c = choose(600 * 60.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
+    assert c.preset == "willags"
+    assert c.steps == 30000  # 36000 s / 0.3 s = 120000 steps, capped at the preset's default
+    assert c.point is not None and c.point.steps == max(p.steps for p in TABLE if p.device == "cpu")
+
+
+def test_gpu_switches_preset_where_the_default_first_fits():
+    """With lite's points counted, willags' first point is 5000 steps at 14.23 ms/step = 71.2 s: below it only lite's
+    points fit, from it on willags' 5000-step point (22.24 dB) beats every lite point."""
+    t = 5000 * STEP_TIMES[("willags", "cuda")].seconds
+    below = choose(t - 1, "cuda", CAPS, current_only=False)
+    above = choose(t + 1, "cuda", CAPS, current_only=False)
+    assert below.preset == "willags-lite" and above.preset == "willags"
+    assert below.keep_resolution_schedule and above.keep_resolution_schedule  # GPU points: the stock schedule
+    assert below.steps <= CAPS["willags-lite"]
+
+
+def test_points_of_earlier_configurations_do_not_decide():
+    """The real table: lite's points are willags-lite-v0's and the CPU's willags points the paper configuration's,
+    so on the GPU willags is the only preset with points, and on the CPU no point counts at all."""
+    for budget in (30.0, 60.0, 600.0, 36000.0):
+        gpu = choose(budget, "cuda", CAPS)
+        assert gpu.preset == "willags" and "willags-lite-v0" in gpu.reason
+        assert gpu.steps == plan_steps(budget, 0, 0, STEP_TIMES[("willags", "cuda")].seconds, CAPS["willags"])
+        cpu = choose(budget, "cpu", CAPS)
+        assert (cpu.preset, cpu.point, cpu.steps, cpu.keep_resolution_schedule) == ("willags", None, 30000, True)
+        assert math.isnan(cpu.step_s)  # no plan before the run has measured its own step time
+        assert "willags-paper" in cpu.reason and "willags-lite-v0" in cpu.reason
+    text = tb.format_choice(choose(60.0, "cpu", CAPS), 1.0, "cpu")
+    assert "set from this run's own step time over steps 20-70" in text
+
+
+def test_caps_limit_the_steps():
+    c = choose(1e6, "cuda", {"willags": 1234, "willags-lite": 7000})
+    assert c.preset == "willags" and c.steps == 1234 and c.max_steps == 1234
+
+
+@pytest.mark.parametrize(
+    "budget, elapsed, done, step_s, cap, want",
+    [
+        (600, 100, 1000, 0.05, 30000, 11000),  # the docstring's example
+        (600, 100, 1000, 0.01, 30000, 30000),  # capped
+        (600, 700, 1000, 0.05, 30000, 1000),  # over budget: stop now
+        (10, 0, 0, 0.1, 30000, 100),  # exact division is not lost to rounding
+    ],
+)
+def test_plan_steps(budget, elapsed, done, step_s, cap, want):
+    assert plan_steps(budget, elapsed, done, step_s, cap) == want
+
+
+def test_plan_steps_rejects_a_zero_step_time():
+    with pytest.raises(ValueError):
+        plan_steps(10, 0, 0, 0.0, 100)
+
+
+# ---------------------------------------------------------------------------------------------- bad values
+
+
+@pytest.mark.parametrize("bad", [-1, -0.5, float("nan"), float("inf"), "ten", True])
+def test_bad_budget_names_the_option(bad):
+    with pytest.raises(TimeBudgetError, match=OPTION.replace(".", r"\.")):
+        validate_minutes(bad)
+
+
+@pytest.mark.parametrize("off", [None, 0, 0.0])
+def test_zero_or_none_turns_it_off(off):
+    assert validate_minutes(off) is None
+
+
+def test_bad_budget_stops_the_trainer_before_training(tmp_path):
+    from willags_ns import method_configs
+
+    config = method_configs.willags_config()
+    config.output_dir = tmp_path
+    config.machine.device_type = "cpu"
+    config.pipeline.time_budget_minutes = float("nan")
+    trainer = config.setup(local_rank=0, world_size=1)
+    with pytest.raises(TimeBudgetError, match="time-budget-minutes"):
+        trainer.setup()
+
+
+# ---------------------------------------------------------------------------------------------- while training
+
+
+class FakeClock:
+    """A clock the test advances by hand (`_run` adds each step's seconds)."""
+
+    def __init__(self):
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _run(budget: TimeBudget, clock: FakeClock, step_s, start: int = 0, limit: int = 100000) -> int:
+    """Drive the budget as nerfstudio's loop does; returns the last step trained."""
+    for step in range(start, start + limit):
+        budget.before_step(step)
+        clock.t += step_s(step)
+        if budget.after_step(step):
+            return step
+    return start + limit - 1
+
+
+def test_measures_steps_20_to_70_and_stops_within_the_budget():
+    clock, ends, logs = FakeClock(), [], []
+    budget = TimeBudget(12.5, max_steps=30000, on_plan=ends.append, clock=clock, log=logs.append)
+    last = _run(budget, clock, lambda s: 0.125)  # binary-exact seconds: no rounding at the boundaries
+    assert budget.history[0]["step"] == 69 and budget.history[0]["step_s"] == 0.125
+    assert ends[0] == 100  # 70 steps in 8.75 s, 3.75 s left = 30 steps
+    assert last == 99 and budget.elapsed() <= 12.5
+    assert "measured 125.0 ms/step (steps 20-70)" in logs[0]
+
+
+def test_replans_when_steps_slow_down():
+    """Densification and the resolution schedule make later steps slower: re-plans move the end earlier and the run
+    still ends within the budget (at most one step late, when the clock stops it)."""
+    clock, ends = FakeClock(), []
+    budget = TimeBudget(60.0, max_steps=30000, on_plan=ends.append, clock=clock, log=lambda m: None)
+    last = _run(budget, clock, lambda s: 0.01 if s < 500 else 0.05)
+    assert len(ends) > 2 and ends[-1] < ends[0]
+    assert budget.elapsed() <= 60.0 + 0.05
+    assert last + 1 == ends[-1] or budget.stop_reason.startswith("the clock")
+
+
+def test_never_past_the_cap():
+    clock = FakeClock()
+    budget = TimeBudget(1e6, max_steps=300, clock=clock, log=lambda m: None)
+    assert _run(budget, clock, lambda s: 0.01) == 299
+
+
+def test_clock_stops_a_budget_shorter_than_the_measurement():
+    clock = FakeClock()
+    budget = TimeBudget(1.0, max_steps=30000, clock=clock, log=lambda m: None)
+    assert _run(budget, clock, lambda s: 0.125) == 7 and budget.end_step is None
+    assert budget.stop_reason.startswith("the clock")
+
+
+def test_resumed_run_counts_its_own_steps():
+    clock, ends = FakeClock(), []
+    budget = TimeBudget(12.5, max_steps=1000, start_step=5000, on_plan=ends.append, clock=clock, log=lambda m: None)
+    last = _run(budget, clock, lambda s: 0.125, start=5000)
+    assert budget.history[0]["step"] == 5069 and ends[0] == 5100 and last == 5099
+
+
+def test_schedules_end_at_the_planned_step():
+    opt = {
+        "means": {"scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=30000)},
+        "camera_opt": {"scheduler": ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=30000, warmup_steps=1000)},
+        "scales": {"scheduler": None},
+    }
+    warmups = schedule_warmups(opt)
+    end_schedules_at(opt, 500, warmups)
+    assert opt["means"]["scheduler"].max_steps == 500 and opt["camera_opt"]["scheduler"].warmup_steps == 50
+    end_schedules_at(opt, 5000, warmups)  # a re-plan starts from the schedule's own warm-up
+    assert opt["camera_opt"]["scheduler"].warmup_steps == 1000
+    # the live scheduler follows its config: at the planned last step the learning rate is the final one
+    param = torch.nn.Parameter(torch.zeros(1))
+    optim = torch.optim.Adam([param], lr=1.6e-4)
+    sched = opt["means"]["scheduler"].setup().get_scheduler(optim, lr_init=1.6e-4)
+    end_schedules_at(opt, 200, warmups)
+    for _ in range(200):
+        optim.step()
+        sched.step()
+    assert np.isclose(optim.param_groups[0]["lr"], 1.6e-6, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------- the table
+
+
+def _records():
+    return json.loads((REPO / "docs" / "benchmarks.json").read_text())
+
+
+def _find(records, scene, method, device, steps, tag):
+    return [
+        r
+        for r in records
+        if (r["scene"], r["method"], r["device"], r["steps"], r.get("tag", "")) == (scene, method, device, steps, tag)
+        and r.get("status", "ok") == "ok"
+    ]
+
+
+def test_every_table_point_is_its_records_mean():
+    records = _records()
+    for p in TABLE:
+        runs = [r for tag in p.records for r in _find(records, p.scene, p.measured_as, p.device, p.steps, tag)]
+        assert len(runs) == len(p.records), (p, len(runs))
+        assert math.isclose(statistics.mean(r["psnr"] for r in runs), p.psnr, abs_tol=5e-4), p
+        assert {r["schedule"] for r in runs} == {"default" if p.schedule == "stock" else "short"}, p
+        scenes = {
+            r["scene"]
+            for r in records
+            if (r["method"], r["device"], r["steps"]) == (p.measured_as, p.device, p.steps) and r.get("psnr")
+        }
+        assert p.one_scene == (len(scenes) == 1), (p, scenes)
+
+
+@pytest.mark.parametrize(
+    "key, runs",
+    [
+        (
+            ("willags-lite", "cuda"),
+            [("fox-wild", "willags-lite-v0", "cuda", 2000, t) for t in ("h100-seq", "h100-seq2")],
+        ),
+        (("willags", "cuda"), [("reichstag", "willags", "cuda", 30000, "h100-30k-s7")]),
+        (("willags-lite", "cpu"), [("default", "willags-lite-v0", "cpu", 300, "")]),
+        (("willags", "cpu"), [("default", "willags-paper", "cpu", 600, "")]),
+    ],
+)
+def test_step_times_are_their_records(key, runs):
+    records = _records()
+    found = [r for k in runs for r in _find(records, *k)]
+    assert len(found) == len(runs)
+    per_step = statistics.mean(r["train_s"] / r["steps"] for r in found)
+    assert math.isclose(per_step, STEP_TIMES[key].seconds, rel_tol=2e-3)
+    notes = " ".join(str(r.get(k, "")) for r in found for k in ("note", "run_note"))
+    assert "shared" not in notes and "at once" not in notes  # alone on the device
+
+
+def test_preset_defaults_are_the_method_configs():
+    from willags_ns.trainer import preset_defaults
+
+    assert (
+        preset_defaults("willags")[1] == CAPS["willags"] and preset_defaults("willags-lite")[1] == CAPS["willags-lite"]
+    )
+
+
+def test_presets_differ_only_in_model_steps_and_schedules():
+    """apply_budget switches a preset by swapping the model config and the step cap: nothing else may differ."""
+    from willags_ns import method_configs
+
+    a, b = method_configs.willags_config(), method_configs.willags_lite_config()
+    differ = {f.name for f in dataclasses.fields(a) if getattr(a, f.name) != getattr(b, f.name)}
+    assert differ <= {"method_name", "max_num_iterations", "pipeline", "optimizers"}
+    assert {
+        f.name for f in dataclasses.fields(a.pipeline) if getattr(a.pipeline, f.name) != getattr(b.pipeline, f.name)
+    } == {"model"}
+    for name, group in a.optimizers.items():
+        other = b.optimizers[name]
+        assert group["optimizer"] == other["optimizer"], name
+        if group["scheduler"] is not None:
+            assert dataclasses.replace(group["scheduler"], max_steps=0) == dataclasses.replace(
+                other["scheduler"], max_steps=0
+            ), name
+
+
+def test_apply_budget_switches_the_preset_in_the_config(monkeypatch):
+    """With points of today's lite (here: the table's, relabelled), a tiny CPU budget swaps the model config for the
+    lite preset's, keeps the user's settings, caps the steps at lite's default and trains at full resolution."""
+    from willags_ns import method_configs
+    from willags_ns.trainer import apply_budget
+
+    monkeypatch.setattr(tb, "TABLE", CURRENT)
+    monkeypatch.setattr(tb, "STEP_TIMES", {k: dataclasses.replace(v, measured_as=k[0]) for k, v in STEP_TIMES.items()})
+    config = method_configs.willags_config()
+    config.machine.device_type = "cpu"
+    config.pipeline.model.backend = "torch"
+    choice, notes = apply_budget(config, 20.0)
+    model = config.pipeline.model
+    assert choice.preset == "willags-lite" and model.use_vae and model.backend == "torch"
+    assert model.num_downscales == 0 and config.max_num_iterations == CAPS["willags-lite"]
+    assert config.optimizers["means"]["scheduler"].max_steps == choice.steps < 200  # 20 s at 0.1335 s/step
+    assert config.method_name == "willags" and "your settings kept: backend" in notes[0]
+
+
+def test_switching_preset_keeps_the_users_settings():
+    from willags_ns.trainer import carry_overrides, preset_defaults
+
+    willags, _ = preset_defaults("willags")
+    lite, _ = preset_defaults("willags-lite")
+    user = preset_defaults("willags")[0]
+    user.backend = "torch"
+    user.mask.threshold = 0.9
+    copied = carry_overrides(user, willags, lite)
+    assert sorted(copied) == ["backend", "mask.threshold"]
+    assert lite.backend == "torch" and lite.mask.threshold == 0.9
+    assert lite.use_vae  # the lite preset's own switches are untouched
+
+
+# ---------------------------------------------------------------------------------------------- a real run
+
+
+@pytest.mark.slow
+def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch, capsys):
+    from tests.test_train import _train
+    from willags_ns import method_configs
+
+    monkeypatch.setattr(tb, "WARMUP_STEPS", 3)  # a CPU step of the embedded scene takes ~0.1-1.5 s
+    monkeypatch.setattr(tb, "WINDOW_STEPS", 5)
+    real_config = method_configs.willags_config
+
+    def budgeted():
+        config = real_config()
+        config.pipeline.time_budget_minutes = 0.2  # 12 s of training steps
+        return config
+
+    monkeypatch.setattr(method_configs, "willags_config", budgeted)
+    config, trainer, losses = _train(tmp_path, "willags", steps=5000)
+    out = capsys.readouterr().out
+    assert "willags time budget: 0.2 min" in out and "preset:" in out and "schedule:" in out
+    assert "stopped after step" in out
+    record = json.loads((config.get_base_dir() / "time_budget.json").read_text())
+    steps = record["run"]["steps_trained"]
+    assert 0 < steps < 5000 and len(losses) == steps
+    assert record["run"]["elapsed_s"] < 12.0 + 5.0  # at most one (slow, loaded-machine) step past the budget
+    assert record["choice"]["preset"] in ("willags-lite", "willags")
+    saved = (config.get_base_dir() / "config.yml").read_text()
+    assert f"max_num_iterations: {steps}" in saved  # config.yml says what was trained
+    assert list((config.get_base_dir() / "nerfstudio_models").glob(f"step-{steps - 1:09d}.ckpt"))
+
+
+@pytest.mark.slow
+def test_ns_train_prints_one_line_for_a_bad_budget(tmp_path):
+    exe = Path(sys.executable).with_name("ns-train")
+    cmd = [str(exe), "willags", "--pipeline.time-budget-minutes", "-5", "--vis", "tensorboard"]
+    out = subprocess.run(cmd + ["--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 1
+    assert "willags: --pipeline.time-budget-minutes must be a finite number of minutes" in out.stderr
+    assert "Traceback" not in out.stderr

@@ -1,0 +1,213 @@
+"""WillagsTrainer: nerfstudio's Trainer, plus the time budget (`--pipeline.time-budget-minutes N`).
+
+Why a Trainer of our own: the budget decides things only the trainer owns. Before the pipeline is built it picks the
+preset (its model config), the step cap and where the learning-rate schedules end; during training it stops the loop
+at the step the run's own clock allows (nerfstudio's loop runs a fixed ``max_num_iterations``). Without a budget it is
+nerfstudio's Trainer unchanged. The decisions themselves are pure functions in willags_ns/time_budget.py.
+"""
+
+import copy
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from willags_ns import time_budget as tb
+from willags_ns.checks import install_cli_excepthook
+from willags_ns.time_budget import (
+    DEFAULT_PRESET,
+    OPTION,
+    PRESETS,
+    BudgetChoice,
+    TimeBudget,
+    TimeBudgetError,
+    choose,
+    device_class,
+    end_schedules_at,
+    fixed_choice,
+    format_choice,
+    schedule_warmups,
+    validate_minutes,
+)
+
+BUDGET_FILE = "time_budget.json"
+"""Written next to config.yml: the choice, the table point, every plan and where training stopped."""
+
+
+@dataclass
+class WillagsTrainerConfig(TrainerConfig):
+    """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/time_budget.py)."""
+
+    _target: type = field(default_factory=lambda: WillagsTrainer)
+
+
+def preset_defaults(preset: str) -> tuple[Any, int]:
+    """(model config, default step count) of a preset, fresh from willags_ns/method_configs.py."""
+    from willags_ns import method_configs as mc
+
+    config = {"willags": mc.willags_config, "willags-lite": mc.willags_lite_config}[preset]()
+    return config.pipeline.model, config.max_num_iterations
+
+
+def carry_overrides(current: Any, base: Any, target: Any) -> list[str]:
+    """Copy onto ``target`` every field where ``current`` differs from ``base`` (what the user changed in the preset
+    he ran: ``--pipeline.model.backend torch`` survives a switch to the other preset), recursing into nested config
+    dataclasses. Returns the dotted names copied."""
+    copied = []
+    for f in dataclasses.fields(current):
+        if f.name == "_target" or not hasattr(target, f.name):
+            continue
+        a, b = getattr(current, f.name), getattr(base, f.name, None)
+        if a == b:
+            continue
+        sub = getattr(target, f.name)
+        if dataclasses.is_dataclass(a) and type(a) is type(b) and type(sub) is type(a):
+            copied += [f"{f.name}.{n}" for n in carry_overrides(a, b, sub)]
+        else:
+            setattr(target, f.name, copy.deepcopy(a))
+            copied.append(f.name)
+    return copied
+
+
+def apply_budget(
+    config: TrainerConfig, budget_s: float, warmups: dict[str, int] | None = None
+) -> tuple[BudgetChoice, list[str]]:
+    """Choose the preset and the steps for ``budget_s`` and write them into ``config`` (model, max_num_iterations,
+    learning-rate schedules with their own ``warmups``, resolution schedule). Returns the choice and notes for the
+    printed block."""
+    device = device_class(config.machine.device_type)
+    method = str(config.method_name)
+    notes: list[str] = []
+    if method != DEFAULT_PRESET:  # a method named explicitly (willags-lite too) keeps its model
+        choice = fixed_choice(method, config.max_num_iterations)
+    else:
+        defaults = {p: preset_defaults(p) for p in PRESETS}
+        caps = {p: min(steps, config.max_num_iterations) for p, (_, steps) in defaults.items()}
+        choice = choose(budget_s, device, caps)
+        base_model = defaults[method][0]
+        model: Any = config.pipeline.model  # a WillagsModelConfig (both presets' model)
+        if choice.preset != method:
+            target = copy.deepcopy(defaults[choice.preset][0])
+            kept = carry_overrides(model, base_model, target)
+            config.pipeline.model = model = target
+            base_model = defaults[choice.preset][0]
+            notes.append(
+                f"model switched from {method} to {choice.preset}"
+                + (f"; your settings kept: {', '.join(kept)}" if kept else "")
+            )
+        if not choice.keep_resolution_schedule:
+            if model.num_downscales == base_model.num_downscales:
+                model.num_downscales = 0
+            else:
+                notes.append(f"your --pipeline.model.num-downscales {model.num_downscales} kept")
+    config.max_num_iterations = choice.max_steps
+    end_schedules_at(config.optimizers, choice.steps, warmups)
+    return choice, notes
+
+
+class WillagsTrainer(Trainer):
+    """nerfstudio's Trainer; with a time budget it also chooses, measures and stops (see the module docstring)."""
+
+    config: WillagsTrainerConfig
+
+    def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        install_cli_excepthook()  # a bad budget prints one line, as bad inputs do
+        self.time_budget: TimeBudget | None = None
+        self._budget_record: dict[str, Any] = {}
+        minutes = validate_minutes(getattr(self.config.pipeline, "time_budget_minutes", None))
+        choice = None
+        if minutes is not None and test_mode == "val":
+            if self.world_size > 1:
+                raise TimeBudgetError(
+                    f"{OPTION} with --machine.num-devices {self.world_size}: not supported (the ranks would have to "
+                    "agree on when to stop); train on one device or set --max-num-iterations"
+                )
+            self._warmups = schedule_warmups(self.config.optimizers)
+            choice, notes = apply_budget(self.config, minutes * 60.0, self._warmups)
+            device = device_class(self.config.machine.device_type)
+            CONSOLE.print(format_choice(choice, minutes, device, notes))
+            self._budget_record = {
+                "budget_minutes": minutes,
+                "device_class": device,
+                "choice": {
+                    k: (None if v != v else v) for k, v in dataclasses.asdict(choice).items()
+                },  # NaN step time -> null
+                "notes": notes,
+            }
+            if self.local_rank == 0:
+                self.config.save_config()  # config.yml: the preset and steps that will train, not the invoked ones
+        super().setup(test_mode)
+        if choice is not None and minutes is not None:
+            self._attach_budget(minutes * 60.0, choice)
+
+    def _attach_budget(self, budget_s: float, choice: BudgetChoice) -> None:
+        start = self._start_step  # > 0 when resumed with --load-dir: the budget is this run's
+        optimizers = self.config.optimizers  # the schedulers read these configs at every step
+        warmups = self._warmups
+
+        def on_plan(end_step: int) -> None:
+            end_schedules_at(optimizers, end_step, warmups)
+
+        on_plan(start + choice.steps)
+        cuda = str(self.device).startswith("cuda") and torch.cuda.is_available()
+        budget = TimeBudget(
+            budget_s,
+            max_steps=choice.max_steps,
+            start_step=start,
+            on_plan=on_plan,
+            log=CONSOLE.print,
+            sync=torch.cuda.synchronize if cuda else None,
+            warmup_steps=tb.WARMUP_STEPS,  # read now, so a test can shorten them
+            window_steps=tb.WINDOW_STEPS,
+            replan_every=tb.REPLAN_EVERY,
+        )
+
+        def after_step(step: int) -> None:
+            if budget.after_step(step):
+                self.stop_training = True  # nerfstudio's loop breaks before the next step
+
+        # first, so that the interrupt checkpoint (the pipeline's last AFTER_TRAIN_ITERATION callback) stays last
+        self.callbacks[:0] = [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], budget.before_step),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._budget_done),
+        ]
+        self.time_budget = budget
+        self._write_budget_record()
+
+    def _after_train(self) -> None:
+        # the loop set self.step to the step it broke before (never trained): checkpoint the last trained one
+        if self.time_budget is not None and self.time_budget.stopped_after is not None:
+            self.step = self.time_budget.stopped_after
+        super()._after_train()
+
+    def _budget_done(self, step: int) -> None:
+        budget = self.time_budget
+        assert budget is not None
+        trained = step - budget.start_step + 1
+        how = budget.stop_reason or "trained every step allowed"
+        CONSOLE.print(
+            f"willags time budget: stopped after step {step} ({trained} steps; {how}) at {budget.elapsed():.0f} s of "
+            f"{budget.budget_s:.0f} s"
+        )
+        if self.local_rank == 0:
+            end_schedules_at(self.config.optimizers, step + 1, self._warmups)
+            self.config.max_num_iterations = trained
+            self.config.save_config()  # config.yml says what was trained
+        self._write_budget_record()
+
+    def _write_budget_record(self) -> None:
+        if self.local_rank != 0:
+            return
+        record = {**self._budget_record}
+        if self.time_budget is not None:
+            record["run"] = self.time_budget.summary()
+        path = Path(self.base_dir) / BUDGET_FILE
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(record, indent=1, default=str))
