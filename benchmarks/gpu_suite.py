@@ -913,7 +913,7 @@ def section_render(args, cuda: bool, dev, backend: str) -> dict:
         out["willags_exact_fps"] = fps_of(lambda i: model.get_outputs(cams[i % 8]))
         model.config.render_sh_degree = deg
         if deg >= 0:
-            model._sh_cache = None
+            model.color_path.sh_cache = None
             sync(cuda)
             t_b = time.perf_counter()
             with torch.no_grad():
