@@ -209,7 +209,7 @@ def test_render_latent_is_reused_across_frames_and_follows_every_change(monkeypa
         model.render_latent = torch.randn(d, generator=torch.Generator().manual_seed(2))
         chosen = model.current_latent()
         assert model.current_latent() is chosen
-        key = model._latent_key(chosen)
+        key = model.latents.key_of(chosen)
         assert key[0] == "render"  # from the memo: no device -> host copy
         frames = [model.get_outputs(cam)["rgb"] for _ in range(3)]  # exact, bake, cached bake
         torch.testing.assert_close(frames[1], frames[2])
@@ -229,7 +229,7 @@ def test_render_latent_is_reused_across_frames_and_follows_every_change(monkeypa
         model.render_latent = None
         torch.testing.assert_close(model.current_latent(), z1)
     # a value the memo never handed out is keyed by its bytes
-    assert model._latent_key(torch.zeros(d))[0] == "value"
+    assert model.latents.key_of(torch.zeros(d))[0] == "value"
 
 
 def test_embedding_row_lookup_matches_the_table_and_names_a_bad_index():

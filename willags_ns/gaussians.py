@@ -115,3 +115,12 @@ def rasterize_gaussians(
         rasterize_mode=cfg.rasterize_mode,
         backend=cfg.backend,
     )
+
+
+def sh_colors(cfg, gp, step: int) -> tuple[Tensor, int | None]:
+    """appearance='sh' (plain 3DGS): (SH coefficients [N, K, 3], the active degree by splatfacto's schedule), or
+    with sh_degree=0 (RGB [N, 3] through a sigmoid, None) as splatfacto renders them."""
+    colors = torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
+    if cfg.sh_degree > 0:
+        return colors, min(step // cfg.sh_degree_interval, cfg.sh_degree)
+    return torch.sigmoid(colors).squeeze(1), None

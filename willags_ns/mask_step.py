@@ -137,3 +137,20 @@ def teacher_render(colors: Tensor, gp, viewmat: Tensor, K, W: int, H: int, backg
         "RGB",
     )
     return torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0).squeeze(0)
+
+
+def log_step_images(step: int, outputs: dict, gt_img: Tensor, mask: Tensor | None, record: dict) -> None:
+    """Tensorboard pictures of a training step: photo | render, the teacher's render, the perceptual distance D,
+    the static mask, and the VAE's reconstruction of the photo (each when this step made one)."""
+    from nerfstudio.utils import writer
+
+    writer.put_image("train/render_vs_gt", torch.cat([gt_img, outputs["rgb"].detach()], dim=1), step)
+    if "teacher_rgb" in outputs:
+        writer.put_image("train/teacher_render", outputs["teacher_rgb"], step)
+    if "D" in record:
+        d = record["D"]
+        writer.put_image("train/perceptual_D", (d / d.max().clamp_min(1e-6))[..., None].expand(-1, -1, 3), step)
+    if mask is not None:
+        writer.put_image("train/static_mask", mask[..., None].expand(-1, -1, 3), step)
+    if "vae_recon_img" in record:
+        writer.put_image("train/vae_reconstruction", record["vae_recon_img"][0].permute(1, 2, 0), step)

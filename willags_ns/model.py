@@ -3,22 +3,21 @@ perceptual transient mask (WilLaGS). Runs on any device; rasterises through `wil
 
 Per training step (the pipeline hands the model the training image first):
 
-    image --VAE encoder--> mu, logvar --reparameterise--> z              [D]
-    z --hypernetwork--> tri-planes [3, Cp, R, R]; means --bounds--> [-1,1]^3 --bilinear--> MLP --> f_d [N, 32]
-    T_color(f_d, f_s, view dir) --> colours [N, 3] --rasterize--> render
-    EMA teacher (same networks, EMA weights) --> pseudo-GT render (no grad)
-    VGG16(GT) vs VGG16(teacher) --> D(p); static mask = D < 0.85 (after a warm-up)
-    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)
+    image --VAE encoder--> z [D]                                        appearance/latents.py
+    z, Gaussians, camera --> colours [N, 3]                             appearance/color_path.py, networks.py
+    colours (+ the EMA teacher's, fused) --rasterize--> render          gaussians.py, render/
+    VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask_step.py
+    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)   losses.py
 
-The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check
-`isinstance(model, SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution
-schedule and metrics, and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights
-(LPIPS). `appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the
-CPU stand-in for splatfacto in benchmarks (method `willags-3dgs`).
+This file is the wiring (config, parameter groups, get_outputs, losses, callbacks); docs/architecture.md maps the
+rooms. The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check `isinstance(model,
+SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution schedule and metrics,
+and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights (LPIPS).
+`appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the CPU
+stand-in for splatfacto in benchmarks (method `willags-3dgs`).
 """
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal, Union, cast
 
 import torch
@@ -38,6 +37,7 @@ from willags_ns.appearance.latents import (
     AppearanceLatents,
     image_as_float,  # noqa: F401  (imported from here by benchmarks/harness.py)
     image_chw,
+    latent_loss,
     stored_latents,
     training_latent,
 )
@@ -45,30 +45,27 @@ from willags_ns.appearance.modulation import ColorModulationConfig, local_penalt
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.sky import SkyConfig, background_alpha_penalty, pixel_directions
 from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
-from willags_ns.appearance.vae import VAEConfig, vae_loss
+from willags_ns.appearance.vae import VAEConfig
 from willags_ns.appearance_spec import latent_from_env, mean_latent
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
+from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
+from willags_ns.eval.lpips import make_lpips
 from willags_ns.gaussians import (
     densification_strategy,
     initial_gauss_params,
     initial_points,
     rasterize_gaussians,
+    sh_colors,
     uses_gsplat,
 )
-from willags_ns.losses import reconstruction_loss
-from willags_ns.mask_step import MaskStep, teacher_colors, teacher_render
+from willags_ns.losses import reconstruction_loss, scale_regularization
+from willags_ns.mask_step import MaskStep, log_step_images, teacher_colors, teacher_render
 from willags_ns.render.camera import viewmat_from_c2w
 from willags_ns.static_support import StaticSupportConfig
 from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
 from willags_ns.transient import PerceptualFeatures, PerceptualMaskConfig
 
 __all__ = ["AppearanceNetworks", "WillagsModel", "WillagsModelConfig", "viewmat_from_c2w"]
-
-
-def _lpips_weights_cached() -> bool:
-    """torchmetrics' LPIPS builds torchvision's AlexNet with ImageNet weights: only try when they are on disk."""
-    hub = Path(torch.hub.get_dir()) / "checkpoints"
-    return any(hub.glob("alexnet-owt-*.pth"))
 
 
 @dataclass
@@ -181,7 +178,6 @@ class WillagsModel(SplatfactoModel):
             self.background_color = get_color(cfg.background_color)
         if cfg.use_bilateral_grid:
             raise ValueError("willags: use_bilateral_grid is not supported (the appearance field models the ISP)")
-
         self.strategy = densification_strategy(cfg, self.num_train_data)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
 
@@ -205,12 +201,12 @@ class WillagsModel(SplatfactoModel):
             # mean latent of each training image, refreshed whenever it is visited: the appearances users pick
             self.register_buffer("train_latents", torch.zeros(max(self.num_train_data, 1), d))
             self.register_buffer("train_latent_seen", torch.zeros(max(self.num_train_data, 1), dtype=torch.bool))
-        self.latents = AppearanceLatents()  # the chosen appearance, the memo of rendered latents
+        self.latents = AppearanceLatents()  # the chosen appearance; the memo of the latents handed out
         self.color_path = ColorPath(self.latents.key_of)  # the f_d and baked-SH caches
-        # per-image masks, visits and SfM support (the safeguard's observations: COLMAP scenes)
+        # each image's last mask, visits and SfM support (the safeguard's observations: COLMAP scenes)
         self.mask_step = MaskStep(cfg, (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY))
         self._train_batch: dict | None = None
-        self._step_cache: dict[str, Tensor] = {}  # this training step's scratch (emptied by _end_step)
+        self._step_cache: dict[str, Tensor] = {}  # this training step's scratch, passed to the rooms as `record`
         self._absgrad_notice = False
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
 
@@ -219,15 +215,11 @@ class WillagsModel(SplatfactoModel):
     def features_dc(self):
         """Splatfacto's name for the degree-0 SH parameter; with the paper's decoder (no SH parameters), the chosen
         appearance baked to SH."""
-        if "features_dc" in self.gauss_params:
-            return self.gauss_params["features_dc"]
-        return self.export_sh()[:, 0, :]
+        return self.gauss_params["features_dc"] if "features_dc" in self.gauss_params else self.export_sh()[:, 0, :]
 
     @property
     def features_rest(self):
-        if "features_rest" in self.gauss_params:
-            return self.gauss_params["features_rest"]
-        return self.export_sh()[:, 1:, :]
+        return self.gauss_params["features_rest"] if "features_rest" in self.gauss_params else self.export_sh()[:, 1:]
 
     @property
     def intrinsic_features(self) -> Tensor | None:
@@ -236,22 +228,16 @@ class WillagsModel(SplatfactoModel):
 
     @property
     def colors(self):
-        if self.config.appearance == "sh":
-            return super().colors
-        return self.baked_colors()
+        return super().colors if self.config.appearance == "sh" else self.baked_colors()
 
     @property
     def shs_0(self):
         """What exporters write as f_dc: splatfacto's SH, or the chosen appearance baked to SH."""
-        if self.config.appearance == "sh":
-            return super().shs_0
-        return self.export_sh()[:, 0, :]
+        return super().shs_0 if self.config.appearance == "sh" else self.export_sh()[:, 0, :]
 
     @property
     def shs_rest(self):
-        if self.config.appearance == "sh":
-            return super().shs_rest
-        return self.export_sh()[:, 1:, :]
+        return super().shs_rest if self.config.appearance == "sh" else self.export_sh()[:, 1:, :]
 
     @torch.no_grad()
     def export_sh(self) -> Tensor:
@@ -287,13 +273,14 @@ class WillagsModel(SplatfactoModel):
             param.data = torch.zeros((newp,) + param.shape[1:], device=self.device)
         nn.Module.load_state_dict(self, dict, **kwargs)
 
-    # ------------------------------------------------------------------ appearance (appearance/latents.py, color_path.py)
+    # ------------------------------------------------------------------ the latent (appearance/latents.py)
     def set_train_batch(self, batch: dict) -> None:
         """Called by WillagsPipeline before each training forward: the image feeds the VAE encoder."""
         self._train_batch = batch
 
-    def _image_chw(self, image: Tensor) -> Tensor:
-        return image_chw(image, self.device)  # [3, H, W]
+    def set_train_image_names(self, names: list[str]) -> None:
+        """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
+        self.image_names = list(names)
 
     @property
     def render_latent(self) -> Tensor | None:
@@ -305,7 +292,7 @@ class WillagsModel(SplatfactoModel):
         self.latents.render_latent = z
 
     def image_latents(self) -> tuple[Tensor, Tensor]:
-        """(latents [num_train, D], known [num_train] bool) of the training images, detached (latents.stored_latents)."""
+        """(latents [num_train, D], known [num_train] bool) of the training images, detached (stored_latents)."""
         assert self.appearance_nets is not None
         return stored_latents(self.appearance_nets, self.train_latents, self.train_latent_seen)
 
@@ -319,13 +306,6 @@ class WillagsModel(SplatfactoModel):
         """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
         return self.latents.chosen(self.device, lambda spec: latent_from_env(spec, self), self.default_latent)
 
-    def _latent_key(self, z: Tensor) -> tuple:
-        return self.latents.key_of(z)
-
-    def set_train_image_names(self, names: list[str]) -> None:
-        """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
-        self.image_names = list(names)
-
     @torch.no_grad()
     def encode_image(self, image: Tensor) -> Tensor:
         """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
@@ -333,16 +313,19 @@ class WillagsModel(SplatfactoModel):
         mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
         return mu[0]
 
+    def _image_chw(self, image: Tensor) -> Tensor:
+        return image_chw(image, self.device)  # [3, H, W]
+
     def _latent_for_forward(self, camera: Cameras) -> Tensor:
         """Training: encode this step's image (reparameterised). Otherwise: camera metadata / chosen / default."""
-        nets = self.appearance_nets
-        assert nets is not None
+        assert self.appearance_nets is not None
         md = camera.metadata or {}
         if not self.training:
             return self.latents.for_render(md, self.device, self.image_latents, self.current_latent)
-        lat, seen = self.train_latents, self.train_latent_seen
+        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
         return training_latent(nets, self._train_batch, md, self.device, self._step_cache, lat, seen)
 
+    # ------------------------------------------------------------------ colours (appearance/color_path.py)
     def sh_coeffs(self, gp: dict | None = None) -> Tensor | None:
         """SH coefficients [N, K, 3] of the Gaussians (`gp`: a cropped gauss_params view), or None without them."""
         return sh_coeffs(self.gauss_params if gp is None else gp)
@@ -358,15 +341,7 @@ class WillagsModel(SplatfactoModel):
         return self.color_path.dynamic_features(nets, z, means, self._color_context(), cacheable)
 
     def appearance_colors(
-        self,
-        z: Tensor,
-        means: Tensor,
-        f_s: Tensor | None,
-        cam_center: Tensor,
-        nets: AppearanceNetworks | None = None,
-        cacheable: bool = False,
-        sh: Tensor | None = None,
-        base: Tensor | None = None,
+        self, z: Tensor, means: Tensor, f_s, cam_center: Tensor, nets=None, cacheable=False, sh=None, base=None
     ) -> Tensor:
         """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D] (ColorPath.colors).
 
@@ -396,10 +371,8 @@ class WillagsModel(SplatfactoModel):
         """View-independent colours [N, 3] for export: the appearance averaged over a Fibonacci sphere of views."""
         assert self.appearance_nets is not None
         z = self.current_latent() if z is None else z.to(self.device)
-        k = max(1, self.config.export_view_samples)
-        return self.color_path.baked_colors(
-            self.appearance_nets, z, self.means, self.intrinsic_features, k, self._color_context(), self.sh_coeffs()
-        )
+        nets, k, ctx = self.appearance_nets, max(1, self.config.export_view_samples), self._color_context()
+        return self.color_path.baked_colors(nets, z, self.means, self.intrinsic_features, k, ctx, self.sh_coeffs())
 
     # ------------------------------------------------------------------ rendering
     def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
@@ -424,14 +397,13 @@ class WillagsModel(SplatfactoModel):
             c2w = self.camera_optimizer.apply_to_camera(camera)
         else:
             c2w = camera.camera_to_worlds
+        crop_ids = None
         if self.crop_box is not None and not self.training:
             crop_ids = self.crop_box.within(self.means).squeeze()
             if crop_ids.sum() == 0:
                 return self.get_empty_outputs(
                     int(camera.width.item()), int(camera.height.item()), self.background_color
                 )
-        else:
-            crop_ids = None
         gp = {k: (v[crop_ids] if crop_ids is not None else v) for k, v in self.gauss_params.items()}
 
         scale_fac = self._get_downscale_factor()
@@ -444,34 +416,29 @@ class WillagsModel(SplatfactoModel):
         render_mode = "RGB+ED" if (cfg.output_depth_during_training or not self.training) else "RGB"
         cam_center = c2w[0, :3, 3]
 
-        outputs: dict[str, Union[Tensor, list]] = {}
+        # the Gaussians' colours: 3DGS SH, the baked SH of a fixed appearance, or the colour path for latent z
         z: Tensor | None = None
         if cfg.appearance == "sh":
-            colors = torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
-            if cfg.sh_degree > 0:
-                sh_degree = min(self.step // cfg.sh_degree_interval, cfg.sh_degree)
-            else:
-                colors, sh_degree = torch.sigmoid(colors).squeeze(1), None
+            colors, sh_degree = sh_colors(cfg, gp, self.step)
         else:
             z = self._latent_for_forward(camera)
             fixed = not self.training and not torch.is_grad_enabled()
-            deg = cfg.render_sh_degree
-            sh = None
+            deg, sh_degree = cfg.render_sh_degree, None
+            colors = None
             if fixed and deg >= 0 and "appearance_latent" not in (camera.metadata or {}):
                 ctx, nets = self._color_context(), self.appearance_nets
-                sh = self.color_path.frame_sh(nets, z, gp["means"], gp.get("features"), deg, ctx, gp)
-            if sh is not None:
-                colors, sh_degree = sh, deg
-            else:
-                colors = self.appearance_colors(
-                    z, gp["means"], gp.get("features"), cam_center, cacheable=fixed, sh=self.sh_coeffs(gp)
-                )
-                sh_degree = None
+                colors = self.color_path.frame_sh(nets, z, gp["means"], gp.get("features"), deg, ctx, gp)
+                sh_degree = deg if colors is not None else None
+            if colors is None:
+                f_s = gp.get("features")
+                colors = self.appearance_colors(z, gp["means"], f_s, cam_center, cacheable=fixed, sh=self.sh_coeffs(gp))
 
         teacher_needed = self.training and self.mask_step.teacher_needed(self.step, self._image_idx())
         fused = teacher_needed and cfg.fuse_teacher_render and self.teacher is not None
         if fused:  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
-            colors = torch.cat([colors, self._teacher_colors(gp, cam_center)], dim=-1)
+            assert self.teacher is not None
+            t_colors = teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
+            colors = torch.cat([colors, t_colors], dim=-1)
         render, alpha, self.info = self._rasterize(
             gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, render_mode, sh_degree
         )
@@ -485,6 +452,7 @@ class WillagsModel(SplatfactoModel):
         background = self._background(self.appearance_nets, z, dirs)
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
 
+        outputs: dict[str, Union[Tensor, list]] = {}
         if fused:
             teacher_bg = background
             if dirs is not None:  # the teacher's own sky under the teacher's latent (set with its colours)
@@ -504,9 +472,8 @@ class WillagsModel(SplatfactoModel):
             background = background.expand(H, W, 3)
         elif background.dim() == 4:  # the sky: [1, H, W, 3]
             background = background.squeeze(0)
-        outputs.update(
-            {"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0), "background": background}  # type: ignore[dict-item]
-        )
+        outputs.update({"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0)})  # type: ignore[dict-item]
+        outputs["background"] = background
         return outputs
 
     def _background(self, nets: "AppearanceNetworks | None", z: Tensor | None, dirs: Tensor | None) -> Tensor:
@@ -521,26 +488,20 @@ class WillagsModel(SplatfactoModel):
         return int(self._step_cache.get("image_idx", torch.tensor(-1)))
 
     @torch.no_grad()
-    def _teacher_colors(self, gp, cam_center) -> Tensor:
-        """Per-Gaussian RGB [N, 3] of the EMA teacher networks for this step's image (no grad)."""
-        assert self.teacher is not None
-        return teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
-
-    @torch.no_grad()
     def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background, dirs=None) -> Tensor:
         """Pseudo-GT [H, W, 3] from the EMA teacher networks with the student's current Gaussians (no grad): a
         second rasterisation (fuse_teacher_render=False; the fused path renders the same image). With a sky
         (`dirs` given), the teacher's own sky replaces `background`."""
-        colors = self._teacher_colors(gp, cam_center)
+        assert self.teacher is not None
+        colors = teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
         if dirs is not None:
             background = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs)
         return teacher_render(colors, gp, viewmat, K, W, H, background, self._rasterize)
 
     def _static_mask(self, outputs, gt_img: Tensor) -> Tensor | None:
         """[H, W] float mask of static pixels (1 = supervised), or None when masking is off / warming up."""
-        teacher_rgb = outputs.get("teacher_rgb")
-        ms = self.mask_step
-        return ms.static_mask(self.step, self._image_idx(), gt_img, teacher_rgb, self.perceptual, self._step_cache, self.device)
+        t_rgb, idx = outputs.get("teacher_rgb"), self._image_idx()
+        return self.mask_step.static_mask(self.step, idx, gt_img, t_rgb, self.perceptual, self._step_cache, self.device)
 
     def static_support(self, idx: int, height: int, width: int) -> Tensor | None:
         """Training image `idx`'s SfM support grid (True = vouched static), or None (MaskStep.support)."""
@@ -587,7 +548,7 @@ class WillagsModel(SplatfactoModel):
         return metrics
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> dict[str, torch.Tensor]:
-        cfg = self.config
+        cfg, sc = self.config, self._step_cache
         gt_img = self._gt_image(outputs, batch)
         pred_img = outputs["rgb"]
         mask = self._static_mask(outputs, gt_img) if self.training else None
@@ -599,69 +560,32 @@ class WillagsModel(SplatfactoModel):
         loss_dict = {"main_loss": reconstruction_loss(pred_b, gt_b, mask_b, ssim_lambda=cfg.ssim_lambda)}
         if mask is not None and metrics_dict is not None:
             metrics_dict["masked_fraction"] = 1.0 - mask.mean().detach()
-            if "mask_rejected" in self._step_cache:
-                metrics_dict["mask_rejected"] = self._step_cache["mask_rejected"]
+            if "mask_rejected" in sc:
+                metrics_dict["mask_rejected"] = sc["mask_rejected"]
 
-        if self.training and "logvar" in self._step_cache and self.appearance_nets is not None:
+        if self.training and "logvar" in sc and self.appearance_nets is not None:
             vae = self.appearance_nets.vae
             assert vae is not None
-            sc = self._step_cache
-            recon = vae.decode(sc["z"][None])
-            target = vae.prepare(sc["vae_in"][None])
-            l_vae, parts = vae_loss(
-                recon,
-                target,
-                sc["mu"][None],
-                sc["logvar"][None],
-                beta=cfg.vae.beta,
-                recon_reduction=cfg.vae.recon_reduction,
-            )
+            l_vae, parts = latent_loss(vae, sc, cfg.vae.beta, cfg.vae.recon_reduction)
             loss_dict["vae_loss"] = cfg.lambda_vae * l_vae
             if metrics_dict is not None:
                 metrics_dict["vae_kl"] = parts["vae_kl"].detach()
                 metrics_dict["vae_recon"] = parts["vae_recon"].detach()
-            sc["vae_recon_img"] = recon.detach()
-
         if self.training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:
-            pen_sky = background_alpha_penalty(
-                outputs["accumulation"], gt_img, outputs["background"], cfg.sky.alpha_tol, mask
-            )
+            acc, bg = outputs["accumulation"], outputs["background"]
+            pen_sky = background_alpha_penalty(acc, gt_img, bg, cfg.sky.alpha_tol, mask)
             if pen_sky is not None:
                 loss_dict["sky_alpha"] = cfg.sky.alpha_penalty * pen_sky
-
-        pen = local_penalty(self._step_cache.get("local_residual")) if self.training else None
+        pen = local_penalty(sc.get("local_residual")) if self.training else None
         if pen is not None and cfg.modulation.local_penalty > 0:
             loss_dict["appearance_local"] = cfg.modulation.local_penalty * pen
-
         if cfg.use_scale_regularization and self.step % 10 == 0:
-            s = torch.exp(self.scales)
-            ratio = s.amax(dim=-1) / s.amin(dim=-1)
-            loss_dict["scale_reg"] = 0.1 * (torch.clamp_min(ratio, cfg.max_gauss_ratio) - cfg.max_gauss_ratio).mean()
+            loss_dict["scale_reg"] = scale_regularization(self.scales, cfg.max_gauss_ratio)
         if self.training:
             self.camera_optimizer.get_loss_dict(loss_dict)
-            self._maybe_log_images(outputs, gt_img, mask)
+            if cfg.log_images_every > 0 and self.step % cfg.log_images_every == 0:
+                log_step_images(self.step, outputs, gt_img, mask, sc)
         return loss_dict
-
-    def _maybe_log_images(self, outputs, gt_img: Tensor, mask: Tensor | None) -> None:
-        every = self.config.log_images_every
-        if every <= 0 or self.step % every != 0:
-            return
-        from nerfstudio.utils import writer
-
-        writer.put_image("train/render_vs_gt", torch.cat([gt_img, outputs["rgb"].detach()], dim=1), self.step)
-        if "teacher_rgb" in outputs:
-            writer.put_image("train/teacher_render", outputs["teacher_rgb"], self.step)
-        if "D" in self._step_cache:
-            d = self._step_cache["D"]
-            writer.put_image(
-                "train/perceptual_D", (d / d.max().clamp_min(1e-6))[..., None].expand(-1, -1, 3), self.step
-            )
-        if mask is not None:
-            writer.put_image("train/static_mask", mask[..., None].expand(-1, -1, 3), self.step)
-        if "vae_recon_img" in self._step_cache:
-            writer.put_image(
-                "train/vae_reconstruction", self._step_cache["vae_recon_img"][0].permute(1, 2, 0), self.step
-            )
 
     def get_image_metrics_and_images(self, outputs, batch):
         gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
@@ -677,17 +601,7 @@ class WillagsModel(SplatfactoModel):
     def lpips_metric(self):
         """torchmetrics LPIPS when AlexNet's ImageNet weights are on disk; else None with a one-line notice."""
         if self._lpips is None and self._lpips_status is None:
-            if _lpips_weights_cached():
-                from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
-
-                self._lpips = LearnedPerceptualImagePatchSimilarity(normalize=True).to(self.device)
-                self._lpips_status = "torchmetrics alexnet"
-            else:
-                self._lpips_status = "unavailable"
-                CONSOLE.log(
-                    f"willags: LPIPS unavailable (no AlexNet weights in {torch.hub.get_dir()}/checkpoints; "
-                    "offline): reporting PSNR and SSIM only"
-                )
+            self._lpips, self._lpips_status = make_lpips(self.device)
         return self._lpips
 
     # ------------------------------------------------------------------ callbacks

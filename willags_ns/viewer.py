@@ -41,7 +41,14 @@ from willags_ns.appearance_spec import (
 if TYPE_CHECKING:
     from willags_ns.model import WillagsModel
 
-__all__ = ["AppearanceControls", "appearance_controls", "guard_viewer_host", "interpolate_latents", "sample_latent", "spec_from_choices"]
+__all__ = [
+    "AppearanceControls",
+    "appearance_controls",
+    "guard_viewer_host",
+    "interpolate_latents",
+    "sample_latent",
+    "spec_from_choices",
+]
 
 VIEWER_HOST_ENV = "WILLAGS_VIEWER_HOST"
 """Host the viewer of a willags checkpoint listens on under `ns-viewer` (default 127.0.0.1; 0.0.0.0 exposes it)."""

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.appearance.vae import reparameterize
+from willags_ns.appearance.vae import AppearanceVAE, reparameterize, vae_loss
 from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent
 
 
@@ -43,9 +43,7 @@ def versions(tensors: list[Tensor]) -> tuple:
     return tuple((t.data_ptr(), t._version) for t in tensors)
 
 
-def stored_latents(
-    nets: AppearanceNetworks, train_latents: Tensor, train_latent_seen: Tensor
-) -> tuple[Tensor, Tensor]:
+def stored_latents(nets: AppearanceNetworks, train_latents: Tensor, train_latent_seen: Tensor) -> tuple[Tensor, Tensor]:
     """(latents [num_train, D], known [num_train] bool) of the training images, detached.
 
     An embedding table's rows are the latents (current values; every row exists from the start). With the VAE,
@@ -137,9 +135,7 @@ class AppearanceLatents:
         src = [nets.embeddings.weight] if nets.embeddings is not None else [train_latents, train_latent_seen]
         return self.memo("default", versions(src), mean)
 
-    def chosen(
-        self, device, from_env: Callable[[str], Tensor | None], default: Callable[[], Tensor]
-    ) -> Tensor:
+    def chosen(self, device, from_env: Callable[[str], Tensor | None], default: Callable[[], Tensor]) -> Tensor:
         """The chosen appearance: `render_latent` if set, else `from_env($WILLAGS_APPEARANCE)` if set, else
         `default()`."""
         if self.render_latent is not None:
@@ -183,3 +179,15 @@ class AppearanceLatents:
             return torch.as_tensor(metadata["appearance_latent"], device=device).reshape(-1).float()
         z = self.for_camera(metadata.get("cam_idx"), stored, device)
         return z if z is not None else chosen()
+
+
+def latent_loss(vae: AppearanceVAE, record: dict, beta: float, recon_reduction: str) -> tuple[Tensor, dict]:
+    """L_VAE of this training step (L1 reconstruction of the encoder's input from z + beta KL; appearance/vae.py)
+    from what :func:`training_latent` recorded; keeps the reconstruction in record["vae_recon_img"] for the logs."""
+    recon = vae.decode(record["z"][None])
+    target = vae.prepare(record["vae_in"][None])
+    l_vae, parts = vae_loss(
+        recon, target, record["mu"][None], record["logvar"][None], beta=beta, recon_reduction=recon_reduction
+    )
+    record["vae_recon_img"] = recon.detach()
+    return l_vae, parts
