@@ -408,7 +408,7 @@ def build_model(variant: str, seeds, n_train: int, dev: torch.device, backend: s
         import torchmetrics.image.lpip as tm_lpip
         from nerfstudio.models import splatfacto as sf
 
-        from willags_ns.model import viewmat_from_c2w
+        from willags_ns.render.camera import viewmat_from_c2w
 
         tm_lpip.LearnedPerceptualImagePatchSimilarity = _NoLPIPS  # weights cannot be downloaded; unused here
         sf.get_viewmat = viewmat_from_c2w  # same maths without torch.compile's first-call compile
@@ -934,7 +934,7 @@ def section_render(args, cuda: bool, dev, backend: str) -> dict:
             means, quats = model.means.contiguous(), model.quats.contiguous()
             scales = torch.exp(model.scales).contiguous()
             opac = torch.sigmoid(model.opacities).squeeze(-1).contiguous()
-            from willags_ns.model import viewmat_from_c2w
+            from willags_ns.render.camera import viewmat_from_c2w
 
             vms = [viewmat_from_c2w(c.camera_to_worlds) for c in cams]
             Ks = [c.get_intrinsics_matrices().to(dev) for c in cams]
@@ -1155,7 +1155,7 @@ def section_components(args, cuda: bool, dev, backend: str, ceilings: dict) -> d
         sh = torch.zeros(n, 16, 3, device=dev)
         sh[:, 0] = (col.detach() - 0.5) / 0.28209479177387814
         sh.requires_grad_(True)
-        from willags_ns.model import viewmat_from_c2w
+        from willags_ns.render.camera import viewmat_from_c2w
 
         cam = make_camera(size, dev)
         vm = viewmat_from_c2w(cam.camera_to_worlds)
