@@ -254,14 +254,8 @@ class WillagsModel(SplatfactoModel):
 
     def get_param_groups(self) -> dict[str, list[Parameter]]:
         gps = self.get_gaussian_param_groups()
-        if self.appearance_nets is not None:
-            emb = self.appearance_nets.embeddings
-            # the per-image embedding table gets its own group: a table row is updated only when its image is
-            # drawn (once per epoch), so it needs a far higher learning rate than the shared networks
-            own = {id(p) for p in emb.parameters()} if emb is not None else set()
-            gps["appearance"] = [p for p in self.appearance_nets.parameters() if id(p) not in own]
-            if emb is not None:
-                gps["appearance_embed"] = list(emb.parameters())
+        if self.appearance_nets is not None:  # the embedding table apart (AppearanceNetworks.param_groups)
+            gps.update(self.appearance_nets.param_groups())
         self.camera_optimizer.get_param_groups(param_groups=gps)
         return gps
 

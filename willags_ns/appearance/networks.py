@@ -94,6 +94,17 @@ class AppearanceNetworks(nn.Module):
                 cfg=cfg.modulation,
             )
 
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Optimiser groups: "appearance" (the shared networks) and, for an embedding table, "appearance_embed": a
+        table row is updated only when its image is drawn (once per epoch), so it needs a far higher learning rate
+        than the shared networks."""
+        emb = self.embeddings
+        own = {id(p) for p in emb.parameters()} if emb is not None else set()
+        groups = {"appearance": [p for p in self.parameters() if id(p) not in own]}
+        if emb is not None:
+            groups["appearance_embed"] = list(emb.parameters())
+        return groups
+
     def latent_stats(self, image_chw: Tensor | None, image_idx: int | None) -> tuple[Tensor, Tensor | None]:
         """(mu [D], logvar [D] or None) of one training image: the VAE posterior, or the embedding row."""
         if self.vae is not None:
