@@ -57,7 +57,7 @@ def peer_trainer_config():
 def patch_peer() -> list[str]:
     """Offline, like stock splatfacto here: no LPIPS download (the protocol computes its own metrics), and its
     torch.compile'd viewmat replaced by the same maths. Call before the peer's model is built."""
-    from willags_ns.model import viewmat_from_c2w
+    from willags_ns.render.camera import viewmat_from_c2w
 
     _peer_on_path()
     import splatfactow.splatfactow_model as pm  # type: ignore[import-not-found]

@@ -26,6 +26,7 @@ from willags_ns.appearance_spec import (
     resolve_latent,
     sample_latent,
 )
+from willags_ns.viewer import appearance_controls
 
 
 def _model():
@@ -281,7 +282,7 @@ def test_ns_render_camera_idx_renders_that_training_images_appearance(monkeypatc
     model.render_latent = lat[0].clone()  # a chosen appearance wins
     torch.testing.assert_close(render(cam_idx=1), render(appearance_latent=lat[0]))
     model.render_latent = None
-    model.viewer_controls.p01_a.gui_handle = object()  # the viewer is open: the panel (here: the mean) decides
+    appearance_controls(model).p01_a.gui_handle = object()  # the viewer is open: the panel (here: the mean) decides
     torch.testing.assert_close(render(cam_idx=1), mean)
 
 

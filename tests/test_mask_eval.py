@@ -207,7 +207,7 @@ def test_max_images_and_missing_masks(tmp_path):
 @pytest.mark.parametrize("use_vae", [False, True])
 def test_teacher_render_matches_the_training_path(use_vae):
     """mask_eval renders the teacher the way WillagsModel._teacher_render does during training."""
-    from willags_ns.model import viewmat_from_c2w
+    from willags_ns.render.camera import viewmat_from_c2w
 
     model = _tiny_model(use_vae)
     H, W = 24, 32

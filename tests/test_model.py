@@ -50,7 +50,7 @@ def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_g
     for fused in (True, False):
         model.config.fuse_teacher_render = fused
         model._mask_cache.clear()
-        model._mask_visits.clear()
+        model.mask_step.visits.clear()
         torch.manual_seed(3)  # same reparameterisation noise in both runs
         model.set_train_batch({"image": image, "image_idx": 0})
         out = model.get_outputs(cam)
@@ -209,7 +209,7 @@ def test_render_latent_is_reused_across_frames_and_follows_every_change(monkeypa
         model.render_latent = torch.randn(d, generator=torch.Generator().manual_seed(2))
         chosen = model.current_latent()
         assert model.current_latent() is chosen
-        key = model._latent_key(chosen)
+        key = model.latents.key_of(chosen)
         assert key[0] == "render"  # from the memo: no device -> host copy
         frames = [model.get_outputs(cam)["rgb"] for _ in range(3)]  # exact, bake, cached bake
         torch.testing.assert_close(frames[1], frames[2])
@@ -229,13 +229,14 @@ def test_render_latent_is_reused_across_frames_and_follows_every_change(monkeypa
         model.render_latent = None
         torch.testing.assert_close(model.current_latent(), z1)
     # a value the memo never handed out is keyed by its bytes
-    assert model._latent_key(torch.zeros(d))[0] == "value"
+    assert model.latents.key_of(torch.zeros(d))[0] == "value"
 
 
 def test_embedding_row_lookup_matches_the_table_and_names_a_bad_index():
     """The per-image latent is the table's row (and its gradient reaches only that row); an index outside the table
     is refused with the index and the table size, not read from the end as a negative Python index would be."""
-    from willags_ns.model import AppearanceNetworks, WillagsModelConfig
+    from willags_ns.appearance.networks import AppearanceNetworks
+    from willags_ns.model import WillagsModelConfig
 
     nets = AppearanceNetworks(WillagsModelConfig(use_vae=False, use_field=False), num_train=5)
     mu, logvar = nets.latent_stats(None, 3)
@@ -252,7 +253,7 @@ def test_embedding_row_lookup_matches_the_table_and_names_a_bad_index():
 def test_viewmat_is_the_inverse_of_the_opencv_camera_pose():
     """viewmat_from_c2w: nerfstudio's OpenGL camera-to-world (y up, -z forward) -> world-to-camera in OpenCV axes,
     i.e. the inverse of c2w with its y and z axes flipped (splatfacto's get_viewmat), for a batch of poses."""
-    from willags_ns.model import viewmat_from_c2w
+    from willags_ns.render.camera import viewmat_from_c2w
 
     g = torch.Generator().manual_seed(9)
     q, _ = torch.linalg.qr(torch.randn(3, 3, 3, generator=g))

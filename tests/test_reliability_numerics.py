@@ -194,7 +194,7 @@ def test_row11_a_rejected_mask_is_reported_in_training(model):
     mask_cfg.threshold, mask_cfg.threshold_rule = 0.0, "fixed"  # D >= 0 everywhere: every pixel flagged
     try:
         model._mask_cache.clear()
-        model._mask_visits.clear()
+        model.mask_step.visits.clear()
         losses, metrics = train_step(model, _image(seed=4))
         assert metrics.get("mask_rejected") == 1.0 and metrics["masked_fraction"] == 0.0
         assert losses["main_loss"] > 0  # supervised everywhere, not a 0/0

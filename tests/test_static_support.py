@@ -108,7 +108,7 @@ def test_the_model_keeps_supported_pixels_its_perceptual_mask_flags():
         else:  # no tracks in this image: the perceptual mask alone
             assert mask.sum() == 0
     model.config.static_support.enabled = False
-    model._support_cache.clear()
+    model.mask_step.support_cache.clear()
     model._step_cache["image_idx"] = torch.tensor(0)
     assert model._static_mask({}, gt).sum() == 0
 

@@ -8,7 +8,7 @@ from PIL import Image
 from tests.test_appearance_spec import _model
 from tests.test_mask_eval import _camera
 from willags_ns.appearance_spec import sample_latent
-from willags_ns.viewer import MEAN, PHOTO, SAMPLE, filter_names, spec_from_choices
+from willags_ns.viewer import MEAN, PHOTO, SAMPLE, appearance_controls, filter_names, spec_from_choices
 
 
 def test_spec_from_choices_and_search():
@@ -24,7 +24,7 @@ def test_spec_from_choices_and_search():
 def test_panel_sets_the_render_latent_and_changes_the_render(tmp_path):
     model = _model()
     d = model.train_latents.shape[1]
-    ctl = model.viewer_controls
+    ctl = appearance_controls(model)
     names = ["a.png", "b.png"]
     assert ctl.p01_a.options[3:] == names and ctl.p02_b.options[3:] == names  # every training image is listed
 
@@ -74,7 +74,7 @@ def test_panel_sets_the_render_latent_and_changes_the_render(tmp_path):
 
 def test_search_narrows_both_lists_and_keeps_the_choice():
     model = _model()
-    ctl = model.viewer_controls
+    ctl = appearance_controls(model)
     ctl.set_image_names([f"IMG_{i}.jpg" for i in range(30)])
     ctl.p01_a.value = "IMG_3.jpg"
     ctl.p03_search.value = "IMG_2"

@@ -282,7 +282,7 @@ def check_train_memory(num_gaussians: int, width: int, height: int, available: i
 
 
 NEAR_PLANE = 0.01
-"""The rasteriser's near plane in scene units (WillagsModel._rasterize): anything closer to a camera is culled."""
+"""The rasteriser's near plane in scene units (gaussians.rasterize_gaussians): anything closer to a camera is culled."""
 
 
 def check_scene_scale(camera_centres: Tensor, points: Tensor | None = None, near_plane: float = NEAR_PLANE) -> None:

@@ -149,3 +149,11 @@ def total_loss(
     total = sum(terms.values())
     assert isinstance(total, Tensor)
     return total, terms
+
+
+def scale_regularization(log_scales: Float[Tensor, "N 3"], max_ratio: float) -> Tensor:
+    """Splatfacto's penalty on needle-like Gaussians: 0.1 * mean(max(s_max / s_min, r) - r) over the Gaussians,
+    scales s = exp(log_scales); 0 when no Gaussian is longer than r times its width."""
+    s = torch.exp(log_scales)
+    ratio = s.amax(dim=-1) / s.amin(dim=-1)
+    return 0.1 * (torch.clamp_min(ratio, max_ratio) - max_ratio).mean()

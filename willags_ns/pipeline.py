@@ -60,7 +60,7 @@ from willags_ns.distributed import (
     validate_train_images,
 )
 from willags_ns.eval.protocol import EvalProtocolConfig, eval_split_images, evaluate_model
-from willags_ns.viewer import guard_viewer_host
+from willags_ns.viewer import appearance_controls, guard_viewer_host
 
 MASK_REJECTED_WARN_EVERY_S = 60.0
 """At most one 'mask rejected' warning per this many seconds (it is normal early in training)."""
@@ -232,9 +232,11 @@ class WillagsPipeline(VanillaPipeline):
             self.model.set_train_image_names(names)
         self._last_mask_warning = -float("inf")
         self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
-        controls = getattr(self.model, "viewer_controls", None)
-        if controls is not None:  # the viewer panel shows a training view's transient mask / teacher render
-            controls.set_train_dataset(self.datamanager.train_dataset)
+        if getattr(self.model, "appearance_nets", None) is not None:
+            # the appearance panel: nerfstudio's viewer finds its elements on the pipeline; it shows a training
+            # view's transient mask / teacher render from the training dataset
+            self.viewer_controls = appearance_controls(self.model)
+            self.viewer_controls.set_train_dataset(self.datamanager.train_dataset)
         self._step_image_idx = -1
         if world_size > 1:
             self._setup_data_parallel(world_size)

@@ -16,7 +16,7 @@ lie on a person's edge, a mismatched track) from unmasking an occluder; the wind
 at the scale of the mask itself (relu3_3's receptive field is ~40 px).
 
 Where there are no tracks (a transforms.json scene, the synthetic scene) there is no support and the mask is the
-perceptual mask alone. Pure functions and one config; the model holds the maps (willags_ns/model.py).
+perceptual mask alone. Pure functions and one config; MaskStep holds the maps (willags_ns/mask_step.py).
 """
 
 from __future__ import annotations

@@ -41,7 +41,14 @@ from willags_ns.appearance_spec import (
 if TYPE_CHECKING:
     from willags_ns.model import WillagsModel
 
-__all__ = ["AppearanceControls", "guard_viewer_host", "interpolate_latents", "sample_latent", "spec_from_choices"]
+__all__ = [
+    "AppearanceControls",
+    "appearance_controls",
+    "guard_viewer_host",
+    "interpolate_latents",
+    "sample_latent",
+    "spec_from_choices",
+]
 
 VIEWER_HOST_ENV = "WILLAGS_VIEWER_HOST"
 """Host the viewer of a willags checkpoint listens on under `ns-viewer` (default 127.0.0.1; 0.0.0.0 exposes it)."""
@@ -198,7 +205,14 @@ class AppearanceControls(nn.Module):
         self._photo_cache: dict = {}
         self.spec = "mean"
         """The SPEC now rendered."""
-        self.set_image_names(image_names or [f"image {i}" for i in range(max(model.num_train_data, 1))])
+        self.set_image_names(image_names or list(model.image_names))
+        # while the viewer shows this panel, its choice (the mean included) is what the model renders: a camera's
+        # cam_idx (the viewer's cameras carry one) no longer picks a training image's appearance
+        model.latents.panel = self
+
+    def is_open(self) -> bool:
+        """Whether the viewer shows the panel (its elements got their GUI handles)."""
+        return getattr(self.p01_a, "gui_handle", None) is not None
 
     def set_train_dataset(self, dataset) -> None:
         """The training dataset (images and cameras) for the transient mask / teacher view."""
@@ -329,3 +343,10 @@ class AppearanceControls(nn.Module):
             return
         name = self._names[idx]
         panel.set_content(f"{name}: image | teacher | transient mask (red)\n\n![training view]({_png_data_url(img)})")
+
+
+def appearance_controls(model: "WillagsModel") -> AppearanceControls:
+    """The panel of `model` (made on first call, with the model's training image names): what the pipeline
+    attaches as `pipeline.viewer_controls`, where nerfstudio's viewer finds its elements."""
+    panel = model.latents.panel
+    return panel if isinstance(panel, AppearanceControls) else AppearanceControls(model)

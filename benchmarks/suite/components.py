@@ -150,7 +150,7 @@ def section_components(args, cuda: bool, dev, backend: str, ceilings: dict) -> d
         sh = torch.zeros(n, 16, 3, device=dev)
         sh[:, 0] = (col.detach() - 0.5) / 0.28209479177387814
         sh.requires_grad_(True)
-        from willags_ns.model import viewmat_from_c2w
+        from willags_ns.render.camera import viewmat_from_c2w
 
         cam = make_camera(size, dev)
         vm = viewmat_from_c2w(cam.camera_to_worlds)

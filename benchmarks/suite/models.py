@@ -116,7 +116,7 @@ def build_model(variant: str, seeds, n_train: int, dev: torch.device, backend: s
         import torchmetrics.image.lpip as tm_lpip
         from nerfstudio.models import splatfacto as sf
 
-        from willags_ns.model import viewmat_from_c2w
+        from willags_ns.render.camera import viewmat_from_c2w
 
         tm_lpip.LearnedPerceptualImagePatchSimilarity = _NoLPIPS  # weights cannot be downloaded; unused here
         sf.get_viewmat = viewmat_from_c2w  # same maths without torch.compile's first-call compile

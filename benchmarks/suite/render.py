@@ -58,7 +58,7 @@ def section_render(args, cuda: bool, dev, backend: str) -> dict:
         out["willags_exact_fps"] = fps_of(lambda i: model.get_outputs(cams[i % 8]))
         model.config.render_sh_degree = deg
         if deg >= 0:
-            model._sh_cache = None
+            model.color_path.sh_cache = None
             sync(cuda)
             t_b = time.perf_counter()
             with torch.no_grad():
@@ -79,7 +79,7 @@ def section_render(args, cuda: bool, dev, backend: str) -> dict:
             means, quats = model.means.contiguous(), model.quats.contiguous()
             scales = torch.exp(model.scales).contiguous()
             opac = torch.sigmoid(model.opacities).squeeze(-1).contiguous()
-            from willags_ns.model import viewmat_from_c2w
+            from willags_ns.render.camera import viewmat_from_c2w
 
             vms = [viewmat_from_c2w(c.camera_to_worlds) for c in cams]
             Ks = [c.get_intrinsics_matrices().to(dev) for c in cams]

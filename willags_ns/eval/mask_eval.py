@@ -1,7 +1,7 @@
 """How well the perceptual transient mask finds the occluders: IoU / recall / clean false positives vs masks_gt.
 
 For every training image with a ground-truth mask (``masks_gt/<stem>.png``, 255 = transient) the mask is computed
-exactly as a training step at the end of training computes it (``WillagsModel._static_mask``):
+exactly as a training step at the end of training computes it (``MaskStep.static_mask``, willags_ns/mask_step.py):
 
     z   = teacher VAE encoder mean of the training image      (use_vae=False: the teacher's embedding row)
     R   = teacher render of the view (teacher networks, the student's current Gaussians, full resolution)
@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
+from willags_ns.render.camera import viewmat_from_c2w
 from willags_ns.transient import image_distance, mask_threshold, transient_mask
 
 
@@ -174,7 +175,7 @@ def training_view(train_dataset, idx: int, extra: np.ndarray | None = None):
 def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     """The EMA teacher's render [H, W, 3] of `camera` for the training image `image` [H, W, 3] in [0, 1].
 
-    As in training (WillagsModel._teacher_render): the teacher's latent (VAE mean of the image, or its embedding
+    As in training (willags_ns/mask_step.py, teacher_render): the teacher's latent (VAE mean of the image, or its embedding
     row), the student's current Gaussians, the camera after the camera optimiser. Background: the teacher's sky
     when the model has one, else the model's fixed colour (training draws a random one per step, which only shows
     where alpha < 1). Without a teacher (teacher disabled) the student's networks are used.
@@ -184,8 +185,6 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
         z = nets.vae.encode(image.permute(2, 0, 1)[None].float().to(model.device))[0][0]
     else:
         z = nets.embeddings.weight[image_idx]
-    from willags_ns.model import viewmat_from_c2w
-
     cam = camera.to(model.device)
     cam.metadata = dict(cam.metadata or {})
     cam.metadata["cam_idx"] = image_idx

@@ -1,0 +1,235 @@
+"""The colour path: per-Gaussian RGB for a latent and a camera, and the same colours baked into SH.
+
+    z, normalised means --field--> f_d [N, F]                                  (cached per latent and Gaussians)
+    color_mode='modulated': SH colour of the Gaussian (3DGS) --colour transform of z (+ local residual)--> RGB
+    color_mode='decoder':   T_color(f_d, f_s, view direction) --> RGB (the paper)
+    bake (a fixed appearance, no gradient): those colours as SH coefficients [N, K, 3] that the rasteriser evaluates
+    per frame like 3DGS; exact for the affine modulation, a least-squares fit over view directions otherwise.
+
+The two colour modes are the two implementations behind `AppearanceNetworks.colors`; this module adds what depends
+on the camera and the caches. :class:`ColorPath` holds the caches and nothing else: the networks, the Gaussians'
+tensors and the model's step arrive as arguments (:class:`ColorContext` for what every call shares).
+"""
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from willags_ns.appearance.decoder import sh_basis
+from willags_ns.appearance.modulation import ColorModulation
+from willags_ns.appearance.networks import AppearanceNetworks
+from willags_ns.appearance.triplane import normalize_points
+from willags_ns.render.sh import spherical_harmonics
+
+RENDER_SH_SAMPLES = 64
+"""View directions over which the decoder is fitted by SH when rendering with a fixed appearance."""
+
+
+def fibonacci_directions(k: int, device=None) -> Tensor:
+    """k unit vectors [k, 3] spread evenly over the sphere (Fibonacci lattice)."""
+    i = torch.arange(k, device=device, dtype=torch.float32) + 0.5
+    phi, cos_t = math.pi * (1 + 5**0.5) * i, 1 - 2 * i / k
+    sin_t = (1 - cos_t**2).clamp_min(0).sqrt()
+    return torch.stack([sin_t * phi.cos(), sin_t * phi.sin(), cos_t], -1)
+
+
+def sh_coeffs(gp) -> Tensor | None:
+    """SH coefficients [N, K, 3] of the Gaussians in `gp` (gauss_params or a cropped view), None without them."""
+    if "features_dc" not in gp:
+        return None
+    return torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
+
+
+@dataclass(frozen=True)
+class ColorContext:
+    """What a colour call reads of the model besides the networks and the Gaussians."""
+
+    bounds_lo: Tensor
+    """[3] lower corner of the box the tri-plane field normalises means into (fixed at initialisation)."""
+    bounds_hi: Tensor
+    """[3] upper corner of that box."""
+    step: int
+    """Training step: the Gaussians change with it, so it is part of every cache key."""
+    sh_degree: int
+    """SH degree in use now (splatfacto's schedule): how much of the Gaussians' SH the base colour evaluates."""
+
+
+def modulated_sh(
+    mod: ColorModulation, z: Tensor, means: Tensor, f_s, f_d, degree: int, active_degree: int, sh: Tensor
+) -> Tensor:
+    """The colour transform applied to the SH coefficients: with M_i = diag(1 + s_i) A and t_i = (1 + s_i) b + o_i,
+    c_i(d) = M_i (SH_i(d) + 0.5) + t_i = sum_k (M_i c_k) Y_k(d) + 0.5 + (M_i 0.5 + t_i - 0.5), the constant going
+    into the degree-0 coefficient (Y_0 = C0). Exact up to the clamps at 0 (base colour, final colour)."""
+    k_out = (degree + 1) ** 2
+    k_use = min(k_out, (active_degree + 1) ** 2, sh.shape[1])
+    A, b = mod.global_transform(z)
+    n = means.shape[0]
+    M = A.expand(n, 3, 3)
+    t = b.expand(n, 3)
+    residual = mod.local_residual(z, f_s, f_d, n)
+    if residual is not None:
+        scale = 1.0 + residual[:, :3]
+        M = scale[:, :, None] * M
+        t = scale * t + residual[:, 3:]
+    out = torch.zeros(n, k_out, 3, device=means.device, dtype=sh.dtype)
+    out[:, :k_use] = torch.einsum("nij,nkj->nki", M, sh[:, :k_use])
+    const = (M @ torch.full((3,), 0.5, device=means.device, dtype=M.dtype)) + t - 0.5
+    out[:, 0] += const / 0.28209479177387814  # SH_C0
+    return out
+
+
+def colors_over_directions(
+    nets: AppearanceNetworks,
+    z: Tensor,
+    means: Tensor,
+    f_s: Tensor | None,
+    f_d: Tensor | None,
+    dirs: Tensor,
+    sh: Tensor | None,
+    sh_degree: int,
+) -> Iterator[Tensor]:
+    """The appearance's colours [N, 3] seen from each of `dirs` [M, 3], one colour pass per direction (no
+    [M, N, 3] buffer). The local residual does not depend on the direction: computed once. The Gaussians' SH
+    `sh` feeds color_mode='modulated'; the decoder does not read it."""
+    mod = nets.modulation
+    residual = mod.local_residual(z, f_s, f_d, means.shape[0]) if mod is not None else None
+    for d in dirs:
+        yield nets.colors(z, f_d, f_s, d.expand_as(means), sh=sh, sh_degree=sh_degree, residual=residual)
+
+
+class ColorPath:
+    """Colours of the Gaussians for a latent and a camera, with the caches of rendering a fixed appearance: the
+    field's f_d and the baked SH, each keyed by (latent, Gaussians, step)."""
+
+    def __init__(self, key_of: Callable[[Tensor], tuple]):
+        self.key_of = key_of
+        """A latent's cache key (AppearanceLatents.key_of: no host sync for the latents it handed out)."""
+        self.fd_cache: tuple[tuple, Tensor] | None = None
+        self.sh_cache: tuple[tuple, Tensor] | None = None
+        self.sh_seen: tuple | None = None
+
+    def dynamic_features(
+        self, nets: AppearanceNetworks, z: Tensor, means: Tensor, ctx: ColorContext, cacheable: bool
+    ) -> Tensor | None:
+        """f_d [N, F], recomputed only when z or the Gaussians change while rendering (viewer / eval)."""
+        if nets.field is None:
+            return None
+        if not cacheable:
+            return nets.dynamic_features(z, normalize_points(means, ctx.bounds_lo, ctx.bounds_hi))
+        key = (self.key_of(z), means.data_ptr(), means.shape[0], ctx.step)
+        if self.fd_cache is not None and self.fd_cache[0] == key:
+            return self.fd_cache[1]
+        f_d = nets.dynamic_features(z, normalize_points(means, ctx.bounds_lo, ctx.bounds_hi))
+        if f_d is not None:
+            self.fd_cache = (key, f_d)
+        return f_d
+
+    def colors(
+        self,
+        nets: AppearanceNetworks,
+        z: Tensor,
+        means: Tensor,
+        f_s: Tensor | None,
+        cam_center: Tensor,
+        ctx: ColorContext,
+        cacheable: bool = False,
+        sh: Tensor | None = None,
+        base: Tensor | None = None,
+        record: dict | None = None,
+    ) -> Tensor:
+        """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D].
+
+        `sh` [N, K, 3]: their SH coefficients (color_mode='modulated', unless `base` [N, 3], their SH colours from
+        cam_center, is given). `record` (the student's training step): keeps the local residual (for its penalty)
+        and the SH colours (the teacher colours the same Gaussians from the same camera)."""
+        f_d = self.dynamic_features(nets, z, means, ctx, cacheable)
+        dirs = means - cam_center[None, :]
+        if nets.modulation is None:
+            assert f_s is not None
+            return nets.colors(z, f_d, f_s, dirs)
+        residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0])
+        if record is not None:
+            record["local_residual"] = residual
+        if base is None:
+            if sh is None:
+                raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
+            base = (spherical_harmonics(ctx.sh_degree, dirs, sh) + 0.5).clamp_min(0.0)
+            if record is not None:
+                record["sh_base"] = base.detach()
+        return nets.colors(z, f_d, f_s, dirs, residual=residual, base=base)
+
+    def sh_key(self, z: Tensor, means: Tensor, ctx: ColorContext, degree: int) -> tuple:
+        return (self.key_of(z), means.data_ptr(), means.shape[0], ctx.step, degree)
+
+    def frame_sh(
+        self, nets: AppearanceNetworks, z: Tensor, means: Tensor, f_s, degree: int, ctx: ColorContext, gp
+    ) -> Tensor | None:
+        """The baked SH for this frame, or None to run the colour path. Bakes on the second frame with the same
+        (latent, Gaussians): a viewer refreshing during training, where the Gaussians change every step, keeps the
+        exact colours instead of paying a bake per frame. The Gaussians' own SH (`gp`) is gathered only for a bake:
+        a cached frame costs no [N, 16, 3] copy."""
+        key = self.sh_key(z, means, ctx, degree)
+        if self.sh_cache is not None and self.sh_cache[0] == key:
+            return self.sh_cache[1]
+        if self.sh_seen != key:
+            self.sh_seen = key
+            return None
+        return self.baked_sh(nets, z, means, f_s, degree, ctx, sh_coeffs(gp), key)
+
+    @torch.no_grad()
+    def baked_sh(
+        self,
+        nets: AppearanceNetworks,
+        z: Tensor,
+        means: Tensor,
+        f_s: Tensor | None,
+        degree: int,
+        ctx: ColorContext,
+        sh: Tensor | None,
+        key: tuple | None = None,
+    ) -> Tensor:
+        """SH coefficients [N, (degree + 1)**2, 3] whose evaluation (gsplat's: sum_k c_k Y_k(d) + 0.5) reproduces the
+        appearance's colour. Cached per (latent, Gaussians); `key` is :meth:`sh_key` when the caller already has it
+        (one host sync per frame, not two).
+
+        color_mode='modulated': exact (the colour is an affine map of the SH colour: the map is applied to the
+        coefficients). 'decoder', and 'modulated' with its gamma (not affine): the colours fitted by least squares
+        over RENDER_SH_SAMPLES directions."""
+        key = self.sh_key(z, means, ctx, degree) if key is None else key
+        if self.sh_cache is not None and self.sh_cache[0] == key:
+            return self.sh_cache[1]
+        f_d = self.dynamic_features(nets, z, means, ctx, cacheable=True)
+        if nets.modulation is not None and not nets.modulation.gamma:
+            assert sh is not None
+            coeffs = modulated_sh(nets.modulation, z, means, f_s, f_d, degree, ctx.sh_degree, sh)
+        else:
+            dirs = fibonacci_directions(max(RENDER_SH_SAMPLES, 2 * (degree + 1) ** 2), means.device)  # [M, 3]
+            proj = torch.linalg.pinv(sh_basis(dirs, degree))  # [K, M]: coefficients from samples
+            coeffs = torch.zeros(means.shape[0], proj.shape[0], 3, device=means.device)
+            for m, rgb in enumerate(colors_over_directions(nets, z, means, f_s, f_d, dirs, sh, ctx.sh_degree)):
+                coeffs += proj[None, :, m, None] * (rgb - 0.5)[:, None, :]  # gsplat adds 0.5 back
+        self.sh_cache = (key, coeffs)
+        return coeffs
+
+    @torch.no_grad()
+    def baked_colors(
+        self,
+        nets: AppearanceNetworks,
+        z: Tensor,
+        means: Tensor,
+        f_s: Tensor | None,
+        num_views: int,
+        ctx: ColorContext,
+        sh: Tensor | None,
+    ) -> Tensor:
+        """View-independent colours [N, 3] for export: the appearance averaged over `num_views` directions of a
+        Fibonacci sphere."""
+        dirs = fibonacci_directions(num_views, means.device)  # [k, 3]
+        acc = torch.zeros(means.shape[0], 3, device=means.device)
+        f_d = self.dynamic_features(nets, z, means, ctx, cacheable=False)
+        for rgb in colors_over_directions(nets, z, means, f_s, f_d, dirs, sh, ctx.sh_degree):
+            acc += rgb
+        return acc / num_views

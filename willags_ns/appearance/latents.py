@@ -1,0 +1,193 @@
+"""Where the appearance latent z [D] of a forward pass comes from.
+
+Training: this step's image through the VAE encoder (reparameterised), or its row of the per-image embedding table;
+each visit records the image's mean latent (the appearances users pick later).
+
+Rendering (viewer, ns-render, eval), first that applies:
+
+1. the camera's metadata `appearance_latent` (the NeRF-W protocol's fitted latent);
+2. the camera's `cam_idx` (`ns-render --camera-idx N`: that training image's appearance), unless an appearance was
+   chosen or the viewer's panel is open;
+3. the chosen appearance: `render_latent`, else $WILLAGS_APPEARANCE (a SPEC), else
+4. the default: the mean of the training images' latents.
+
+Latents handed out for rendering are memoised by what they are computed from (:class:`AppearanceLatents`), so a
+renderer that asks every frame pays no host sync, and their cache key (:meth:`AppearanceLatents.key_of`) costs none.
+"""
+
+import os
+from collections.abc import Callable
+from typing import Protocol
+
+import torch
+from torch import Tensor
+
+from willags_ns.appearance.networks import AppearanceNetworks
+from willags_ns.appearance.vae import AppearanceVAE, reparameterize, vae_loss
+from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent
+
+
+def image_as_float(image: Tensor) -> Tensor:
+    """A datamanager's cached image (uint8 or float, [H, W, C]) as float in [0, 1]."""
+    return image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+
+
+def image_chw(image: Tensor, device) -> Tensor:
+    """An image [H, W, C] (uint8 or float) as the encoder's input [3, H, W] in [0, 1] on `device`."""
+    return image_as_float(image)[..., :3].permute(2, 0, 1).to(device)
+
+
+def versions(tensors: list[Tensor]) -> tuple:
+    """(storage pointer, version counter) of each tensor: changes when a tensor is replaced or edited in place
+    (optimiser steps, load_state_dict, buffer writes), never otherwise."""
+    return tuple((t.data_ptr(), t._version) for t in tensors)
+
+
+def stored_latents(nets: AppearanceNetworks, train_latents: Tensor, train_latent_seen: Tensor) -> tuple[Tensor, Tensor]:
+    """(latents [num_train, D], known [num_train] bool) of the training images, detached.
+
+    An embedding table's rows are the latents (current values; every row exists from the start). With the VAE,
+    the encoder's mean recorded at each image's last training visit (`train_latents`), known once the image was
+    drawn (`train_latent_seen`)."""
+    emb = nets.embeddings
+    if emb is not None:
+        lat = emb.weight.detach()
+        return lat, torch.ones(lat.shape[0], dtype=torch.bool, device=lat.device)
+    return train_latents, train_latent_seen
+
+
+def training_latent(
+    nets: AppearanceNetworks,
+    batch: dict | None,
+    metadata: dict,
+    device,
+    record: dict,
+    train_latents: Tensor,
+    train_latent_seen: Tensor,
+) -> Tensor:
+    """z [D] of this training step's image: the VAE posterior sample (or the embedding row). Writes what the losses
+    and the teacher need into `record` (mu, logvar, z, vae_in, image_idx) and the image's mean latent into
+    `train_latents` / `train_latent_seen` (in place: they are the model's buffers)."""
+    if batch is None:
+        raise RuntimeError(
+            "willags: the model got no training image; train it through WillagsPipeline (method configs "
+            "'willags*' do) or call model.set_train_batch(batch) before model(camera)"
+        )
+    idx = int(batch["image_idx"]) if "image_idx" in batch else int(metadata.get("cam_idx", 0))
+    img = image_chw(batch["image"], device)
+    mu, logvar = nets.latent_stats(img, idx)
+    if logvar is not None:
+        z = reparameterize(mu[None], logvar[None])[0]
+        record.update({"mu": mu, "logvar": logvar, "z": z, "vae_in": img})
+    else:
+        z = mu
+        record.update({"z": z})
+    record["image_idx"] = torch.tensor(idx)
+    if idx < train_latents.shape[0]:
+        train_latents[idx] = mu.detach()
+        train_latent_seen[idx] = True
+    return z
+
+
+class AppearancePanel(Protocol):
+    """A user interface that chooses the appearance while it is shown (the viewer's panel, willags_ns/viewer.py)."""
+
+    def is_open(self) -> bool: ...
+
+
+class AppearanceLatents:
+    """The chosen appearance and the memo of the latents handed out for rendering.
+
+    Holds no tensors of the model: the training images' latents are passed in by the caller (they are the model's
+    buffers, replaced when the model moves between devices).
+    """
+
+    def __init__(self) -> None:
+        self.render_latent: Tensor | None = None
+        """Appearance override for eval / viewer / export ([D]); None: $WILLAGS_APPEARANCE, else the default."""
+        self.panel: AppearancePanel | None = None
+        """The viewer's panel, when one is attached: while it is open, its choice (the mean included) is shown."""
+        self._memo: dict[str, tuple[tuple, Tensor]] = {}
+
+    def memo(self, name: str, key: tuple, make: Callable[[], Tensor]) -> Tensor:
+        """`make()`, recomputed only when `key` changes. A rendered frame needs its latent twice (to choose it, then
+        to key the per-appearance caches); recomputing it each frame costs host syncs (boolean indexing, value
+        checks, a copy to the host for the cache key) that stall a renderer otherwise bound by kernel launches."""
+        hit = self._memo.get(name)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        z = make()
+        self._memo[name] = (key, z)
+        return z
+
+    def key_of(self, z: Tensor) -> tuple:
+        """Cache key of latent z: its memo key when z came from :meth:`memo` (no host sync), else its bytes."""
+        for name, (key, t) in self._memo.items():
+            if t is z:
+                return (name, *key)
+        return ("value", z.detach().cpu().numpy().tobytes())
+
+    def default(
+        self, nets: AppearanceNetworks, train_latents: Tensor, train_latent_seen: Tensor, mean: Callable[[], Tensor]
+    ) -> Tensor:
+        """The appearance used when none is chosen: `mean()` (the mean of the training images' latents), recomputed
+        only when the latents it is computed from change."""
+        src = [nets.embeddings.weight] if nets.embeddings is not None else [train_latents, train_latent_seen]
+        return self.memo("default", versions(src), mean)
+
+    def chosen(self, device, from_env: Callable[[str], Tensor | None], default: Callable[[], Tensor]) -> Tensor:
+        """The chosen appearance: `render_latent` if set, else `from_env($WILLAGS_APPEARANCE)` if set, else
+        `default()`."""
+        if self.render_latent is not None:
+            chosen = self.render_latent
+
+            def checked() -> Tensor:
+                self.render_latent = checked_latent(chosen, "render_latent")  # no NaN pixels, ever
+                return self.render_latent.to(device)
+
+            # keyed by the chosen tensor itself (kept alive by the key, so its id cannot be reused) and its version
+            # counter (bumped by any in-place edit): a new or edited latent is checked again
+            return self.memo("render", (id(chosen), chosen._version, chosen), checked)
+        spec = os.environ.get(APPEARANCE_ENV)
+        if spec:
+            z = from_env(spec)
+            if z is not None:
+                self.render_latent = z
+                return z.to(device)
+        return default()
+
+    def for_camera(self, cam_idx, stored: Callable[[], tuple[Tensor, Tensor]], device) -> Tensor | None:
+        """Training image `cam_idx`'s latent when nothing else chose the appearance: `ns-render camera-path
+        --camera-idx N` (nerfstudio's convention: that image's appearance). Not while the viewer is open: its cameras
+        carry cam_idx too (0, or the last training frustum clicked) and the panel's choice, the mean included, is
+        what it shows."""
+        if cam_idx is None or self.render_latent is not None or os.environ.get(APPEARANCE_ENV):
+            return None
+        if self.panel is not None and self.panel.is_open():
+            return None
+        lat, known = stored()
+        i = int(cam_idx)
+        if not (0 <= i < lat.shape[0]) or not bool(known[i]):
+            return None
+        return lat[i].to(device)
+
+    def for_render(
+        self, metadata: dict, device, stored: Callable[[], tuple[Tensor, Tensor]], chosen: Callable[[], Tensor]
+    ) -> Tensor:
+        """z [D] of a forward pass outside training: the camera's metadata, its training image, or `chosen()`."""
+        if "appearance_latent" in metadata:
+            return torch.as_tensor(metadata["appearance_latent"], device=device).reshape(-1).float()
+        z = self.for_camera(metadata.get("cam_idx"), stored, device)
+        return z if z is not None else chosen()
+
+
+def latent_loss(vae: AppearanceVAE, record: dict, beta: float, recon_reduction: str) -> tuple[Tensor, dict]:
+    """L_VAE of this training step (L1 reconstruction of the encoder's input from z + beta KL; appearance/vae.py)
+    from what :func:`training_latent` recorded; keeps the reconstruction in record["vae_recon_img"] for the logs."""
+    recon = vae.decode(record["z"][None])
+    target = vae.prepare(record["vae_in"][None])
+    l_vae, parts = vae_loss(
+        recon, target, record["mu"][None], record["logvar"][None], beta=beta, recon_reduction=recon_reduction
+    )
+    record["vae_recon_img"] = recon.detach()
+    return l_vae, parts

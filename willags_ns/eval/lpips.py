@@ -1,0 +1,27 @@
+"""LPIPS for the eval images, only when it needs no download: torchmetrics' LPIPS builds torchvision's AlexNet with
+ImageNet weights."""
+
+from pathlib import Path
+
+import torch
+from nerfstudio.utils.rich_utils import CONSOLE
+
+
+def lpips_weights_cached() -> bool:
+    """Whether AlexNet's ImageNet weights are in torch hub's checkpoint folder."""
+    hub = Path(torch.hub.get_dir()) / "checkpoints"
+    return any(hub.glob("alexnet-owt-*.pth"))
+
+
+def make_lpips(device) -> tuple[torch.nn.Module | None, str]:
+    """(torchmetrics LPIPS on `device`, "torchmetrics alexnet") when the weights are on disk; else (None,
+    "unavailable") with a one-line notice."""
+    if lpips_weights_cached():
+        from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+        return LearnedPerceptualImagePatchSimilarity(normalize=True).to(device), "torchmetrics alexnet"
+    CONSOLE.log(
+        f"willags: LPIPS unavailable (no AlexNet weights in {torch.hub.get_dir()}/checkpoints; "
+        "offline): reporting PSNR and SSIM only"
+    )
+    return None, "unavailable"

@@ -1,0 +1,126 @@
+"""The 3DGS side of the model: the initial Gaussians, gsplat's densification strategy, and the rasteriser call.
+
+The Gaussians' tensors live in the model's `gauss_params` (one optimiser group each); this module builds them and
+says how they are rendered. Colours come from the appearance (appearance/color_path.py) or, for appearance='sh',
+from splatfacto's SH, which then sit in gauss_params too.
+"""
+
+import torch
+from nerfstudio.models.splatfacto import RGB2SH, num_sh_bases, random_quat_tensor
+from torch import Tensor
+from torch.nn import Parameter
+
+from willags_ns.render import rasterize
+
+
+def initial_points(cfg, seed_points) -> tuple[Tensor, Tensor | None]:
+    """(means [N, 3], seed colours [N, 3] in [0, 1] or None): the dataparser's points, or cfg.num_random random
+    points in a cube of side cfg.random_scale."""
+    if seed_points is not None and not cfg.random_init:
+        means = seed_points[0].float().clone()
+        seed_rgb = seed_points[1].float() / 255.0 if seed_points[1].shape[0] > 0 else None
+    else:
+        means = (torch.rand((cfg.num_random, 3)) - 0.5) * cfg.random_scale
+        seed_rgb = None
+    if means.shape[0] < 4:
+        raise ValueError(
+            f"willags needs at least 4 initial points to initialise Gaussians, got {means.shape[0]} "
+            "(check the dataparser's seed points: sparse_pc.ply / points3D.bin)"
+        )
+    return means, seed_rgb
+
+
+def initial_gauss_params(cfg, means: Tensor, seed_rgb: Tensor | None, avg_dist: Tensor) -> dict[str, Parameter]:
+    """The Gaussians' parameters at initialisation (splatfacto's rule: isotropic scales from the mean distance
+    `avg_dist` [N, 1] to the 3 nearest points, random rotations, opacity 0.1), and their colour parameters:
+    SH for appearance='sh' and color_mode='modulated' (plus f_s of the local residual), f_s for the decoder."""
+    n = means.shape[0]
+    params = {
+        "means": Parameter(means),
+        "scales": Parameter(torch.log(avg_dist.repeat(1, 3))),
+        "quats": Parameter(random_quat_tensor(n)),
+        "opacities": Parameter(torch.logit(0.1 * torch.ones(n, 1))),
+    }
+    if cfg.appearance == "sh" or cfg.color_mode == "modulated":  # 3DGS colours (modulated: the base colour)
+        dim_sh = num_sh_bases(cfg.sh_degree)
+        shs = torch.zeros((n, dim_sh, 3))
+        if seed_rgb is not None:
+            shs[:, 0, :] = (
+                RGB2SH(seed_rgb) if (cfg.sh_degree > 0 or cfg.appearance != "sh") else torch.logit(seed_rgb, eps=1e-10)
+            )
+        else:
+            shs[:, 0, :] = torch.rand(n, 3)
+        params["features_dc"] = Parameter(shs[:, 0, :].contiguous())
+        params["features_rest"] = Parameter(shs[:, 1:, :].contiguous())
+        if cfg.appearance == "willags" and cfg.modulation.local and cfg.intrinsic_dim > 0:
+            params["features"] = Parameter(0.1 * torch.randn(n, cfg.intrinsic_dim))  # f_s of the residual
+    else:
+        # f_s starts small and random; its first 3 entries carry the seed colour (centred), which gives the
+        # colour decoder an easy first solution without changing the method.
+        f_s = 0.1 * torch.randn(n, cfg.intrinsic_dim)
+        if seed_rgb is not None and cfg.intrinsic_dim >= 3:
+            f_s[:, :3] = seed_rgb * 2.0 - 1.0
+        params["features"] = Parameter(f_s)
+    return params
+
+
+def densification_strategy(cfg, num_train: int):
+    """gsplat's DefaultStrategy with splatfacto's settings (cfg: the model config)."""
+    from gsplat.strategy import DefaultStrategy
+
+    return DefaultStrategy(
+        prune_opa=cfg.cull_alpha_thresh,
+        grow_grad2d=cfg.densify_grad_thresh,
+        grow_scale3d=cfg.densify_size_thresh,
+        grow_scale2d=cfg.split_screen_size,
+        prune_scale3d=cfg.cull_scale_thresh,
+        prune_scale2d=cfg.cull_screen_size,
+        refine_scale2d_stop_iter=cfg.stop_screen_size_at,
+        refine_start_iter=cfg.warmup_length,
+        refine_stop_iter=cfg.stop_split_at,
+        reset_every=cfg.reset_alpha_every * cfg.refine_every,
+        refine_every=cfg.refine_every,
+        pause_refine_after_reset=num_train + cfg.refine_every,
+        absgrad=cfg.use_absgrad,
+        revised_opacity=False,
+        verbose=False,
+    )
+
+
+def uses_gsplat(backend: str, means: Tensor) -> bool:
+    return backend == "gsplat" or (backend == "auto" and means.is_cuda)
+
+
+def rasterize_gaussians(
+    cfg, means, quats, scales, opacities, colors, viewmat, K, W: int, H: int, render_mode: str, sh_degree, absgrad: bool
+):
+    """`willags_ns.render.rasterize` of the Gaussians' raw parameters (log scales, logit opacities) with the model's
+    settings (cfg: backend, rasterize_mode); returns (render [C, H, W, ch], alpha [C, H, W, 1], info)."""
+    return rasterize(
+        means=means,
+        quats=quats,
+        scales=torch.exp(scales),
+        opacities=torch.sigmoid(opacities).squeeze(-1),
+        colors=colors,
+        viewmats=viewmat,
+        Ks=K,
+        width=W,
+        height=H,
+        packed=False,
+        near_plane=0.01,
+        far_plane=1e10,
+        render_mode=render_mode,
+        sh_degree=sh_degree,
+        absgrad=absgrad,
+        rasterize_mode=cfg.rasterize_mode,
+        backend=cfg.backend,
+    )
+
+
+def sh_colors(cfg, gp, step: int) -> tuple[Tensor, int | None]:
+    """appearance='sh' (plain 3DGS): (SH coefficients [N, K, 3], the active degree by splatfacto's schedule), or
+    with sh_degree=0 (RGB [N, 3] through a sigmoid, None) as splatfacto renders them."""
+    colors = torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
+    if cfg.sh_degree > 0:
+        return colors, min(step // cfg.sh_degree_interval, cfg.sh_degree)
+    return torch.sigmoid(colors).squeeze(1), None
