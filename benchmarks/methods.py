@@ -133,6 +133,18 @@ for _name, _over, _note in (
         (("sky.enabled", True), ("sky.alpha_penalty", 0.1), ("static_support.enabled", True)),
         "sky with the alpha penalty and the mask's safeguard (issue 26's first candidate default)",
     ),
+    # the next candidates (unmeasured): the sky only above each training photo's SfM skyline, random background
+    # elsewhere (sky.region "open"), so the scene's Gaussians stay opaque; alone and with the safeguard
+    (
+        "skyopen",
+        (("sky.enabled", True), ("sky.region", "open")),
+        "sky above each training photo's SfM skyline only (sky.region open)",
+    ),
+    (
+        "skyopen-support",
+        (("sky.enabled", True), ("sky.region", "open"), ("static_support.enabled", True)),
+        "sky above the skyline only, and the mask's safeguard",
+    ),
     ("gamma", (("modulation.gamma", True),), "per-channel gamma g(z) in the global colour transform"),
     # the local residual's price and width (modulation.local_penalty 0.01, local_hidden 64): tried because the
     # peer's oracle beats the default's by 1.7 dB on reichstag's one test view with a dark, cloudy sky (06373813),

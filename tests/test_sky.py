@@ -131,3 +131,52 @@ def test_model_composites_over_the_sky_of_the_latent_and_the_teacher_uses_its_ow
     assert all(g is not None and torch.isfinite(g).all() for g in grads)
     assert any(g.abs().sum() > 0 for g in grads)
     model._end_step(0)
+
+
+def test_open_region_sky_shows_above_the_skyline_and_the_random_colour_below():
+    import numpy as np
+
+    from willags_ns.appearance.sky import OpenRegions
+
+    model = _sky_model()
+    model.config.sky.region = "open"
+    rng = np.random.default_rng(0)
+    uv = np.stack([rng.uniform(0, 1, 2000), rng.uniform(0.5, 1.0, 2000)], 1)  # keypoints in the lower half only
+    model.open_regions = OpenRegions([np.concatenate([uv, np.full((2000, 1), 6.0)], 1).astype(np.float32), None])
+    model.open_regions.observations[1] = np.zeros((0, 3), np.float32)
+    model.train()
+    with torch.no_grad():
+        model.gauss_params["opacities"].fill_(-20.0)  # nothing in front: the render is the background
+    W, H = 32, 32
+    image = (torch.rand(H, W, 3, generator=torch.Generator().manual_seed(1)) * 255).to(torch.uint8)
+    model.set_train_batch({"image": image, "image_idx": 0})
+    out = model.get_outputs(_camera(W, H))
+    bg, rgb = out["background"], out["rgb"].detach()
+    z = model._step_cache["z"]
+    dirs = pixel_directions(_camera(W, H).camera_to_worlds[0], _camera(W, H).get_intrinsics_matrices()[0], W, H)
+    sky = model.appearance_nets.sky(z, dirs).detach()
+    top, bottom = slice(0, 12), slice(18, 32)  # skyline at 0.5 less the one-cell dilation: rows < 15 are open
+    torch.testing.assert_close(rgb[top], sky[top], atol=1e-5, rtol=1e-5)
+    flat = rgb[bottom].reshape(-1, 3)
+    assert torch.allclose(flat, flat[:1].expand_as(flat))  # one (random) colour under the skyline
+    assert not torch.allclose(rgb[bottom], sky[bottom], atol=1e-3)
+    assert bg.shape == (H, W, 3)
+    model._end_step(0)
+    # an image without keypoints: no open cells, the random colour everywhere; evaluation: the sky everywhere
+    model.set_train_batch({"image": image, "image_idx": 1})
+    flat = model.get_outputs(_camera(W, H))["rgb"].detach().reshape(-1, 3)
+    assert torch.allclose(flat, flat[:1].expand_as(flat))
+    model._end_step(1)
+    model.eval()
+    cam = _camera(W, H)
+    cam.metadata = {"appearance_latent": z.detach()}
+    with torch.no_grad():
+        ev = model.get_outputs(cam)["rgb"]
+    torch.testing.assert_close(ev, model.appearance_nets.sky(z.detach(), dirs), atol=1e-5, rtol=1e-5)
+
+
+def test_open_region_sky_without_keypoints_is_off():
+    from tests.test_mask_eval import _tiny_model as _bare_model
+
+    model = _bare_model(use_vae=True, sky=SkyConfig(enabled=True, region="open"))
+    assert model.appearance_nets.sky is None and model.open_regions is None and not model.config.sky.enabled

@@ -43,7 +43,13 @@ from willags_ns.appearance.latents import (
 )
 from willags_ns.appearance.modulation import ColorModulationConfig, local_penalty
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.appearance.sky import SkyConfig, background_alpha_penalty, pixel_directions
+from willags_ns.appearance.sky import (
+    OpenRegions,
+    SkyConfig,
+    background_alpha_penalty,
+    composite_background,
+    pixel_directions,
+)
 from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.appearance_spec import latent_from_env, mean_latent
@@ -185,6 +191,13 @@ class WillagsModel(SplatfactoModel):
         self.appearance_nets: AppearanceNetworks | None = None
         self.teacher: AppearanceNetworks | None = None
         self.perceptual: PerceptualFeatures | None = None
+        observations = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
+        if cfg.sky.enabled and cfg.sky.region == "open" and observations is None:
+            # no keypoints, no skyline: without one the sky would be trained nowhere and shown everywhere
+            CONSOLE.log("willags: sky.region 'open' needs SfM keypoints (a COLMAP scene); the sky is off here")
+            cfg.sky.enabled = False
+        # where the sky shows while training with region "open" (None: behind every pixel)
+        self.open_regions = OpenRegions(observations) if cfg.sky.enabled and cfg.sky.region == "open" else None
         if cfg.appearance == "willags":
             cfg.triplane.latent_dim = cfg.vae.latent_dim
             self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data)
@@ -204,7 +217,7 @@ class WillagsModel(SplatfactoModel):
         self.latents = AppearanceLatents()  # the chosen appearance; the memo of the latents handed out
         self.color_path = ColorPath(self.latents.key_of)  # the f_d and baked-SH caches
         # each image's last mask, visits and SfM support (the safeguard's observations: COLMAP scenes)
-        self.mask_step = MaskStep(cfg, (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY))
+        self.mask_step = MaskStep(cfg, observations)
         self._train_batch: dict | None = None
         self._step_cache: dict[str, Tensor] = {}  # this training step's scratch, passed to the rooms as `record`
         self._absgrad_notice = False
@@ -443,20 +456,21 @@ class WillagsModel(SplatfactoModel):
         dirs = None
         if z is not None and self.appearance_nets is not None and self.appearance_nets.sky is not None:
             dirs = pixel_directions(c2w[0], K[0], W, H)
-        background = self._background(self.appearance_nets, z, dirs)
+        fallback = self._get_background_color()  # random while training: one colour for student and teacher
+        background = self._background(self.appearance_nets, z, dirs, fallback)
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
 
         outputs: dict[str, Union[Tensor, list]] = {}
         if fused:
             teacher_bg = background
             if dirs is not None:  # the teacher's own sky under the teacher's latent (set with its colours)
-                teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs).detach()
+                teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback).detach()
             teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * teacher_bg
             outputs["teacher_rgb"] = torch.clamp(teacher, 0.0, 1.0).squeeze(0)
         elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render
             outputs["teacher_rgb"] = rgb.detach().squeeze(0)
         elif teacher_needed:
-            outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background, dirs)
+            outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background, dirs, fallback)
 
         depth_im = None
         if render_mode == "RGB+ED":
@@ -470,26 +484,34 @@ class WillagsModel(SplatfactoModel):
         outputs["background"] = background
         return outputs
 
-    def _background(self, nets: "AppearanceNetworks | None", z: Tensor | None, dirs: Tensor | None) -> Tensor:
+    def _background(
+        self, nets: "AppearanceNetworks | None", z: Tensor | None, dirs: Tensor | None, fallback: Tensor
+    ) -> Tensor:
         """What shows behind the Gaussians: the sky of `nets` under latent z along the pixel directions `dirs`
-        [H, W, 3] as [1, H, W, 3], or splatfacto's background colour [3] (random while training) without a sky."""
+        [H, W, 3] as [1, H, W, 3] (while training with sky.region "open": only above the photo's skyline, `fallback`
+        elsewhere), or `fallback`, splatfacto's background colour [3] (random while training), without a sky."""
         if nets is not None and nets.sky is not None and z is not None and dirs is not None:
-            return nets.sky(z, dirs)[None]
-        return self._get_background_color()
+            sky = nets.sky(z, dirs)[None]
+            if self.training and self.open_regions is not None:
+                H, W = dirs.shape[:2]
+                sky = composite_background(sky, fallback, self.open_regions.at(self._image_idx(), H, W, sky.device))
+            return sky
+        return fallback
 
     # ------------------------------------------------------------------ the transient mask (mask_step.py)
     def _image_idx(self) -> int:
         return int(self._step_cache.get("image_idx", torch.tensor(-1)))
 
     @torch.no_grad()
-    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background, dirs=None) -> Tensor:
+    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background, dirs=None, fallback=None) -> Tensor:
         """Pseudo-GT [H, W, 3] from the EMA teacher networks with the student's current Gaussians (no grad): a
         second rasterisation (fuse_teacher_render=False; the fused path renders the same image). With a sky
         (`dirs` given), the teacher's own sky replaces `background`."""
         assert self.teacher is not None
         colors = teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
         if dirs is not None:
-            background = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs)
+            fallback = self._get_background_color() if fallback is None else fallback
+            background = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback)
         return teacher_render(colors, gp, viewmat, K, W, H, background, self._rasterize)
 
     def _static_mask(self, outputs, gt_img: Tensor) -> Tensor | None:

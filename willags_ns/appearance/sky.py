@@ -115,3 +115,32 @@ def background_alpha_penalty(
     if not bool(explained.any()):
         return None
     return alpha[..., 0][explained].mean()
+
+
+class OpenRegions:
+    """Per training image, where the learnt sky shows while training with ``region="open"``: the cells above the
+    scene's skyline (static_support.open_background_map of the image's SfM keypoints), built once per image."""
+
+    def __init__(self, observations: list | None):
+        self.observations = observations
+        self.cache: dict[int, Tensor] = {}
+
+    def at(self, idx: int, height: int, width: int, device) -> Tensor | None:
+        """[H, W] bool (True = open) for training image `idx`, or None when the scene has no keypoints for it."""
+        from willags_ns.static_support import open_background_map, support_at
+
+        obs = self.observations
+        if obs is None or not 0 <= idx < len(obs):
+            return None
+        if idx not in self.cache:
+            self.cache[idx] = open_background_map(obs[idx], width, height).to(device)
+        return support_at(self.cache[idx], height, width)
+
+
+def composite_background(
+    sky: Float[Tensor, "1 H W 3"], fallback: Float[Tensor, " 3"], open_region: Tensor | None
+) -> Float[Tensor, "1 H W 3"]:
+    """The sky where `open_region` [H, W] is True, the fallback colour elsewhere (the sky alone when None)."""
+    if open_region is None:
+        return sky
+    return torch.where(open_region[None, ..., None], sky, fallback.to(sky))
