@@ -278,6 +278,7 @@ def test_step_times_are_their_records(key, runs):
 
 
 def test_preset_defaults_are_the_method_configs():
+    import willags_ns.method_configs  # noqa: F401  (registers the presets)
     from willags_ns.trainer import preset_defaults
 
     assert (
@@ -324,6 +325,7 @@ def test_apply_budget_switches_the_preset_in_the_config(monkeypatch):
 
 
 def test_switching_preset_keeps_the_users_settings():
+    import willags_ns.method_configs  # noqa: F401  (registers the presets)
     from willags_ns.trainer import carry_overrides, preset_defaults
 
     willags, _ = preset_defaults("willags")

@@ -21,7 +21,7 @@ from willags_ns.appearance.vae import VAEConfig
 from willags_ns.data.dataparser import WillagsDataParserConfig
 from willags_ns.model import WillagsModelConfig
 from willags_ns.pipeline import WillagsPipelineConfig
-from willags_ns.trainer import WillagsTrainerConfig
+from willags_ns.trainer import PRESET_CONFIGS, WillagsTrainerConfig
 from willags_ns.transient import PerceptualMaskConfig
 
 
@@ -171,6 +171,9 @@ def willags_auto_config() -> WillagsTrainerConfig:
     model.auto_config = True
     return _trainer("willags-auto", model, 30000)
 
+
+# the presets the time budget chooses between (willags_ns/trainer.py)
+PRESET_CONFIGS.update({"willags": willags_config, "willags-lite": willags_lite_config})
 
 willags_method = MethodSpecification(
     config=willags_config(),

@@ -47,11 +47,16 @@ class WillagsTrainerConfig(TrainerConfig):
     _target: type = field(default_factory=lambda: WillagsTrainer)
 
 
-def preset_defaults(preset: str) -> tuple[Any, int]:
-    """(model config, default step count) of a preset, fresh from willags_ns/method_configs.py."""
-    from willags_ns import method_configs as mc
+PRESET_CONFIGS: dict[str, Any] = {}
+"""preset name -> factory of its TrainerConfig, registered by willags_ns/method_configs.py (which builds its methods
+on this module's WillagsTrainerConfig, so the trainer must not import it back)."""
 
-    config = {"willags": mc.willags_config, "willags-lite": mc.willags_lite_config}[preset]()
+
+def preset_defaults(preset: str) -> tuple[Any, int]:
+    """(model config, default step count) of a preset, fresh from its registered factory."""
+    if preset not in PRESET_CONFIGS:
+        raise KeyError(f"time budget: preset {preset!r} is not registered (import willags_ns.method_configs first)")
+    config = PRESET_CONFIGS[preset]()
     return config.pipeline.model, config.max_num_iterations
 
 
