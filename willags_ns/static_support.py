@@ -54,18 +54,22 @@ def grid_shape(width: int, height: int, grid: int) -> tuple[int, int]:
     return grid, max(1, round(grid * width / height))
 
 
+def cell_counts(obs: np.ndarray, rows: int, cols: int, min_track: float = 0) -> Tensor:
+    """[rows, cols] counts of the observations `obs` [n, 3] = (u, v, track length) with track >= `min_track` that
+    fall inside the image, on a rows x cols grid."""
+    counts = torch.zeros(rows, cols)
+    if not len(obs):
+        return counts
+    o = torch.as_tensor(obs, dtype=torch.float32)
+    o = o[(o[:, 2] >= min_track) & (o[:, 0] >= 0) & (o[:, 0] < 1) & (o[:, 1] >= 0) & (o[:, 1] < 1)]
+    r = (o[:, 1] * rows).long().clamp_(0, rows - 1)
+    c = (o[:, 0] * cols).long().clamp_(0, cols - 1)
+    return counts.view(-1).index_add_(0, r * cols + c, torch.ones(len(o))).view(rows, cols)
+
+
 def support_map(obs: np.ndarray, width: int, height: int, cfg: StaticSupportConfig) -> Bool[Tensor, "rows cols"]:
     """Supported cells [rows, cols] of one image from its observations `obs` [n, 3] = (u, v, track length)."""
-    rows, cols = grid_shape(width, height, cfg.grid)
-    counts = torch.zeros(rows, cols)
-    if len(obs):
-        o = torch.as_tensor(obs, dtype=torch.float32)
-        o = o[o[:, 2] >= cfg.min_track]
-        inside = (o[:, 0] >= 0) & (o[:, 0] < 1) & (o[:, 1] >= 0) & (o[:, 1] < 1)
-        o = o[inside]
-        r = (o[:, 1] * rows).long().clamp_(0, rows - 1)
-        c = (o[:, 0] * cols).long().clamp_(0, cols - 1)
-        counts.view(-1).index_add_(0, r * cols + c, torch.ones(len(o)))
+    counts = cell_counts(obs, *grid_shape(width, height, cfg.grid), cfg.min_track)
     k = 2 * cfg.radius_cells + 1
     window = F.avg_pool2d(counts[None, None], k, stride=1, padding=cfg.radius_cells, count_include_pad=True)
     return (window[0, 0] * k * k + 0.5).floor() >= cfg.min_observations
@@ -112,13 +116,7 @@ def open_background_map(obs: np.ndarray, width: int, height: int, grid: int = 32
     not open. The sky's region option (appearance/sky.py) composites the learnt sky only here while training,
     keeping splatfacto's random background (which forces the Gaussians to be opaque) everywhere else."""
     rows, cols = grid_shape(width, height, grid)
-    covered = torch.zeros(rows, cols)
-    if len(obs):
-        o = torch.as_tensor(obs[:, :2], dtype=torch.float32)
-        o = o[(o[:, 0] >= 0) & (o[:, 0] < 1) & (o[:, 1] >= 0) & (o[:, 1] < 1)]
-        r = (o[:, 1] * rows).long().clamp_(0, rows - 1)
-        c = (o[:, 0] * cols).long().clamp_(0, cols - 1)
-        covered.view(-1)[r * cols + c] = 1.0
+    covered = (cell_counts(obs, rows, cols) > 0).float()
     covered = F.max_pool2d(covered[None, None], 3, stride=1, padding=1)[0, 0] > 0
     has = covered.any(dim=0)  # [cols]
     if not bool(has.any()):
