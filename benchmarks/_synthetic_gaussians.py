@@ -58,18 +58,6 @@ def smooth_image(height: int, width: int, seed: int = 0) -> Tensor:
     return (img.clamp(0, 1)[0].permute(1, 2, 0) * 255).to(torch.uint8)
 
 
-def viewmat_from_c2w_gl(c2w: Tensor) -> Tensor:
-    """nerfstudio c2w [C, 3, 4] -> gsplat world-to-camera [C, 4, 4] (the same maths as splatfacto's get_viewmat)."""
-    R = c2w[:, :3, :3] * torch.tensor([1.0, -1.0, -1.0], device=c2w.device, dtype=c2w.dtype)
-    T = c2w[:, :3, 3:4]
-    R_inv = R.transpose(1, 2)
-    vm = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
-    vm[:, 3, 3] = 1.0
-    vm[:, :3, :3] = R_inv
-    vm[:, :3, 3:4] = -torch.bmm(R_inv, T)
-    return vm
-
-
 # ---------------------------------------------------------------------------------------------- parity scenes
 @dataclass
 class ParityCase:

@@ -234,21 +234,24 @@ def scene_points(
     return sorted(out, key=lambda p: (methods.index(p.method), p.steps, p.train_s or 0.0))
 
 
+def pareto_optimal(points: Sequence[tuple[float, float]]) -> list[bool]:
+    """For each (seconds, psnr), whether no other point is at least as fast and at least as good, and strictly
+    better in one of the two. The one dominance rule of the curves and of docs/benchmarks.md's Pareto table."""
+    return [
+        not any(j != i and t2 <= t and q2 >= q and (t2 < t or q2 > q) for j, (t2, q2) in enumerate(points))
+        for i, (t, q) in enumerate(points)
+    ]
+
+
 def pareto_flags(points: Sequence[Point]) -> list[bool]:
-    """For each point, whether it is Pareto-optimal among the timed ones: no other point is at least as fast and at
-    least as good, and strictly one of them. Untimed points are never optimal."""
-    timed = [p for p in points if p.train_s is not None]
-
-    def dominated(p: Point) -> bool:
-        return any(
-            o is not p
-            and o.train_s <= p.train_s  # type: ignore[operator]
-            and o.psnr >= p.psnr
-            and (o.train_s < p.train_s or o.psnr > p.psnr)  # type: ignore[operator]
-            for o in timed
-        )
-
-    return [p.train_s is not None and not dominated(p) for p in points]
+    """For each point, whether it is Pareto-optimal among the timed ones (`pareto_optimal`). Untimed points are never
+    optimal."""
+    timed = [i for i, p in enumerate(points) if p.train_s is not None]
+    flags = pareto_optimal([(points[i].train_s, points[i].psnr) for i in timed])  # type: ignore[misc]
+    out = [False] * len(points)
+    for i, f in zip(timed, flags, strict=True):
+        out[i] = f
+    return out
 
 
 @dataclass(frozen=True)
@@ -462,7 +465,7 @@ def render_markdown(
 def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
     """Records of several files (each a JSON list); a later record with the same (scene, method, device, steps, tag)
     replaces an earlier one, as benchmarks/harness.py merges them."""
-    from benchmarks.harness import merge_records
+    from benchmarks.records import merge_records
 
     records: list[dict[str, Any]] = []
     for p in paths:

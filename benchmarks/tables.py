@@ -5,6 +5,7 @@ in :mod:`benchmarks.fidelity_tables`, the every-scene table in :mod:`benchmarks.
 import math
 from typing import Any
 
+from benchmarks.curves import pareto_optimal
 from benchmarks.fidelity_tables import fidelity_section
 from benchmarks.generalisation import TAGS as GENERALISATION_TAGS
 from benchmarks.generalisation import generalisation_section
@@ -175,15 +176,10 @@ def pareto_rows(records: list[dict[str, Any]], device: str, scene: str = "fox-wi
     on both (less time and higher PSNR)."""
     methods = ("willags", "willags-lite", "willags-3dgs", "splatfacto")
     pts = [r for r in _ok(records) if r["device"] == device and r["scene"] == scene and r["method"] in methods]
+    pts = sorted(pts, key=lambda r: (methods.index(r["method"]), int(r["steps"])))
+    optimal = pareto_optimal([(r["train_s"], r["psnr"]) for r in pts])
     rows = []
-    for r in sorted(pts, key=lambda r: (methods.index(r["method"]), int(r["steps"]))):
-        dominated = any(
-            o is not r
-            and o["train_s"] <= r["train_s"]
-            and o["psnr"] >= r["psnr"]
-            and (o["train_s"] < r["train_s"] or o["psnr"] > r["psnr"])
-            for o in pts
-        )
+    for r, best in zip(pts, optimal, strict=True):
         rows.append(
             {
                 "method": r["method"],
@@ -192,7 +188,7 @@ def pareto_rows(records: list[dict[str, Any]], device: str, scene: str = "fox-wi
                 "train_s": r["train_s"],
                 "psnr": r["psnr"],
                 "full_psnr": r.get("full_psnr"),
-                "pareto": not dominated,
+                "pareto": best,
             }
         )
     return rows

@@ -29,6 +29,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from willags_ns.render.sh import eval_sh_bases, num_sh_bases
+from willags_ns.static_support import open_background_map, support_at
 
 
 @dataclass
@@ -127,8 +128,6 @@ class OpenRegions:
 
     def at(self, idx: int, height: int, width: int, device) -> Tensor | None:
         """[H, W] bool (True = open) for training image `idx`, or None when the scene has no keypoints for it."""
-        from willags_ns.static_support import open_background_map, support_at
-
         obs = self.observations
         if obs is None or not 0 <= idx < len(obs):
             return None
