@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from benchmarks.fidelity_tables import _signed
+
 TAGS = ("h100-r", "h200-r")
 """Tag prefixes of the fidelity grid's repeats (configs/benchmark_gpu_fidelity.json), H100 and H200 sessions."""
 SCENES = (
@@ -57,7 +59,7 @@ def _cell(recs: list[dict[str, Any]]) -> str:
 
 def _diff(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> str:
     ma, mb = _mean([float(r["psnr"]) for r in a]), _mean([float(r["psnr"]) for r in b])
-    return "–" if ma is None or mb is None else f"{round(ma - mb, 2) + 0.0:+.2f}"
+    return "–" if ma is None or mb is None else _signed(ma - mb)
 
 
 def scene_rows(records: list[dict[str, Any]]) -> list[str]:
