@@ -69,6 +69,17 @@ METHODS: dict[str, MethodSpec] = {
         (("auto_config", True),),
         note="default with auto_config: willags-inspect's recommendation switches latent / mask / field",
     ),
+    # issue 26: willags-auto on top of the candidate defaults (auto's sky switch keeps the method's sky.region)
+    "willags-auto-support": MethodSpec(
+        "willags",
+        (("auto_config", True), ("static_support.enabled", True)),
+        note="auto_config with the mask's SfM-track safeguard (candidate default: the safeguard alone)",
+    ),
+    "willags-auto-skyopen-support": MethodSpec(
+        "willags",
+        (("auto_config", True), ("sky.region", "open"), ("static_support.enabled", True)),
+        note="auto_config with the sky above the skyline and the safeguard (candidate default: willags-skyopen-support)",
+    ),
     "willags-plain": MethodSpec(
         "willags",
         (("appearance", "sh"), ("use_mask", False)),
