@@ -212,6 +212,7 @@ def test_shared_fox_scenes(shared_data):
 # evidence 4: open background (sky)
 
 SKY_ON = "--pipeline.model.sky.enabled True"
+SKY_OFF = "--pipeline.model.sky.enabled False"
 
 
 def write_plane_scene(root, lower_only: bool, n: int = 8, width: int = 64, height: int = 48):
@@ -268,8 +269,8 @@ def test_lower_half_covered_is_half_background_and_wants_the_sky(plane_reports):
     assert ev["background_score"] == pytest.approx(11 / 24) and ev["background_fraction_mean"] == pytest.approx(11 / 24)
     assert rec["preset"]["value"] == "willags" and rec["sky"]["on"] is True and rec["sky"]["measured"] is True
     assert "0.46" in rec["sky"]["reason"] and ">= threshold" in rec["sky"]["reason"]
-    assert SKY_ON in rec["preset"]["flags"] and SKY_ON in rec["command"]
-    assert sky_flags(True) == [SKY_ON]  # the willags default has no sky: the flag turns it on
+    # the willags default has the sky: turning it on needs no flag, and none switches it off
+    assert sky_flags(True) == [] and SKY_OFF not in rec["preset"]["flags"] and SKY_OFF not in rec["command"]
     assert "sky: ON" in format_report(report)
 
 
@@ -279,13 +280,13 @@ def test_fully_covered_has_no_background_and_no_sky(plane_reports):
     rec = report["recommendation"]
     assert rec["preset"]["value"] == "willags" and rec["sky"]["on"] is False
     assert "< threshold" in rec["sky"]["reason"]
-    assert sky_flags(False) == [] and SKY_ON not in rec["command"]
+    assert sky_flags(False) == [SKY_OFF] and SKY_OFF in rec["command"]
 
 
 def test_sky_threshold_moves_the_recommendation(tmp_path):
     scene = write_plane_scene(tmp_path / "lower", lower_only=True)
     rec = inspect_scene(InspectConfig(data=scene, sky_threshold=0.6))["recommendation"]
-    assert rec["sky"]["on"] is False and SKY_ON not in rec["command"]
+    assert rec["sky"]["on"] is False and SKY_OFF in rec["command"]
 
 
 def test_synthetic_dome_scenes_have_no_open_background(reports):
@@ -342,8 +343,10 @@ def test_without_points_the_sky_is_not_measured(scenes, tmp_path):
     report = inspect_scene(InspectConfig(data=_without_ply(scenes[(True, False)], tmp_path)))
     assert report["evidence"]["background_score"] is None
     sky = report["recommendation"]["sky"]
-    assert sky["measured"] is False and sky["on"] is False and "not measured" in sky["reason"]
-    assert "method's own setting" in sky["reason"] and SKY_ON not in report["recommendation"]["command"]
+    # the method's own setting (the willags default's sky: on), so the command names no sky flag
+    assert sky["measured"] is False and sky["on"] is True and "not measured" in sky["reason"]
+    command = report["recommendation"]["command"]
+    assert "method's own setting" in sky["reason"] and SKY_ON not in command and SKY_OFF not in command
     assert "open background not measured" in format_report(report)
 
 
