@@ -25,14 +25,19 @@ def _rec(scene, method, psnr, tag="h200-r1", **kw):
 
 
 def test_scene_rows_pool_seeds_and_compare_with_the_default():
+    today = {"date": "2026-11-25T16:00:00"}
     recs = [
-        _rec("reichstag", "willags", 19.0),
-        _rec("reichstag", "willags", 19.4, tag="h100-r2"),
+        _rec("reichstag", "willags", 19.0, **today),
+        _rec("reichstag", "willags-skyopen-support", 19.4, tag="h100-r2"),  # today's default, named in full
+        _rec("reichstag", "willags", 18.0, date="2026-11-24T10:00:00"),  # the previous default
+        _rec("reichstag", "willags-prev", 18.4),
         _rec("reichstag", "peer", 19.5),
-        _rec("reichstag", "willags-auto", 19.1, tree_note="wip"),
+        _rec("reichstag", "willags-auto", 19.1, tree_note="wip", **today),
+        _rec("reichstag", "willags-auto", 25.0),  # before the change, not today's settings there: left out
         _rec("reichstag", "willags-skyalpha-support", 18.0),
-        _rec("reichstag", "willags", 30.0, tag="other"),  # not a fidelity-grid tag: left out
-        _rec("reichstag", "willags", 30.0, steps=15000),  # not 5000 steps: left out
+        _rec("reichstag", "willags", 30.0, tag="other", **today),  # not a fidelity-grid tag: left out
+        _rec("reichstag", "willags", 30.0, steps=15000, **today),  # not 5000 steps: left out
+        _rec("fox-wild", "willags", 22.0),  # no keypoints: the previous default's record is today's too
     ]
     rows = scene_rows(recs)
     assert "willags-skyalpha-support" in rows[0] and "willags-sky |" not in rows[0]  # only candidates that ran
@@ -40,9 +45,12 @@ def test_scene_rows_pool_seeds_and_compare_with_the_default():
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[3] == "19.20 ±0.20 (n=2)"
     assert cells[4] == "-0.30"  # willags - peer
-    assert cells[5] == "19.10† (n=1)" and cells[6] == "-0.10"
-    assert cells[7] == "18.00 (n=1)" and cells[8] == "-1.20"
-    assert not any(r.startswith("| fox-wild") for r in rows)  # a scene without records has no row
+    assert cells[5] == "18.20 ±0.20 (n=2)" and cells[6] == "+1.00"  # the previous default, and the change
+    assert cells[7] == "19.10† (n=1)" and cells[8] == "-0.10"
+    assert cells[9] == "18.00 (n=1)" and cells[10] == "-1.20"
+    fox = [c.strip() for c in next(r for r in rows if r.startswith("| fox-wild")).strip("|").split("|")]
+    assert fox[3] == fox[5] == "22.00 (n=1)" and fox[6] == "+0.00"
+    assert not any(r.startswith("| fox-clean") for r in rows)  # a scene without records has no row
 
 
 def test_section_is_empty_without_grid_records():

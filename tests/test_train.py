@@ -121,6 +121,25 @@ def test_fox_clean_trains(tmp_path, shared_data):
     _check_finite(losses)
 
 
+def test_default_without_sfm_keypoints_trains_exactly_as_the_previous_default(tmp_path):
+    """The default's sky (above the SfM skyline) and the mask's safeguard both read COLMAP's keypoints; a scene
+    without them (nerfstudio transforms.json, the fox scenes) must train bit for bit as the default without both:
+    the fox scenes' records of the previous default stand for today's (issue 26)."""
+    from willags_ns.appearance.sky import SkyConfig
+    from willags_ns.static_support import StaticSupportConfig
+
+    torch.manual_seed(0)
+    _, new, new_losses = _train(tmp_path / "new", "willags", steps=8)
+    torch.manual_seed(0)
+    _, old, old_losses = _train(tmp_path / "old", "willags", steps=8, sky=SkyConfig(), static_support=StaticSupportConfig())
+    model = new.pipeline.model
+    assert model.config.static_support.enabled and model.mask_step.observations is None
+    assert model.appearance_nets.sky is None and model.open_regions is None  # the sky found no skyline: off
+    assert [v for v, _ in new_losses] == [v for v, _ in old_losses]
+    for k, p in model.gauss_params.items():
+        assert torch.equal(p, old.pipeline.model.gauss_params[k]), k
+
+
 def test_entry_points_resolve():
     from nerfstudio.plugins.registry import discover_methods
 
