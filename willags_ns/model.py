@@ -26,7 +26,7 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.lib_bilagrid import color_correct
-from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
@@ -67,6 +67,7 @@ from willags_ns.gaussians import (
 from willags_ns.losses import reconstruction_loss, scale_regularization
 from willags_ns.mask_step import MaskStep, log_step_images, teacher_colors, teacher_render
 from willags_ns.render.camera import viewmat_from_c2w
+from willags_ns.splat_export import SplatExport
 from willags_ns.static_support import StaticSupportConfig
 from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
 from willags_ns.transient import PerceptualFeatures, PerceptualMaskConfig
@@ -149,8 +150,9 @@ class WillagsModelConfig(SplatfactoModelConfig):
     config.yml is rewritten with the resolved switches. Method `willags-auto` turns it on."""
 
 
-class WillagsModel(SplatfactoModel):
-    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow."""
+class WillagsModel(SplatExport, SplatfactoModel):
+    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow; the exporter's names
+    (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...) come from SplatExport."""
 
     config: WillagsModelConfig
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
@@ -223,44 +225,11 @@ class WillagsModel(SplatfactoModel):
         self._absgrad_notice = False
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
 
-    # ------------------------------------------------------------------ properties used by exporter / viewer
-    @property
-    def features_dc(self):
-        """Splatfacto's name for the degree-0 SH parameter; with the paper's decoder (no SH parameters), the chosen
-        appearance baked to SH."""
-        return self.gauss_params["features_dc"] if "features_dc" in self.gauss_params else self.export_sh()[:, 0, :]
-
-    @property
-    def features_rest(self):
-        return self.gauss_params["features_rest"] if "features_rest" in self.gauss_params else self.export_sh()[:, 1:]
-
+    # ------------------------------------------------------------------ the Gaussians, parameter groups, checkpoints
     @property
     def intrinsic_features(self) -> Tensor | None:
         """f_s [N, Fs], or None when the configuration has none (modulated colours without a local residual)."""
         return self.gauss_params["features"] if "features" in self.gauss_params else None
-
-    @property
-    def colors(self):
-        return super().colors if self.config.appearance == "sh" else self.baked_colors()
-
-    @property
-    def shs_0(self):
-        """What exporters write as f_dc: splatfacto's SH, or the chosen appearance baked to SH."""
-        return super().shs_0 if self.config.appearance == "sh" else self.export_sh()[:, 0, :]
-
-    @property
-    def shs_rest(self):
-        return super().shs_rest if self.config.appearance == "sh" else self.export_sh()[:, 1:, :]
-
-    @torch.no_grad()
-    def export_sh(self) -> Tensor:
-        """SH [N, K, 3] of the chosen appearance for exporters (`ns-export gaussian-splat` writes f_dc + f_rest): the
-        decoder fitted by SH of degree render_sh_degree (view-dependent, 3DGS layout); with render_sh_degree=-1, the
-        decoder colour averaged over export_view_samples directions as degree 0."""
-        deg = self.config.render_sh_degree
-        if deg < 0:
-            return RGB2SH(self.baked_colors())[:, None, :]
-        return self.baked_sh(self.current_latent(), self.means, self.intrinsic_features, deg)
 
     def get_gaussian_param_groups(self) -> dict[str, list[Parameter]]:
         return {name: [p] for name, p in self.gauss_params.items()}
