@@ -120,6 +120,13 @@ def teacher_colors(teacher: AppearanceNetworks, gp, cam_center: Tensor, record: 
     return colors(z, gp["means"].detach(), f_s, cam_center, nets=teacher, sh=sh, base=base)
 
 
+def fused_teacher_rgb(render: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
+    """Pseudo-GT [H, W, 3] from the fused rasterisation (fuse_teacher_render=True): the teacher's channels 3:6 of
+    `render` [1, H, W, >=6] composited on `background` (the teacher's sky, or the student's colour), all detached."""
+    teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * background.detach()
+    return torch.clamp(teacher, 0.0, 1.0).squeeze(0)
+
+
 @torch.no_grad()
 def teacher_render(colors: Tensor, gp, viewmat: Tensor, K, W: int, H: int, background, rasterize) -> Tensor:
     """Pseudo-GT [H, W, 3]: the teacher's `colors` on the student's current Gaussians (detached), rasterised by

@@ -44,10 +44,10 @@ from willags_ns.appearance.latents import (
 from willags_ns.appearance.modulation import ColorModulationConfig, local_penalty
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.sky import (
-    OpenRegions,
     SkyConfig,
+    background,
     background_alpha_penalty,
-    composite_background,
+    open_regions_for,
     pixel_directions,
 )
 from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
@@ -65,7 +65,7 @@ from willags_ns.gaussians import (
     uses_gsplat,
 )
 from willags_ns.losses import reconstruction_loss, scale_regularization
-from willags_ns.mask_step import MaskStep, log_step_images, teacher_colors, teacher_render
+from willags_ns.mask_step import MaskStep, fused_teacher_rgb, log_step_images, teacher_colors, teacher_render
 from willags_ns.render.camera import viewmat_from_c2w
 from willags_ns.splat_export import SplatExport
 from willags_ns.static_support import StaticSupportConfig
@@ -194,12 +194,8 @@ class WillagsModel(SplatExport, SplatfactoModel):
         self.teacher: AppearanceNetworks | None = None
         self.perceptual: PerceptualFeatures | None = None
         observations = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
-        if cfg.sky.enabled and cfg.sky.region == "open" and observations is None:
-            # no keypoints, no skyline: without one the sky would be trained nowhere and shown everywhere
-            CONSOLE.log("willags: sky.region 'open' needs SfM keypoints (a COLMAP scene); the sky is off here")
-            cfg.sky.enabled = False
-        # where the sky shows while training with region "open" (None: behind every pixel)
-        self.open_regions = OpenRegions(observations) if cfg.sky.enabled and cfg.sky.region == "open" else None
+        # where the sky shows while training (before the networks: region "open" without keypoints turns it off)
+        self.open_regions = open_regions_for(cfg.sky, observations)
         if cfg.appearance == "willags":
             cfg.triplane.latent_dim = cfg.vae.latent_dim
             self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data)
@@ -430,12 +426,9 @@ class WillagsModel(SplatExport, SplatfactoModel):
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
 
         outputs: dict[str, Union[Tensor, list]] = {}
-        if fused:
-            teacher_bg = background
-            if dirs is not None:  # the teacher's own sky under the teacher's latent (set with its colours)
-                teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback).detach()
-            teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * teacher_bg
-            outputs["teacher_rgb"] = torch.clamp(teacher, 0.0, 1.0).squeeze(0)
+        if fused:  # over the teacher's own sky, under the teacher's latent (set with its colours)
+            teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback)
+            outputs["teacher_rgb"] = fused_teacher_rgb(render, alpha, teacher_bg)
         elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render
             outputs["teacher_rgb"] = rgb.detach().squeeze(0)
         elif teacher_needed:
@@ -453,19 +446,12 @@ class WillagsModel(SplatExport, SplatfactoModel):
         outputs["background"] = background
         return outputs
 
-    def _background(
-        self, nets: "AppearanceNetworks | None", z: Tensor | None, dirs: Tensor | None, fallback: Tensor
-    ) -> Tensor:
-        """What shows behind the Gaussians: the sky of `nets` under latent z along the pixel directions `dirs`
-        [H, W, 3] as [1, H, W, 3] (while training with sky.region "open": only above the photo's skyline, `fallback`
-        elsewhere), or `fallback`, splatfacto's background colour [3] (random while training), without a sky."""
-        if nets is not None and nets.sky is not None and z is not None and dirs is not None:
-            sky = nets.sky(z, dirs)[None]
-            if self.training and self.open_regions is not None:
-                H, W = dirs.shape[:2]
-                sky = composite_background(sky, fallback, self.open_regions.at(self._image_idx(), H, W, sky.device))
-            return sky
-        return fallback
+    def _background(self, nets: AppearanceNetworks | None, z: Tensor | None, dirs: Tensor | None, fallback: Tensor):
+        """What shows behind the Gaussians rendered with `nets` (appearance/sky.py's `background`): their sky under z,
+        only above the photo's skyline while training with sky.region "open"; `fallback` without a sky."""
+        regions = self.open_regions if self.training else None
+        idx = self._image_idx() if regions is not None else -1
+        return background(nets.sky if nets is not None else None, z, dirs, fallback, regions, idx)
 
     # ------------------------------------------------------------------ the transient mask (mask_step.py)
     def _image_idx(self) -> int:
