@@ -37,16 +37,14 @@ from willags_ns.appearance.latents import (
     AppearanceLatents,
     image_as_float,  # noqa: F401  (imported from here by benchmarks/harness.py)
     image_chw,
-    latent_loss,
     stored_latents,
     training_latent,
 )
-from willags_ns.appearance.modulation import ColorModulationConfig, local_penalty
+from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.sky import (
     SkyConfig,
     background,
-    background_alpha_penalty,
     open_regions_for,
     pixel_directions,
 )
@@ -64,8 +62,9 @@ from willags_ns.gaussians import (
     sh_colors,
     uses_gsplat,
 )
-from willags_ns.losses import reconstruction_loss, scale_regularization
+from willags_ns.losses import reconstruction_loss
 from willags_ns.mask_step import MaskStep, fused_teacher_rgb, log_step_images, teacher_colors, teacher_render
+from willags_ns.regularizers import regularization_terms
 from willags_ns.render.camera import viewmat_from_c2w
 from willags_ns.splat_export import SplatExport
 from willags_ns.static_support import StaticSupportConfig
@@ -534,24 +533,13 @@ class WillagsModel(SplatExport, SplatfactoModel):
             if "mask_rejected" in sc:
                 metrics_dict["mask_rejected"] = sc["mask_rejected"]
 
-        if self.training and "logvar" in sc and self.appearance_nets is not None:
-            vae = self.appearance_nets.vae
-            assert vae is not None
-            l_vae, parts = latent_loss(vae, sc, cfg.vae.beta, cfg.vae.recon_reduction)
-            loss_dict["vae_loss"] = cfg.lambda_vae * l_vae
-            if metrics_dict is not None:
-                metrics_dict["vae_kl"] = parts["vae_kl"].detach()
-                metrics_dict["vae_recon"] = parts["vae_recon"].detach()
-        if self.training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:
-            acc, bg = outputs["accumulation"], outputs["background"]
-            pen_sky = background_alpha_penalty(acc, gt_img, bg, cfg.sky.alpha_tol, mask)
-            if pen_sky is not None:
-                loss_dict["sky_alpha"] = cfg.sky.alpha_penalty * pen_sky
-        pen = local_penalty(sc.get("local_residual")) if self.training else None
-        if pen is not None and cfg.modulation.local_penalty > 0:
-            loss_dict["appearance_local"] = cfg.modulation.local_penalty * pen
-        if cfg.use_scale_regularization and self.step % 10 == 0:
-            loss_dict["scale_reg"] = scale_regularization(self.scales, cfg.max_gauss_ratio)
+        # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (regularizers.py)
+        vae = self.appearance_nets.vae if self.appearance_nets is not None else None
+        args = (cfg, sc, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
+        terms, term_metrics = regularization_terms(*args)
+        loss_dict.update(terms)
+        if metrics_dict is not None:
+            metrics_dict.update(term_metrics)
         if self.training:
             self.camera_optimizer.get_loss_dict(loss_dict)
             if cfg.log_images_every > 0 and self.step % cfg.log_images_every == 0:
