@@ -42,12 +42,7 @@ from willags_ns.appearance.latents import (
 )
 from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.appearance.sky import (
-    SkyConfig,
-    background,
-    open_regions_for,
-    pixel_directions,
-)
+from willags_ns.appearance.sky import SkyConfig, background, open_regions_for, pixel_directions
 from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.appearance_spec import latent_from_env, mean_latent
@@ -65,7 +60,7 @@ from willags_ns.gaussians import (
 from willags_ns.losses import reconstruction_loss
 from willags_ns.mask_step import MaskStep, fused_teacher_rgb, log_step_images, teacher_colors, teacher_render
 from willags_ns.regularizers import regularization_terms
-from willags_ns.render.camera import viewmat_from_c2w
+from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
 from willags_ns.splat_export import SplatExport
 from willags_ns.static_support import StaticSupportConfig
 from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
@@ -377,13 +372,9 @@ class WillagsModel(SplatExport, SplatfactoModel):
                 )
         gp = {k: (v[crop_ids] if crop_ids is not None else v) for k, v in self.gauss_params.items()}
 
-        scale_fac = self._get_downscale_factor()
-        camera.rescale_output_resolution(1 / scale_fac)
         viewmat = viewmat_from_c2w(c2w)
-        K = camera.get_intrinsics_matrices().to(self.device)
-        W, H = int(camera.width.item()), int(camera.height.item())
+        K, W, H = intrinsics_at(camera, self._get_downscale_factor(), self.device)
         self.last_size = (H, W)
-        camera.rescale_output_resolution(scale_fac)
         render_mode = "RGB+ED" if (cfg.output_depth_during_training or not self.training) else "RGB"
         cam_center = c2w[0, :3, 3]
 
