@@ -325,21 +325,6 @@ class WillagsModel(SplatExport, SplatfactoModel):
             nets, z, means, f_s, cam_center, self._color_context(), cacheable, sh, base, record
         )
 
-    @torch.no_grad()
-    def baked_sh(self, z: Tensor, means: Tensor, f_s, degree: int, key: tuple | None = None, sh=None) -> Tensor:
-        """SH coefficients [N, (degree + 1)**2, 3] reproducing the appearance's colour (ColorPath.baked_sh)."""
-        assert self.appearance_nets is not None
-        sh = self.sh_coeffs() if sh is None else sh
-        return self.color_path.baked_sh(self.appearance_nets, z, means, f_s, degree, self._color_context(), sh, key)
-
-    @torch.no_grad()
-    def baked_colors(self, z: Tensor | None = None) -> Tensor:
-        """View-independent colours [N, 3] for export: the appearance averaged over a Fibonacci sphere of views."""
-        assert self.appearance_nets is not None
-        z = self.current_latent() if z is None else z.to(self.device)
-        nets, k, ctx = self.appearance_nets, max(1, self.config.export_view_samples), self._color_context()
-        return self.color_path.baked_colors(nets, z, self.means, self.intrinsic_features, k, ctx, self.sh_coeffs())
-
     # ------------------------------------------------------------------ rendering
     def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
         # absgrad (densify on |grad|) exists only in gsplat's CUDA backward; the strategy must agree with the
