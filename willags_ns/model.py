@@ -27,7 +27,6 @@ from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.lib_bilagrid import color_correct
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
-from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
@@ -50,12 +49,13 @@ from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
 from willags_ns.eval.lpips import make_lpips
 from willags_ns.gaussians import (
+    active_sh_degree,
     densification_strategy,
     initial_gauss_params,
     initial_points,
     rasterize_gaussians,
     sh_colors,
-    uses_gsplat,
+    strategy_absgrad,
 )
 from willags_ns.losses import reconstruction_loss
 from willags_ns.mask_step import MaskStep, fused_teacher_rgb, log_step_images, teacher_colors, teacher_render
@@ -212,7 +212,6 @@ class WillagsModel(SplatExport, SplatfactoModel):
         self.mask_step = MaskStep(cfg, observations)
         self._train_batch: dict | None = None
         self._step_cache: dict[str, Tensor] = {}  # this training step's scratch, passed to the rooms as `record`
-        self._absgrad_notice = False
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
 
     # ------------------------------------------------------------------ the Gaussians, parameter groups, checkpoints
@@ -296,12 +295,8 @@ class WillagsModel(SplatExport, SplatfactoModel):
         """SH coefficients [N, K, 3] of the Gaussians (`gp`: a cropped gauss_params view), or None without them."""
         return sh_coeffs(self.gauss_params if gp is None else gp)
 
-    def active_sh_degree(self) -> int:
-        """SH degree in use now: splatfacto's schedule (one more degree every sh_degree_interval steps)."""
-        return min(self.step // max(1, self.config.sh_degree_interval), self.config.sh_degree)
-
     def _color_context(self) -> ColorContext:
-        return ColorContext(self.bounds_lo, self.bounds_hi, self.step, self.active_sh_degree())
+        return ColorContext(self.bounds_lo, self.bounds_hi, self.step, active_sh_degree(self.config, self.step))
 
     def _dynamic_features(self, nets: AppearanceNetworks, z: Tensor, means: Tensor, cacheable: bool):
         return self.color_path.dynamic_features(nets, z, means, self._color_context(), cacheable)
@@ -327,14 +322,7 @@ class WillagsModel(SplatExport, SplatfactoModel):
 
     # ------------------------------------------------------------------ rendering
     def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
-        # absgrad (densify on |grad|) exists only in gsplat's CUDA backward; the strategy must agree with the
-        # rasteriser or it reads a gradient that was never written
-        absgrad = self.config.use_absgrad and uses_gsplat(self.config.backend, means)
-        if self.strategy.absgrad != absgrad:
-            if not absgrad and self.config.use_absgrad and not self._absgrad_notice:
-                CONSOLE.log("willags: use_absgrad needs gsplat's CUDA backward; densifying on plain gradients")
-                self._absgrad_notice = True
-            self.strategy.absgrad = absgrad
+        absgrad = strategy_absgrad(self.strategy, self.config, means)  # |grad| only where the backend writes it
         args = (means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree, absgrad)
         return rasterize_gaussians(self.config, *args)
 
