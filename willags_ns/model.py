@@ -18,7 +18,7 @@ stand-in for splatfacto in benchmarks (method `willags-3dgs`).
 """
 
 from dataclasses import dataclass, field
-from typing import Literal, Union, cast
+from typing import Literal, Union
 
 import torch
 import torch.nn.functional as F
@@ -58,12 +58,19 @@ from willags_ns.gaussians import (
     strategy_absgrad,
 )
 from willags_ns.losses import reconstruction_loss
-from willags_ns.mask_step import MaskStep, fused_teacher_rgb, log_step_images, teacher_colors, teacher_render
+from willags_ns.mask_step import (
+    MaskStep,
+    fused_teacher_rgb,
+    log_step_images,
+    mask_networks,
+    teacher_colors,
+    teacher_render,
+)
 from willags_ns.regularizers import regularization_terms
 from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
 from willags_ns.splat_export import SplatExport
 from willags_ns.static_support import StaticSupportConfig
-from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
+from willags_ns.teacher import TeacherConfig, ema_update_
 from willags_ns.transient import PerceptualFeatures, PerceptualMaskConfig
 
 __all__ = ["AppearanceNetworks", "WillagsModel", "WillagsModelConfig", "viewmat_from_c2w"]
@@ -193,12 +200,7 @@ class WillagsModel(SplatExport, SplatfactoModel):
         if cfg.appearance == "willags":
             cfg.triplane.latent_dim = cfg.vae.latent_dim
             self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data)
-            if cfg.use_mask and cfg.teacher.enabled:
-                self.teacher = cast(AppearanceNetworks, make_teacher(self.appearance_nets))
-            if cfg.use_mask:
-                self.perceptual = PerceptualFeatures(
-                    weights=cfg.mask.vgg_weights, path=cfg.mask.vgg_weights_path, max_resolution=cfg.mask.max_resolution
-                )
+            self.teacher, self.perceptual = mask_networks(cfg, self.appearance_nets)
             lo, hi = robust_bounds(means)  # fixed at initialisation (see triplane.robust_bounds for the rule)
             self.register_buffer("bounds_lo", lo.float())
             self.register_buffer("bounds_hi", hi.float())
