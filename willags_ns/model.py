@@ -7,13 +7,14 @@ Per training step (the pipeline hands the model the training image first):
     z, Gaussians, camera --> colours [N, 3]                             appearance/color_path.py, networks.py
     colours (+ the EMA teacher's, fused) --rasterize--> render          gaussians.py, render/
     VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask_step.py
-    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)   losses.py
+    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)   losses.py, regularizers.py
 
 This file is the wiring (config, parameter groups, get_outputs, losses, callbacks); docs/architecture.md maps the
-rooms. The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check `isinstance(model,
-SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution schedule and metrics,
-and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights (LPIPS).
-`appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the CPU
+rooms. Two public faces are mixins beside their rooms: the exporter's names (splat_export.py), the latent methods
+(appearance/latents.py). The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check
+`isinstance(model, SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution
+schedule and metrics, and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights
+(LPIPS). `appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the CPU
 stand-in for splatfacto in benchmarks (method `willags-3dgs`).
 """
 
@@ -32,19 +33,13 @@ from torch.nn import Parameter
 
 from willags_ns.appearance.color_path import ColorContext, ColorPath, sh_coeffs
 from willags_ns.appearance.decoder import ColorDecoderConfig
-from willags_ns.appearance.latents import (
-    AppearanceLatents,
-    image_as_float,  # noqa: F401  (imported from here by benchmarks/harness.py)
-    image_chw,
-    stored_latents,
-    training_latent,
-)
+from willags_ns.appearance.latents import AppearanceLatents, LatentFace
+from willags_ns.appearance.latents import image_as_float as image_as_float  # benchmarks/child.py imports it from here
 from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.sky import SkyConfig, background, open_regions_for, pixel_directions
 from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
 from willags_ns.appearance.vae import VAEConfig
-from willags_ns.appearance_spec import latent_from_env, mean_latent
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
 from willags_ns.eval.lpips import make_lpips
@@ -151,9 +146,11 @@ class WillagsModelConfig(SplatfactoModelConfig):
     config.yml is rewritten with the resolved switches. Method `willags-auto` turns it on."""
 
 
-class WillagsModel(SplatExport, SplatfactoModel):
-    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow; the exporter's names
-    (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...) come from SplatExport."""
+class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
+    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Two mixins carry public
+    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splat_export.SplatExport) and the
+    latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...:
+    appearance/latents.LatentFace)."""
 
     config: WillagsModelConfig
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
@@ -239,58 +236,6 @@ class WillagsModel(SplatExport, SplatfactoModel):
         for param in self.gauss_params.values():  # resized in place: the optimisers hold these Parameter objects
             param.data = torch.zeros((newp,) + param.shape[1:], device=self.device)
         nn.Module.load_state_dict(self, dict, **kwargs)
-
-    # ------------------------------------------------------------------ the latent (appearance/latents.py)
-    def set_train_batch(self, batch: dict) -> None:
-        """Called by WillagsPipeline before each training forward: the image feeds the VAE encoder."""
-        self._train_batch = batch
-
-    def set_train_image_names(self, names: list[str]) -> None:
-        """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
-        self.image_names = list(names)
-
-    @property
-    def render_latent(self) -> Tensor | None:
-        """The chosen appearance [D] (viewer, ns-render, export), or None: $WILLAGS_APPEARANCE, else the mean."""
-        return self.latents.render_latent
-
-    @render_latent.setter
-    def render_latent(self, z: Tensor | None) -> None:
-        self.latents.render_latent = z
-
-    def image_latents(self) -> tuple[Tensor, Tensor]:
-        """(latents [num_train, D], known [num_train] bool) of the training images, detached (stored_latents)."""
-        assert self.appearance_nets is not None
-        return stored_latents(self.appearance_nets, self.train_latents, self.train_latent_seen)
-
-    def default_latent(self) -> Tensor:
-        """The appearance used when none is chosen: the mean of the training images' latents."""
-        assert self.appearance_nets is not None
-        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
-        return self.latents.default(nets, lat, seen, lambda: mean_latent(self))
-
-    def current_latent(self) -> Tensor:
-        """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
-        return self.latents.chosen(self.device, lambda spec: latent_from_env(spec, self), self.default_latent)
-
-    @torch.no_grad()
-    def encode_image(self, image: Tensor) -> Tensor:
-        """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
-        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs use_vae=True"
-        mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
-        return mu[0]
-
-    def _image_chw(self, image: Tensor) -> Tensor:
-        return image_chw(image, self.device)  # [3, H, W]
-
-    def _latent_for_forward(self, camera: Cameras) -> Tensor:
-        """Training: encode this step's image (reparameterised). Otherwise: camera metadata / chosen / default."""
-        assert self.appearance_nets is not None
-        md = camera.metadata or {}
-        if not self.training:
-            return self.latents.for_render(md, self.device, self.image_latents, self.current_latent)
-        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
-        return training_latent(nets, self._train_batch, md, self.device, self._step_cache, lat, seen)
 
     # ------------------------------------------------------------------ colours (appearance/color_path.py)
     def sh_coeffs(self, gp: dict | None = None) -> Tensor | None:
