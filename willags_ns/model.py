@@ -41,6 +41,7 @@ from willags_ns.appearance.sky import SkyConfig, background, open_regions_for, p
 from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
+from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
 from willags_ns.eval.lpips import make_lpips
 from willags_ns.gaussians import (
@@ -459,14 +460,8 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
 
     def get_image_metrics_and_images(self, outputs, batch):
         gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        pred = outputs["rgb"]
-        combined = torch.cat([gt_rgb, pred], dim=1)
-        gt_b, pred_b = gt_rgb.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None]
-        metrics = {"psnr": float(self.psnr(gt_b, pred_b).item()), "ssim": float(self.ssim(gt_b, pred_b))}
-        lpips = self.lpips_metric()
-        if lpips is not None:
-            metrics["lpips"] = float(lpips(gt_b, pred_b))
-        return metrics, {"img": combined}
+        metrics = image_metrics(gt_rgb, outputs["rgb"], self.psnr, self.ssim, self.lpips_metric())
+        return metrics, {"img": torch.cat([gt_rgb, outputs["rgb"]], dim=1)}
 
     def lpips_metric(self):
         """torchmetrics LPIPS when AlexNet's ImageNet weights are on disk; else None with a one-line notice."""
