@@ -7,6 +7,7 @@ from splatfacto's SH, which then sit in gauss_params too.
 
 import torch
 from nerfstudio.models.splatfacto import RGB2SH, num_sh_bases, random_quat_tensor
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 from torch.nn import Parameter
 
@@ -91,6 +92,18 @@ def uses_gsplat(backend: str, means: Tensor) -> bool:
     return backend == "gsplat" or (backend == "auto" and means.is_cuda)
 
 
+def strategy_absgrad(strategy, cfg, means: Tensor) -> bool:
+    """Whether this rasterisation keeps |grad| for densification (cfg.use_absgrad), with gsplat's `strategy` set to
+    agree. Only gsplat's CUDA backward writes |grad|: a strategy that expects it on the torch backend would read a
+    gradient that was never written, so it densifies on plain gradients there (said once per switch)."""
+    absgrad = cfg.use_absgrad and uses_gsplat(cfg.backend, means)
+    if strategy.absgrad != absgrad:
+        if not absgrad and cfg.use_absgrad:
+            CONSOLE.log("willags: use_absgrad needs gsplat's CUDA backward; densifying on plain gradients")
+        strategy.absgrad = absgrad
+    return absgrad
+
+
 def rasterize_gaussians(
     cfg, means, quats, scales, opacities, colors, viewmat, K, W: int, H: int, render_mode: str, sh_degree, absgrad: bool
 ):
@@ -117,10 +130,16 @@ def rasterize_gaussians(
     )
 
 
+def active_sh_degree(cfg, step: int) -> int:
+    """SH degree in use at `step`: splatfacto's schedule, one more degree every cfg.sh_degree_interval steps up to
+    cfg.sh_degree (the 3DGS colours of appearance='sh' and the base colour of color_mode='modulated' alike)."""
+    return min(step // max(1, cfg.sh_degree_interval), cfg.sh_degree)
+
+
 def sh_colors(cfg, gp, step: int) -> tuple[Tensor, int | None]:
     """appearance='sh' (plain 3DGS): (SH coefficients [N, K, 3], the active degree by splatfacto's schedule), or
     with sh_degree=0 (RGB [N, 3] through a sigmoid, None) as splatfacto renders them."""
     colors = torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
     if cfg.sh_degree > 0:
-        return colors, min(step // cfg.sh_degree_interval, cfg.sh_degree)
+        return colors, active_sh_degree(cfg, step)
     return torch.sigmoid(colors).squeeze(1), None

@@ -7,12 +7,13 @@ threshold, and the static-scene safeguard.
     transient = D > threshold(step)   (rejected when it would drop more than max_masked_fraction of the image)
     static = ~transient | SfM support (pixels near points many photos saw; willags_ns/static_support.py)
 
-:class:`MaskStep` holds the per-image state (each image's last mask, its visit count, its support grid and the
-scene's SfM observations) and reads the model's config; the teacher networks, the VGG features, the step and the
-step's scratch record arrive as arguments.
+:func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
+image's last mask, its visit count, its support grid and the scene's SfM observations) and reads the model's config;
+the teacher networks, the VGG features, the step and the step's scratch record arrive as arguments.
 """
 
 from collections.abc import Callable
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -21,7 +22,19 @@ from torch import Tensor
 from willags_ns.appearance.color_path import sh_coeffs
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.static_support import apply_support, support_map
+from willags_ns.teacher import make_teacher
 from willags_ns.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
+
+
+def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | None, PerceptualFeatures | None]:
+    """(EMA teacher, VGG16 features) of the mask for the student's networks `nets` (cfg: the model's config): the
+    teacher a frozen copy of `nets` (use_mask with teacher.enabled), the features per cfg.mask (use_mask); None
+    where off."""
+    if not cfg.use_mask:
+        return None, None
+    teacher = cast(AppearanceNetworks, make_teacher(nets)) if cfg.teacher.enabled else None
+    m = cfg.mask
+    return teacher, PerceptualFeatures(weights=m.vgg_weights, path=m.vgg_weights_path, max_resolution=m.max_resolution)
 
 
 class MaskStep:
@@ -118,6 +131,13 @@ def teacher_colors(teacher: AppearanceNetworks, gp, cam_center: Tensor, record: 
         sh = sh_coeffs(gp)
         sh = sh.detach() if sh is not None else None
     return colors(z, gp["means"].detach(), f_s, cam_center, nets=teacher, sh=sh, base=base)
+
+
+def fused_teacher_rgb(render: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
+    """Pseudo-GT [H, W, 3] from the fused rasterisation (fuse_teacher_render=True): the teacher's channels 3:6 of
+    `render` [1, H, W, >=6] composited on `background` (the teacher's sky, or the student's colour), all detached."""
+    teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * background.detach()
+    return torch.clamp(teacher, 0.0, 1.0).squeeze(0)
 
 
 @torch.no_grad()

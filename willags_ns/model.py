@@ -7,18 +7,19 @@ Per training step (the pipeline hands the model the training image first):
     z, Gaussians, camera --> colours [N, 3]                             appearance/color_path.py, networks.py
     colours (+ the EMA teacher's, fused) --rasterize--> render          gaussians.py, render/
     VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask_step.py
-    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)   losses.py
+    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)   losses.py, regularizers.py
 
 This file is the wiring (config, parameter groups, get_outputs, losses, callbacks); docs/architecture.md maps the
-rooms. The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check `isinstance(model,
-SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution schedule and metrics,
-and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights (LPIPS).
-`appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the CPU
+rooms. Two public faces are mixins beside their rooms: the exporter's names (splat_export.py), the latent methods
+(appearance/latents.py). The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check
+`isinstance(model, SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution
+schedule and metrics, and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights
+(LPIPS). `appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the CPU
 stand-in for splatfacto in benchmarks (method `willags-3dgs`).
 """
 
 from dataclasses import dataclass, field
-from typing import Literal, Union, cast
+from typing import Literal, Union
 
 import torch
 import torch.nn.functional as F
@@ -26,49 +27,46 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.lib_bilagrid import color_correct
-from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel, SplatfactoModelConfig
-from nerfstudio.utils.rich_utils import CONSOLE
+from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
 from torch import Tensor, nn
 from torch.nn import Parameter
 
 from willags_ns.appearance.color_path import ColorContext, ColorPath, sh_coeffs
 from willags_ns.appearance.decoder import ColorDecoderConfig
-from willags_ns.appearance.latents import (
-    AppearanceLatents,
-    image_as_float,  # noqa: F401  (imported from here by benchmarks/harness.py)
-    image_chw,
-    latent_loss,
-    stored_latents,
-    training_latent,
-)
-from willags_ns.appearance.modulation import ColorModulationConfig, local_penalty
+from willags_ns.appearance.latents import AppearanceLatents, LatentFace
+from willags_ns.appearance.latents import image_as_float as image_as_float  # benchmarks/child.py imports it from here
+from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.appearance.sky import (
-    OpenRegions,
-    SkyConfig,
-    background_alpha_penalty,
-    composite_background,
-    pixel_directions,
-)
+from willags_ns.appearance.sky import SkyConfig, background, open_regions_for, pixel_directions
 from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
 from willags_ns.appearance.vae import VAEConfig
-from willags_ns.appearance_spec import latent_from_env, mean_latent
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
+from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
 from willags_ns.eval.lpips import make_lpips
 from willags_ns.gaussians import (
+    active_sh_degree,
     densification_strategy,
     initial_gauss_params,
     initial_points,
     rasterize_gaussians,
     sh_colors,
-    uses_gsplat,
+    strategy_absgrad,
 )
-from willags_ns.losses import reconstruction_loss, scale_regularization
-from willags_ns.mask_step import MaskStep, log_step_images, teacher_colors, teacher_render
-from willags_ns.render.camera import viewmat_from_c2w
+from willags_ns.losses import reconstruction_loss
+from willags_ns.mask_step import (
+    MaskStep,
+    fused_teacher_rgb,
+    log_step_images,
+    mask_networks,
+    teacher_colors,
+    teacher_render,
+)
+from willags_ns.regularizers import regularization_terms
+from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
+from willags_ns.splat_export import SplatExport
 from willags_ns.static_support import StaticSupportConfig
-from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
+from willags_ns.teacher import TeacherConfig, ema_update_
 from willags_ns.transient import PerceptualFeatures, PerceptualMaskConfig
 
 __all__ = ["AppearanceNetworks", "WillagsModel", "WillagsModelConfig", "viewmat_from_c2w"]
@@ -149,8 +147,11 @@ class WillagsModelConfig(SplatfactoModelConfig):
     config.yml is rewritten with the resolved switches. Method `willags-auto` turns it on."""
 
 
-class WillagsModel(SplatfactoModel):
-    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow."""
+class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
+    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Two mixins carry public
+    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splat_export.SplatExport) and the
+    latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...:
+    appearance/latents.LatentFace)."""
 
     config: WillagsModelConfig
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
@@ -192,21 +193,12 @@ class WillagsModel(SplatfactoModel):
         self.teacher: AppearanceNetworks | None = None
         self.perceptual: PerceptualFeatures | None = None
         observations = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
-        if cfg.sky.enabled and cfg.sky.region == "open" and observations is None:
-            # no keypoints, no skyline: without one the sky would be trained nowhere and shown everywhere
-            CONSOLE.log("willags: sky.region 'open' needs SfM keypoints (a COLMAP scene); the sky is off here")
-            cfg.sky.enabled = False
-        # where the sky shows while training with region "open" (None: behind every pixel)
-        self.open_regions = OpenRegions(observations) if cfg.sky.enabled and cfg.sky.region == "open" else None
+        # where the sky shows while training (before the networks: region "open" without keypoints turns it off)
+        self.open_regions = open_regions_for(cfg.sky, observations)
         if cfg.appearance == "willags":
             cfg.triplane.latent_dim = cfg.vae.latent_dim
             self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data)
-            if cfg.use_mask and cfg.teacher.enabled:
-                self.teacher = cast(AppearanceNetworks, make_teacher(self.appearance_nets))
-            if cfg.use_mask:
-                self.perceptual = PerceptualFeatures(
-                    weights=cfg.mask.vgg_weights, path=cfg.mask.vgg_weights_path, max_resolution=cfg.mask.max_resolution
-                )
+            self.teacher, self.perceptual = mask_networks(cfg, self.appearance_nets)
             lo, hi = robust_bounds(means)  # fixed at initialisation (see triplane.robust_bounds for the rule)
             self.register_buffer("bounds_lo", lo.float())
             self.register_buffer("bounds_hi", hi.float())
@@ -220,47 +212,13 @@ class WillagsModel(SplatfactoModel):
         self.mask_step = MaskStep(cfg, observations)
         self._train_batch: dict | None = None
         self._step_cache: dict[str, Tensor] = {}  # this training step's scratch, passed to the rooms as `record`
-        self._absgrad_notice = False
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
 
-    # ------------------------------------------------------------------ properties used by exporter / viewer
-    @property
-    def features_dc(self):
-        """Splatfacto's name for the degree-0 SH parameter; with the paper's decoder (no SH parameters), the chosen
-        appearance baked to SH."""
-        return self.gauss_params["features_dc"] if "features_dc" in self.gauss_params else self.export_sh()[:, 0, :]
-
-    @property
-    def features_rest(self):
-        return self.gauss_params["features_rest"] if "features_rest" in self.gauss_params else self.export_sh()[:, 1:]
-
+    # ------------------------------------------------------------------ the Gaussians, parameter groups, checkpoints
     @property
     def intrinsic_features(self) -> Tensor | None:
         """f_s [N, Fs], or None when the configuration has none (modulated colours without a local residual)."""
         return self.gauss_params["features"] if "features" in self.gauss_params else None
-
-    @property
-    def colors(self):
-        return super().colors if self.config.appearance == "sh" else self.baked_colors()
-
-    @property
-    def shs_0(self):
-        """What exporters write as f_dc: splatfacto's SH, or the chosen appearance baked to SH."""
-        return super().shs_0 if self.config.appearance == "sh" else self.export_sh()[:, 0, :]
-
-    @property
-    def shs_rest(self):
-        return super().shs_rest if self.config.appearance == "sh" else self.export_sh()[:, 1:, :]
-
-    @torch.no_grad()
-    def export_sh(self) -> Tensor:
-        """SH [N, K, 3] of the chosen appearance for exporters (`ns-export gaussian-splat` writes f_dc + f_rest): the
-        decoder fitted by SH of degree render_sh_degree (view-dependent, 3DGS layout); with render_sh_degree=-1, the
-        decoder colour averaged over export_view_samples directions as degree 0."""
-        deg = self.config.render_sh_degree
-        if deg < 0:
-            return RGB2SH(self.baked_colors())[:, None, :]
-        return self.baked_sh(self.current_latent(), self.means, self.intrinsic_features, deg)
 
     def get_gaussian_param_groups(self) -> dict[str, list[Parameter]]:
         return {name: [p] for name, p in self.gauss_params.items()}
@@ -280,69 +238,13 @@ class WillagsModel(SplatfactoModel):
             param.data = torch.zeros((newp,) + param.shape[1:], device=self.device)
         nn.Module.load_state_dict(self, dict, **kwargs)
 
-    # ------------------------------------------------------------------ the latent (appearance/latents.py)
-    def set_train_batch(self, batch: dict) -> None:
-        """Called by WillagsPipeline before each training forward: the image feeds the VAE encoder."""
-        self._train_batch = batch
-
-    def set_train_image_names(self, names: list[str]) -> None:
-        """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
-        self.image_names = list(names)
-
-    @property
-    def render_latent(self) -> Tensor | None:
-        """The chosen appearance [D] (viewer, ns-render, export), or None: $WILLAGS_APPEARANCE, else the mean."""
-        return self.latents.render_latent
-
-    @render_latent.setter
-    def render_latent(self, z: Tensor | None) -> None:
-        self.latents.render_latent = z
-
-    def image_latents(self) -> tuple[Tensor, Tensor]:
-        """(latents [num_train, D], known [num_train] bool) of the training images, detached (stored_latents)."""
-        assert self.appearance_nets is not None
-        return stored_latents(self.appearance_nets, self.train_latents, self.train_latent_seen)
-
-    def default_latent(self) -> Tensor:
-        """The appearance used when none is chosen: the mean of the training images' latents."""
-        assert self.appearance_nets is not None
-        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
-        return self.latents.default(nets, lat, seen, lambda: mean_latent(self))
-
-    def current_latent(self) -> Tensor:
-        """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
-        return self.latents.chosen(self.device, lambda spec: latent_from_env(spec, self), self.default_latent)
-
-    @torch.no_grad()
-    def encode_image(self, image: Tensor) -> Tensor:
-        """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
-        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs use_vae=True"
-        mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
-        return mu[0]
-
-    def _image_chw(self, image: Tensor) -> Tensor:
-        return image_chw(image, self.device)  # [3, H, W]
-
-    def _latent_for_forward(self, camera: Cameras) -> Tensor:
-        """Training: encode this step's image (reparameterised). Otherwise: camera metadata / chosen / default."""
-        assert self.appearance_nets is not None
-        md = camera.metadata or {}
-        if not self.training:
-            return self.latents.for_render(md, self.device, self.image_latents, self.current_latent)
-        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
-        return training_latent(nets, self._train_batch, md, self.device, self._step_cache, lat, seen)
-
     # ------------------------------------------------------------------ colours (appearance/color_path.py)
     def sh_coeffs(self, gp: dict | None = None) -> Tensor | None:
         """SH coefficients [N, K, 3] of the Gaussians (`gp`: a cropped gauss_params view), or None without them."""
         return sh_coeffs(self.gauss_params if gp is None else gp)
 
-    def active_sh_degree(self) -> int:
-        """SH degree in use now: splatfacto's schedule (one more degree every sh_degree_interval steps)."""
-        return min(self.step // max(1, self.config.sh_degree_interval), self.config.sh_degree)
-
     def _color_context(self) -> ColorContext:
-        return ColorContext(self.bounds_lo, self.bounds_hi, self.step, self.active_sh_degree())
+        return ColorContext(self.bounds_lo, self.bounds_hi, self.step, active_sh_degree(self.config, self.step))
 
     def _dynamic_features(self, nets: AppearanceNetworks, z: Tensor, means: Tensor, cacheable: bool):
         return self.color_path.dynamic_features(nets, z, means, self._color_context(), cacheable)
@@ -366,31 +268,9 @@ class WillagsModel(SplatfactoModel):
             nets, z, means, f_s, cam_center, self._color_context(), cacheable, sh, base, record
         )
 
-    @torch.no_grad()
-    def baked_sh(self, z: Tensor, means: Tensor, f_s, degree: int, key: tuple | None = None, sh=None) -> Tensor:
-        """SH coefficients [N, (degree + 1)**2, 3] reproducing the appearance's colour (ColorPath.baked_sh)."""
-        assert self.appearance_nets is not None
-        sh = self.sh_coeffs() if sh is None else sh
-        return self.color_path.baked_sh(self.appearance_nets, z, means, f_s, degree, self._color_context(), sh, key)
-
-    @torch.no_grad()
-    def baked_colors(self, z: Tensor | None = None) -> Tensor:
-        """View-independent colours [N, 3] for export: the appearance averaged over a Fibonacci sphere of views."""
-        assert self.appearance_nets is not None
-        z = self.current_latent() if z is None else z.to(self.device)
-        nets, k, ctx = self.appearance_nets, max(1, self.config.export_view_samples), self._color_context()
-        return self.color_path.baked_colors(nets, z, self.means, self.intrinsic_features, k, ctx, self.sh_coeffs())
-
     # ------------------------------------------------------------------ rendering
     def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
-        # absgrad (densify on |grad|) exists only in gsplat's CUDA backward; the strategy must agree with the
-        # rasteriser or it reads a gradient that was never written
-        absgrad = self.config.use_absgrad and uses_gsplat(self.config.backend, means)
-        if self.strategy.absgrad != absgrad:
-            if not absgrad and self.config.use_absgrad and not self._absgrad_notice:
-                CONSOLE.log("willags: use_absgrad needs gsplat's CUDA backward; densifying on plain gradients")
-                self._absgrad_notice = True
-            self.strategy.absgrad = absgrad
+        absgrad = strategy_absgrad(self.strategy, self.config, means)  # |grad| only where the backend writes it
         args = (means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree, absgrad)
         return rasterize_gaussians(self.config, *args)
 
@@ -413,13 +293,9 @@ class WillagsModel(SplatfactoModel):
                 )
         gp = {k: (v[crop_ids] if crop_ids is not None else v) for k, v in self.gauss_params.items()}
 
-        scale_fac = self._get_downscale_factor()
-        camera.rescale_output_resolution(1 / scale_fac)
         viewmat = viewmat_from_c2w(c2w)
-        K = camera.get_intrinsics_matrices().to(self.device)
-        W, H = int(camera.width.item()), int(camera.height.item())
+        K, W, H = intrinsics_at(camera, self._get_downscale_factor(), self.device)
         self.last_size = (H, W)
-        camera.rescale_output_resolution(scale_fac)
         render_mode = "RGB+ED" if (cfg.output_depth_during_training or not self.training) else "RGB"
         cam_center = c2w[0, :3, 3]
 
@@ -461,12 +337,9 @@ class WillagsModel(SplatfactoModel):
         rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
 
         outputs: dict[str, Union[Tensor, list]] = {}
-        if fused:
-            teacher_bg = background
-            if dirs is not None:  # the teacher's own sky under the teacher's latent (set with its colours)
-                teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback).detach()
-            teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * teacher_bg
-            outputs["teacher_rgb"] = torch.clamp(teacher, 0.0, 1.0).squeeze(0)
+        if fused:  # over the teacher's own sky, under the teacher's latent (set with its colours)
+            teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback)
+            outputs["teacher_rgb"] = fused_teacher_rgb(render, alpha, teacher_bg)
         elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render
             outputs["teacher_rgb"] = rgb.detach().squeeze(0)
         elif teacher_needed:
@@ -484,19 +357,12 @@ class WillagsModel(SplatfactoModel):
         outputs["background"] = background
         return outputs
 
-    def _background(
-        self, nets: "AppearanceNetworks | None", z: Tensor | None, dirs: Tensor | None, fallback: Tensor
-    ) -> Tensor:
-        """What shows behind the Gaussians: the sky of `nets` under latent z along the pixel directions `dirs`
-        [H, W, 3] as [1, H, W, 3] (while training with sky.region "open": only above the photo's skyline, `fallback`
-        elsewhere), or `fallback`, splatfacto's background colour [3] (random while training), without a sky."""
-        if nets is not None and nets.sky is not None and z is not None and dirs is not None:
-            sky = nets.sky(z, dirs)[None]
-            if self.training and self.open_regions is not None:
-                H, W = dirs.shape[:2]
-                sky = composite_background(sky, fallback, self.open_regions.at(self._image_idx(), H, W, sky.device))
-            return sky
-        return fallback
+    def _background(self, nets: AppearanceNetworks | None, z: Tensor | None, dirs: Tensor | None, fallback: Tensor):
+        """What shows behind the Gaussians rendered with `nets` (appearance/sky.py's `background`): their sky under z,
+        only above the photo's skyline while training with sky.region "open"; `fallback` without a sky."""
+        regions = self.open_regions if self.training else None
+        idx = self._image_idx() if regions is not None else -1
+        return background(nets.sky if nets is not None else None, z, dirs, fallback, regions, idx)
 
     # ------------------------------------------------------------------ the transient mask (mask_step.py)
     def _image_idx(self) -> int:
@@ -579,24 +445,13 @@ class WillagsModel(SplatfactoModel):
             if "mask_rejected" in sc:
                 metrics_dict["mask_rejected"] = sc["mask_rejected"]
 
-        if self.training and "logvar" in sc and self.appearance_nets is not None:
-            vae = self.appearance_nets.vae
-            assert vae is not None
-            l_vae, parts = latent_loss(vae, sc, cfg.vae.beta, cfg.vae.recon_reduction)
-            loss_dict["vae_loss"] = cfg.lambda_vae * l_vae
-            if metrics_dict is not None:
-                metrics_dict["vae_kl"] = parts["vae_kl"].detach()
-                metrics_dict["vae_recon"] = parts["vae_recon"].detach()
-        if self.training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:
-            acc, bg = outputs["accumulation"], outputs["background"]
-            pen_sky = background_alpha_penalty(acc, gt_img, bg, cfg.sky.alpha_tol, mask)
-            if pen_sky is not None:
-                loss_dict["sky_alpha"] = cfg.sky.alpha_penalty * pen_sky
-        pen = local_penalty(sc.get("local_residual")) if self.training else None
-        if pen is not None and cfg.modulation.local_penalty > 0:
-            loss_dict["appearance_local"] = cfg.modulation.local_penalty * pen
-        if cfg.use_scale_regularization and self.step % 10 == 0:
-            loss_dict["scale_reg"] = scale_regularization(self.scales, cfg.max_gauss_ratio)
+        # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (regularizers.py)
+        vae = self.appearance_nets.vae if self.appearance_nets is not None else None
+        args = (cfg, sc, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
+        terms, term_metrics = regularization_terms(*args)
+        loss_dict.update(terms)
+        if metrics_dict is not None:
+            metrics_dict.update(term_metrics)
         if self.training:
             self.camera_optimizer.get_loss_dict(loss_dict)
             if cfg.log_images_every > 0 and self.step % cfg.log_images_every == 0:
@@ -605,14 +460,8 @@ class WillagsModel(SplatfactoModel):
 
     def get_image_metrics_and_images(self, outputs, batch):
         gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        pred = outputs["rgb"]
-        combined = torch.cat([gt_rgb, pred], dim=1)
-        gt_b, pred_b = gt_rgb.permute(2, 0, 1)[None], pred.permute(2, 0, 1)[None]
-        metrics = {"psnr": float(self.psnr(gt_b, pred_b).item()), "ssim": float(self.ssim(gt_b, pred_b))}
-        lpips = self.lpips_metric()
-        if lpips is not None:
-            metrics["lpips"] = float(lpips(gt_b, pred_b))
-        return metrics, {"img": combined}
+        metrics = image_metrics(gt_rgb, outputs["rgb"], self.psnr, self.ssim, self.lpips_metric())
+        return metrics, {"img": torch.cat([gt_rgb, outputs["rgb"]], dim=1)}
 
     def lpips_metric(self):
         """torchmetrics LPIPS when AlexNet's ImageNet weights are on disk; else None with a one-line notice."""

@@ -13,18 +13,25 @@ Rendering (viewer, ns-render, eval), first that applies:
 
 Latents handed out for rendering are memoised by what they are computed from (:class:`AppearanceLatents`), so a
 renderer that asks every frame pays no host sync, and their cache key (:meth:`AppearanceLatents.key_of`) costs none.
+
+:class:`LatentFace` is the model's public face over this module (`current_latent`, `render_latent`,
+`image_latents`, `encode_image`, ...: what the viewer, the CLIs, the NeRF-W protocol and the benchmarks call): a
+mixin of WillagsModel whose methods hand the model's networks and buffers to the functions above.
 """
 
 import os
 from collections.abc import Callable
-from typing import Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 from torch import Tensor
 
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.vae import AppearanceVAE, reparameterize, vae_loss
-from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent
+from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env, mean_latent
+
+if TYPE_CHECKING:
+    from nerfstudio.cameras.cameras import Cameras
 
 
 def image_as_float(image: Tensor) -> Tensor:
@@ -191,3 +198,70 @@ def latent_loss(vae: AppearanceVAE, record: dict, beta: float, recon_reduction: 
     )
     record["vae_recon_img"] = recon.detach()
     return l_vae, parts
+
+
+class LatentFace:
+    """WillagsModel's latent methods (a mixin): the training image's latent for a forward pass, the stored latents
+    of the training images, the chosen appearance and its default, the encoder for a new photo."""
+
+    if TYPE_CHECKING:  # provided by WillagsModel (nn.Module attributes and the buffers of populate_modules)
+        device: Any
+        training: bool
+        appearance_nets: AppearanceNetworks | None
+        train_latents: Tensor
+        train_latent_seen: Tensor
+        latents: AppearanceLatents
+        image_names: list[str]
+        _train_batch: dict | None
+        _step_cache: dict
+
+    def set_train_batch(self, batch: dict) -> None:
+        """Called by WillagsPipeline before each training forward: the image feeds the VAE encoder."""
+        self._train_batch = batch
+
+    def set_train_image_names(self, names: list[str]) -> None:
+        """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
+        self.image_names = list(names)
+
+    @property
+    def render_latent(self) -> Tensor | None:
+        """The chosen appearance [D] (viewer, ns-render, export), or None: $WILLAGS_APPEARANCE, else the mean."""
+        return self.latents.render_latent
+
+    @render_latent.setter
+    def render_latent(self, z: Tensor | None) -> None:
+        self.latents.render_latent = z
+
+    def image_latents(self) -> tuple[Tensor, Tensor]:
+        """(latents [num_train, D], known [num_train] bool) of the training images, detached (stored_latents)."""
+        assert self.appearance_nets is not None
+        return stored_latents(self.appearance_nets, self.train_latents, self.train_latent_seen)
+
+    def default_latent(self) -> Tensor:
+        """The appearance used when none is chosen: the mean of the training images' latents."""
+        assert self.appearance_nets is not None
+        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
+        return self.latents.default(nets, lat, seen, lambda: mean_latent(self))
+
+    def current_latent(self) -> Tensor:
+        """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
+        return self.latents.chosen(self.device, lambda spec: latent_from_env(spec, self), self.default_latent)
+
+    @torch.no_grad()
+    def encode_image(self, image: Tensor) -> Tensor:
+        """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
+        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs use_vae=True"
+        mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
+        return mu[0]
+
+    def _image_chw(self, image: Tensor) -> Tensor:
+        return image_chw(image, self.device)  # [3, H, W]
+
+    def _latent_for_forward(self, camera: "Cameras") -> Tensor:
+        """Training: encode this step's image (reparameterised). Otherwise: camera metadata / chosen / default."""
+        assert self.appearance_nets is not None
+        md = camera.metadata or {}
+        if not self.training:
+            return self.latents.for_render(md, self.device, self.image_latents, self.current_latent)
+        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
+        return training_latent(nets, self._train_batch, md, self.device, self._step_cache, lat, seen)

@@ -17,7 +17,8 @@ as blobs. Here the background is a smooth function at infinity whose colour foll
 - ``alpha_penalty`` (optional): where the background alone already reproduces the photo, Gaussians covering those
   pixels pay ``alpha_penalty * mean(alpha)`` there, so the sky stays background instead of being painted over.
 
-Pure functions: :func:`pixel_directions` (camera -> world ray directions), :func:`background_alpha_penalty`.
+Pure functions: :func:`pixel_directions` (camera -> world ray directions), :func:`background_alpha_penalty`,
+:func:`background` (what shows behind the Gaussians of a render: the sky, or splatfacto's colour).
 """
 
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 
 from willags_ns.render.sh import eval_sh_bases, num_sh_bases
@@ -136,6 +138,16 @@ class OpenRegions:
         return support_at(self.cache[idx], height, width)
 
 
+def open_regions_for(cfg: SkyConfig, observations: list | None) -> OpenRegions | None:
+    """Where the sky shows while training (None: behind every pixel): :class:`OpenRegions` of the scene's SfM
+    keypoints with region "open". A scene without keypoints has no skyline, and a sky trained nowhere would show
+    everywhere: then the sky is switched off (``cfg.enabled = False``, before the networks are built)."""
+    if cfg.enabled and cfg.region == "open" and observations is None:
+        CONSOLE.log("willags: sky.region 'open' needs SfM keypoints (a COLMAP scene); the sky is off here")
+        cfg.enabled = False
+    return OpenRegions(observations) if cfg.enabled and cfg.region == "open" else None
+
+
 def composite_background(
     sky: Float[Tensor, "1 H W 3"], fallback: Float[Tensor, " 3"], open_region: Tensor | None
 ) -> Float[Tensor, "1 H W 3"]:
@@ -143,3 +155,23 @@ def composite_background(
     if open_region is None:
         return sky
     return torch.where(open_region[None, ..., None], sky, fallback.to(sky))
+
+
+def background(
+    sky: SkyModel | None,
+    z: Float[Tensor, " D"] | None,
+    dirs: Float[Tensor, "H W 3"] | None,
+    fallback: Float[Tensor, " 3"],
+    open_regions: OpenRegions | None = None,
+    image_idx: int = -1,
+) -> Tensor:
+    """What shows behind the Gaussians: the `sky` under latent z along the pixel directions `dirs` as [1, H, W, 3]
+    (with `open_regions`, training with region "open": only in training image `image_idx`'s open cells, `fallback`
+    elsewhere), or `fallback`, splatfacto's background colour [3] (random while training), without a sky."""
+    if sky is None or z is None or dirs is None:
+        return fallback
+    bg = sky(z, dirs)[None]
+    if open_regions is not None:
+        H, W = dirs.shape[:2]
+        bg = composite_background(bg, fallback, open_regions.at(image_idx, H, W, bg.device))
+    return bg

@@ -1,4 +1,4 @@
-"""Camera conventions between nerfstudio and the rasteriser."""
+"""Camera conventions between nerfstudio and the rasteriser: the view matrix, the intrinsics at a render scale."""
 
 import torch
 from torch import Tensor
@@ -19,3 +19,13 @@ def viewmat_from_c2w(c2w: Tensor) -> Tensor:
     viewmat[:, :3, :3] = R_inv
     viewmat[:, :3, 3:4] = -torch.bmm(R_inv, T)
     return viewmat
+
+
+def intrinsics_at(camera, scale_factor: float, device) -> tuple[Tensor, int, int]:
+    """(K [C, 3, 3] on `device`, width, height) of a nerfstudio `Cameras` rendered at 1 / scale_factor of its
+    resolution (splatfacto's resolution schedule); the camera is left at its own resolution."""
+    camera.rescale_output_resolution(1 / scale_factor)
+    K = camera.get_intrinsics_matrices().to(device)
+    W, H = int(camera.width.item()), int(camera.height.item())
+    camera.rescale_output_resolution(scale_factor)
+    return K, W, H
