@@ -24,16 +24,15 @@ compile) nor the final checkpoint.
 - the PSNR of a point is the NeRF-W protocol's right-half PSNR on one reference scene per device class (the GPU:
   fox-wild, the only scene where both presets were measured; the CPU: the embedded default scene);
 - points of an earlier configuration are in the table (cited) but do not decide (``choose(current_only=True)``):
-  the willags-lite points were measured as ``willags-lite-v0``, the fast preset before the modulated colour path
-  (the paper's colour decoder over a tri-plane field), and the CPU's willags points as the default of that time, the
-  paper's configuration (records relabelled ``willags-paper``). Neither tells today's preset's PSNR or step cost.
-  So, at this commit: on the GPU the choice is always willags (the only preset with points of its own), its steps
-  planned from its step time and then from the run's clock; on the CPU there is no point of today's presets, so
-  willags with its own schedule and the steps from the run's clock alone. The preset choice starts to decide once
-  today's willags-lite has records (the long runs behind benchmarks/curves.py): add them here;
-- GPU step times are of runs alone on one H100 (the other fox-wild runs of willags shared the GPU with 4-12 others,
-  so their times are not step costs); the willags step time is reichstag's (splatfacto's step costs 12.7 ms alone on
-  fox-wild and 12.2 ms on reichstag, so the step cost carries between these scenes);
+  willags-lite-v0 (the fast preset before the modulated colour path) and the CPU's willags points, measured as the
+  default of that time, the paper's configuration (records relabelled ``willags-paper``). The GPU points of today's
+  presets come from one run each alone on an H200 on fox-wild (the default there is the same model before and after
+  issue 26's sky and safeguard, which need COLMAP keypoints): willags beats willags-lite at every step count and costs
+  less per step (10.8 vs 14.5 ms: lite keeps the beta-VAE encoder, run on every step's photo, and computes the mask's
+  VGG at 512 px where willags uses 256), so on the GPU the measured choice is willags for every budget. On the CPU
+  no point of today's presets was measured: willags with its own schedule and the steps from the run's clock alone;
+- GPU step times are of runs alone on one GPU (the fidelity grid's runs share it with 4-12 others, so their times
+  are not step costs);
 - ``one_scene``: only one scene has a record of this (configuration, steps, device); the others were measured on
   several (PSNR still from the reference scene).
 
@@ -115,17 +114,24 @@ class StepTime:
 
 _LITE_V0 = "willags-lite-v0"
 TABLE: tuple[MeasuredPoint, ...] = (
-    # GPU (one H100), fox-wild, splatfacto's stock schedule, NeRF-W protocol with 128 steps
+    # GPU, fox-wild, splatfacto's stock schedule, NeRF-W protocol with 128 steps. Today's presets: one run each alone
+    # on an H200 scored at milestones (tag h200-solo, benchmarks/long_run.py); willags' 5000-step point adds the eight
+    # H100 grid runs (shared GPU: their PSNR counts, not their times). willags-lite-v0: the earlier fast preset.
     MeasuredPoint("willags-lite", "cuda", 1000, 19.631, "fox-wild", ("h100-seq",), _LITE_V0, "stock", True),
     MeasuredPoint("willags-lite", "cuda", 2000, 19.184, "fox-wild", ("h100-seq", "h100-seq2"), _LITE_V0, "stock", True),
     MeasuredPoint("willags-lite", "cuda", 5000, 20.615, "fox-wild", ("h100",), _LITE_V0, "stock", True),
+    MeasuredPoint("willags-lite", "cuda", 1000, 20.155, "fox-wild", ("h200-solo",), "willags-lite", "stock", True),
+    MeasuredPoint("willags-lite", "cuda", 2000, 20.580, "fox-wild", ("h200-solo",), "willags-lite", "stock", True),
+    MeasuredPoint("willags-lite", "cuda", 5000, 21.003, "fox-wild", ("h200-solo",), "willags-lite", "stock", True),
+    MeasuredPoint("willags", "cuda", 1000, 21.134, "fox-wild", ("h200-solo",), "willags", "stock", False),
+    MeasuredPoint("willags", "cuda", 2000, 21.172, "fox-wild", ("h200-solo",), "willags", "stock", False),
     MeasuredPoint(
         "willags",
         "cuda",
         5000,
-        22.238,
+        22.243,
         "fox-wild",
-        ("h100-r1", "h100-r2", "h100-r7", "h100-r7b", "h100-r7c", "h100-r7d", "h100-r7e", "h100-r7f"),
+        ("h100-r1", "h100-r2", "h100-r7", "h100-r7b", "h100-r7c", "h100-r7d", "h100-r7e", "h100-r7f", "h200-solo"),
         "willags",
         "stock",
         False,
@@ -141,12 +147,12 @@ TABLE: tuple[MeasuredPoint, ...] = (
 
 STEP_TIMES: dict[tuple[str, str], StepTime] = {
     ("willags-lite", "cuda"): StepTime(
-        0.0257,
-        "fox-wild, willags-lite-v0, 2000 steps, tags h100-seq and h100-seq2 (51.5 and 51.2 s), alone on an H100",
-        _LITE_V0,
+        0.014502, "fox-wild, willags-lite, 5000 steps, tag h200-solo (72.5 s), alone on an H200", "willags-lite"
     ),
     ("willags", "cuda"): StepTime(
-        0.01423, "reichstag, willags, 30000 steps, tag h100-30k-s7 (426.9 s), alone on an H100", "willags"
+        0.010795,
+        "fox-wild, willags, 5000 steps, tag h200-solo (54.0 s), alone on an H200 (reichstag alone: 78.7 s)",
+        "willags",
     ),
     ("willags-lite", "cpu"): StepTime(
         0.1335, "default scene, willags-lite-v0, 300 steps (40.1 s), 2-core CPU, load 2.1-2.2", _LITE_V0
