@@ -131,7 +131,9 @@ def test_default_without_sfm_keypoints_trains_exactly_as_the_previous_default(tm
     torch.manual_seed(0)
     _, new, new_losses = _train(tmp_path / "new", "willags", steps=8)
     torch.manual_seed(0)
-    _, old, old_losses = _train(tmp_path / "old", "willags", steps=8, sky=SkyConfig(), static_support=StaticSupportConfig())
+    _, old, old_losses = _train(
+        tmp_path / "old", "willags", steps=8, sky=SkyConfig(), static_support=StaticSupportConfig()
+    )
     model = new.pipeline.model
     assert model.config.static_support.enabled and model.mask_step.observations is None
     assert model.appearance_nets.sky is None and model.open_regions is None  # the sky found no skyline: off
