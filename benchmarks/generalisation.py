@@ -157,7 +157,8 @@ def static_obs_rows(records: list[dict[str, Any]]) -> list[str]:
         if r.get("static_obs_masked") is None or r["scene"] not in REAL:
             continue
         rows.append(
-            f"| {r['scene']} | {r['method']} | {r['device']} {r['steps']} steps ({r.get('tag') or ''}) | "
+            f"| {r['scene']} | {r['method']} | {r['device']} {r['steps']} steps ({r.get('tag') or ''}, "
+            f"{r.get('commit') or '?'}) | "
             f"{100 * r['static_obs_masked']:.2f} % | {100 * r['static_obs_masked_perceptual']:.2f} % | "
             f"{r['static_obs_count']} in {r['static_obs_images']} images |"
         )
