@@ -88,18 +88,22 @@ def test_gpu_switches_preset_where_the_default_first_fits():
 
 
 def test_points_of_earlier_configurations_do_not_decide():
-    """The real table: willags-lite-v0's points are cited but do not count (the GPU's choice names them as unused),
-    and the CPU's willags points are the paper configuration's, so on the CPU no point counts at all."""
+    """The real table: willags-lite-v0's points and the paper configuration's CPU points are cited but do not count
+    (the choice names them as unused); today's points decide, on both device classes."""
     for budget in (30.0, 60.0, 600.0, 36000.0):
         gpu = choose(budget, "cuda", CAPS)
         assert gpu.preset == "willags" and "willags-lite-v0" in gpu.reason
         assert gpu.steps == plan_steps(budget, 0, 0, STEP_TIMES[("willags", "cuda")].seconds, CAPS["willags"])
+    # CPU: lite is cheaper per step, willags better at equal steps; lite's 600 steps (78 s) beat willags' 300 (51 s)
+    # until willags' 600 steps fit (103 s)
+    for budget, preset in ((60.0, "willags"), (90.0, "willags-lite"), (600.0, "willags"), (36000.0, "willags")):
         cpu = choose(budget, "cpu", CAPS)
-        assert (cpu.preset, cpu.point, cpu.steps, cpu.keep_resolution_schedule) == ("willags", None, 30000, True)
-        assert math.isnan(cpu.step_s)  # no plan before the run has measured its own step time
+        assert cpu.preset == preset and cpu.point is not None and cpu.point.measured_as == preset, budget
         assert "willags-paper" in cpu.reason and "willags-lite-v0" in cpu.reason
+        assert cpu.steps == plan_steps(budget, 0, 0, STEP_TIMES[(preset, "cpu")].seconds, CAPS[preset])
+        assert not cpu.keep_resolution_schedule  # the CPU points: full resolution from the first step
     text = tb.format_choice(choose(60.0, "cpu", CAPS), 1.0, "cpu")
-    assert "set from this run's own step time over steps 20-70" in text
+    assert "re-planned from this run's own step time over steps 20-70" in text and "cpu-knob" in text
 
 
 def test_caps_limit_the_steps():
@@ -281,8 +285,8 @@ def test_every_table_point_is_its_records_mean():
     [
         (("willags-lite", "cuda"), [("fox-wild", "willags-lite", "cuda", 5000, "h200-solo")]),
         (("willags", "cuda"), [("fox-wild", "willags", "cuda", 5000, "h200-solo")]),
-        (("willags-lite", "cpu"), [("default", "willags-lite-v0", "cpu", 300, "")]),
-        (("willags", "cpu"), [("default", "willags-paper", "cpu", 600, "")]),
+        (("willags-lite", "cpu"), [("default", "willags-lite", "cpu", 600, "cpu-knob")]),
+        (("willags", "cpu"), [("default", "willags", "cpu", 600, "cpu-knob")]),
     ],
 )
 def test_step_times_are_their_records(key, runs):
@@ -323,22 +327,21 @@ def test_presets_differ_only_in_model_steps_and_schedules():
             ), name
 
 
-def test_apply_budget_switches_the_preset_in_the_config(monkeypatch):
-    """With points of today's lite (here: the table's, relabelled), a tiny CPU budget swaps the model config for the
-    lite preset's, keeps the user's settings, caps the steps at lite's default and trains at full resolution."""
+def test_apply_budget_switches_the_preset_in_the_config():
+    """With today's CPU points, a 90 s budget picks lite (its 600 steps fit, willags' do not): the model config is
+    swapped for the lite preset's, the user's settings kept, the steps capped at lite's default, full resolution."""
     from willags_ns import method_configs
     from willags_ns.trainer import apply_budget
 
-    monkeypatch.setattr(tb, "TABLE", CURRENT)
-    monkeypatch.setattr(tb, "STEP_TIMES", {k: dataclasses.replace(v, measured_as=k[0]) for k, v in STEP_TIMES.items()})
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"
     config.pipeline.model.backend = "torch"
-    choice, notes = apply_budget(config, 20.0)
+    choice, notes = apply_budget(config, 90.0)
     model = config.pipeline.model
     assert choice.preset == "willags-lite" and model.use_vae and model.backend == "torch"
     assert model.num_downscales == 0 and config.max_num_iterations == CAPS["willags-lite"]
-    assert config.optimizers["means"]["scheduler"].max_steps == choice.steps < 200  # 20 s at 0.1335 s/step
+    lite_step = STEP_TIMES[("willags-lite", "cpu")].seconds
+    assert config.optimizers["means"]["scheduler"].max_steps == choice.steps == plan_steps(90.0, 0, 0, lite_step, 7000)
     assert config.method_name == "willags" and "your settings kept: backend" in notes[0]
 
 

@@ -30,7 +30,10 @@ compile) nor the final checkpoint.
   issue 26's sky and safeguard, which need COLMAP keypoints): willags beats willags-lite at every step count and costs
   less per step (10.8 vs 14.5 ms: lite keeps the beta-VAE encoder, run on every step's photo, and computes the mask's
   VGG at 512 px where willags uses 256), so on the GPU the measured choice is willags for every budget. On the CPU
-  no point of today's presets was measured: willags with its own schedule and the steps from the run's clock alone;
+  (one run of each alone on the 2-core machine, the embedded scene, the CPU grid's short schedule) willags-lite is
+  cheaper per step (0.130 vs 0.171 s) and willags better at equal steps (23.01 vs 22.25 dB at 600 steps): the best
+  point that fits decides (lite's 300 steps below 51 s, willags' 300 to 78 s, lite's 600 to 103 s, then willags'
+  600: the points are few, so the choice alternates between them);
 - GPU step times are of runs alone on one GPU (the fidelity grid's runs share it with 4-12 others, so their times
   are not step costs);
 - ``one_scene``: only one scene has a record of this (configuration, steps, device); the others were measured on
@@ -139,6 +142,11 @@ TABLE: tuple[MeasuredPoint, ...] = (
     MeasuredPoint("willags", "cuda", 15000, 22.391, "fox-wild", ("h100-15k",), "willags", "stock", False),
     # CPU (2 cores), the embedded default scene (128x96), the CPU grid's short schedule, protocol with 32 steps
     MeasuredPoint("willags-lite", "cpu", 300, 17.733, "default", ("",), _LITE_V0, "full", False),
+    # today's presets, one run each alone on the 2-core machine (tag cpu-knob, docs/gpu_runs/cpu_knob_session11.json)
+    MeasuredPoint("willags-lite", "cpu", 300, 20.140, "default", ("cpu-knob",), "willags-lite", "full", True),
+    MeasuredPoint("willags-lite", "cpu", 600, 22.246, "default", ("cpu-knob",), "willags-lite", "full", True),
+    MeasuredPoint("willags", "cpu", 300, 21.379, "default", ("cpu-knob",), "willags", "full", True),
+    MeasuredPoint("willags", "cpu", 600, 23.015, "default", ("cpu-knob",), "willags", "full", True),
     MeasuredPoint("willags", "cpu", 200, 17.516, "default", ("",), "willags-paper", "full", False),
     MeasuredPoint("willags", "cpu", 300, 18.840, "default", ("",), "willags-paper", "full", False),
     MeasuredPoint("willags", "cpu", 600, 20.533, "default", ("",), "willags-paper", "full", True),
@@ -155,12 +163,12 @@ STEP_TIMES: dict[tuple[str, str], StepTime] = {
         "willags",
     ),
     ("willags-lite", "cpu"): StepTime(
-        0.1335, "default scene, willags-lite-v0, 300 steps (40.1 s), 2-core CPU, load 2.1-2.2", _LITE_V0
+        0.13004,
+        "default scene, willags-lite, 600 steps (78.0 s), tag cpu-knob, 2-core CPU, load 1.9-2.0",
+        "willags-lite",
     ),
     ("willags", "cpu"): StepTime(
-        0.3305,
-        "default scene, willags-paper (then 'willags'), 600 steps (198.3 s), 2-core CPU, load 1.5-2.0",
-        "willags-paper",
+        0.17102, "default scene, willags, 600 steps (102.6 s), tag cpu-knob, 2-core CPU, load 1.6-1.9", "willags"
     ),
 }
 """Seconds per step of each preset on each device class, before this run has measured its own."""
