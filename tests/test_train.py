@@ -142,6 +142,27 @@ def test_default_without_sfm_keypoints_trains_exactly_as_the_previous_default(tm
         assert torch.equal(p, old.pipeline.model.gauss_params[k]), k
 
 
+def test_default_on_a_colmap_scene_trains_its_sky_and_safeguard_and_reloads_them(tmp_path, shared_data):
+    """On a COLMAP scene (keypoints) the default builds the sky above the skyline and the mask's safeguard; a
+    checkpoint reloads with the same sky (ns-render / ns-eval rebuild the model from the scene's metadata)."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    config, trainer, losses = _train(tmp_path, "willags", steps=6, data=shared_data / "sacre-coeur-mini")
+    _check_finite(losses)
+    model = trainer.pipeline.model
+    assert model.appearance_nets.sky is not None and model.open_regions is not None
+    assert model.mask_step.observations is not None and len(model.mask_step.observations) == model.num_train_data
+    _, pipeline, _, _ = eval_setup(config.get_base_dir() / "config.yml", test_mode="test")
+    sky = pipeline.model.appearance_nets.sky
+    assert sky is not None
+    for k, v in model.appearance_nets.sky.state_dict().items():
+        assert torch.equal(v.cpu(), sky.state_dict()[k].cpu()), k
+    cam = pipeline.datamanager.eval_dataset.cameras[0:1]
+    with torch.no_grad():
+        out = pipeline.model.get_outputs_for_camera(cam)
+    assert torch.isfinite(out["rgb"]).all()
+
+
 def test_entry_points_resolve():
     from nerfstudio.plugins.registry import discover_methods
 
