@@ -206,3 +206,45 @@ def test_the_inspectors_default_sky_is_the_willags_presets():
 
     cfg = willags_model_config()
     assert {"sky.enabled": cfg.sky.enabled, "sky.alpha_penalty": cfg.sky.alpha_penalty} == WILLAGS_SKY
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the user's own switches win over the inspector
+
+
+def test_user_switches_are_flags_named_or_values_changed_from_the_preset():
+    from willags_ns.autoconfig import user_switches
+
+    cfg, preset = willags_model_config(), willags_model_config()
+    assert user_switches(cfg, preset, []) == ()
+    cfg.use_field, cfg.sky.alpha_penalty = True, 0.1
+    assert user_switches(cfg, preset, []) == ("use_field", "sky.alpha_penalty")
+    # a flag repeating the preset's value is only seen on the command line (both spellings of tyro's flags)
+    argv = ["--data", "x", "--pipeline.model.use-mask", "True", "--pipeline.model.sky.enabled=True"]
+    assert user_switches(cfg, preset, argv) == ("use_mask", "use_field", "sky.enabled", "sky.alpha_penalty")
+    assert user_switches(cfg, None, ["--pipeline.model.use-mask", "True"]) == ("use_mask",)  # preset unknown
+
+
+def test_kept_switches_are_left_reported_and_printed(scenes):
+    """The 'appearance' scene has no transients: the inspector turns the mask off, unless the user set it."""
+    cfg = willags_model_config()
+    s = apply_auto_config(cfg, scenes["appearance"], keep=("use_mask",))
+    assert cfg.use_mask is True and "use_mask" not in s["settings"] and s["kept"] == {"use_mask": True}
+    assert s["switches"]["mask"] is True and s["switches"]["teacher"] is True
+    assert "kept as you set it: use_mask=True" in s["reasons"]["mask"]
+    assert "kept (your flags win): use_mask=True" in format_summary(s)
+    plain = willags_model_config()
+    s = apply_auto_config(plain, scenes["appearance"])
+    assert plain.use_mask is False and s["kept"] == {} and s["switches"]["mask"] is False
+
+
+def test_training_keeps_a_switch_the_user_changed_from_the_preset(tmp_path, scenes):
+    from tests.test_train import _train
+
+    config, trainer, _ = _train(
+        tmp_path, "willags", steps=2, data=scenes["appearance"], auto_config=True, use_field=True
+    )
+    model = trainer.pipeline.model
+    assert config.pipeline.auto_config_keep == ("use_field",)
+    assert model.appearance_nets.field is not None and not model.config.use_mask  # the field kept, the mask decided
+    assert trainer.pipeline.auto_config_summary["kept"] == {"use_field": True}

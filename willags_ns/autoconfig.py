@@ -13,7 +13,9 @@ that nearby views disagree with) and switches off what the evidence says the sce
   SfM points); never with plain 3DGS (no latent to condition it on; `appearance='sh'` builds no sky).
 
 Only those switches change (`overrides_from_recommendation`); every other setting is the method's own (the
-resolution schedule, rasterisation mode, learning rates...). What was chosen, and why, is printed, written to
+resolution schedule, rasterisation mode, learning rates...). A switch the user set on the command line wins: the
+trainer names those (`user_switches`: a flag for it on the command line, or a value other than the method's own
+preset) in `pipeline.auto_config_keep`, and the inspector leaves them as they are (printed as kept). What was chosen, and why, is printed, written to
 tensorboard (a text entry and `auto_config/*` scalars) and to `auto_config.json` beside `config.yml`; `config.yml`
 is then rewritten with the resolved switches and `auto_config=False`, so `ns-render`, `ns-eval`, `ns-viewer` and
 `--load-dir` rebuild exactly the trained model without inspecting again.
@@ -50,6 +52,24 @@ def overrides_from_recommendation(rec: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+AUTO_SWITCHES = ("appearance", "use_mask", "use_field", "vae.latent_dim", "sky.enabled", "sky.alpha_penalty")
+"""Every model field `overrides_from_recommendation` may set."""
+
+
+def user_switches(model_config, preset_model_config, argv: list[str] | None = None) -> tuple[str, ...]:
+    """The switches (AUTO_SWITCHES) the user chose: named as a flag in `argv` (`--pipeline.model.use-mask ...`), or
+    differing from the method's own preset (`preset_model_config`; None: flags only). A flag that repeats the
+    preset's value is only seen in argv: after parsing, it cannot be told from the default."""
+    flags = {a.split("=", 1)[0] for a in (argv or []) if a.startswith("--pipeline.model.")}
+    out = []
+    for key in AUTO_SWITCHES:
+        named = f"--pipeline.model.{key.replace('_', '-')}" in flags
+        changed = preset_model_config is not None and _get(model_config, key) != _get(preset_model_config, key)
+        if named or changed:
+            out.append(key)
+    return tuple(out)
+
+
 def _get(obj, dotted: str):
     for part in dotted.split("."):
         obj = getattr(obj, part)
@@ -71,10 +91,14 @@ def scene_dir(datamanager_config) -> Path | None:
     return None if data is None else Path(data)
 
 
-def apply_auto_config(model_config, data: Path | None, inspect_config: InspectConfig | None = None) -> dict[str, Any]:
-    """Inspect `data`, set the recommended switches on `model_config` (in place) and return a summary.
+def apply_auto_config(
+    model_config, data: Path | None, inspect_config: InspectConfig | None = None, keep: tuple[str, ...] = ()
+) -> dict[str, Any]:
+    """Inspect `data`, set the recommended switches on `model_config` (in place) and return a summary. The fields in
+    `keep` (the user's own switches) are left as they are.
 
     The summary: {"applied": bool, "changes": {field: [before, after]}, "settings": {field: value},
+    "kept": {field: the user's value where it differs from the recommendation},
     "reasons": {switch: sentence}, "switches": {component: on}, "sky": whether the model gets the sky,
     "command": equivalent ns-train line, "report": inspector report or None, "error": why nothing was applied or
     None}."""
@@ -87,7 +111,9 @@ def apply_auto_config(model_config, data: Path | None, inspect_config: InspectCo
     except InspectError as e:
         return {"applied": False, "error": str(e), "changes": {}, "settings": {}, "reasons": {}, "report": None}
     rec = report["recommendation"]
-    overrides = overrides_from_recommendation(rec)
+    recommended = overrides_from_recommendation(rec)
+    overrides = {k: v for k, v in recommended.items() if k not in keep}
+    kept = {k: _get(model_config, k) for k, v in recommended.items() if k in keep and _get(model_config, k) != v}
     changes = {}
     for key, value in overrides.items():
         before = _get(model_config, key)
@@ -98,13 +124,27 @@ def apply_auto_config(model_config, data: Path | None, inspect_config: InspectCo
         k: rec[k]["reason"] for k in ("appearance_latent", "mask", "teacher", "triplane_field", "sky", "latent_dim")
     }
     reasons["preset"] = rec["preset"]["reason"]
+    switches = {k: bool(rec[k]["on"]) for k in ("appearance_latent", "mask", "teacher", "triplane_field")}
+    # the user's switches stand: report the components as the model will build them
+    mine = {"appearance": "appearance_latent", "use_mask": "mask", "use_field": "triplane_field", "sky.enabled": "sky"}
+    for key in kept:
+        if key in mine:
+            reasons[mine[key]] += f"; kept as you set it: {key}={kept[key]}"
+    if "appearance" in kept:
+        switches["appearance_latent"] = model_config.appearance == "willags"
+    if "use_mask" in kept:
+        switches["mask"] = bool(model_config.use_mask)
+        switches["teacher"] = bool(model_config.use_mask and model_config.teacher.enabled)
+    if "use_field" in kept:
+        switches["triplane_field"] = bool(model_config.use_field)
     return {
         "applied": True,
         "error": None,
         "changes": changes,
         "settings": overrides,
+        "kept": kept,
         "reasons": reasons,
-        "switches": {k: bool(rec[k]["on"]) for k in ("appearance_latent", "mask", "teacher", "triplane_field")},
+        "switches": switches,
         # the sky as the model will build it (the method's own setting when not measured; appearance='sh' builds
         # none); beside "switches", whose four keys earlier auto_config.json files and their readers rely on
         "sky": model_config.appearance == "willags" and bool(model_config.sky.enabled),
@@ -129,6 +169,8 @@ def format_summary(summary: dict[str, Any]) -> str:
     for k, v in _switches(summary).items():
         lines.append(f"  {k}: {'ON' if v else 'off'} - {summary['reasons'][k]}")
     lines.append(f"  latent_dim: {summary['reasons']['latent_dim']}")
+    if summary.get("kept"):
+        lines.append("  kept (your flags win): " + ", ".join(f"{k}={v}" for k, v in summary["kept"].items()))
     if summary["changes"]:
         lines.append("  changed: " + ", ".join(f"{k} {a} -> {b}" for k, (a, b) in summary["changes"].items()))
     else:

@@ -181,8 +181,17 @@ def willags_auto_config() -> WillagsTrainerConfig:
     return _trainer("willags-auto", model, 30000)
 
 
-# the presets the time budget chooses between (willags_ns/trainer.py)
-PRESET_CONFIGS.update({"willags": willags_config, "willags-lite": willags_lite_config})
+# every method's factory (willags_ns/trainer.py): the presets the time budget chooses between, and the method's own
+# preset that tells a user's auto_config switches from its defaults
+PRESET_CONFIGS.update(
+    {
+        "willags": willags_config,
+        "willags-lite": willags_lite_config,
+        "willags-paper": willags_paper_config,
+        "willags-3dgs": willags_3dgs_config,
+        "willags-auto": willags_auto_config,
+    }
+)
 
 willags_method = MethodSpecification(
     config=willags_config(),

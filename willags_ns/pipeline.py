@@ -83,6 +83,10 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     checkpoint_on_interrupt: bool = True
     """Ctrl-C finishes the current step, writes a checkpoint and exits; resume with --load-dir. A second Ctrl-C
     interrupts at once."""
+    auto_config_keep: tuple[str, ...] = ()
+    """Model switches (dotted fields under pipeline.model, e.g. "use_mask") that `auto_config` leaves as they are:
+    the trainer fills it with those the command line set (named as a flag, or changed from the method's own preset),
+    so a user's flag wins over the inspector's recommendation."""
     time_budget_minutes: float | None = None
     """Train within this many minutes of training steps (None or 0: off; set-up not counted). Before training
     `ns-train willags` chooses the preset (willags-lite or willags), the step count and the resolution schedule from
@@ -201,7 +205,7 @@ class WillagsPipeline(VanillaPipeline):
         self.auto_config_summary = None
         if getattr(config.model, "auto_config", False):
             # before the model exists: the switches decide which modules and parameters it has
-            summary = apply_auto_config(config.model, scene_dir(config.datamanager))
+            summary = apply_auto_config(config.model, scene_dir(config.datamanager), keep=config.auto_config_keep)
             CONSOLE.print(format_summary(summary))
             if summary["applied"]:
                 config.model.auto_config = False  # resolved: what config.yml is rewritten with

@@ -9,6 +9,7 @@ nerfstudio's Trainer unchanged. The decisions themselves are pure functions in w
 import copy
 import dataclasses
 import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -48,8 +49,9 @@ class WillagsTrainerConfig(TrainerConfig):
 
 
 PRESET_CONFIGS: dict[str, Any] = {}
-"""preset name -> factory of its TrainerConfig, registered by willags_ns/method_configs.py (which builds its methods
-on this module's WillagsTrainerConfig, so the trainer must not import it back)."""
+"""method name -> factory of its TrainerConfig, registered by willags_ns/method_configs.py (which builds its methods
+on this module's WillagsTrainerConfig, so the trainer must not import it back): the time budget's presets
+(PRESETS) and every method's own defaults (a user's auto_config switches are those that differ)."""
 
 
 def preset_defaults(preset: str) -> tuple[Any, int]:
@@ -125,6 +127,7 @@ class WillagsTrainer(Trainer):
         install_cli_excepthook()  # a bad budget prints one line, as bad inputs do
         self.time_budget: TimeBudget | None = None
         self._budget_record: dict[str, Any] = {}
+        self._keep_user_switches()
         minutes = validate_minutes(getattr(self.config.pipeline, "time_budget_minutes", None))
         choice = None
         if minutes is not None and test_mode == "val":
@@ -150,6 +153,20 @@ class WillagsTrainer(Trainer):
         super().setup(test_mode)
         if choice is not None and minutes is not None:
             self._attach_budget(minutes * 60.0, choice)
+
+    def _keep_user_switches(self) -> None:
+        """With auto_config, name the switches the user set (a flag on the command line, or a value other than the
+        invoked method's own preset) in pipeline.auto_config_keep, so the inspector leaves them (autoconfig.py).
+        Before the time budget, which may swap the preset and carry these settings over."""
+        model = self.config.pipeline.model
+        if not getattr(model, "auto_config", False) or not hasattr(self.config.pipeline, "auto_config_keep"):
+            return
+        from willags_ns.autoconfig import user_switches
+
+        factory = PRESET_CONFIGS.get(str(self.config.method_name))
+        preset = factory().pipeline.model if factory is not None else None
+        keep = user_switches(model, preset, sys.argv[1:])
+        self.config.pipeline.auto_config_keep = tuple(sorted({*self.config.pipeline.auto_config_keep, *keep}))
 
     def _attach_budget(self, budget_s: float, choice: BudgetChoice) -> None:
         start = self._start_step  # > 0 when resumed with --load-dir: the budget is this run's
