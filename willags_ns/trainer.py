@@ -163,8 +163,8 @@ class WillagsTrainer(Trainer):
             return
         from willags_ns.autoconfig import user_switches
 
-        factory = PRESET_CONFIGS.get(str(self.config.method_name))
-        preset = factory().pipeline.model if factory is not None else None
+        method = str(self.config.method_name)
+        preset = preset_defaults(method)[0] if method in PRESET_CONFIGS else None
         keep = user_switches(model, preset, sys.argv[1:])
         self.config.pipeline.auto_config_keep = tuple(sorted({*self.config.pipeline.auto_config_keep, *keep}))
 
