@@ -19,6 +19,7 @@ Methods are benchmarks.methods METHODS (stock schedule: only max_num_iterations 
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -32,9 +33,21 @@ def _state(run_dir: Path) -> dict[str, Any]:
 
 
 def _save_state(run_dir: Path, state: dict[str, Any]) -> None:
-    tmp = run_dir / (STATE + ".tmp")
+    tmp = run_dir / (STATE + f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(state, indent=1, default=str))
     tmp.replace(run_dir / STATE)
+
+
+def _save_score(run_dir: Path, milestone: str, rec: dict[str, Any]) -> None:
+    """Add one milestone's scores to the state, under a lock: `eval` runs one process per milestone at once (their
+    set-up, mostly CPU, overlaps), each re-reading the state so that none overwrites another's score."""
+    import fcntl
+
+    with open(run_dir / (STATE + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        state = _state(run_dir)
+        state["scores"][milestone] = rec
+        _save_state(run_dir, state)
 
 
 def _ckpt_dir(run_dir: Path) -> Path:
@@ -80,8 +93,19 @@ def _patch_peer_resume() -> None:
     _patch_resume(pm.SplatfactoWModel)
 
 
-def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_step: int | None, test_mode: str):
-    """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given)."""
+def _setup(
+    method: str,
+    data: Path,
+    run_dir: Path,
+    steps: int,
+    seed: int,
+    load_step: int | None,
+    test_mode: str,
+    budget_minutes: float | None = None,
+):
+    """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given). ``budget_minutes``:
+    `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and ends the learning-
+    rate schedules there; ``steps`` is then the cap, as --max-num-iterations is)."""
     import random
 
     import numpy as np
@@ -102,6 +126,10 @@ def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_s
     )
     config.timestamp = "run"
     config.machine.seed = seed
+    if budget_minutes is not None:
+        if not hasattr(config.pipeline, "time_budget_minutes"):
+            raise SystemExit(f"long_run: {method} has no time budget (only willags' pipeline has the knob)")
+        config.pipeline.time_budget_minutes = budget_minutes
     config.steps_per_save = 10**9  # checkpoints are written here: at milestones and at the end of the segment
     config.save_only_latest_checkpoint = False
     if load_step is not None:
@@ -114,6 +142,23 @@ def _setup(method: str, data: Path, run_dir: Path, steps: int, seed: int, load_s
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup(test_mode=test_mode)
     return trainer
+
+
+def _milestones(spec: str, state: dict[str, Any]) -> list[int]:
+    """The milestones to score: ``spec`` ("1000,2000,..."), or "all": every step whose train time the run recorded
+    (its milestones, and where a time budget stopped it)."""
+    if spec == "all":
+        return sorted(int(k) for k in state.get("milestone_train_s", {}))
+    return [int(m) for m in spec.split(",")]
+
+
+def _eval_method(state: dict[str, Any]) -> str:
+    """The method whose model the checkpoints hold: the preset the knob chose (it may swap willags for willags-lite
+    on a CPU), else the run's."""
+    from benchmarks.methods import METHODS
+
+    chosen = ((state.get("time_budget") or {}).get("choice") or {}).get("preset")
+    return chosen if chosen in METHODS else state["method"]
 
 
 def train(args) -> int:
@@ -131,7 +176,11 @@ def train(args) -> int:
         return 0
     milestones = {int(m) - 1 for m in args.milestones.split(",")}  # nerfstudio counts steps from 0
     t_setup = time.perf_counter()
-    trainer = _setup(args.method, Path(args.data), run_dir, args.steps, args.seed, start, "val")
+    if args.budget_minutes is not None and start is not None:
+        raise SystemExit("long_run: a time-budget run is trained in one segment (the knob plans from its first step)")
+    if args.budget_minutes is not None:
+        state["time_budget_minutes"] = args.budget_minutes
+    trainer = _setup(args.method, Path(args.data), run_dir, args.steps, args.seed, start, "val", args.budget_minutes)
     _ = trainer.pipeline.datamanager.cached_train
     setup_s = time.perf_counter() - t_setup
     seg = {
@@ -148,9 +197,12 @@ def train(args) -> int:
     class Stop(Exception):
         pass
 
+    budget = getattr(trainer, "time_budget", None)  # the knob's (its callback runs before this one)
+
     def after_step(step: int) -> None:
         last[0] = step
-        if step in milestones or step == args.steps - 1:
+        knob_end = budget is not None and budget.stopped_after == step  # the knob ends the run after this step
+        if step in milestones or step == args.steps - 1 or knob_end:
             if torch.cuda.is_available():
                 torch.cuda.synchronize()  # the step's work done, then the clock: the milestone's own train time
             milestone_s[str(step + 1)] = before_s + time.perf_counter() - t0[0]
@@ -177,6 +229,9 @@ def train(args) -> int:
     if stopped and last[0] not in milestones and last[0] != args.steps - 1:
         trainer.save_checkpoint(last[0])  # where the next segment resumes
     seg["num_gaussians"] = int(trainer.pipeline.model.num_points)
+    if budget is not None:
+        state["time_budget"] = {**getattr(trainer, "_budget_record", {}), "run": budget.summary()}
+        state["end_step"] = last[0] + 1  # where the knob stopped: scored like a milestone
     if torch.cuda.is_available():
         seg["peak_mem_gb"] = torch.cuda.max_memory_allocated() / 1024**3
     # keep the milestones and the newest checkpoint only
@@ -202,13 +257,16 @@ def evaluate(args) -> int:
 
     run_dir = Path(args.run_dir)
     state = _state(run_dir)
-    milestones = [int(m) for m in args.milestones.split(",")]
+    milestones = _milestones(args.milestones, state)
     have = set(_ckpt_steps(run_dir))
     for m in milestones:
         if str(m) in state["scores"] or (m - 1) not in have:
             continue
         t = time.perf_counter()
-        trainer = _setup(state["method"], Path(state["data"]), run_dir, state["steps"], state["seed"], m - 1, "test")
+        trainer = _setup(
+            _eval_method(state), Path(state["data"]), run_dir, state["steps"], state["seed"], m - 1, "test"
+        )
+        # (no budget at evaluation: the checkpoint holds the model the knob chose, its config.yml the preset)
         spec = {
             "method": state["method"],  # protocol_scores picks the peer's adapter by method
             "protocol_steps": args.protocol_steps,
@@ -219,8 +277,7 @@ def evaluate(args) -> int:
         rec = protocol_scores(trainer, spec)
         rec["num_gaussians"] = int(trainer.pipeline.model.num_points)
         rec["eval_wall_s"] = time.perf_counter() - t
-        state["scores"][str(m)] = rec
-        _save_state(run_dir, state)
+        _save_score(run_dir, str(m), rec)
         print(
             f"long_run: {state['method']} @ {m}: psnr {rec.get('psnr', float('nan')):.2f} "
             f"(train views {rec.get('train_psnr', float('nan')):.2f})"
@@ -272,7 +329,11 @@ def record(args) -> int:
         "commit": _git_commit(),
         "status": "ok",
     }
-    last = state["scores"].get(str(state["steps"]))
+    if state.get("time_budget") is not None:
+        rec["time_budget_minutes"] = state.get("time_budget_minutes")
+        rec["time_budget"] = state["time_budget"]
+        rec["end_step"] = state.get("end_step")
+    last = state["scores"].get(str(state.get("end_step") or state["steps"]))
     if last is not None:
         rec.update({k: last[k] for k in ("psnr", "ssim", "lpips") if k in last})
     Path(args.out).write_text(json.dumps([rec], indent=1, default=str) + "\n")
@@ -295,6 +356,12 @@ def main(argv=None) -> int:
     t.add_argument("--seed", type=int, default=42)
     t.add_argument("--budget-s", type=float, required=True, help="stop (and checkpoint) after this many train s")
     t.add_argument("--concurrent", type=int, default=1, help="runs on the GPU during this segment, itself included")
+    t.add_argument(
+        "--budget-minutes",
+        type=float,
+        default=None,
+        help="train under willags' time budget (--pipeline.time-budget-minutes); --steps is the cap",
+    )
     sub.choices["eval"].add_argument("--train-views", type=int, default=8)
     r = sub.choices["record"]
     r.add_argument("--tag", required=True)

@@ -1,0 +1,133 @@
+#!/usr/bin/env bash
+# Runs ALONE on the GPU, one after another (their train times are the methods' own), each scored at its milestones
+# right after it trained (one evaluation process per milestone, nothing training meanwhile), as a queue that goes on
+# across back-to-back device calls. The curves of issue 27 (benchmarks/curves.py) and the knob's check come from it.
+#
+#   export WILLAGS_COMMIT=<sha>; source benchmarks/gpu_env.sh
+#   SOLO_DATA=".gpu-data" bash benchmarks/gpu_solo.sh start "reichstag:peer:15000 reichstag:willags:30000 ..."
+#   SOLO_DATA=".gpu-sb" bash benchmarks/gpu_solo.sh wait $OUT 560    # this call and each later one: bring back records
+#
+# A run is scene:method:steps[:seed[:budget_minutes]]: a benchmarks/methods.py method trained to `steps` with
+# splatfacto's stock schedule (the learning-rate schedules do not depend on the step count, so the 15k point of a
+# 30k run is a 15k run), scored at 1000, 2000, 5000, 10000, 15000 and 30000 up to `steps`. With budget_minutes it
+# is `--pipeline.time-budget-minutes` instead (willags' knob chooses the preset and when to stop; `steps` is the
+# cap) and is scored where it stopped. The seed defaults to 42.
+#
+# The queue runs detached (setsid) from a copy of the tree in /tmp/solo, so it goes on between calls on the same
+# machine (given back ~30 s after a call: call `wait` again at once) and a later call's fresh copy of the tree
+# changes nothing under a running run. Scenes are copied to /tmp/solo/data from the folders in SOLO_DATA by `start`
+# and by every `wait`: a scene that a later call carries (the 64 MiB carry limit) is trained once it is there; runs
+# whose scene is missing wait at the back of the queue (up to SOLO_WAIT_S, 900 s). No run starts after
+# SOLO_DEADLINE_S (1560 s) from `start`: a machine goes back 30 minutes after it started, whatever runs on it.
+# Records: /tmp/solo/rec/long-<run>.json (tag SOLO_TAG, default h200-curve; -s<seed> for other seeds, -knob<min>
+# for budget runs), which `wait` tars to OUT/solo-records.tgz with the logs.
+set -u
+S=/tmp/solo
+copy_data() {
+  mkdir -p "$S/data"
+  for root in ${SOLO_DATA:-.gpu-data}; do
+    for sc in "$root"/*/; do
+      [ -d "$sc" ] || continue
+      name=$(basename "$sc")
+      [ -e "$S/data/$name/.ready" ] && continue
+      rm -rf "$S/data/$name.tmp" && cp -r "$sc" "$S/data/$name.tmp" && mv "$S/data/$name.tmp" "$S/data/$name" \
+        && touch "$S/data/$name/.ready" && echo "gpu_solo: scene $name ready"
+    done
+  done
+}
+
+milestones_for() {  # steps -> the milestones up to it
+  local out="" m
+  for m in 1000 2000 5000 10000 15000 30000; do [ "$m" -le "$1" ] && out="$out,$m"; done
+  echo "${out#,}"
+}
+
+run_one() {
+  local scene=$1 m=$2 steps=$3 seed=$4 bm=$5
+  local name="$scene-$m-$steps-s$seed${bm:+-knob$bm}" tag=${SOLO_TAG:-h200-curve}
+  [ "$seed" != 42 ] && tag="$tag-s$seed"
+  [ -n "$bm" ] && tag="$tag-knob$bm"
+  local d=$S/runs/$name
+  local ms
+  ms=$(milestones_for "$steps")
+  [ -n "$bm" ] && ms=$steps  # the knob's run: scored where it stops (and at the cap, were it reached)
+  echo "gpu_solo: train $name ($(date +%T))"
+  python3 -m benchmarks.long_run train --method "$m" --data "$S/data/$scene" --run-dir "$d" --budget-s 100000 \
+    --steps "$steps" --milestones "$ms" --seed "$seed" --concurrent 1 ${bm:+--budget-minutes "$bm"} >> "$d.log" 2>&1
+  grep "long_run:\|time budget" "$d.log" | tail -n 4
+  local timed
+  timed=$(python3 -c "import json,sys; print(' '.join(json.load(open(sys.argv[1])).get('milestone_train_s', {})))" \
+    "$d/state.json" 2>/dev/null)
+  echo "gpu_solo: score $name at ${timed:-nothing} ($(date +%T))"
+  for k in $timed; do
+    python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$k" >> "$d.eval-$k.log" 2>&1 &
+  done
+  wait
+  python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent 1 --milestones all \
+    --out "$S/rec/long-$name.json" > /dev/null 2>> "$d.log"
+  cat "$d".eval-*.log >> "$d.log" 2>/dev/null
+  grep "long_run:" "$d.log" | tail -n 8
+  grep -i "Traceback\|Error" "$d.log" | tail -n 3
+  cp "$d.log" "$S/rec/$name.log"
+  cp "$d/state.json" "$S/rec/state-$name.json" 2>/dev/null
+  echo "gpu_solo: done $name ($(date +%T))"
+}
+
+loop() {
+  cd "$S/wrk" || exit 1
+  export PYTHONPATH=/tmp/site:$S/wrk/.whl-gpu/stub:$S/wrk
+  python3 -c "from benchmarks.harness import _warm_gsplat; _warm_gsplat()" || { touch "$S/done"; exit 1; }
+  local t0 todo=() left=() waited=0 run scene m steps seed bm
+  t0=$(cat "$S/t0")
+  read -r -a todo < "$S/queue"
+  while [ ${#todo[@]} -gt 0 ]; do
+    if [ $(( $(date +%s) - t0 )) -gt "${SOLO_DEADLINE_S:-1560}" ]; then
+      echo "gpu_solo: deadline passed; not started: ${todo[*]}"
+      break
+    fi
+    left=()
+    run=""
+    for r in "${todo[@]}"; do
+      IFS=: read -r scene m steps seed bm <<< "$r"
+      if [ -z "$run" ] && [ -e "$S/data/$scene/.ready" ]; then run=$r; else left+=("$r"); fi
+    done
+    if [ -z "$run" ]; then
+      [ "$waited" -ge "${SOLO_WAIT_S:-900}" ] && { echo "gpu_solo: no data for ${todo[*]}"; break; }
+      sleep 10
+      waited=$((waited + 10))
+      continue
+    fi
+    IFS=: read -r scene m steps seed bm <<< "$run"
+    run_one "$scene" "$m" "$steps" "${seed:-42}" "${bm:-}"
+    todo=("${left[@]}")
+  done
+  echo "gpu_solo: queue finished ($(date +%T))"
+  touch "$S/done"
+}
+
+case "${1:-}" in
+  start)
+    rm -rf "$S" && mkdir -p "$S/wrk/.whl-gpu" "$S/rec" "$S/runs"
+    cp -r benchmarks willags_ns configs pyproject.toml "$S/wrk/"
+    [ -d .gpu-peer ] && cp -r .gpu-peer "$S/wrk/"
+    [ -d .whl-gpu/stub ] && cp -r .whl-gpu/stub "$S/wrk/.whl-gpu/"
+    date +%s > "$S/t0"
+    echo "$2" > "$S/queue"
+    copy_data
+    setsid nohup bash "$S/wrk/benchmarks/gpu_solo.sh" _loop > "$S/queue.log" 2>&1 < /dev/null &
+    echo "gpu_solo: queue started: $2"
+    ;;
+  _loop) loop ;;
+  wait)
+    out=$2
+    limit=${3:-560}
+    copy_data
+    end=$(( $(date +%s) + limit ))
+    while [ "$(date +%s)" -lt "$end" ] && [ ! -e "$S/done" ]; do sleep 5; done
+    mkdir -p "$out"
+    tar czf "$out/solo-records.tgz" -C "$S" rec queue.log
+    grep "gpu_solo:\|long_run:\|time budget\|Traceback\|Error" "$S/queue.log" | tail -n 60
+    [ -e "$S/done" ] && echo "gpu_solo: all done" || echo "gpu_solo: still running"
+    ;;
+  *) echo "usage: gpu_solo.sh start QUEUE | wait OUT [SECONDS]" >&2; exit 2 ;;
+esac
