@@ -15,11 +15,15 @@ Each point says whether its time was measured alone on the GPU or shared with ot
 from the record's ``concurrent_runs``, its segments' ``shared_with`` / ``concurrent_runs``, its notes, and the grid
 file's description); shared-GPU times are longer than the method's own cost, so they are drawn hollow and labelled.
 Records with a ``tree_note`` (not a clean record of their method) and failed runs are left out (and counted).
+Runs trained under willags' time budget (``time_budget_minutes``: the knob chose the preset and the last step and
+compressed the learning-rate schedules to it) are no point of their method's curve: they are :class:`KnobRun` s, a star
+on the plot and a row of the knob's table (benchmarks/curves_report.py), against the best run timed alone within the
+budget (:func:`best_within`).
 
 Writes, per scene with a curve (a method timed at two step counts or more), ``<out-dir>/curves_<scene>.png`` (PSNR vs
 minutes, log time axis, a line per method through the mean PSNR at each step count, every run a marker, Pareto-optimal
 runs ringed; matplotlib, Agg backend) and one markdown file with a table per scene and the time each method needs to
-reach the peer's 15000-step PSNR.
+reach the peer's 15000-step PSNR (the markdown: benchmarks/curves_report.py).
 """
 
 import argparse
@@ -42,15 +46,6 @@ TARGET_METHOD, TARGET_STEPS = "peer", 15000
 """The quality bar of the time-to-quality table: the peer's mean right-half PSNR at 15000 steps."""
 REACHING = ("willags", "willags-lite", "splatfacto", "willags-paper")
 """Methods whose time to that bar the table reports (willags first: the issue's question)."""
-MEASURE = (
-    "Milestone times are recorded by `benchmarks/long_run.py` since this tool exists; to fill the curves (1k, 2k, 5k, "
-    "10k, 15k steps, 30k on reichstag), one long run per device call, alone on the GPU: "
-    '`LONG_RUNS="reichstag:willags" LONG_STEPS=30000 LONG_MILESTONES=1000,2000,5000,10000,15000,30000 '
-    "LONG_TAG=h200-curve LONG_BUDGET_S=480 bash benchmarks/gpu_long.sh $OUT/long` (repeated until it records; each "
-    "method, each real scene with LONG_STEPS=15000), then "
-    "`python -m benchmarks.curves --records docs/benchmarks.json <the long-*.json it brought back>`."
-)
-"""How the missing points get measured (printed in the markdown)."""
 COLORS = {"willags": "C0", "willags-lite": "C2", "willags-paper": "C4", "peer": "C1", "splatfacto": "C7"}
 
 
@@ -188,11 +183,14 @@ def scene_points(
     methods: Sequence[str] = CURVE_METHODS,
     grids: dict[str, str] | None = None,
 ) -> list[Point]:
-    """Every measured (method, steps, train time, PSNR) of ``scene`` on the GPU, one per run and step count."""
+    """Every measured (method, steps, train time, PSNR) of ``scene`` on the GPU, one per run and step count. Runs
+    under the time budget are left out (:func:`knob_runs`)."""
     grids = grid_descriptions() if grids is None else grids
     out, seen = [], set()
     for r in records:
         if r.get("scene") != scene or r.get("method") not in methods or r.get("device") != "cuda" or not _usable(r):
+            continue
+        if is_knob_run(r):  # a compressed schedule: not its method's curve (knob_runs)
             continue
         share, gpu, tag = gpu_sharing(r, grids), _gpu(r), str(r.get("tag") or "")
         if r.get("kind") == "long_run":
@@ -268,6 +266,8 @@ class StepPoint:
     """Measured train seconds of the runs (untimed runs left out)."""
     sharing: str
     """The runs' sharing labels, joined."""
+    alone: tuple[tuple[float, str], ...] = ()
+    """(train seconds, GPU) of the runs timed alone on their GPU."""
 
 
 def step_curve(points: Sequence[Point], method: str) -> list[StepPoint]:
@@ -277,8 +277,41 @@ def step_curve(points: Sequence[Point], method: str) -> list[StepPoint]:
         ps = [p for p in points if p.method == method and p.steps == steps]
         times = tuple(sorted(p.train_s for p in ps if p.train_s is not None))
         labels = " / ".join(dict.fromkeys(p.sharing.label() for p in ps if p.train_s is not None)) or "–"
-        out.append(StepPoint(method, steps, statistics.mean(p.psnr for p in ps), len(ps), times, labels))
+        alone = tuple(sorted((p.train_s, p.gpu) for p in ps if p.train_s is not None and p.sharing.state == "alone"))
+        out.append(StepPoint(method, steps, statistics.mean(p.psnr for p in ps), len(ps), times, labels, alone))
     return out
+
+
+@dataclass(frozen=True)
+class StepTime:
+    """The time a step count took: the median of its runs timed alone on the GPU when there are such runs, else of
+    all its timed runs (shared-GPU or unrecorded sharing: ``alone`` False)."""
+
+    seconds: float
+    alone: bool
+    n: int
+    """Runs the median is over."""
+    gpus: tuple[str, ...]
+    """GPU models of the alone runs (empty for a shared time)."""
+
+
+def step_time(s: StepPoint) -> StepTime | None:
+    """``s``'s time (:class:`StepTime`); None: no run of it was timed."""
+    if s.alone:
+        gpus = tuple(sorted({g for _, g in s.alone}))
+        return StepTime(statistics.median(t for t, _ in s.alone), True, len(s.alone), gpus)
+    if s.times:
+        return StepTime(statistics.median(s.times), False, len(s.times), ())
+    return None
+
+
+def time_ratio(hit: StepPoint, ref: StepPoint) -> float | None:
+    """``hit``'s time over ``ref``'s when both were timed alone on the GPU (medians, :func:`step_time`); None:
+    one of them has no alone time (a shared-GPU time is no method's own cost)."""
+    a, b = step_time(hit), step_time(ref)
+    if a is None or b is None or not (a.alone and b.alone):
+        return None
+    return a.seconds / b.seconds
 
 
 def first_reaching(curve: Sequence[StepPoint], target: float) -> StepPoint | None:
@@ -295,19 +328,82 @@ def has_curve(points: Sequence[Point]) -> bool:
     return any(len(s) >= 2 for s in by.values())
 
 
+# ---------------------------------------------------------------------------------------------- the time-budget knob
+
+
+@dataclass(frozen=True)
+class KnobRun:
+    """A run under willags' time budget (``--pipeline.time-budget-minutes``): the knob chose the preset and the last
+    step and compressed the learning-rate schedules to it, so it is no point of its method's curve."""
+
+    scene: str
+    budget_minutes: float
+    preset: str
+    """The preset the knob chose."""
+    steps: int | None
+    """Steps trained (where the knob stopped: the record's ``end_step``)."""
+    psnr: float | None
+    """Right-half PSNR where it stopped (None: not scored)."""
+    train_s: float | None
+    gpu: str
+    sharing: Sharing
+    tag: str
+
+
+def is_knob_run(rec: dict[str, Any]) -> bool:
+    """Whether ``rec`` was trained under the time budget (benchmarks/long_run.py ``--budget-minutes``)."""
+    return rec.get("time_budget_minutes") is not None or rec.get("time_budget") is not None
+
+
+def knob_runs(records: Sequence[dict[str, Any]], scene: str, grids: dict[str, str] | None = None) -> list[KnobRun]:
+    """The time-budget runs of ``scene`` on the GPU, by budget: PSNR and train time where the knob stopped."""
+    grids = grid_descriptions() if grids is None else grids
+    out = []
+    for r in records:
+        if r.get("scene") != scene or r.get("device") != "cuda" or not _usable(r) or not is_knob_run(r):
+            continue
+        tb = r.get("time_budget") or {}
+        minutes = r.get("time_budget_minutes", tb.get("budget_minutes"))
+        end = r.get("end_step") or (tb.get("run") or {}).get("steps_trained")
+        at_end = (r.get("milestones") or {}).get(str(end), {}) if end else {}
+        psnr = at_end.get("psnr", r.get("psnr"))
+        t = milestone_train_s(r, str(end)) if end else None
+        if t is None and r.get("train_s") is not None:
+            t = float(r["train_s"])
+        out.append(
+            KnobRun(
+                scene,
+                float("nan") if minutes is None else float(minutes),
+                str((tb.get("choice") or {}).get("preset") or r.get("method")),
+                None if end is None else int(end),
+                None if psnr is None else float(psnr),
+                t,
+                _gpu(r),
+                gpu_sharing(r, grids),
+                str(r.get("tag") or ""),
+            )
+        )
+    return sorted(out, key=lambda k: (k.budget_minutes, k.tag))
+
+
+def best_within(points: Sequence[Point], seconds: float) -> Point | None:
+    """The best run (highest PSNR, then the faster) of the curves' methods timed alone on the GPU in at most
+    ``seconds`` of training; None: no such run."""
+    fit = [
+        p
+        for p in points
+        if p.method in CURVE_METHODS and p.sharing.state == "alone" and p.train_s is not None and p.train_s <= seconds
+    ]
+    return max(fit, key=lambda p: (p.psnr, -(p.train_s or 0.0)), default=None)
+
+
 # ---------------------------------------------------------------------------------------------- outputs
 
 
-def _times(s: StepPoint) -> str:
-    if not s.times:
-        return "time not recorded"
-    lo, hi = s.times[0], s.times[-1]
-    return f"{lo:.0f} s" if len(s.times) == 1 else f"{lo:.0f}-{hi:.0f} s ({len(s.times)} runs)"
-
-
-def plot_scene(points: Sequence[Point], path: Path) -> Path:
+def plot_scene(points: Sequence[Point], path: Path, knobs: Sequence[KnobRun] = ()) -> Path:
     """PSNR vs minutes (log axis) for one scene: a line per method through its mean PSNR at each step count (at the
-    median time of those runs), every run a marker (hollow: shared-GPU time), Pareto-optimal runs ringed."""
+    median time of those runs), every run a marker (hollow: shared-GPU time), Pareto-optimal runs ringed; each timed
+    and scored time-budget run a star in the colour of the preset it chose."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -334,6 +430,25 @@ def plot_scene(points: Sequence[Point], path: Path) -> Path:
             ax.plot(p.train_s / 60, p.psnr, shapes.get(p.gpu, "o"), ms=5, color=color, mfc=color if alone else "none")
             if pareto:
                 ax.plot(p.train_s / 60, p.psnr, "o", ms=12, mfc="none", mec="k", mew=1.0)
+    knob_labels: set[str] = set()
+    for k in knobs:
+        if k.train_s is None or k.psnr is None:
+            continue
+        label = f"willags knob, {k.budget_minutes:g} min" + (f" ({k.preset})" if k.preset != "willags" else "")
+        color = COLORS.get(k.preset, "k")
+        alone = k.sharing.state == "alone"
+        ax.plot(
+            k.train_s / 60,
+            k.psnr,
+            "*",
+            ms=14,
+            color=color,
+            mfc=color if alone else "none",
+            mec="k" if alone else color,
+            mew=0.7,
+            label=None if label in knob_labels else label,
+        )
+        knob_labels.add(label)
     for g in gpus:
         ax.plot([], [], shapes[g], color="0.4", label=f"run on {g} (filled: alone)")
     ax.plot([], [], "o", color="0.4", mfc="none", label="hollow: shared-GPU time")
@@ -356,114 +471,6 @@ def plot_scene(points: Sequence[Point], path: Path) -> Path:
     return path
 
 
-def scene_table(points: Sequence[Point]) -> list[str]:
-    """Markdown rows: every run, its time, GPU, sharing and Pareto mark."""
-    flags = pareto_flags(points)
-    out = [
-        "| method | steps | train s | PSNR | GPU | GPU shared | from | tag | Pareto |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for p, pareto in zip(points, flags, strict=True):
-        t = "not recorded" if p.train_s is None else f"{p.train_s:.0f}"
-        share = p.sharing.label() + (f" ({p.sharing.why})" if p.sharing.why else "")
-        out.append(
-            f"| {p.method} | {p.steps} | {t} | {p.psnr:.2f} | {p.gpu} | {share} | {p.source} | {p.tag or '–'} "
-            f"| {'*' if pareto else ''} |"
-        )
-    return out
-
-
-def time_to_target_rows(by_scene: dict[str, list[Point]]) -> list[str]:
-    """Markdown: per scene, the peer's 15000-step PSNR and time, and where each method first reaches it."""
-    out = [
-        f"| scene | {TARGET_METHOD} at {TARGET_STEPS} steps: PSNR (runs), time | "
-        + " | ".join(f"{m}: first reaching it" for m in REACHING)
-        + " |",
-        "|---|---|" + "---|" * len(REACHING),
-    ]
-    for scene, points in by_scene.items():
-        ref = [s for s in step_curve(points, TARGET_METHOD) if s.steps == TARGET_STEPS]
-        if not ref:
-            out.append(f"| {scene} | not measured |" + " – |" * len(REACHING))
-            continue
-        target = ref[0]
-        cells = []
-        for m in REACHING:
-            curve = step_curve(points, m)
-            hit = first_reaching(curve, target.psnr)
-            if not curve:
-                cells.append("not measured")
-            elif hit is None:
-                best = max(curve, key=lambda s: s.psnr)
-                cells.append(f"not reached (best {best.psnr:.2f} at {best.steps} steps)")
-            else:
-                cells.append(f"{hit.steps} steps, {hit.psnr:.2f} (n={hit.n}), {_times(hit)} [{hit.sharing}]")
-        out.append(
-            f"| {scene} | {target.psnr:.2f} (n={target.n}), {_times(target)} [{target.sharing}] | "
-            + " | ".join(cells)
-            + " |"
-        )
-    return out
-
-
-def render_markdown(
-    by_scene: dict[str, list[Point]], pngs: dict[str, Path], skipped: dict[str, int], sources: Sequence[str]
-) -> str:
-    out = [
-        "# Speed vs accuracy: PSNR against training time",
-        "",
-        f"Generated by `python -m benchmarks.curves` from {', '.join(f'`{s}`' for s in sources)}; do not edit by hand. "
-        "Right-half PSNR under the NeRF-W protocol (latent fitted on the left half of each test image). **train s**: "
-        "training wall time (set-up and evaluation excluded). **GPU shared**: runs on the GPU at once while this one "
-        "trained (`alone`: measured alone; `shared`: a shared-GPU time, longer than the method's own cost; the source "
-        "in brackets). Long runs contribute one point per scored milestone; a milestone inside a segment of an older "
-        "record has no measured time (`not recorded`) and stays out of the plot and the Pareto marks. `*`: "
-        "Pareto-optimal among the timed runs of the scene (no run is both faster and better); shared and alone "
-        "times are compared as recorded.",
-        "",
-        "## What the records hold",
-        "",
-        "| scene | runs × step counts (timed) | methods: step counts | plot |",
-        "|---|---|---|---|",
-    ]
-    for scene, points in by_scene.items():
-        timed = sum(p.train_s is not None for p in points)
-        methods = "; ".join(
-            f"{m}: {', '.join(str(s) for s in sorted({p.steps for p in points if p.method == m}))}"
-            for m in CURVE_METHODS
-            if any(p.method == m for p in points)
-        )
-        plot = (
-            f"[curves_{scene}.png]({pngs[scene].name})" if scene in pngs else "none (no method timed at 2 step counts)"
-        )
-        out.append(f"| {scene} | {len(points)} ({timed}) | {methods or '–'} | {plot} |")
-    missing = [m for m in CURVE_METHODS if not any(p.method == m for ps in by_scene.values() for p in ps)]
-    if missing:
-        out += ["", f"No records of {', '.join(missing)} on these scenes."]
-    out += ["", MEASURE]
-    if any(skipped.values()):
-        out += [
-            "",
-            "Left out: " + ", ".join(f"{n} {why}" for why, n in skipped.items() if n) + ".",
-        ]
-    out += [
-        "",
-        f"## Time to the {TARGET_METHOD}'s {TARGET_STEPS}-step PSNR",
-        "",
-        "The first step count (in order of steps) whose mean PSNR over its runs reaches the peer's mean at "
-        f"{TARGET_STEPS} steps, with the measured train times of those runs and whether they shared the GPU.",
-        "",
-        *time_to_target_rows(by_scene),
-        "",
-    ]
-    for scene, points in by_scene.items():
-        out += [f"## {scene}", ""]
-        if scene in pngs:
-            out += [f"![{scene}: PSNR vs training time]({pngs[scene].name})", ""]
-        out += scene_table(points) + [""] if points else ["No records.", ""]
-    return "\n".join(out)
-
-
 def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
     """Records of several files (each a JSON list); a later record with the same (scene, method, device, steps, tag)
     replaces an earlier one, as benchmarks/harness.py merges them."""
@@ -477,6 +484,8 @@ def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from benchmarks.curves_report import render_markdown
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--records", nargs="+", default=[str(REPO / "docs" / "benchmarks.json")])
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
@@ -492,16 +501,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         ),
     }
     by_scene = {s: scene_points(records, s, grids=grids) for s in args.scenes}
+    knobs = {s: knob_runs(records, s, grids=grids) for s in args.scenes}
     out_dir = Path(args.out_dir)
-    pngs = {s: plot_scene(pts, out_dir / f"curves_{s}.png") for s, pts in by_scene.items() if has_curve(pts)}
+    pngs = {s: plot_scene(pts, out_dir / f"curves_{s}.png", knobs[s]) for s, pts in by_scene.items() if has_curve(pts)}
     md = Path(args.md) if args.md else out_dir / "curves.md"
     sources = [
         str(Path(p).resolve().relative_to(REPO)) if Path(p).resolve().is_relative_to(REPO) else p for p in args.records
     ]
-    md.write_text(render_markdown(by_scene, pngs, skipped, sources) + "\n")
+    md.write_text(render_markdown(by_scene, pngs, skipped, sources, knobs) + "\n")
     for s, pts in by_scene.items():
         print(
             f"curves: {s}: {len(pts)} points ({sum(p.train_s is not None for p in pts)} timed)"
+            + (f", {len(knobs[s])} time-budget runs" if knobs[s] else "")
             + (f" -> {pngs[s]}" if s in pngs else " (no plot)")
         )
     print(f"curves: {md}")
