@@ -402,7 +402,8 @@ def best_within(points: Sequence[Point], seconds: float) -> Point | None:
 
 def plot_scene(points: Sequence[Point], path: Path, knobs: Sequence[KnobRun] = ()) -> Path:
     """PSNR vs minutes (log axis) for one scene: a line per method through its mean PSNR at each step count (at the
-    median time of those runs), every run a marker (hollow: shared-GPU time), Pareto-optimal runs ringed; each timed
+    median time of its runs timed alone; dashed through shared-GPU times where fewer than two step counts were timed
+    alone), every run a marker (hollow: shared-GPU time), Pareto-optimal runs ringed; each timed
     and scored time-budget run a star in the colour of the preset it chose."""
     import matplotlib
 
@@ -418,8 +419,12 @@ def plot_scene(points: Sequence[Point], path: Path, knobs: Sequence[KnobRun] = (
     for m in methods:
         color = COLORS.get(m, "k")
         curve = [s for s in step_curve(points, m) if s.times]
-        xs = [statistics.median(s.times) / 60 for s in curve]
-        ax.plot(xs, [s.psnr for s in curve], "-", color=color, label=m, lw=1.5)
+        # the line goes through the step counts timed alone (a shared-GPU time is no method's own cost): dashed
+        # through every timed one only where fewer than two were timed alone
+        alone = [s for s in curve if s.alone]
+        curve, style = (alone, "-") if len(alone) >= 2 else (curve, "--")
+        xs = [step_time(s).seconds / 60 for s in curve]  # type: ignore[union-attr]
+        ax.plot(xs, [s.psnr for s in curve], style, color=color, label=m, lw=1.5)
         for s, x in zip(curve, xs, strict=True):
             label = f"{s.steps // 1000}k" if s.steps >= 1000 else str(s.steps)
             ax.annotate(label, (x, s.psnr), textcoords="offset points", xytext=(4, 4), fontsize=7, color=color)
@@ -461,7 +466,11 @@ def plot_scene(points: Sequence[Point], path: Path, knobs: Sequence[KnobRun] = (
     ax.set_xlabel("training wall time (minutes, log scale)")
     ax.set_ylabel("right-half PSNR (dB), NeRF-W protocol")
     scene = points[0].scene if points else "?"
-    ax.set_title(f"{scene}: PSNR vs training time (lines: mean PSNR at each step count, median time)", fontsize=9)
+    ax.set_title(
+        f"{scene}: PSNR vs training time\n(lines: mean PSNR at each step count, at the median time of its runs timed "
+        "alone; dashed: shared-GPU times)",
+        fontsize=8,
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.tight_layout()

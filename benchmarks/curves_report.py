@@ -22,12 +22,14 @@ from benchmarks.curves import (
 )
 
 MEASURE = (
-    "Milestone times are recorded by `benchmarks/long_run.py` since this tool exists; to fill the curves (1k, 2k, 5k, "
-    "10k, 15k steps, 30k on reichstag), one long run per device call, alone on the GPU: "
-    '`LONG_RUNS="reichstag:willags" LONG_STEPS=30000 LONG_MILESTONES=1000,2000,5000,10000,15000,30000 '
-    "LONG_TAG=h200-curve LONG_BUDGET_S=480 bash benchmarks/gpu_long.sh $OUT/long` (repeated until it records; each "
-    "method, each real scene with LONG_STEPS=15000), then "
-    "`python -m benchmarks.curves --records docs/benchmarks.json <the long-*.json it brought back>`."
+    "How the points alone on the GPU are measured (`benchmarks/gpu_solo.sh`): a queue of runs trained one after "
+    "another on one GPU, each scored at its milestones (1k, 2k, 5k, 10k, 15k, 30k up to its steps) right after it "
+    "trained, going on across back-to-back device calls: `export WILLAGS_COMMIT=<sha>; source benchmarks/gpu_env.sh; "
+    'SOLO_DATA=.gpu-data bash benchmarks/gpu_solo.sh start "reichstag:peer:15000 reichstag:willags:30000 '
+    'reichstag:willags:30000:42:5"` then `bash benchmarks/gpu_solo.sh wait $OUT 570` in that call and each next '
+    "one (`scene:method:steps[:seed[:budget minutes]]`; the last form is a run of the time-budget knob), then "
+    "`python benchmarks/run_benchmark.py --merge <the long-*.json, as one list> --out docs/benchmarks` and "
+    "`python -m benchmarks.curves`."
 )
 """How the missing points get measured (printed in the markdown)."""
 SPEED_GOAL = 0.5
