@@ -22,7 +22,8 @@
 # Records: /tmp/solo/rec/long-<run>.json (tag SOLO_TAG, default h200-curve; -s<seed> for other seeds, -knob<min>
 # for budget runs), which `wait` tars to OUT/solo-records.tgz with the logs.
 set -u
-S=/tmp/solo
+S=${SOLO_DIR:-/tmp/solo}  # (tests point it elsewhere)
+export SOLO_DIR=$S
 copy_data() {
   mkdir -p "$S/data"
   for root in ${SOLO_DATA:-.gpu-data}; do
@@ -93,8 +94,8 @@ loop() {
     done
     if [ -z "$run" ]; then
       [ "$waited" -ge "${SOLO_WAIT_S:-900}" ] && { echo "gpu_solo: no data for ${todo[*]}"; break; }
-      sleep 10
-      waited=$((waited + 10))
+      sleep "${SOLO_POLL_S:-10}"
+      waited=$((waited + ${SOLO_POLL_S:-10}))
       continue
     fi
     IFS=: read -r scene m steps seed bm <<< "$run"
@@ -123,7 +124,7 @@ case "${1:-}" in
     limit=${3:-560}
     copy_data
     end=$(( $(date +%s) + limit ))
-    while [ "$(date +%s)" -lt "$end" ] && [ ! -e "$S/done" ]; do sleep 5; done
+    while [ "$(date +%s)" -lt "$end" ] && [ ! -e "$S/done" ]; do sleep "${SOLO_POLL_S:-5}"; done
     mkdir -p "$out"
     tar czf "$out/solo-records.tgz" -C "$S" rec queue.log
     grep "gpu_solo:\|long_run:\|time budget\|Traceback\|Error" "$S/queue.log" | tail -n 60

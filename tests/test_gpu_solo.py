@@ -1,0 +1,118 @@
+"""benchmarks/gpu_solo.sh: the queue of runs alone on the GPU, driven with a stand-in for python3 (no GPU here) that
+logs what it was asked to do."""
+
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+FAKE_PYTHON = """#!/usr/bin/env bash
+# a stand-in for python3: `-c` code runs in the real interpreter; benchmarks.long_run commands are logged and faked
+if [ "$1" = "-c" ]; then
+  case "$2" in *_warm_gsplat*) exit 0;; esac
+  exec {real} "$@"
+fi
+shift 2; cmd=$1; shift
+echo "$cmd $*" >> "$SOLO_DIR/calls.log"
+while [ $# -gt 0 ]; do case $1 in --run-dir) d=$2;; --out) o=$2;; --milestones) ms=$2;; esac; shift; done
+case $cmd in
+  train) mkdir -p "$d"
+         {real} -c "import json,sys; json.dump({{'milestone_train_s': {{m: 1.0 for m in sys.argv[2].split(',')}}}}, open(sys.argv[1], 'w'))" "$d/state.json" "$ms"
+         echo "long_run: trained $ms";;
+  eval) echo "long_run: scored $ms";;
+  record) echo '[]' > "$o";;
+esac
+"""
+
+
+@pytest.fixture()
+def tree(tmp_path):
+    if shutil.which("bash") is None or shutil.which("setsid") is None:
+        pytest.skip("needs bash and setsid")
+    root = tmp_path / "repo"
+    (root / "benchmarks").mkdir(parents=True)
+    shutil.copy(REPO / "benchmarks" / "gpu_solo.sh", root / "benchmarks")
+    for d in ("willags_ns", "configs"):
+        (root / d).mkdir()
+    (root / "pyproject.toml").write_text("")
+    (root / ".data-a" / "reichstag").mkdir(parents=True)
+    (root / ".data-a" / "reichstag" / "img.jpg").write_text("x")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    fake = bin_dir / "python3"
+    fake.write_text(FAKE_PYTHON.format(real=sys.executable))
+    fake.chmod(0o755)
+    env = {
+        **os.environ,
+        "PATH": f"{bin_dir}:{os.environ['PATH']}",
+        "SOLO_DIR": str(tmp_path / "solo"),
+        "SOLO_POLL_S": "1",
+        "SOLO_WAIT_S": "30",  # a failing test leaves no queue waiting for long
+    }
+    return root, env, tmp_path / "solo"
+
+
+def _sh(root, env, *args, **extra):
+    return subprocess.run(
+        ["bash", "benchmarks/gpu_solo.sh", *args],
+        cwd=root,
+        env={**env, **extra},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_the_queue_trains_each_run_alone_in_order_and_a_scene_carried_later_waits_at_the_back(tree, tmp_path):
+    root, env, solo = tree
+    queue = "south-building:willags:15000 reichstag:peer:2000:43 reichstag:willags:30000:42:5"
+    started = _sh(root, env, "start", queue, SOLO_DATA=".data-a")
+    assert started.returncode == 0, started.stderr
+    assert "scene reichstag ready" in started.stdout
+    # a later device call carries the scene that did not fit in the first one
+    time.sleep(2)
+    (root / ".data-b" / "south-building").mkdir(parents=True)
+    waited = _sh(root, env, "wait", str(tmp_path / "out"), "40", SOLO_DATA=".data-b")
+    assert waited.returncode == 0, waited.stderr
+    assert "gpu_solo: all done" in waited.stdout
+    trains = [ln.split() for ln in (solo / "calls.log").read_text().splitlines() if ln.startswith("train ")]
+
+    def opt(call, name):
+        return call[call.index(name) + 1] if name in call else None
+
+    # one after another, each alone; the run whose scene came later last
+    assert [opt(c, "--method") for c in trains] == ["peer", "willags", "willags"]
+    assert [Path(opt(c, "--data")).name for c in trains] == ["reichstag", "reichstag", "south-building"]
+    assert all(opt(c, "--concurrent") == "1" for c in trains)
+    peer, knob, sb = trains
+    assert (opt(peer, "--seed"), opt(peer, "--milestones")) == ("43", "1000,2000")
+    assert (opt(knob, "--budget-minutes"), opt(knob, "--milestones")) == ("5", "30000")
+    assert opt(peer, "--budget-minutes") is None
+    assert opt(sb, "--milestones") == "1000,2000,5000,10000,15000"
+    evals = [ln for ln in (solo / "calls.log").read_text().splitlines() if ln.startswith("eval ")]
+    assert len(evals) == 2 + 1 + 5  # one process per milestone with a recorded time
+    records = [ln.split() for ln in (solo / "calls.log").read_text().splitlines() if ln.startswith("record ")]
+    assert [opt(r, "--tag") for r in records] == ["h200-curve-s43", "h200-curve-knob5", "h200-curve"]
+    with tarfile.open(tmp_path / "out" / "solo-records.tgz") as tar:
+        names = set(tar.getnames())
+    assert {
+        "rec/long-reichstag-peer-2000-s43.json",
+        "rec/long-reichstag-willags-30000-s42-knob5.json",
+        "rec/long-south-building-willags-15000-s42.json",
+        "queue.log",
+    } <= names
+
+
+def test_no_run_starts_after_the_deadline(tree, tmp_path):
+    root, env, solo = tree
+    assert _sh(root, env, "start", "reichstag:peer:2000", SOLO_DATA=".data-a", SOLO_DEADLINE_S="-1").returncode == 0
+    waited = _sh(root, env, "wait", str(tmp_path / "out"), "20")
+    assert "deadline passed; not started: reichstag:peer:2000" in waited.stdout
+    assert not (solo / "calls.log").exists()

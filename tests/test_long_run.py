@@ -1,0 +1,73 @@
+"""benchmarks/long_run.py: a run under the time-budget knob, and milestones scored by several processes at once."""
+
+import json
+import multiprocessing as mp
+
+from benchmarks import long_run
+
+
+def _write_state(run, state):
+    run.mkdir(parents=True, exist_ok=True)
+    (run / long_run.STATE).write_text(json.dumps(state))
+
+
+def test_all_milestones_are_those_with_a_recorded_train_time():
+    state = {"milestone_train_s": {"1000": 20.0, "15004": 300.0}}
+    assert long_run._milestones("all", state) == [1000, 15004]
+    assert long_run._milestones("2000,5000", state) == [2000, 5000]
+    assert long_run._milestones("all", {}) == []
+
+
+def test_a_knob_run_is_scored_with_the_preset_the_knob_chose():
+    # on a CPU the knob may swap willags for willags-lite: the checkpoints then hold willags-lite's networks
+    state = {"method": "willags", "time_budget": {"choice": {"preset": "willags-lite"}}}
+    assert long_run._eval_method(state) == "willags-lite"
+    assert long_run._eval_method({"method": "peer"}) == "peer"
+    # a preset the benchmarks do not know is no method to build: the run's own
+    assert long_run._eval_method({"method": "willags", "time_budget": {"choice": {"preset": "nope"}}}) == "willags"
+
+
+def _score(run_dir, milestone):
+    long_run._save_score(run_dir, milestone, {"psnr": float(milestone) / 1000})
+
+
+def test_milestones_scored_at_once_by_several_processes_all_land_in_the_state(tmp_path):
+    run = tmp_path / "run"
+    _write_state(run, {"method": "willags", "segments": [], "scores": {}, "milestone_train_s": {"1": 1.0}})
+    ctx = mp.get_context("fork")
+    procs = [ctx.Process(target=_score, args=(run, str(m))) for m in (1000, 2000, 5000, 10000, 15000, 30000)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join()
+    state = json.loads((run / long_run.STATE).read_text())
+    assert sorted(state["scores"], key=int) == ["1000", "2000", "5000", "10000", "15000", "30000"]
+    assert state["scores"]["15000"] == {"psnr": 15.0}
+    assert state["milestone_train_s"] == {"1": 1.0}  # the rest of the state survives
+
+
+def test_a_knob_runs_record_carries_the_budget_and_the_score_where_it_stopped(tmp_path):
+    run = tmp_path / "reichstag-willags-30000-s42-knob5"
+    budget = {"budget_minutes": 5.0, "choice": {"preset": "willags"}, "run": {"steps_trained": 15004}}
+    _write_state(
+        run,
+        {
+            "method": "willags",
+            "data": "/x/reichstag",
+            "steps": 30000,
+            "seed": 42,
+            "segments": [{"start_step": 0, "end_step": 15003, "train_s": 301.0, "concurrent_runs": 1}],
+            "milestone_train_s": {"15004": 300.0},
+            "scores": {"15004": {"psnr": 19.43, "ssim": 0.7}},
+            "time_budget_minutes": 5.0,
+            "time_budget": budget,
+            "end_step": 15004,
+        },
+    )
+    out = tmp_path / "rec.json"
+    assert long_run.main(["record", "--run-dir", str(run), "--tag", "h200-curve-knob5", "--out", str(out)]) == 0
+    (rec,) = json.loads(out.read_text())
+    assert (rec["time_budget_minutes"], rec["end_step"], rec["time_budget"]) == (5.0, 15004, budget)
+    assert rec["psnr"] == 19.43  # the score where the knob stopped, not at the cap (30000)
+    assert rec["milestones"]["15004"] == {"psnr": 19.43, "ssim": 0.7, "train_s": 300.0}
+    assert (rec["steps_done"], rec["concurrent_runs"]) == (15004, 1)
