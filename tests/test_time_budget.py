@@ -400,3 +400,37 @@ def test_ns_train_prints_one_line_for_a_bad_budget(tmp_path):
     assert out.returncode == 1
     assert "willags: --pipeline.time-budget-minutes must be a finite number of minutes" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize(("side", "want_downscales"), [(128, 0), (256, 0), (800, "preset")])
+def test_a_cpu_choice_keeps_the_resolution_schedule_for_images_larger_than_the_measured_ones(side, want_downscales):
+    """The CPU points were measured at full resolution on 128 px images; on 800 px photos a full-resolution CPU step
+    took 12.9 s (19 steps in 4 minutes), so larger images keep the preset's resolution schedule."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from willags_ns import method_configs
+    from willags_ns.trainer import WillagsTrainer, apply_budget, preset_defaults
+
+    config = method_configs.willags_config()
+    config.machine.device_type = "cpu"
+    choice, notes = apply_budget(config, 600.0)
+    assert not choice.keep_resolution_schedule and config.pipeline.model.num_downscales == 0
+    trainer = WillagsTrainer.__new__(WillagsTrainer)
+    cams = SimpleNamespace(width=torch.tensor([[side], [side // 2]]), height=torch.tensor([[side * 3 // 4], [side]]))
+    trainer.config = config
+    trainer.pipeline = SimpleNamespace(
+        datamanager=SimpleNamespace(train_dataset=SimpleNamespace(cameras=cams)),
+        model=SimpleNamespace(config=config.pipeline.model),
+    )
+    trainer._budget_record = {"notes": list(notes)}
+    trainer.local_rank = 1  # no config.yml written here
+    trainer._resolution_for_images(choice)
+    preset = preset_defaults(choice.preset)[0].num_downscales
+    assert preset > 0
+    want = preset if want_downscales == "preset" else want_downscales
+    assert config.pipeline.model.num_downscales == want
+    kept = [n for n in trainer._budget_record["notes"] if "resolution schedule kept" in n]
+    assert (f"up to {side} px" in kept[0]) if want else not kept
+    assert tb.full_resolution_suits(side) == (want == 0)

@@ -174,6 +174,21 @@ STEP_TIMES: dict[tuple[str, str], StepTime] = {
 """Seconds per step of each preset on each device class, before this run has measured its own."""
 
 
+CPU_SCENE_SIDE = 128
+"""Longest image side (px) of the scene the CPU points were measured on (the embedded default scene, 128x96)."""
+FULL_RESOLUTION_MAX_SIDE = 2 * CPU_SCENE_SIDE
+"""Largest image side (px) for which a CPU choice trains at full resolution from the first step, as its points were
+measured; larger images keep splatfacto's resolution schedule (:func:`full_resolution_suits`)."""
+
+
+def full_resolution_suits(image_side: int) -> bool:
+    """Whether full resolution from the first step (how the CPU points were measured, on 128 px images) suits training
+    images whose longest side is ``image_side`` px: up to twice the measured scene's side. Measured on the 2-core CPU,
+    sacre-coeur-mini (800 px), a 4-minute budget: at full resolution a step took 12.9 s (19 steps trained); with
+    splatfacto's resolution schedule (a quarter of the resolution for the first 3000 steps) 0.20 s (1180 steps)."""
+    return image_side <= FULL_RESOLUTION_MAX_SIDE
+
+
 def device_class(device_type: str) -> str:
     """The table's device class of a torch device type: "cuda", else "cpu" (mps and others: the CPU's table)."""
     return "cuda" if str(device_type).startswith("cuda") else "cpu"

@@ -152,7 +152,32 @@ class WillagsTrainer(Trainer):
                 self.config.save_config()  # config.yml: the preset and steps that will train, not the invoked ones
         super().setup(test_mode)
         if choice is not None and minutes is not None:
+            if not choice.keep_resolution_schedule and not any("num-downscales" in n for n in notes):
+                self._resolution_for_images(choice)
             self._attach_budget(minutes * 60.0, choice)
+
+    def _resolution_for_images(self, choice: BudgetChoice) -> None:
+        """The choice trains at full resolution from the first step (the CPU points were measured so, on 128 px
+        images); with larger training images (known only now, the data loaded) keep the preset's resolution
+        schedule instead (time_budget.full_resolution_suits): a step at full resolution costs too much to train."""
+        cams = getattr(getattr(self.pipeline.datamanager, "train_dataset", None), "cameras", None)
+        if cams is None or choice.preset not in PRESET_CONFIGS:
+            return
+        side = int(max(cams.width.max().item(), cams.height.max().item()))
+        if tb.full_resolution_suits(side):
+            return
+        downscales = preset_defaults(choice.preset)[0].num_downscales
+        for model_config in {id(c): c for c in (self.config.pipeline.model, self.pipeline.model.config)}.values():
+            model_config.num_downscales = downscales
+        note = (
+            f"training images up to {side} px (the {device_class(self.config.machine.device_type)} points: "
+            f"{tb.CPU_SCENE_SIDE} px): splatfacto's resolution schedule kept (num_downscales {downscales}) instead of "
+            "full resolution from the first step"
+        )
+        CONSOLE.print(f"  note:     {note}")
+        self._budget_record["notes"].append(note)
+        if self.local_rank == 0:
+            self.config.save_config()
 
     def _keep_user_switches(self) -> None:
         """With auto_config, name the switches the user set (a flag on the command line, or a value other than the
