@@ -6,7 +6,8 @@ Two decisions, both from measurements:
    keeps its model), from the table of measured points below: for each preset, the steps that fit
    in the budget at its step time; among the measured points that fit, the one with the highest right-half PSNR
    decides the preset. The run then reproduces that point's resolution schedule (splatfacto's stock one on the GPU
-   points, full resolution from the first step on the CPU ones). The preset cannot change later: willags-lite and
+   points, full resolution from the first step on the CPU ones, measured on 128 px images: larger training
+   images keep the stock schedule, :func:`full_resolution_suits`). The preset cannot change later: willags-lite and
    willags build different appearance networks.
 2. **While training** (:class:`TimeBudget`), from the run's own clock: the wall time of steps 20-70 (after the first
    steps' warm-up: allocations, kernel caches) gives the step time on this machine and scene; the last step is set so
