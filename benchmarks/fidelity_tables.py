@@ -289,7 +289,7 @@ def long_run_section(records: list[dict[str, Any]]) -> list[str]:
     out = [
         "## Full-length runs (issue 11): `benchmarks/long_run.py`, stock schedule",
         "",
-        "Trained in checkpointed segments across device calls (`benchmarks/gpu_long.sh`: each call resumes from the "
+        "Trained in checkpointed segments across device calls (`benchmarks/gpu_long.sh`, or one run after another alone on the GPU: `benchmarks/gpu_solo.sh`; each call resumes from the "
         "newest checkpoint, as `--load-dir` does, with the optimiser and scheduler states). train s = the sum of the "
         "segments' training time (set-up, checkpoint loading and evaluation excluded); the segments say how many "
         "other runs shared the GPU. Right-half PSNR under the NeRF-W protocol (128 steps) at each milestone.",
@@ -298,10 +298,16 @@ def long_run_section(records: list[dict[str, Any]]) -> list[str]:
         "| segments |",
         "|---|---|---|---|---|---|---|---|",
     ]
+
+    def label(k: str) -> str:
+        return f"{int(k) // 1000}k" if int(k) % 1000 == 0 else k  # a time budget stops anywhere: 15004, 19
+
     for r in sorted(recs, key=lambda r: (r["scene"], r["method"], str(r.get("tag")))):
-        ms = r.get("milestones", {})
-        psnr = ", ".join(f"{int(k) // 1000}k: {v['psnr']:.2f}" for k, v in ms.items() if v.get("psnr") is not None)
-        tv = ", ".join(f"{int(k) // 1000}k: {v['train_psnr']:.2f}" for k, v in ms.items() if v.get("train_psnr"))
+        ms = dict(sorted(r.get("milestones", {}).items(), key=lambda kv: int(kv[0])))  # records are saved key-sorted
+        psnr = ", ".join(f"{label(k)}: {v['psnr']:.2f}" for k, v in ms.items() if v.get("psnr") is not None)
+        tv = ", ".join(f"{label(k)}: {v['train_psnr']:.2f}" for k, v in ms.items() if v.get("train_psnr"))
+        if r.get("time_budget_minutes"):
+            psnr += f" (time budget {r['time_budget_minutes']:g} min, {r.get('device', '?')})"
         segs = "; ".join(
             f"{s['start_step']}-{s['end_step']} in {s['train_s']:.0f} s"
             + (f" ({s['shared_with']} other runs)" if s.get("shared_with") else "")

@@ -597,3 +597,26 @@ def test_long_run_resume_resizes_the_gaussians_in_place_so_the_optimisers_keep_t
         assert p is params[name] and torch.equal(p, saved.gauss_params[name])  # the objects the optimiser holds
     assert torch.equal(model.embed.weight, saved.embed.weight) and model.step == 30000
     assert all(p is q for p, q in zip(optimiser.param_groups[0]["params"], params.values(), strict=True))
+
+
+def test_long_run_rows_list_milestones_in_step_order_and_mark_a_time_budget():
+    """benchmarks.json is written with sorted keys ("10000" < "2000" as text): the rows sort milestones by step; a
+    time-budget run stops at a step of its own (19, 15004), shown as it is, with its budget."""
+    from benchmarks.fidelity_tables import long_run_section
+
+    rec = {
+        "kind": "long_run",
+        "scene": "sacre-coeur-mini",
+        "method": "willags",
+        "steps": 30000,
+        "steps_done": 19,
+        "train_s": 253.0,
+        "device": "cpu",
+        "tag": "cpu-knob4-full",
+        "milestones": {"10000": {"psnr": 12.0}, "19": {"psnr": 11.23}, "2000": {"psnr": 11.5}},
+        "segments": [{"start_step": 0, "end_step": 18, "train_s": 253.0, "num_gaussians": 3975}],
+    }
+    (row,) = [ln for ln in long_run_section([rec]) if ln.startswith("| sacre")]
+    assert "| 19: 11.23, 2k: 11.50, 10k: 12.00 |" in row
+    (row,) = [ln for ln in long_run_section([{**rec, "time_budget_minutes": 4.0}]) if ln.startswith("| sacre")]
+    assert "10k: 12.00 (time budget 4 min, cpu) |" in row
