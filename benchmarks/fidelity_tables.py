@@ -289,7 +289,8 @@ def long_run_section(records: list[dict[str, Any]]) -> list[str]:
     out = [
         "## Full-length runs (issue 11): `benchmarks/long_run.py`, stock schedule",
         "",
-        "Trained in checkpointed segments across device calls (`benchmarks/gpu_long.sh`, or one run after another alone on the GPU: `benchmarks/gpu_solo.sh`; each call resumes from the "
+        "Trained in checkpointed segments across device calls (`benchmarks/gpu_long.sh`, or one run after another "
+        "alone on the GPU: `benchmarks/gpu_solo.sh`; each call resumes from the "
         "newest checkpoint, as `--load-dir` does, with the optimiser and scheduler states). train s = the sum of the "
         "segments' training time (set-up, checkpoint loading and evaluation excluded); the segments say how many "
         "other runs shared the GPU. Right-half PSNR under the NeRF-W protocol (128 steps) at each milestone.",

@@ -331,15 +331,16 @@ def test_apply_budget_switches_the_preset_in_the_config():
     """With today's CPU points, a 90 s budget picks lite (its 600 steps fit, willags' do not): the model config is
     swapped for the lite preset's, the user's settings kept, the steps capped at lite's default, full resolution."""
     from willags_ns import method_configs
-    from willags_ns.trainer import apply_budget
+    from willags_ns.trainer import apply_budget, preset_defaults
 
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"
     config.pipeline.model.backend = "torch"
-    choice, notes = apply_budget(config, 90.0)
+    choice, notes, replaced = apply_budget(config, 90.0)
     model = config.pipeline.model
     assert choice.preset == "willags-lite" and model.use_vae and model.backend == "torch"
     assert model.num_downscales == 0 and config.max_num_iterations == CAPS["willags-lite"]
+    assert replaced == preset_defaults("willags-lite")[0].num_downscales > 0
     lite_step = STEP_TIMES[("willags-lite", "cpu")].seconds
     assert config.optimizers["means"]["scheduler"].max_steps == choice.steps == plan_steps(90.0, 0, 0, lite_step, 7000)
     assert config.method_name == "willags" and "your settings kept: backend" in notes[0]
@@ -415,7 +416,7 @@ def test_a_cpu_choice_keeps_the_resolution_schedule_for_images_larger_than_the_m
 
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"
-    choice, notes = apply_budget(config, 600.0)
+    choice, notes, replaced = apply_budget(config, 600.0)
     assert not choice.keep_resolution_schedule and config.pipeline.model.num_downscales == 0
     trainer = WillagsTrainer.__new__(WillagsTrainer)
     cams = SimpleNamespace(width=torch.tensor([[side], [side // 2]]), height=torch.tensor([[side * 3 // 4], [side]]))
@@ -426,11 +427,25 @@ def test_a_cpu_choice_keeps_the_resolution_schedule_for_images_larger_than_the_m
     )
     trainer._budget_record = {"notes": list(notes)}
     trainer.local_rank = 1  # no config.yml written here
-    trainer._resolution_for_images(choice)
+    trainer._resolution_for_images(replaced)
     preset = preset_defaults(choice.preset)[0].num_downscales
-    assert preset > 0
+    assert preset > 0 and replaced == preset
     want = preset if want_downscales == "preset" else want_downscales
     assert config.pipeline.model.num_downscales == want
     kept = [n for n in trainer._budget_record["notes"] if "resolution schedule kept" in n]
     assert (f"up to {side} px" in kept[0]) if want else not kept
     assert tb.full_resolution_suits(side) == (want == 0)
+
+
+def test_the_users_own_resolution_schedule_is_kept_and_not_restored():
+    """--pipeline.model.num-downscales set by the user: the budget leaves it (and says so), and reports nothing for the
+    trainer to put back for large images."""
+    from willags_ns import method_configs
+    from willags_ns.trainer import apply_budget
+
+    config = method_configs.willags_config()
+    config.machine.device_type = "cpu"
+    config.pipeline.model.num_downscales = 1
+    choice, notes, replaced = apply_budget(config, 600.0)
+    assert not choice.keep_resolution_schedule and config.pipeline.model.num_downscales == 1
+    assert replaced is None and "your --pipeline.model.num-downscales 1 kept" in notes

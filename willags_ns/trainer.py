@@ -84,13 +84,15 @@ def carry_overrides(current: Any, base: Any, target: Any) -> list[str]:
 
 def apply_budget(
     config: TrainerConfig, budget_s: float, warmups: dict[str, int] | None = None
-) -> tuple[BudgetChoice, list[str]]:
+) -> tuple[BudgetChoice, list[str], int | None]:
     """Choose the preset and the steps for ``budget_s`` and write them into ``config`` (model, max_num_iterations,
-    learning-rate schedules with their own ``warmups``, resolution schedule). Returns the choice and notes for the
-    printed block."""
+    learning-rate schedules with their own ``warmups``, resolution schedule). Returns the choice, notes for the
+    printed block, and the preset's num_downscales when this set full resolution from the first step in its place
+    (None otherwise: kept schedule, or the user's own num_downscales), which the trainer restores for large images."""
     device = device_class(config.machine.device_type)
     method = str(config.method_name)
     notes: list[str] = []
+    replaced: int | None = None
     if method != DEFAULT_PRESET:  # a method named explicitly (willags-lite too) keeps its model
         choice = fixed_choice(method, config.max_num_iterations)
     else:
@@ -110,12 +112,12 @@ def apply_budget(
             )
         if not choice.keep_resolution_schedule:
             if model.num_downscales == base_model.num_downscales:
-                model.num_downscales = 0
+                replaced, model.num_downscales = model.num_downscales, 0
             else:
                 notes.append(f"your --pipeline.model.num-downscales {model.num_downscales} kept")
     config.max_num_iterations = choice.max_steps
     end_schedules_at(config.optimizers, choice.steps, warmups)
-    return choice, notes
+    return choice, notes, replaced
 
 
 class WillagsTrainer(Trainer):
@@ -137,7 +139,7 @@ class WillagsTrainer(Trainer):
                     "agree on when to stop); train on one device or set --max-num-iterations"
                 )
             self._warmups = schedule_warmups(self.config.optimizers)
-            choice, notes = apply_budget(self.config, minutes * 60.0, self._warmups)
+            choice, notes, replaced = apply_budget(self.config, minutes * 60.0, self._warmups)
             device = device_class(self.config.machine.device_type)
             CONSOLE.print(format_choice(choice, minutes, device, notes))
             self._budget_record = {
@@ -152,23 +154,23 @@ class WillagsTrainer(Trainer):
                 self.config.save_config()  # config.yml: the preset and steps that will train, not the invoked ones
         super().setup(test_mode)
         if choice is not None and minutes is not None:
-            if not choice.keep_resolution_schedule and not any("num-downscales" in n for n in notes):
-                self._resolution_for_images(choice)
+            if replaced is not None:
+                self._resolution_for_images(replaced)
             self._attach_budget(minutes * 60.0, choice)
 
-    def _resolution_for_images(self, choice: BudgetChoice) -> None:
-        """The choice trains at full resolution from the first step (the CPU points were measured so, on 128 px
-        images); with larger training images (known only now, the data loaded) keep the preset's resolution
-        schedule instead (time_budget.full_resolution_suits): a step at full resolution costs too much to train."""
+    def _resolution_for_images(self, downscales: int) -> None:
+        """The budget set full resolution from the first step in place of the preset's ``downscales`` (the CPU points
+        were measured so, on 128 px images); with larger training images (known only now, the data loaded) put the
+        preset's resolution schedule back (time_budget.full_resolution_suits): a full-resolution step costs too much.
+        The model reads num_downscales at every step, so the change counts from the first one."""
         cams = getattr(getattr(self.pipeline.datamanager, "train_dataset", None), "cameras", None)
-        if cams is None or choice.preset not in PRESET_CONFIGS:
+        if cams is None:
             return
         side = int(max(cams.width.max().item(), cams.height.max().item()))
         if tb.full_resolution_suits(side):
             return
-        downscales = preset_defaults(choice.preset)[0].num_downscales
-        for model_config in {id(c): c for c in (self.config.pipeline.model, self.pipeline.model.config)}.values():
-            model_config.num_downscales = downscales
+        self.pipeline.model.config.num_downscales = downscales  # what the model reads
+        self.config.pipeline.model.num_downscales = downscales  # what config.yml says (the same object in nerfstudio)
         note = (
             f"training images up to {side} px (the {device_class(self.config.machine.device_type)} points: "
             f"{tb.CPU_SCENE_SIDE} px): splatfacto's resolution schedule kept (num_downscales {downscales}) instead of "
