@@ -148,6 +148,11 @@ def willags_lite_config() -> WillagsTrainerConfig:
 
     Smaller planes shrink the hypernetwork's last layer 8x (3*16*32*32 outputs); the cheaper mask cadence removes
     most teacher renders and VGG passes. Ships the same components, so every switch still applies.
+
+    Measured: cheaper than `willags` per step on the 2-core CPU (0.130 vs 0.171 s), which is where the time budget
+    picks it (willags_ns/time_budget.py). On the GPU it is not: alone on an H200 to 15k steps it stayed below
+    `willags` at every milestone on reichstag (18.00 vs 19.46 dB at 15k) and south-building (20.32 vs 22.25) and took
+    longer (328 vs 308 s): it runs the beta-VAE encoder on every step's photo and VGG at 512 px (docs/curves.md).
     """
     model = WillagsModelConfig(
         color_mode="modulated",
