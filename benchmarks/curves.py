@@ -35,18 +35,28 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from benchmarks.methods import configuration
+
 REPO = Path(__file__).resolve().parents[1]
-CURVE_METHODS = ("willags-lite", "willags", "willags-paper", "peer", "splatfacto")
-"""The methods of the curves (benchmarks/harness.py METHODS names)."""
+CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer", "splatfacto")
+"""The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
+benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`)."""
 REAL_SCENES = ("reichstag", "sacre-coeur-mini", "south-building")
 SCENES = (*REAL_SCENES, "fox-wild")
 """The curves' scenes: the real ones and fox-wild (issue 27), in this order."""
 """Scenes of real photo collections (the fox scenes are rendered); the default scenes of the curves."""
 TARGET_METHOD, TARGET_STEPS = "peer", 15000
 """The quality bar of the time-to-quality table: the peer's mean right-half PSNR at 15000 steps."""
-REACHING = ("willags", "willags-lite", "splatfacto", "willags-paper")
+REACHING = ("willags", "willags-full", "willags-lite", "splatfacto", "willags-paper")
 """Methods whose time to that bar the table reports (willags first: the issue's question)."""
-COLORS = {"willags": "C0", "willags-lite": "C2", "willags-paper": "C4", "peer": "C1", "splatfacto": "C7"}
+COLORS = {
+    "willags": "C0",
+    "willags-full": "C9",
+    "willags-lite": "C2",
+    "willags-paper": "C4",
+    "peer": "C1",
+    "splatfacto": "C7",
+}
 
 
 # ---------------------------------------------------------------------------------------------- GPU sharing
@@ -188,7 +198,8 @@ def scene_points(
     grids = grid_descriptions() if grids is None else grids
     out, seen = [], set()
     for r in records:
-        if r.get("scene") != scene or r.get("method") not in methods or r.get("device") != "cuda" or not _usable(r):
+        method = configuration(r)
+        if r.get("scene") != scene or method not in methods or r.get("device") != "cuda" or not _usable(r):
             continue
         if is_knob_run(r):  # a compressed schedule: not its method's curve (knob_runs)
             continue
@@ -197,12 +208,12 @@ def scene_points(
             for k, ms in (r.get("milestones") or {}).items():
                 if ms.get("psnr") is None:
                     continue
-                key = (r["method"], int(k), tag)
+                key = (method, int(k), tag)
                 seen.add(key)
                 out.append(
                     Point(
                         scene,
-                        r["method"],
+                        method,
                         int(k),
                         float(ms["psnr"]),
                         milestone_train_s(r, k),
@@ -213,7 +224,7 @@ def scene_points(
                     )
                 )
         elif r.get("psnr") is not None and int(r.get("steps") or 0) > 0:
-            key = (r["method"], int(r["steps"]), tag)
+            key = (method, int(r["steps"]), tag)
             if key in seen:  # the same run merged twice (a long run's final milestone and its grid copy)
                 continue
             seen.add(key)
@@ -221,7 +232,7 @@ def scene_points(
             out.append(
                 Point(
                     scene,
-                    r["method"],
+                    method,
                     int(r["steps"]),
                     float(r["psnr"]),
                     None if t is None else float(t),
@@ -374,7 +385,7 @@ def knob_runs(records: Sequence[dict[str, Any]], scene: str, grids: dict[str, st
             KnobRun(
                 scene,
                 float("nan") if minutes is None else float(minutes),
-                str((tb.get("choice") or {}).get("preset") or r.get("method")),
+                configuration({**r, "method": (tb.get("choice") or {}).get("preset") or r.get("method")}),
                 None if end is None else int(end),
                 None if psnr is None else float(psnr),
                 t,

@@ -16,7 +16,8 @@ class MethodSpec:
     """A benchmarked method: a base trainer config plus model-field overrides."""
 
     base: str
-    """"willags", "willags-lite", "willags-3dgs" (our method configs) or "splatfacto" (stock nerfstudio)."""
+    """"willags" (the full model, no inspection), "willags-paper", "willags-lite", "willags-3dgs" (our method configs),
+    "peer" or "splatfacto" (stock nerfstudio)."""
     overrides: tuple[tuple[str, Any], ...] = ()
     """(model field, value) pairs applied after the base config."""
     note: str = ""
@@ -25,8 +26,19 @@ class MethodSpec:
 
 
 METHODS: dict[str, MethodSpec] = {
+    # The base "willags" is the full model without inspection (base_trainer_config): every ablation below changes
+    # one part of it. The method `willags` itself (ns-train willags) inspects the scene first (auto_config); its
+    # records before AUTO_DEFAULT_SINCE (benchmarks/records.py) are of the full model, now `willags-full`.
     "willags": MethodSpec(
-        "willags", note="default: per-image embedding, SH colour x latent colour transform, antialiased, no field"
+        "willags",
+        (("auto_config", True),),
+        note="default: the full model with the scene inspected first (auto_config: willags-inspect switches latent / "
+        "mask / sky)",
+    ),
+    "willags-full": MethodSpec(
+        "willags",
+        note="every component, no inspection: per-image embedding, SH colour x latent colour transform, teacher + "
+        "mask, sky above the skyline, safeguard (the default before it inspected the scene)",
     ),
     "willags-paper": MethodSpec("willags-paper", note="the paper: beta-VAE, colour decoder over tri-plane + f_s"),
     "willags-foreachadam": MethodSpec(
@@ -67,7 +79,8 @@ METHODS: dict[str, MethodSpec] = {
     "willags-auto": MethodSpec(
         "willags",
         (("auto_config", True),),
-        note="default with auto_config: willags-inspect's recommendation switches latent / mask / field",
+        note="the full model with auto_config (today's default, its earlier name): willags-inspect switches latent / "
+        "mask / sky",
     ),
     # issue 26: willags-auto on top of the candidate defaults (auto's sky switch keeps the method's sky.region)
     "willags-auto-support": MethodSpec(
@@ -262,6 +275,30 @@ def stock_adam(config) -> None:
         group["optimizer"] = AdamOptimizerConfig(lr=o.lr, eps=o.eps, max_norm=o.max_norm, weight_decay=o.weight_decay)
 
 
+AUTO_DEFAULT_SINCE = "2026-11-25T20:05:00"
+"""From here on (a record is dated when its run starts) the method `willags` inspects the scene first
+(auto_config); its earlier records are of the full model without inspection, the configuration now named
+`willags-full` (at its version of the time: the default changed before, see docs/fidelity.md)."""
+
+
+AUTO_SAME_SINCE = "2026-11-25T15:26:40"
+"""From here on (commit 7bf8eff: the full model's sky and safeguard, the inspector's transient threshold 0.12)
+`willags-auto` runs exactly today's `willags` (benchmarks/generalisation.py DEFAULT_SINCE)."""
+
+
+def configuration(rec: dict[str, Any]) -> str:
+    """The method name of the configuration a record measured: its own, except `willags` records from before
+    AUTO_DEFAULT_SINCE, which are `willags-full`, and `willags-auto` records since AUTO_SAME_SINCE, which are today's
+    `willags`. Undated records keep their name."""
+    method = str(rec.get("method"))
+    date = str(rec.get("date") or "")
+    if method == "willags" and date and date < AUTO_DEFAULT_SINCE:
+        return "willags-full"
+    if method == "willags-auto" and date >= AUTO_SAME_SINCE:
+        return "willags"
+    return method
+
+
 def base_trainer_config(base: str):
     """A fresh TrainerConfig of `base` (our method configs or nerfstudio's splatfacto with our data parser)."""
     from willags_ns import method_configs as mc
@@ -279,7 +316,7 @@ def base_trainer_config(base: str):
         config.pipeline.datamanager.dataparser = WillagsDataParserConfig()
         return config
     factory = {
-        "willags": mc.willags_config,
+        "willags": mc.willags_full_config,  # the full model: METHODS' overrides (auto_config too) apply to it
         "willags-paper": mc.willags_paper_config,
         "willags-lite": mc.willags_lite_config,
         "willags-3dgs": mc.willags_3dgs_config,

@@ -88,7 +88,30 @@ def test_willags_auto_method_is_registered():
 
     methods, _ = discover_methods()
     assert "willags-auto" in methods and methods["willags-auto"].pipeline.model.auto_config is True
-    assert willags_auto_config().pipeline.model.use_mask is True  # before inspection: the full default
+    assert willags_auto_config().pipeline.model.use_mask is True  # before inspection: the full model
+
+
+def test_the_default_inspects_first_and_willags_full_does_not():
+    """`willags` is the full model with auto_config (docs/fidelity.md, eleventh session); `willags-full` is the same
+    model without inspection; `willags-auto` is the default under its earlier name."""
+    from nerfstudio.plugins.registry import discover_methods
+
+    from willags_ns.method_configs import willags_config, willags_full_config
+    from willags_ns.trainer import preset_defaults
+
+    methods, _ = discover_methods()
+    default, full, auto = methods["willags"], methods["willags-full"], methods["willags-auto"]
+    assert default.pipeline.model.auto_config is True and full.pipeline.model.auto_config is False
+    assert (default.method_name, full.method_name, auto.method_name) == ("willags", "willags-full", "willags-auto")
+    # the same model apart from the inspection: every field but auto_config equal, the schedule equal
+    d, f = vars(willags_config().pipeline.model), vars(willags_full_config().pipeline.model)
+    assert {k for k in d if d[k] != f[k]} == {"auto_config"}
+    assert f == vars(willags_model_config())
+    assert vars(auto.pipeline.model) == vars(default.pipeline.model)
+    assert willags_config().max_num_iterations == willags_full_config().max_num_iterations == 30000
+    # the preset a user's switches are told from (trainer.preset_defaults) is the method's own
+    assert preset_defaults("willags")[0].auto_config is True
+    assert preset_defaults("willags-full")[0].auto_config is False
 
 
 @pytest.mark.slow

@@ -103,3 +103,20 @@ def test_static_observation_scores_with_and_without_the_safeguard():
     assert on["static_obs_masked_perceptual"] == 1.0 and on["static_obs_masked"] < 0.2
     m = training_mask(_fake_model(True), 0)
     assert m.shape == (40, 80) and m[20, 16] and not m[20, 70]
+
+
+def test_willags_records_since_the_default_inspects_count_as_willags_auto():
+    """After AUTO_DEFAULT_SINCE a `willags` record is of the default that inspects first: the table's willags-auto
+    column, not the full model's."""
+    full = {"date": "2026-11-25T16:00:00"}
+    later = {"date": "2026-11-26T10:00:00"}
+    recs = [
+        _rec("south-building", "willags", 20.8, **full),
+        _rec("south-building", "willags", 22.0, **later),
+        _rec("south-building", "willags-auto", 22.2, **full),
+        _rec("south-building", "peer", 21.9),
+    ]
+    row = scene_rows(recs)[2]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[3] == "20.80 (n=1)"  # the full model: only the record before the change
+    assert cells[7] == "22.10 ±0.10 (n=2)"  # willags-auto: its own record and the later willags one

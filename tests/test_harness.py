@@ -122,6 +122,36 @@ def test_short_schedule_is_the_same_for_every_method(method, tmp_path):
         assert m.use_vae is False
 
 
+METHODS_USED = ("willags", "willags-auto", "willags-full", "willags-nomask")
+
+
+def test_the_default_inspects_and_its_ablations_change_the_full_model(tmp_path):
+    """METHODS' `willags` is the default (auto_config); `willags-full` and every ablation of the default start
+    from the full model without inspection (benchmarks/methods.py base_trainer_config)."""
+    built = {m: build_config(m, 300, "cpu", None, None, "short", tmp_path).pipeline.model for m in METHODS_USED}
+    assert built["willags"].auto_config is True and built["willags-auto"].auto_config is True
+    assert built["willags-full"].auto_config is False
+    assert built["willags-nomask"].auto_config is False and built["willags-nomask"].use_mask is False
+    assert vars(built["willags-full"]) == {**vars(built["willags"]), "auto_config": False}
+
+
+@pytest.mark.parametrize(
+    "rec, name",
+    [
+        ({"method": "willags", "date": "2026-11-25T19:00:00"}, "willags-full"),  # before the default inspected
+        ({"method": "willags", "date": "2026-11-26T09:00:00"}, "willags"),
+        ({"method": "willags"}, "willags"),  # undated: its own name
+        ({"method": "willags-auto", "date": "2026-11-25T16:00:00"}, "willags"),  # since 7bf8eff: today's default
+        ({"method": "willags-auto", "date": "2026-11-24T16:00:00"}, "willags-auto"),  # an older full model under it
+        ({"method": "peer", "date": "2026-11-25T19:00:00"}, "peer"),
+    ],
+)
+def test_a_record_is_named_by_the_configuration_it_measured(rec, name):
+    from benchmarks.methods import configuration
+
+    assert configuration(rec) == name
+
+
 def test_default_schedule_changes_only_the_budget(tmp_path):
     ref = harness.base_trainer_config("willags")
     cfg = harness.base_trainer_config("willags")

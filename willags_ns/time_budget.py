@@ -37,6 +37,9 @@ compile) nor the final checkpoint.
   cheaper per step (0.130 vs 0.171 s) and willags better at equal steps (23.01 vs 22.25 dB at 600 steps): the best
   point that fits decides (lite's 300 steps below 51 s, willags' 300 to 78 s, lite's 600 to 103 s, then willags'
   600: the points are few, so the choice alternates between them);
+- the points of ``willags`` were measured with the full model (``willags-full`` since the default inspects the scene
+  first): on the GPU's reference scene the inspection keeps the same components (fox-wild's transients keep the mask;
+  it has no keypoints for the sky), and the CPU's embedded scene (no ``--data``) is not inspected;
 - GPU step times are of runs alone on one GPU (the fidelity grid's runs share it with 4-12 others, so their times
   are not step costs);
 - ``one_scene``: only one scene has a record of this (configuration, steps, device); the others were measured on
