@@ -97,7 +97,9 @@ def processed(synthetic_photos, tmp_path_factory):
     again: (config, summary of the second run, image names extracted by the second run)."""
     photos, _ = synthetic_photos
     out = tmp_path_factory.mktemp("scene") / "synthetic"
-    cfg = ProcessConfig(images=photos, output=out, num_threads=2, test_every=4, num_downscales=1)
+    # one thread: pycolmap's threaded matching and mapping depend on how the threads interleave; with two, a suite run
+    # beside other work on the 2-core machine once placed one view 49 % of the extent off
+    cfg = ProcessConfig(images=photos, output=out, num_threads=1, test_every=4, num_downscales=1)
     real_extract = pycolmap.extract_features
     calls: list[list[str]] = []
 
