@@ -211,6 +211,11 @@ def test_ns_train_cli_runs_without_data_or_device_flags(tmp_path):
     cfg = next(tmp_path.rglob("config.yml")).read_text()
     if not torch.cuda.is_available():
         assert "device_type: cpu" in cfg
+    # the default inspects the scene first; the embedded scene cannot be, so it trains the full model, says why, and
+    # config.yml is resolved (reloading it does not try again)
+    assert "not applied (no --data given: the embedded scene is not inspected)" in out.stdout
+    assert "auto_config: false" in cfg and "use_mask: true" in cfg
+    assert json.loads(next(tmp_path.rglob("auto_config.json")).read_text())["applied"] is False
 
 
 def test_ns_eval_runs_the_protocol(tmp_path):

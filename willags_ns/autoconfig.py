@@ -21,7 +21,8 @@ is then rewritten with the resolved switches and `auto_config=False`, so `ns-ren
 `--load-dir` rebuild exactly the trained model without inspecting again.
 
 If the scene cannot be inspected (a layout the inspector does not read), training goes on with the method's own
-configuration and a warning says why: the automatic mode never stops a run the plain method would train.
+configuration and a warning says why: the automatic mode never stops a run the plain method would train. config.yml
+is resolved then too (`auto_config=False`, the method's own switches), so reloading it does not inspect again.
 """
 
 from __future__ import annotations
@@ -103,7 +104,13 @@ def apply_auto_config(
     "command": equivalent ns-train line, "report": inspector report or None, "error": why nothing was applied or
     None}."""
     if data is None:
-        return {"applied": False, "error": "no --data given", "changes": {}, "settings": {}, "reasons": {}}
+        return {
+            "applied": False,
+            "error": "no --data given: the embedded scene is not inspected",
+            "changes": {},
+            "settings": {},
+            "reasons": {},
+        }
     icfg = inspect_config if inspect_config is not None else InspectConfig()
     icfg.data = data
     try:

@@ -207,8 +207,9 @@ class WillagsPipeline(VanillaPipeline):
             # before the model exists: the switches decide which modules and parameters it has
             summary = apply_auto_config(config.model, scene_dir(config.datamanager), keep=config.auto_config_keep)
             CONSOLE.print(format_summary(summary))
-            if summary["applied"]:
-                config.model.auto_config = False  # resolved: what config.yml is rewritten with
+            # resolved either way (the recommended switches, or the method's own where nothing could be inspected):
+            # config.yml is rewritten with it, so reloading builds the trained model without inspecting again
+            config.model.auto_config = False
             self.auto_config_summary = summary
         # The model is built inside VanillaPipeline.__init__ right after the datamanager parses the scene; the
         # outputs are validated in between (a NaN pose would otherwise surface in the model's kNN as a sklearn
@@ -316,8 +317,7 @@ class WillagsPipeline(VanillaPipeline):
         if comms.is_main_process():  # one writer when several devices train (every rank resolved the same)
             base.mkdir(parents=True, exist_ok=True)
             (base / AUTO_CONFIG_FILE).write_text(json.dumps(summary, indent=1, default=str))
-            if summary["applied"]:
-                trainer.config.save_config()  # config.yml: the resolved switches, auto_config False
+            trainer.config.save_config()  # config.yml: the resolved switches, auto_config False
         text, scalars = tensorboard_entries(summary)
         logged = []
 
