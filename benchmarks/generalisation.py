@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from benchmarks.fidelity_tables import _signed
-from benchmarks.methods import AUTO_DEFAULT_SINCE, configuration
+from benchmarks.methods import AUTO_DEFAULT_SINCE, AUTO_SAME_SINCE
 
 TAGS = ("h100-r", "h200-r")
 """Tag prefixes of the fidelity grid's repeats (configs/benchmark_gpu_fidelity.json), H100 and H200 sessions."""
@@ -37,7 +37,7 @@ NO_KEYPOINTS = ("fox-clean", "fox-appearance-only", "fox-transient-only", "fox-w
 """Scenes without COLMAP keypoints (nerfstudio transforms.json): the default's sky (above the SfM skyline) and the
 mask's safeguard are off there, so the default trains exactly as the previous one (tests/test_train.py) and the
 previous default's records stand for it."""
-DEFAULT_SINCE = "2026-11-25T15:26:40"
+DEFAULT_SINCE = AUTO_SAME_SINCE
 """Records of `willags` and `willags-auto` dated from here on (the time of commit 7bf8eff; a record is dated when its run starts) are of today's default: the sky above
 the skyline and the mask's safeguard, and willags-inspect's transient threshold 0.12. Earlier ones are of the previous
 default (no sky, no safeguard; threshold 0.2)."""
@@ -94,9 +94,9 @@ def _today(r: dict[str, Any]) -> bool:
 
 
 def _inspects(r: dict[str, Any]) -> bool:
-    """A `willags` record of the default that inspects the scene first (benchmarks.methods.AUTO_DEFAULT_SINCE): the
-    configuration this table calls willags-auto."""
-    return configuration(r) == "willags" and str(r.get("date") or "") >= AUTO_DEFAULT_SINCE
+    """A `willags` record of the default that inspects the scene first (dated from benchmarks.methods
+    AUTO_DEFAULT_SINCE on; an undated one is older): the configuration this table calls willags-auto."""
+    return r.get("method") == "willags" and str(r.get("date") or "") >= AUTO_DEFAULT_SINCE
 
 
 def default_records(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str) -> list[dict[str, Any]]:

@@ -28,7 +28,7 @@ class MethodSpec:
 METHODS: dict[str, MethodSpec] = {
     # The base "willags" is the full model without inspection (base_trainer_config): every ablation below changes
     # one part of it. The method `willags` itself (ns-train willags) inspects the scene first (auto_config); its
-    # records before AUTO_DEFAULT_SINCE (benchmarks/records.py) are of the full model, now `willags-full`.
+    # records before AUTO_DEFAULT_SINCE (below, configuration()) are of the full model, now `willags-full`.
     "willags": MethodSpec(
         "willags",
         (("auto_config", True),),
@@ -283,7 +283,7 @@ AUTO_DEFAULT_SINCE = "2026-11-25T20:05:00"
 
 AUTO_SAME_SINCE = "2026-11-25T15:26:40"
 """From here on (commit 7bf8eff: the full model's sky and safeguard, the inspector's transient threshold 0.12)
-`willags-auto` runs exactly today's `willags` (benchmarks/generalisation.py DEFAULT_SINCE)."""
+`willags-auto` runs exactly today's `willags`; benchmarks/generalisation.py dates "today's" records from it too."""
 
 
 def configuration(rec: dict[str, Any]) -> str:
