@@ -126,6 +126,8 @@ def _setup(
     )
     config.timestamp = "run"
     config.machine.seed = seed
+    if load_step is not None:
+        _trained_model(config)
     if budget_minutes is not None:
         if not hasattr(config.pipeline, "time_budget_minutes"):
             raise SystemExit(f"long_run: {method} has no time budget (only willags' pipeline has the knob)")
@@ -142,6 +144,21 @@ def _setup(
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup(test_mode=test_mode)
     return trainer
+
+
+def _trained_model(config) -> None:
+    """Resuming or scoring a willags run: the model it trained, from its own config.yml (written when it trained: the
+    inspector's resolved switches, or the time budget's preset), in place of the one its method name builds today.
+    Rebuilding from the name would inspect the scene again in every segment and every scoring process, and a run
+    named `willags` before the default inspected (benchmarks.methods.AUTO_DEFAULT_SINCE) would get another model
+    than its checkpoints hold. Other methods' models do not depend on the scene: left as built."""
+    import yaml
+
+    saved = config.get_base_dir() / "config.yml"
+    if not hasattr(config.pipeline.model, "auto_config") or not saved.exists():
+        return
+    trained = yaml.load(saved.read_text(), Loader=yaml.Loader)
+    config.pipeline.model = trained.pipeline.model
 
 
 def _milestones(spec: str, state: dict[str, Any]) -> list[int]:

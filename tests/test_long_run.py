@@ -71,3 +71,36 @@ def test_a_knob_runs_record_carries_the_budget_and_the_score_where_it_stopped(tm
     assert rec["psnr"] == 19.43  # the score where the knob stopped, not at the cap (30000)
     assert rec["milestones"]["15004"] == {"psnr": 19.43, "ssim": 0.7, "train_s": 300.0}
     assert (rec["steps_done"], rec["concurrent_runs"]) == (15004, 1)
+
+
+def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_inspecting_again(tmp_path, monkeypatch):
+    """The default inspects the scene before it builds the model; a later segment and every scoring process build
+    the run's model from its config.yml (the resolved switches), not from the method name: no second inspection, and
+    a run trained under another meaning of `willags` still loads."""
+    import pytest
+    import torch
+
+    import willags_ns.autoconfig as ac
+    from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
+
+    cfg = SyntheticSceneConfig(
+        appearance_strength=1.0, transient_fraction=0.0, num_train=20, num_test=2, width=96, height=72,
+        num_points=3000, supersample=1,
+    )  # fmt: skip
+    data = write_scene(make_scene(cfg), tmp_path / "appearance")
+    run = tmp_path / "run"
+    args = ["train", "--method", "willags", "--data", str(data), "--run-dir", str(run), "--steps", "4"]
+    assert long_run.main([*args, "--milestones", "2,4", "--budget-s", "1000"]) == 0
+    state = json.loads((run / long_run.STATE).read_text())
+    assert sorted(state["milestone_train_s"], key=int) == ["2", "4"]
+
+    monkeypatch.setattr(ac, "inspect_scene", lambda *a, **k: pytest.fail("a trained run must not be inspected again"))
+    trainer = long_run._setup("willags", data, run, 4, 42, 1, "test")
+    model = trainer.pipeline.model
+    assert not model.config.use_mask and model.teacher is None  # the inspector's choice (no transients here)
+    assert trainer._start_step == 2  # resumed from the checkpoint of step index 1 (the milestone "2")
+    model.eval()
+    with torch.no_grad():
+        assert torch.isfinite(
+            model.get_outputs_for_camera(trainer.pipeline.datamanager.eval_dataset.cameras[0:1])["rgb"]
+        ).all()
