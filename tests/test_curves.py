@@ -170,6 +170,22 @@ def test_time_to_the_peers_psnr():
     assert "not reached (best 14.20 at 30000 steps)" in rows[2] and "not measured" in rows[2]  # lite: no records
 
 
+def test_a_bar_reached_and_lost_again_says_so():
+    """A method that reaches the peer at one milestone and falls below it later (one run's noise around the bar):
+    the cell says where, beside the time it first reached it."""
+    pts = [
+        _p("peer", 15000, 19.29, 259.0),
+        _p("willags", 5000, 19.37, 82.0),
+        _p("willags", 10000, 19.18, 170.0),
+        _p("willags", 15000, 19.27, 251.0),
+    ]
+    row = curves_report.time_to_target_rows({"s": pts})[2]
+    assert "5000 steps, 19.37 (n=1), 82 s [alone, H100]; below it again at 10000 steps (19.18, n=1), " in row
+    assert "15000 steps (19.27, n=1) |" in row
+    held = [_p("peer", 15000, 19.29, 259.0), _p("willags", 5000, 19.37, 82.0), _p("willags", 15000, 19.4, 251.0)]
+    assert "below it again" not in curves_report.time_to_target_rows({"s": held})[2]
+
+
 def _ratio_row(pts):
     """willags' cells of the time-to-target row: (its time / the peer's, goal)."""
     cells = [c.strip() for c in curves_report.time_to_target_rows({"s": pts})[2].strip("|").split("|")]
