@@ -1,0 +1,184 @@
+"""Where a training step's time goes: one method on one scene, a window of steps under torch.profiler.
+
+Alone on an H200 a 15k run of the default took 1.4x (south-building) to 1.8x (reichstag) splatfacto's time, with a
+third fewer Gaussians on reichstag (docs/gpu_notes.md, twelfth session): the difference is outside the rasteriser.
+This splits a step into what the profiler sees, for willags and splatfacto alike, so the next change is chosen from
+a measurement:
+
+- ``wall_ms``: wall time per step over ``--steps`` steps without the profiler (the device synchronised at both ends);
+  the next ``--steps`` steps run under it (``profiled_wall_ms``: their wall time, the profiler's own cost included);
+- ``device_ms``: kernel time per step on the GPU (0 on the CPU); wall minus it is time the GPU waited on the host;
+- ``launches``: kernel launches per step (CUDA), or aten operators per step on the CPU;
+- ``syncs`` / ``sync_sites``: host-device synchronisations per step and the willags_ns / nerfstudio / gsplat line
+  that forced each (``torch.cuda.set_sync_debug_mode``; CUDA only: on the CPU nothing waits);
+- ``top_host`` / ``top_device``: the operators with the most self CPU / device time per step.
+
+    python -m benchmarks.profile_step --method willags --data .gpu-r/reichstag --warmup 3000 --steps 50 \\
+        --out $OUT/profile-reichstag-willags.json
+
+Steps are splatfacto's stock schedule (as `ns-train <method>`); ``--warmup`` puts the window past the resolution
+schedule's switches (1/4 resolution to step 3000, 1/2 to 6000) where the runs spend most of their time. The run
+trains in a scratch directory (``--run-dir``) and is not kept.
+"""
+
+import argparse
+import collections
+import json
+import tempfile
+import time
+import traceback
+import warnings
+from pathlib import Path
+from typing import Any
+
+SITE_PARTS = ("/willags_ns/", "/nerfstudio/", "/gsplat/", "/benchmarks/")
+"""Frames a synchronisation is attributed to: the innermost one from these packages."""
+
+
+def sync_site(stack: list[traceback.FrameSummary]) -> str:
+    """``file:line`` of the innermost frame of ``stack`` inside willags_ns, nerfstudio, gsplat or benchmarks (the line
+    that asked torch for a host value), or "?" when none is."""
+    for frame in reversed(stack):
+        if any(p in frame.filename.replace("\\", "/") for p in SITE_PARTS) and not frame.filename.endswith(
+            "profile_step.py"
+        ):
+            parts = frame.filename.replace("\\", "/").split("/")
+            return f"{'/'.join(parts[-2:])}:{frame.lineno}"
+    return "?"
+
+
+def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str, Any]:
+    """Per-step numbers from a profiler's ``key_averages()``: kernel time, launches (CUDA) or aten operators (CPU),
+    and the ``top`` operators by self host time and by self device time."""
+    rows = list(events)
+    launches = sum(r.count for r in rows if r.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
+    aten = sum(r.count for r in rows if r.key.startswith("aten::"))
+
+    def device_us(r) -> float:
+        return float(getattr(r, "self_device_time_total", getattr(r, "self_cuda_time_total", 0.0)) or 0.0)
+
+    device_total = sum(device_us(r) for r in rows) if on_cuda else 0.0
+    by_host = sorted(rows, key=lambda r: r.self_cpu_time_total, reverse=True)[:top]
+    by_device = sorted(rows, key=device_us, reverse=True)[:top] if on_cuda else []
+    return {
+        "device_ms": device_total / 1000.0 / steps,
+        "launches": (launches if on_cuda else aten) / steps,
+        "aten_ops": aten / steps,
+        "top_host": [
+            {"op": r.key, "calls": r.count / steps, "self_ms": r.self_cpu_time_total / 1000.0 / steps} for r in by_host
+        ],
+        "top_device": [
+            {"op": r.key, "calls": r.count / steps, "self_ms": device_us(r) / 1000.0 / steps} for r in by_device
+        ],
+    }
+
+
+def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir: Path) -> dict[str, Any]:
+    """Train ``method`` on ``data`` for ``warmup`` steps, time the next ``steps`` and profile the ``steps`` after them
+    (see the module docstring)."""
+    import torch
+    from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    from benchmarks import long_run
+
+    on_cuda = torch.cuda.is_available()
+    trainer = long_run._setup(method, data, run_dir, warmup + 2 * steps + 1, seed, None, "val")
+    _ = trainer.pipeline.datamanager.cached_train
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if on_cuda else [])
+    prof = torch_profile(activities=activities)
+    sites: collections.Counter[str] = collections.Counter()
+    clock = {}
+    original_showwarning, original_filters = warnings.showwarning, list(warnings.filters)
+
+    def on_warning(message, category, filename, lineno, file=None, line=None):  # a sync: where the host asked
+        if "synchroniz" in str(message).lower():
+            sites[sync_site(traceback.extract_stack()[:-1])] += 1
+            return
+        original_showwarning(message, category, filename, lineno, file, line)
+
+    class Stop(Exception):
+        pass
+
+    def sync() -> None:
+        if on_cuda:
+            torch.cuda.synchronize()
+
+    def after_step(step: int) -> None:
+        if step == warmup - 1:  # the timed window (no profiler: it adds host time to every operator)
+            sync()
+            clock["t0"] = time.perf_counter()
+        elif step == warmup + steps - 1:  # the timed window ends, the profiled one starts with the next step
+            sync()
+            clock["t1"] = time.perf_counter()
+            warnings.showwarning = on_warning
+            warnings.simplefilter("always")
+            if on_cuda:
+                torch.cuda.set_sync_debug_mode("warn")
+            prof.__enter__()
+        elif step == warmup + 2 * steps - 1:
+            sync()
+            prof.__exit__(None, None, None)
+            clock["t2"] = time.perf_counter()
+            if on_cuda:
+                torch.cuda.set_sync_debug_mode("default")
+            warnings.showwarning, warnings.filters[:] = original_showwarning, original_filters
+            raise Stop
+
+    trainer.callbacks.append(
+        TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
+    )
+    try:
+        trainer.train()
+    except Stop:
+        pass
+    finally:
+        warnings.showwarning, warnings.filters[:] = original_showwarning, original_filters
+    if "t2" not in clock:
+        raise RuntimeError(f"profile_step: the windows (steps {warmup}..{warmup + 2 * steps - 1}) were not reached")
+    out = {
+        "method": method,
+        "scene": data.name,
+        "device": "cuda" if on_cuda else "cpu",
+        "machine": torch.cuda.get_device_name(0) if on_cuda else "cpu",
+        "warmup": warmup,
+        "steps": steps,
+        "num_gaussians": int(trainer.pipeline.model.num_points),
+        "wall_ms": (clock["t1"] - clock["t0"]) * 1000.0 / steps,
+        "profiled_wall_ms": (clock["t2"] - clock["t1"]) * 1000.0 / steps,
+        "syncs": sum(sites.values()) / steps,
+        "sync_sites": {k: v / steps for k, v in sites.most_common()},
+    }
+    out.update(summarize(prof.key_averages(), steps, on_cuda))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--method", required=True, help="a benchmarks/methods.py method (willags, splatfacto, peer, ...)")
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--warmup", type=int, default=3000, help="steps trained before the window")
+    ap.add_argument("--steps", type=int, default=50, help="steps profiled")
+    ap.add_argument("--seed", type=int, default=42)
+    ap.add_argument("--run-dir", default=None, help="scratch directory of the run (default: a temporary one)")
+    ap.add_argument("--out", required=True, help="JSON file written")
+    args = ap.parse_args(argv)
+    if args.warmup < 1 or args.steps < 1:
+        raise SystemExit(f"profile_step: --warmup and --steps must be >= 1 (got {args.warmup}, {args.steps})")
+    with tempfile.TemporaryDirectory() as tmp:
+        rec = profile(args.method, Path(args.data), args.warmup, args.steps, args.seed, Path(args.run_dir or tmp))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(rec, indent=1))
+    print(
+        f"profile_step: {args.method} on {rec['scene']} ({rec['machine']}): {rec['wall_ms']:.1f} ms/step wall, "
+        f"{rec['device_ms']:.1f} ms on the device, {rec['launches']:.0f} launches, {rec['syncs']:.1f} syncs/step, "
+        f"{rec['num_gaussians']:,} Gaussians"
+    )
+    for site, n in list(rec["sync_sites"].items())[:10]:
+        print(f"  sync {n:.1f}/step at {site}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
