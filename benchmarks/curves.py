@@ -41,6 +41,9 @@ REPO = Path(__file__).resolve().parents[1]
 CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer", "splatfacto")
 """The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
 benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`)."""
+CROSSING_METHODS = ("willags-lite", "willags", "willags-paper", "peer", "splatfacto")
+"""The methods issue 27 asks curves of (willags-full, the earlier default, is drawn but not one of them): where two of
+these cross, the issue asks a second seed."""
 REAL_SCENES = ("reichstag", "sacre-coeur-mini", "south-building")
 SCENES = (*REAL_SCENES, "fox-wild")
 """The curves' scenes: the real ones and fox-wild (issue 27), in this order."""
@@ -161,12 +164,19 @@ class Point:
     tag: str
     gpu: str
     sharing: Sharing
+    seed: int = 42
+    """The run's seed (records without one ran with the harness's default, 42)."""
 
 
 def _gpu(rec: dict[str, Any]) -> str:
     machine = str(rec.get("machine") or "")
     name = machine.split("(")[0].replace("NVIDIA", "").split()
     return name[0] if name else "?"
+
+
+def _seed(rec: dict[str, Any]) -> int:
+    seed = rec.get("seed")
+    return 42 if seed is None else int(seed)
 
 
 def _usable(rec: dict[str, Any]) -> bool:
@@ -221,6 +231,7 @@ def scene_points(
                         tag,
                         gpu,
                         share,
+                        _seed(r),
                     )
                 )
         elif r.get("psnr") is not None and int(r.get("steps") or 0) > 0:
@@ -240,6 +251,7 @@ def scene_points(
                     tag,
                     gpu,
                     share,
+                    _seed(r),
                 )
             )
     return sorted(out, key=lambda p: (methods.index(p.method), p.steps, p.train_s or 0.0))
@@ -328,6 +340,46 @@ def time_ratio(hit: StepPoint, ref: StepPoint) -> float | None:
 def first_reaching(curve: Sequence[StepPoint], target: float) -> StepPoint | None:
     """The first step count (in steps) whose mean PSNR reaches ``target``; None: not reached."""
     return next((s for s in curve if s.psnr >= target), None)
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """Two methods' mean curves changing order between two step counts both were scored at."""
+
+    first: str
+    second: str
+    steps: tuple[int, int]
+    """The step counts between which the order changes."""
+    leader: tuple[str, str]
+    """The method ahead at each of the two step counts."""
+    seeds: dict[str, int]
+    """Per method, the fewest distinct seeds it has at either of the two step counts."""
+
+    @property
+    def needs_seed(self) -> bool:
+        """Issue 27 asks two seeds where curves cross: True while a side has one."""
+        return min(self.seeds.values()) < 2
+
+
+def crossings(points: Sequence[Point], methods: Sequence[str] = CROSSING_METHODS) -> list[Crossing]:
+    """Where two methods' curves (mean PSNR per step count, :func:`step_curve`) cross: consecutive step counts that
+    both methods were scored at, with the other method ahead at each. Ties (equal means) are no order."""
+    out = []
+    for i, a in enumerate(methods):
+        for b in methods[i + 1 :]:
+            ca = {s.steps: s.psnr for s in step_curve(points, a)}
+            cb = {s.steps: s.psnr for s in step_curve(points, b)}
+            common = [k for k in sorted(ca) if k in cb and ca[k] != cb[k]]
+            for lo, hi in zip(common, common[1:], strict=False):
+                if (ca[lo] > cb[lo]) == (ca[hi] > cb[hi]):
+                    continue
+                seeds = {
+                    m: min(len({p.seed for p in points if p.method == m and p.steps == k}) for k in (lo, hi))
+                    for m in (a, b)
+                }
+                leader = (a if ca[lo] > cb[lo] else b, a if ca[hi] > cb[hi] else b)
+                out.append(Crossing(a, b, (lo, hi), leader, seeds))
+    return out
 
 
 def has_curve(points: Sequence[Point]) -> bool:

@@ -5,6 +5,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from benchmarks.curves import (
+    CROSSING_METHODS,
     CURVE_METHODS,
     REACHING,
     REAL_SCENES,
@@ -14,6 +15,7 @@ from benchmarks.curves import (
     Point,
     StepPoint,
     best_within,
+    crossings,
     first_reaching,
     pareto_flags,
     step_curve,
@@ -119,6 +121,26 @@ def time_to_target_rows(by_scene: dict[str, list[Point]]) -> list[str]:
                 cells += _ratio_and_goal(hit, curve, target)
         out.append(f"| {scene} | {target.psnr:.2f} (n={target.n}), {_time_cell(target)} | " + " | ".join(cells) + " |")
     return out
+
+
+def crossing_rows(by_scene: dict[str, list[Point]]) -> list[str]:
+    """Markdown: every place two methods' mean curves change order, with the seeds each side has there (issue 27
+    asks two seeds where curves cross; a crossing on one seed may be one run's noise)."""
+    rows = [
+        "| scene | methods | between | ahead before -> after | seeds there | a second seed |",
+        "|---|---|---|---|---|---|",
+    ]
+    for scene, points in by_scene.items():
+        for c in crossings(points):
+            seeds = ", ".join(f"{m} {n}" for m, n in c.seeds.items())
+            todo = "missing: " + ", ".join(m for m, n in c.seeds.items() if n < 2) if c.needs_seed else "have"
+            rows.append(
+                f"| {scene} | {c.first} / {c.second} | {c.steps[0]} and {c.steps[1]} steps | "
+                f"{c.leader[0]} -> {c.leader[1]} | {seeds} | {todo} |"
+            )
+    if len(rows) == 2:
+        return ["No two methods' curves cross in these records."]
+    return rows
 
 
 def _point_cell(p: Point | None, minutes: float) -> str:
@@ -272,6 +294,14 @@ def render_markdown(
         "judged (no alone time on a side, the two on different GPU models, or not reached in fewer steps).",
         "",
         *time_to_target_rows(by_scene),
+        "",
+        "## Where the curves cross",
+        "",
+        f"Consecutive step counts at which two of the issue's methods ({', '.join(CROSSING_METHODS)}) were both "
+        "scored, with the other one ahead (mean PSNR of the runs at each step count). The issue asks two seeds there; `seeds there`: the fewest distinct seeds the "
+        "method has at either of the two step counts.",
+        "",
+        *crossing_rows(by_scene),
         "",
         *knob_section(by_scene, knobs),
         "",

@@ -111,7 +111,7 @@ def test_milestone_times_are_measured_never_interpolated():
 def test_scene_points_from_milestones_and_grid_runs():
     records = [
         _grid("willags", 5000, 19.0, 200.0, tag="a", command="x --grid configs/concurrent.json"),
-        _grid("peer", 5000, 19.5, 300.0, tag="a"),
+        _grid("peer", 5000, 19.5, 300.0, tag="a", seed=43),
         _grid("willags", 5000, 30.0, 10.0, tag="dirty", tree_note="not a clean record"),
         _grid("willags", 5000, 30.0, 10.0, tag="failed", status="failed"),
         _grid("willags", 5000, 30.0, 10.0, tag="other", scene="fox-wild"),
@@ -132,10 +132,43 @@ def test_scene_points_from_milestones_and_grid_runs():
         ("willags", 30000, 420.0, "long run", "H200", "alone"),
         ("peer", 5000, 300.0, "grid", "H100", "unknown"),
     ]
+    assert [p.seed for p in pts] == [42, 42, 42, 43]  # a record without a seed ran with the default, 42
 
 
-def _p(method, steps, psnr, t, sharing=ALONE, gpu="H100"):
-    return Point("s", method, steps, psnr, t, "grid", "", gpu, sharing)
+def _p(method, steps, psnr, t, sharing=ALONE, gpu="H100", seed=42):
+    return Point("s", method, steps, psnr, t, "grid", "", gpu, sharing, seed)
+
+
+def test_crossings_are_changes_of_order_between_shared_step_counts_with_their_seeds():
+    pts = [
+        _p("willags", 1000, 19.0, 18.0),
+        _p("willags", 5000, 19.4, 80.0),
+        _p("willags", 15000, 19.3, 250.0),
+        _p("peer", 1000, 18.3, 15.0),
+        _p("peer", 1000, 18.2, 16.0, seed=43),
+        _p("peer", 2000, 19.9, 30.0),  # willags has no 2000: no comparison there
+        _p("peer", 5000, 19.2, 80.0),
+        _p("peer", 5000, 19.3, 75.0, seed=43),
+        _p("peer", 15000, 19.5, 260.0),
+        _p("peer", 15000, 19.4, 250.0, seed=43),
+        _p("splatfacto", 1000, 16.0, 10.0),
+        _p("splatfacto", 15000, 14.8, 140.0),
+    ]
+    (c,) = curves.crossings(pts)  # splatfacto stays below both; willags leads the peer at 1k and 5k, not at 15k
+    assert (c.first, c.second, c.steps, c.leader) == ("willags", "peer", (5000, 15000), ("willags", "peer"))
+    assert c.seeds == {"willags": 1, "peer": 2} and c.needs_seed
+    rows = curves_report.crossing_rows({"s": pts})
+    assert (
+        rows[2]
+        == "| s | willags / peer | 5000 and 15000 steps | willags -> peer | willags 1, peer 2 | missing: willags |"
+    )
+    # a second seed of willags at both step counts: the crossing has its seeds
+    more = pts + [_p("willags", 5000, 19.3, 82.0, seed=43), _p("willags", 15000, 19.2, 251.0, seed=43)]
+    (c2,) = curves.crossings(more)
+    assert not c2.needs_seed and curves_report.crossing_rows({"s": more})[2].endswith("| have |")
+    # willags-full (drawn, but not one of the issue's methods) crossing the peer is not listed
+    assert curves.crossings([_p("willags-full", 1000, 20.0, 1.0), _p("willags-full", 5000, 18.0, 5.0)] + pts[3:8]) == []
+    assert curves_report.crossing_rows({"s": pts[:3]}) == ["No two methods' curves cross in these records."]
 
 
 def test_pareto_marks_the_runs_nothing_beats_on_both():
