@@ -214,7 +214,7 @@ def test_a_bar_reached_and_lost_again_says_so():
     ]
     row = curves_report.time_to_target_rows({"s": pts})[2]
     assert "5000 steps, 19.37 (n=1), 82 s [alone, H100]; below it again at 10000 steps (19.18, n=1), " in row
-    assert "15000 steps (19.27, n=1) |" in row
+    assert "15000 steps (19.27, n=1) | 0.32x | met where first reached, not held |" in row
     held = [_p("peer", 15000, 19.29, 259.0), _p("willags", 5000, 19.37, 82.0), _p("willags", 15000, 19.4, 251.0)]
     assert "below it again" not in curves_report.time_to_target_rows({"s": held})[2]
 
