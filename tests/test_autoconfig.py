@@ -7,6 +7,7 @@ import pytest
 import torch
 import yaml
 
+from tests._scenes import small_scene
 from willags_ns.autoconfig import (
     AUTO_CONFIG_FILE,
     apply_auto_config,
@@ -14,10 +15,7 @@ from willags_ns.autoconfig import (
     overrides_from_recommendation,
     tensorboard_entries,
 )
-from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
 from willags_ns.method_configs import willags_auto_config, willags_model_config
-
-SMALL = dict(num_train=20, num_test=2, width=96, height=72, num_points=3000, supersample=1)
 
 
 @pytest.fixture(scope="module")
@@ -25,8 +23,7 @@ def scenes(tmp_path_factory):
     root = tmp_path_factory.mktemp("auto_scenes")
     out = {}
     for name, app, tr in (("static", 0.0, 0.0), ("appearance", 1.0, 0.0), ("wild", 1.0, 0.6)):
-        cfg = SyntheticSceneConfig(appearance_strength=app, transient_fraction=tr, **SMALL)
-        out[name] = write_scene(make_scene(cfg), root / name)
+        out[name] = small_scene(root / name, app, tr)
     return out
 
 

@@ -81,13 +81,9 @@ def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_i
     import torch
 
     import willags_ns.autoconfig as ac
-    from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
+    from tests._scenes import small_scene
 
-    cfg = SyntheticSceneConfig(
-        appearance_strength=1.0, transient_fraction=0.0, num_train=20, num_test=2, width=96, height=72,
-        num_points=3000, supersample=1,
-    )  # fmt: skip
-    data = write_scene(make_scene(cfg), tmp_path / "appearance")
+    data = small_scene(tmp_path / "appearance", appearance=1.0, transients=0.0)
     run = tmp_path / "run"
     args = ["train", "--method", "willags", "--data", str(data), "--run-dir", str(run), "--steps", "4"]
     assert long_run.main([*args, "--milestones", "2,4", "--budget-s", "1000"]) == 0

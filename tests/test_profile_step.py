@@ -6,7 +6,7 @@ import traceback
 import pytest
 
 from benchmarks import profile_step
-from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
+from tests._scenes import small_scene
 
 
 def test_a_sync_is_attributed_to_the_innermost_project_line():
@@ -21,11 +21,9 @@ def test_a_sync_is_attributed_to_the_innermost_project_line():
 
 
 def test_profiling_a_window_of_willags_steps_on_the_cpu(tmp_path):
-    cfg = SyntheticSceneConfig(
-        appearance_strength=1.0, transient_fraction=0.3, num_train=12, num_test=2, width=64, height=48,
-        num_points=1500, supersample=1,
-    )  # fmt: skip
-    data = write_scene(make_scene(cfg), tmp_path / "scene")
+    data = small_scene(
+        tmp_path / "scene", appearance=1.0, transients=0.3, num_train=12, width=64, height=48, num_points=1500
+    )
     out = tmp_path / "prof.json"
     args = ["--method", "willags", "--data", str(data), "--warmup", "2", "--steps", "3", "--out", str(out)]
     assert profile_step.main([*args, "--run-dir", str(tmp_path / "run")]) == 0
