@@ -108,18 +108,17 @@ def time_to_target_rows(by_scene: dict[str, list[Point]]) -> list[str]:
         for m in REACHING:
             curve = step_curve(points, m)
             hit = first_reaching(curve, target.psnr)
+            not_held = "" if hit is None else _not_held(curve, hit, target)
             if not curve:
                 cells.append("not measured")
             elif hit is None:
                 best = max(curve, key=lambda s: s.psnr)
                 cells.append(f"not reached (best {best.psnr:.2f} at {best.steps} steps)")
             else:
-                cells.append(
-                    f"{hit.steps} steps, {hit.psnr:.2f} (n={hit.n}), {_time_cell(hit)}{_not_held(curve, hit, target)}"
-                )
+                cells.append(f"{hit.steps} steps, {hit.psnr:.2f} (n={hit.n}), {_time_cell(hit)}{not_held}")
             if m == first:
                 ratio, goal = _ratio_and_goal(hit, curve, target)
-                if goal == "met" and hit is not None and _not_held(curve, hit, target):
+                if goal == "met" and not_held:
                     goal = "met where first reached, not held"  # it falls below the bar again later
                 cells += [ratio, goal]
         out.append(f"| {scene} | {target.psnr:.2f} (n={target.n}), {_time_cell(target)} | " + " | ".join(cells) + " |")
@@ -301,8 +300,8 @@ def render_markdown(
         "## Where the curves cross",
         "",
         f"Consecutive step counts at which two of the issue's methods ({', '.join(CROSSING_METHODS)}) were both "
-        "scored, with the other one ahead (mean PSNR of the runs at each step count). The issue asks two seeds there; `seeds there`: the fewest distinct seeds the "
-        "method has at either of the two step counts.",
+        "scored, with the other one ahead (mean PSNR of the runs at each step count). The issue asks two seeds "
+        "there; `seeds there`: the fewest distinct seeds the method has at either of the two step counts.",
         "",
         *crossing_rows(by_scene),
         "",

@@ -121,10 +121,7 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
             sync()
             prof.__exit__(None, None, None)
             clock["t2"] = time.perf_counter()
-            if on_cuda:
-                torch.cuda.set_sync_debug_mode("default")
-            warnings.showwarning, warnings.filters[:] = original_showwarning, original_filters
-            raise Stop
+            raise Stop  # the sync mode and the warning hooks are put back below
 
     trainer.callbacks.append(
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
@@ -134,6 +131,8 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
     except Stop:
         pass
     finally:
+        if on_cuda:
+            torch.cuda.set_sync_debug_mode("default")
         warnings.showwarning, warnings.filters[:] = original_showwarning, original_filters
     if "t2" not in clock:
         raise RuntimeError(f"profile_step: the windows (steps {warmup}..{warmup + 2 * steps - 1}) were not reached")
