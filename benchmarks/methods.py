@@ -102,6 +102,12 @@ METHODS: dict[str, MethodSpec] = {
         "willags-paper", (("use_field", False),), note="paper ablation: decoder without the tri-plane field"
     ),
     "willags-paper-novae": MethodSpec("willags-paper", (("use_vae", False),), note="paper ablation: no VAE"),
+    # the paper preset's south-building runs lose PSNR on their own training views from 1k to 5k steps
+    # (docs/fidelity.md, thirteenth session): which of its differences from the default does it
+    "willags-paper-nomask": MethodSpec("willags-paper", (("use_mask", False),), note="paper ablation: no mask"),
+    "willags-paper-aa": MethodSpec(
+        "willags-paper", (("rasterize_mode", "antialiased"),), note="paper ablation: antialiased rasterisation"
+    ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
     "peer": MethodSpec(
         "peer",
