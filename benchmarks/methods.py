@@ -105,6 +105,11 @@ METHODS: dict[str, MethodSpec] = {
     # the paper preset's south-building runs lose PSNR on their own training views from 1k to 5k steps
     # (docs/fidelity.md, thirteenth session): which of its differences from the default does it
     "willags-paper-nomask": MethodSpec("willags-paper", (("use_mask", False),), note="paper ablation: no mask"),
+    "willags-paper-support": MethodSpec(
+        "willags-paper",
+        (("static_support.enabled", True),),
+        note="paper ablation: the mask's SfM-track safeguard on (the default's; COLMAP scenes)",
+    ),
     "willags-paper-aa": MethodSpec(
         "willags-paper", (("rasterize_mode", "antialiased"),), note="paper ablation: antialiased rasterisation"
     ),
