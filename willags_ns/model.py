@@ -28,6 +28,7 @@ from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.lib_bilagrid import color_correct
 from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
@@ -54,6 +55,7 @@ from willags_ns.gaussians import (
     strategy_absgrad,
 )
 from willags_ns.losses import reconstruction_loss
+from willags_ns.mask_health import MaskHealth, MaskHealthConfig
 from willags_ns.mask_step import (
     MaskStep,
     fused_teacher_rgb,
@@ -110,6 +112,9 @@ class WillagsModelConfig(SplatfactoModelConfig):
     static_support: StaticSupportConfig = field(default_factory=StaticSupportConfig)
     """The mask's safeguard: pixels around observations of SfM points seen by many training images are static and
     never masked (willags_ns/static_support.py; COLMAP scenes, where the tracks exist)."""
+    mask_health: MaskHealthConfig = field(default_factory=MaskHealthConfig)
+    """Warn once while training when the mask feeds on itself (its masked share rising while the training PSNR
+    falls; willags_ns/mask_health.py)."""
     mask_every: int = 1
     """Recompute an image's mask on every k-th step (teacher render + VGG); other steps reuse that image's last
     mask. 1 = the paper (every step). Larger values trade mask freshness for speed."""
@@ -210,6 +215,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         self.color_path = ColorPath(self.latents.key_of)  # the f_d and baked-SH caches
         # each image's last mask, visits and SfM support (the safeguard's observations: COLMAP scenes)
         self.mask_step = MaskStep(cfg, observations)
+        self.mask_health = MaskHealth(cfg.mask_health)
         self._train_batch: dict | None = None
         self._step_cache: dict[str, Tensor] = {}  # this training step's scratch, passed to the rooms as `record`
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
@@ -444,6 +450,14 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
             metrics_dict["masked_fraction"] = 1.0 - mask.mean().detach()
             if "mask_rejected" in sc:
                 metrics_dict["mask_rejected"] = sc["mask_rejected"]
+            if self.training and "psnr" in metrics_dict:
+                # compared within one resolution and between opacity resets: both move the PSNR by themselves
+                regime = (self._get_downscale_factor(), self.step // (cfg.reset_alpha_every * cfg.refine_every))
+                warning = self.mask_health.observe(
+                    self.step, metrics_dict["masked_fraction"], metrics_dict["psnr"], regime
+                )
+                if warning is not None:
+                    CONSOLE.log(warning)
 
         # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (regularizers.py)
         vae = self.appearance_nets.vae if self.appearance_nets is not None else None
