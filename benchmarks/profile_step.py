@@ -12,6 +12,12 @@ a measurement:
 - ``syncs`` / ``sync_sites``: host-device synchronisations per step and the willags_ns / nerfstudio / gsplat line
   that forced each (``torch.cuda.set_sync_debug_mode``; CUDA only: on the CPU nothing waits);
 - ``top_host`` / ``top_device``: the operators with the most self CPU / device time per step.
+- ``components``: per step, host ms, device ms, launches (CUDA; aten operators on the CPU) and calls of the parts
+  of a step that both methods share by name (the model's get_outputs, get_metrics_dict, get_loss_dict; the
+  densification strategy; the optimisers; the next photo) and willags' own (its colours, rasterisation, background), each timed
+  under a ``torch.profiler.record_function`` label. Inclusive and nested (a step's colours are inside its
+  get_outputs); the backward pass is what the labels leave out. Measured at 1000 steps: the default's step had
+  ~100 more launches than splatfacto's (docs/gpu_notes.md); this says which part owns them.
 
     python -m benchmarks.profile_step --method willags --data .gpu-r/reichstag --warmup 3000 --steps 50 \\
         --out $OUT/profile-reichstag-willags.json
@@ -45,6 +51,76 @@ def sync_site(stack: list[traceback.FrameSummary]) -> str:
             parts = frame.filename.replace("\\", "/").split("/")
             return f"{'/'.join(parts[-2:])}:{frame.lineno}"
     return "?"
+
+
+COMPONENTS: dict[str, tuple[str, ...]] = {
+    "model": ("get_outputs", "appearance_colors", "_rasterize", "_background", "get_metrics_dict", "get_loss_dict"),
+    "strategy": ("step_pre_backward", "step_post_backward"),
+    "optimizers": ("zero_grad_some", "optimizer_scaler_step_some", "scheduler_step_all"),  # what the trainer calls
+    "datamanager": ("next_train",),
+}
+"""The methods labelled in a step, by owner (the pipeline's model, its densification strategy, the trainer's
+optimisers, the data manager that hands out the step's photo); a method an owner lacks (splatfacto has no appearance_colors) is skipped."""
+LABEL = "step/"
+LAUNCH_KEYS = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC")
+
+
+def label_components(trainer: Any) -> list[str]:
+    """Wrap the COMPONENTS' methods of this trainer's objects in ``record_function("step/<owner>.<method>")`` (on
+    the instances, so every call through them is labelled) and return the labels."""
+    import torch
+
+    model = trainer.pipeline.model
+    owners = {
+        "model": model,
+        "strategy": getattr(model, "strategy", None),
+        "optimizers": trainer.optimizers,
+        "datamanager": trainer.pipeline.datamanager,
+    }
+    labels = []
+    for owner, names in COMPONENTS.items():
+        obj = owners[owner]
+        for name in names:
+            fn = getattr(obj, name, None) if obj is not None else None
+            if not callable(fn):
+                continue
+            label = f"{LABEL}{owner}.{name}"
+
+            def labelled(*args, _fn=fn, _label=label, **kwargs):
+                with torch.profiler.record_function(_label):
+                    return _fn(*args, **kwargs)
+
+            setattr(obj, name, labelled)
+            labels.append(label)
+    return labels
+
+
+def component_summary(events: Any, steps: int, on_cuda: bool) -> dict[str, dict[str, float]]:
+    """Per labelled component (``step/...`` events of a profiler's ``events()``): host ms, device ms, launches (CUDA;
+    aten operators on the CPU) and calls, per step, each inclusive of what ran inside it."""
+
+    def descendants(e):
+        for c in e.cpu_children:
+            yield c
+            yield from descendants(c)
+
+    out: dict[str, dict[str, float]] = {}
+    for e in events:
+        if not e.name.startswith(LABEL):
+            continue
+        row = out.setdefault(e.name[len(LABEL) :], {"host_ms": 0.0, "device_ms": 0.0, "launches": 0.0, "calls": 0.0})
+        inner = list(descendants(e))
+        row["host_ms"] += e.cpu_time_total / 1000.0 / steps
+        row["calls"] += 1.0 / steps
+        if on_cuda:
+            row["launches"] += sum(c.name in LAUNCH_KEYS for c in inner) / steps
+            # the kernels of the operators inside it (FunctionEvent.device_time_total sums them recursively)
+            row["device_ms"] += float(getattr(e, "device_time_total", getattr(e, "cuda_time_total", 0.0)) or 0.0)
+        else:
+            row["launches"] += sum(c.name.startswith("aten::") for c in inner) / steps
+    for row in out.values():
+        row["device_ms"] = row["device_ms"] / 1000.0 / steps
+    return out
 
 
 def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str, Any]:
@@ -86,6 +162,7 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
     on_cuda = torch.cuda.is_available()
     trainer = long_run._setup(method, data, run_dir, warmup + 2 * steps + 1, seed, None, "val")
     _ = trainer.pipeline.datamanager.cached_train
+    label_components(trainer)
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if on_cuda else [])
     prof = torch_profile(activities=activities)
     sites: collections.Counter[str] = collections.Counter()
@@ -150,6 +227,7 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
         "sync_sites": {k: v / steps for k, v in sites.most_common()},
     }
     out.update(summarize(prof.key_averages(), steps, on_cuda))
+    out["components"] = component_summary(prof.events(), steps, on_cuda)
     return out
 
 
@@ -176,6 +254,11 @@ def main(argv=None) -> int:
     )
     for site, n in list(rec["sync_sites"].items())[:10]:
         print(f"  sync {n:.1f}/step at {site}")
+    for name, c in rec["components"].items():
+        print(
+            f"  {name}: {c['host_ms']:.2f} ms host, {c['device_ms']:.2f} ms device, {c['launches']:.0f} launches, "
+            f"{c['calls']:.1f} calls per step"
+        )
     return 0
 
 

@@ -33,8 +33,32 @@ def test_profiling_a_window_of_willags_steps_on_the_cpu(tmp_path):
     assert rec["device_ms"] == 0 and rec["syncs"] == 0  # nothing waits on a CPU
     assert rec["launches"] == rec["aten_ops"] > 50  # a step is hundreds of operators
     assert rec["top_host"] and all(r["self_ms"] >= 0 and r["calls"] > 0 for r in rec["top_host"])
+    parts = rec["components"]
+    # the model's forward, its colours inside it, the loss and the optimisers: once per step each, with operators
+    for name in (
+        "model.get_outputs",
+        "model.appearance_colors",
+        "model.get_loss_dict",
+        "optimizers.optimizer_scaler_step_some",
+    ):
+        assert parts[name]["calls"] == pytest.approx(1.0), name
+        assert parts[name]["launches"] > 0 and parts[name]["host_ms"] > 0, name
+    # nested: the colours are part of the forward
+    assert parts["model.appearance_colors"]["launches"] < parts["model.get_outputs"]["launches"]
+    assert parts["model.appearance_colors"]["host_ms"] < parts["model.get_outputs"]["host_ms"]
 
 
 def test_a_window_of_no_steps_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="--warmup and --steps must be >= 1"):
         profile_step.main(["--method", "willags", "--data", "x", "--steps", "0", "--out", str(tmp_path / "o")])
+
+
+def test_a_components_device_time_and_launches_are_what_ran_inside_its_label():
+    from types import SimpleNamespace as Event
+
+    launch = Event(name="cudaLaunchKernel", cpu_children=[])
+    op = Event(name="aten::mul", cpu_children=[launch, Event(name="cudaLaunchKernel", cpu_children=[])])
+    forward = Event(name="step/model.get_outputs", cpu_children=[op], cpu_time_total=2000.0, device_time_total=500.0)
+    other = Event(name="aten::add", cpu_children=[launch], cpu_time_total=1.0, device_time_total=9.0)
+    out = profile_step.component_summary([forward, other, forward], steps=2, on_cuda=True)
+    assert out == {"model.get_outputs": {"host_ms": 2.0, "device_ms": 0.5, "launches": 2.0, "calls": 1.0}}
