@@ -365,10 +365,10 @@ def crossings(points: Sequence[Point], methods: Sequence[str] = CROSSING_METHODS
     """Where two methods' curves (mean PSNR per step count, :func:`step_curve`) cross: consecutive step counts that
     both methods were scored at, with the other method ahead at each. Ties (equal means) are no order."""
     out = []
+    curve = {m: {s.steps: s.psnr for s in step_curve(points, m)} for m in methods}  # each method's, once
     for i, a in enumerate(methods):
         for b in methods[i + 1 :]:
-            ca = {s.steps: s.psnr for s in step_curve(points, a)}
-            cb = {s.steps: s.psnr for s in step_curve(points, b)}
+            ca, cb = curve[a], curve[b]
             common = [k for k in sorted(ca) if k in cb and ca[k] != cb[k]]
             for lo, hi in zip(common, common[1:], strict=False):
                 if (ca[lo] > cb[lo]) == (ca[hi] > cb[hi]):

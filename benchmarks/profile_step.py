@@ -63,6 +63,7 @@ COMPONENTS: dict[str, tuple[str, ...]] = {
 optimisers, the data manager that hands out the step's photo); a method an owner lacks (splatfacto has no appearance_colors) is skipped."""
 LABEL = "step/"
 LAUNCH_KEYS = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC")
+"""The runtime calls that launch a kernel: a step's and a component's launches are counted by these."""
 
 
 def label_components(trainer: Any) -> list[str]:
@@ -127,7 +128,7 @@ def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str
     """Per-step numbers from a profiler's ``key_averages()``: kernel time, launches (CUDA) or aten operators (CPU),
     and the ``top`` operators by self host time and by self device time."""
     rows = list(events)
-    launches = sum(r.count for r in rows if r.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
+    launches = sum(r.count for r in rows if r.key in LAUNCH_KEYS)
     aten = sum(r.count for r in rows if r.key.startswith("aten::"))
 
     def device_us(r) -> float:

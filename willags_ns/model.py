@@ -452,7 +452,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
                 metrics_dict["mask_rejected"] = sc["mask_rejected"]
             if self.training and "psnr" in metrics_dict:
                 # compared within one resolution and between opacity resets: both move the PSNR by themselves
-                regime = (self._get_downscale_factor(), self.step // (cfg.reset_alpha_every * cfg.refine_every))
+                regime = (self._get_downscale_factor(), self.step // self.strategy.reset_every)
                 warning = self.mask_health.observe(
                     self.step, metrics_dict["masked_fraction"], metrics_dict["psnr"], regime
                 )
