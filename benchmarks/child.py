@@ -208,6 +208,42 @@ def static_observation_scores(model) -> dict[str, Any]:
     }
 
 
+SUBJECT_MASKS_DIR = "masks_subject"
+"""A scene's per-photo outline of its subject (<stem>.png, nonzero = subject), for evaluation only (liberty): never read
+by a loader or by training."""
+
+
+def subject_masked_scores(model, train_dataset, masks_dir: Path) -> dict[str, Any]:
+    """ "Subject masked": the share of the subject's pixels (``masks_dir/<stem>.png``) that each training image's last
+    transient mask flags, pooled over the images with a mask, for the mask as training used it (with the safeguard)
+    and for the perceptual mask alone. The subject is static by construction, so 0 is right."""
+    import numpy as np
+    from PIL import Image
+
+    from willags_ns.eval.mask_eval import resize_mask
+
+    flagged_used = flagged_raw = total = images = 0
+    for idx, raw in model._mask_cache.items():
+        path = masks_dir / f"{Path(train_dataset.image_filenames[idx]).stem}.png"
+        if not path.is_file():
+            continue
+        subject = resize_mask(np.asarray(Image.open(path).convert("L")) > 0, *raw.shape)
+        if not subject.any():
+            continue
+        used = training_mask(model, idx).cpu().numpy()
+        flagged_used += int((~used & subject).sum())
+        flagged_raw += int((~raw.cpu().numpy() & subject).sum())
+        total += int(subject.sum())
+        images += 1
+    if total == 0:
+        return {}
+    return {
+        "subject_masked": flagged_used / total,
+        "subject_masked_perceptual": flagged_raw / total,
+        "subject_masked_images": images,
+    }
+
+
 def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     """Train and evaluate one run in this process; returns the result record (see the module docstring)."""
     import random
@@ -273,6 +309,9 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     masks = getattr(model, "_mask_cache", None)
     if masks and getattr(model, "sfm_observations", None) is not None:
         rec.update(static_observation_scores(model))
+    subject_dir = Path(spec["data"]) / SUBJECT_MASKS_DIR if spec.get("data") else None
+    if masks and subject_dir is not None and subject_dir.is_dir():
+        rec.update(subject_masked_scores(model, dm.train_dataset, subject_dir))
     if os.environ.get(RENDERS_ENV) and masks:
         from willags_ns.model import image_as_float
 

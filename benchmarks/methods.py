@@ -169,6 +169,16 @@ for _name, _over, _note in (
         "sky everywhere, Gaussians pay alpha where the sky alone explains the photo, no safeguard",
     ),
     (
+        "skyalpha-nomask",
+        (
+            ("sky.enabled", True),
+            ("sky.region", "everywhere"),
+            ("sky.alpha_penalty", 0.1),
+            ("use_mask", False),
+        ),
+        "sky everywhere with the alpha penalty, no transient mask",
+    ),
+    (
         "sky-sh1",
         (("sky.enabled", True), ("sky.region", "everywhere"), ("static_support.enabled", False), ("sh_degree", 1)),
         "sky everywhere and SH degree 1, no safeguard",

@@ -120,3 +120,29 @@ def test_willags_records_since_the_default_inspects_count_as_willags_auto():
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[3] == "20.80 (n=1)"  # the full model: only the record before the change
     assert cells[7] == "22.10 ±0.10 (n=2)"  # willags-auto: its own record and the later willags one
+
+
+def test_subject_masked_scores_count_the_subject_pixels_the_mask_flags(tmp_path):
+    """The "subject masked" figure: the share of a photo's subject (masks_subject/<stem>.png) that the last mask
+    flags, for the mask as used (with the safeguard) and for the perceptual mask alone; photos without an outline
+    or with an empty one do not count."""
+    from PIL import Image
+
+    from benchmarks.child import subject_masked_scores
+
+    model = _fake_model(True)
+    raw = torch.ones(40, 80, dtype=torch.bool)
+    raw[:, :40] = False  # the perceptual mask flags the left half
+    model._mask_cache[0] = raw
+    model._mask_cache[1] = torch.zeros(40, 80, dtype=torch.bool)  # an image without an outline
+    model.sfm_observations.append(model.sfm_observations[0])
+    subject = np.zeros((80, 160), dtype=np.uint8)  # outlines at twice the mask's resolution: resized
+    subject[:, 20:100] = 255  # columns 10..50 at the mask's size: half in the flagged half
+    Image.fromarray(subject).save(tmp_path / "a.png")
+    dataset = SimpleNamespace(image_filenames=[tmp_path / "images" / "a.jpg", tmp_path / "images" / "b.jpg"])
+    out = subject_masked_scores(model, dataset, tmp_path)
+    assert out["subject_masked_images"] == 1
+    assert out["subject_masked_perceptual"] == 0.75  # columns 10..39 of 10..49 flagged
+    assert out["subject_masked"] < out["subject_masked_perceptual"]  # the safeguard keeps part of it
+    Image.fromarray(np.zeros((80, 160), dtype=np.uint8)).save(tmp_path / "a.png")
+    assert subject_masked_scores(model, dataset, tmp_path) == {}
