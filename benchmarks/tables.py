@@ -6,6 +6,7 @@ import math
 from typing import Any
 
 from benchmarks.curves import pareto_optimal
+from benchmarks.every_scene import every_scene_section
 from benchmarks.fidelity_tables import fidelity_section
 from benchmarks.generalisation import TAGS as GENERALISATION_TAGS
 from benchmarks.generalisation import generalisation_section
@@ -304,6 +305,7 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "",
     ]
     out += fidelity_section(records)
+    out += every_scene_section(records)
     out += generalisation_section(records)
     records = [r for r in records if not str(r.get("tag", "")).startswith(GENERALISATION_TAGS)]
     # runs under a time budget stop at a step of their own, with compressed schedules: no row of a fixed-step table

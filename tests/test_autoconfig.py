@@ -166,7 +166,11 @@ def _rec_sky(preset: str, sky: bool, measured: bool = True) -> dict:
 
 def test_overrides_map_the_sky():
     on = overrides_from_recommendation(_rec_sky("willags", True))
-    assert on["sky.enabled"] is True and on["sky.alpha_penalty"] == 0.0
+    assert on["sky.enabled"] is True and on["sky.alpha_penalty"] == 0.0 and on["sky.region"] == "open"
+    surround = _rec_sky("willags", True)
+    surround["sky"]["mode"] = "surround"
+    over = overrides_from_recommendation(surround)
+    assert (over["sky.enabled"], over["sky.region"], over["sky.alpha_penalty"]) == (True, "everywhere", 0.1)
     off = overrides_from_recommendation(_rec_sky("willags", False))
     assert off["sky.enabled"] is False and off["sky.alpha_penalty"] == 0.0
     # not measured (no SfM points): the method's own sky stays
@@ -225,7 +229,21 @@ def test_the_inspectors_default_sky_is_the_willags_presets():
     from willags_ns.inspect import WILLAGS_SKY
 
     cfg = willags_model_config()
-    assert {"sky.enabled": cfg.sky.enabled, "sky.alpha_penalty": cfg.sky.alpha_penalty} == WILLAGS_SKY
+    own = {"sky.enabled": cfg.sky.enabled, "sky.region": cfg.sky.region, "sky.alpha_penalty": cfg.sky.alpha_penalty}
+    assert own == WILLAGS_SKY
+
+
+def test_a_subject_against_the_sky_sets_the_surround_sky_unless_the_user_named_the_region(tmp_path):
+    from tests.test_inspect import write_plane_scene
+
+    scene = write_plane_scene(tmp_path / "column", lower_only=False, column=True)
+    cfg = willags_model_config()
+    s = apply_auto_config(cfg, scene)
+    assert (cfg.sky.enabled, cfg.sky.region, cfg.sky.alpha_penalty) == (True, "everywhere", 0.1)
+    assert s["changes"]["sky.region"] == ["open", "everywhere"] and "surround" in format_summary(s)
+    cfg = willags_model_config()
+    s = apply_auto_config(cfg, scene, keep=("sky.region",))
+    assert cfg.sky.region == "open" and cfg.sky.alpha_penalty == 0.1 and s["kept"] == {"sky.region": "open"}
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -268,3 +286,23 @@ def test_training_keeps_a_switch_the_user_changed_from_the_preset(tmp_path, scen
     assert config.pipeline.auto_config_keep == ("use_field",)
     assert model.appearance_nets.field is not None and not model.config.use_mask  # the field kept, the mask decided
     assert trainer.pipeline.auto_config_summary["kept"] == {"use_field": True}
+
+
+def test_on_liberty_the_default_resolves_to_the_measured_surround_sky_without_mask(shared_data):
+    """The default's model on liberty, after inspection, is exactly `willags-skyalpha-nomask`'s (the configuration
+    whose records stand for it in docs/benchmarks.md, benchmarks/every_scene.py)."""
+    import dataclasses
+
+    from benchmarks.methods import METHODS, set_nested
+
+    resolved = willags_model_config()
+    summary = apply_auto_config(resolved, shared_data / "liberty")
+    assert summary["applied"] and summary["changes"] == {
+        "use_mask": [True, False],
+        "sky.region": ["open", "everywhere"],
+        "sky.alpha_penalty": [0.0, 0.1],
+    }
+    measured = willags_model_config()
+    for key, value in METHODS["willags-skyalpha-nomask"].overrides:
+        set_nested(measured, key, value)
+    assert dataclasses.asdict(resolved) == dataclasses.asdict(measured)

@@ -146,3 +146,41 @@ def test_subject_masked_scores_count_the_subject_pixels_the_mask_flags(tmp_path)
     assert out["subject_masked"] < out["subject_masked_perceptual"]  # the safeguard keeps part of it
     Image.fromarray(np.zeros((80, 160), dtype=np.uint8)).save(tmp_path / "a.png")
     assert subject_masked_scores(model, dataset, tmp_path) == {}
+
+
+def test_every_scene_section_reads_todays_default_per_scene():
+    """liberty: today's default is the inspector's new choice (records of the method named in full with its model,
+    and `willags` since INSPECTOR_SINCE), its earlier `willags` runs are the previous default; on the other real
+    scenes the inspector's decision did not move, so today's default is willags-auto's records there."""
+    from benchmarks.every_scene import INSPECTOR_SINCE, every_scene_section, mask_rows, sky_rows
+
+    before, after = {"date": "2026-11-26T09:00:00"}, {"date": INSPECTOR_SINCE}
+    recs = [
+        _rec("liberty", "peer", 16.6),
+        _rec("liberty", "peer", 16.7, tag="h200-r1b"),
+        _rec("liberty", "willags", 15.0, subject_masked=0.45, static_obs_masked=0.1, **before),
+        _rec("liberty", "willags-skyalpha-nomask", 19.0),
+        _rec("liberty", "willags", 19.4, auto_config={"settings": {"use_mask": False}}, **after),
+        _rec(
+            "liberty",
+            "willags-skyalpha-support",
+            18.0,
+            subject_masked=0.2,
+            subject_masked_perceptual=0.25,
+            static_obs_masked=0.04,
+            static_obs_masked_perceptual=0.15,
+        ),
+        _rec("reichstag", "peer", 19.3),
+        _rec("reichstag", "willags", 19.2, date="2026-11-26T08:00:00"),  # the default that inspects
+    ]
+    rows = sky_rows(recs)
+    lib = [c.strip() for c in next(r for r in rows if r.startswith("| liberty")).strip("|").split("|")]
+    assert lib[3] == "19.20 ±0.20 (n=2)" and lib[4] == "+2.55" and lib[5] == "met"
+    assert lib[6] == "15.00 (n=1)" and lib[7] == "+4.20"
+    rei = [c.strip() for c in next(r for r in rows if r.startswith("| reichstag")).strip("|").split("|")]
+    assert rei[3] == "19.20 (n=1)" and rei[5] == "missed by 1.10" and rei[6] == "= willags"
+    masks = mask_rows(recs)
+    assert any("| liberty | willags (today) | 2 | no mask: nothing flagged |" in r for r in masks)
+    assert any("| liberty | willags-skyalpha-support | 1 | 20.0 % | 25.0 % | 4.0 % | 15.0 % |" in r for r in masks)
+    assert every_scene_section(recs)[0].startswith("## Every real scene")
+    assert every_scene_section([_rec("fox-wild", "willags", 22.0)]) == []

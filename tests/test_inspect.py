@@ -19,10 +19,14 @@ from willags_ns.inspect import (
     covered_cells,
     format_report,
     inspect_scene,
+    open_from_top,
     project_points,
+    raw_colour_twins,
     read_scene,
     recommend,
     sky_flags,
+    sky_settings,
+    surround_fraction,
     zbuffer_visible,
 )
 from willags_ns.scripts import inspect as cli
@@ -215,16 +219,19 @@ SKY_ON = "--pipeline.model.sky.enabled True"
 SKY_OFF = "--pipeline.model.sky.enabled False"
 
 
-def write_plane_scene(root, lower_only: bool, n: int = 8, width: int = 64, height: int = 48):
+def write_plane_scene(root, lower_only: bool, n: int = 8, width: int = 64, height: int = 48, column: bool = False):
     """n cameras looking down +z (OpenCV) from (x, 0, 0), x in [-1, 1], at a grid of points on the plane z = 10
     spaced 0.3 (1.5 px); lower_only keeps the points with y >= 0, which every camera sees in the lower half of its
-    image (y down, cy = height / 2). Each image is a uniform grey of its own level (an appearance change of ~29
+    image (y down, cy = height / 2); column keeps the points with |x| <= 1, a narrow upright subject in the middle of
+    every image with open background on both sides. Each image is a uniform grey of its own level (an appearance change of ~29
     levels, no transients), so the preset is willags and the sky switch shows in its command."""
     root.mkdir(parents=True)
     (root / "images").mkdir()
     f = 50.0
     xs = np.arange(-10.0, 10.0, 0.3)
     ys = np.arange(0.05, 6.0, 0.3) if lower_only else np.arange(-5.95, 6.0, 0.3)
+    if column:
+        xs = xs[np.abs(xs) <= 1.0]
     gx, gy = np.meshgrid(xs, ys)
     pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 10.0)], axis=1)
     write_ply_points(root / "points.ply", pts.astype(np.float32), np.full((len(pts), 3), 128, dtype=np.uint8))
@@ -270,8 +277,10 @@ def test_lower_half_covered_is_half_background_and_wants_the_sky(plane_reports):
     assert rec["preset"]["value"] == "willags" and rec["sky"]["on"] is True and rec["sky"]["measured"] is True
     assert "0.46" in rec["sky"]["reason"] and ">= threshold" in rec["sky"]["reason"]
     # the willags default has the sky: turning it on needs no flag, and none switches it off
-    assert sky_flags(True) == [] and SKY_OFF not in rec["preset"]["flags"] and SKY_OFF not in rec["command"]
-    assert "sky: ON" in format_report(report)
+    assert sky_flags("skyline") == [] and SKY_OFF not in rec["preset"]["flags"] and SKY_OFF not in rec["command"]
+    assert "sky: ON  skyline" in format_report(report) and rec["sky"]["mode"] == "skyline"
+    # a plane under the sky: what SfM covers has open background only above it, never on both sides
+    assert ev["surround_score"] == 0.0 and "< threshold 0.6" in rec["sky"]["reason"]
 
 
 def test_fully_covered_has_no_background_and_no_sky(plane_reports):
@@ -280,7 +289,7 @@ def test_fully_covered_has_no_background_and_no_sky(plane_reports):
     rec = report["recommendation"]
     assert rec["preset"]["value"] == "willags" and rec["sky"]["on"] is False
     assert "< threshold" in rec["sky"]["reason"]
-    assert sky_flags(False) == [SKY_OFF] and SKY_OFF in rec["command"]
+    assert sky_flags("off") == [SKY_OFF] and SKY_OFF in rec["command"]
 
 
 def test_sky_threshold_moves_the_recommendation(tmp_path):
@@ -360,3 +369,78 @@ def test_shared_scenes_sky(shared_data):
         score = report["evidence"]["background_score"]
         assert report["recommendation"]["sky"]["on"] is sky, (name, score)
         assert (score > 2 * thr) if sky else (score < thr / 2), (name, score)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the sky's mode: a subject against the sky
+
+
+def test_open_from_top_and_surround_known_answers():
+    covered = np.zeros((6, 8), dtype=bool)
+    covered[2:, 3:5] = True  # an upright subject in the middle, from row 2 down
+    sky = open_from_top(covered)
+    assert sky.sum() == 48 - 8 and not (sky & covered).any()
+    assert surround_fraction(covered) == 1.0  # every covered cell has sky to its left and right
+    wall = np.zeros((6, 8), dtype=bool)
+    wall[2:] = True  # a building across the whole width: sky only above it
+    assert open_from_top(wall).sum() == 16 and surround_fraction(wall) == 0.0
+    plaza = wall.copy()
+    plaza[4:, 2:6] = False  # an uncovered plaza under the facade is not connected to the top: not sky
+    assert open_from_top(plaza).sum() == 16 and surround_fraction(plaza) == 0.0
+    tower = wall.copy()
+    tower[2:4, :3] = False  # the left part of the top rows is sky: the covered cells there have sky on one side
+    assert open_from_top(tower).sum() == 22 and surround_fraction(tower) == 0.0
+    assert surround_fraction(np.zeros((4, 4), dtype=bool)) == 0.0  # nothing covered
+
+
+def test_a_subject_against_the_sky_gets_the_surround_sky(tmp_path):
+    report = inspect_scene(InspectConfig(data=write_plane_scene(tmp_path / "column", lower_only=False, column=True)))
+    ev, sky = report["evidence"], report["recommendation"]["sky"]
+    assert ev["surround_score"] > 0.9 and ev["background_score"] > 0.5
+    assert sky["on"] and sky["mode"] == "surround" and ">= threshold 0.6" in sky["reason"]
+    command = report["recommendation"]["command"]
+    assert "--pipeline.model.sky.region everywhere" in command and "--pipeline.model.sky.alpha-penalty 0.1" in command
+    assert "sky: ON  surround" in format_report(report)
+    high = inspect_scene(InspectConfig(data=tmp_path / "column", surround_threshold=1.01))["recommendation"]
+    assert high["sky"]["mode"] == "skyline" and "sky.region" not in high["command"]
+
+
+def test_sky_modes_map_to_settings_and_flags():
+    assert sky_settings("off")["sky.enabled"] is False
+    assert sky_settings("surround") == {"sky.enabled": True, "sky.region": "everywhere", "sky.alpha_penalty": 0.1}
+    assert sky_flags("surround") == ["--pipeline.model.sky.region everywhere", "--pipeline.model.sky.alpha-penalty 0.1"]
+    with pytest.raises(ValueError, match="unknown sky mode 'on'"):
+        sky_settings("on")
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# transients: a colour that recurs in another photo is light, not an occluder
+
+
+def test_raw_colour_twins():
+    colors = np.full((2, 4, 3), np.nan, dtype=np.float32)
+    colors[0] = [[0.5] * 3, [0.1] * 3, [0.12] * 3, [0.5] * 3]  # the dark photo 1 has a twin (photo 2)
+    colors[1, :3] = [[0.5] * 3, [0.9] * 3, [0.5] * 3]  # the bright photo 1 has none
+    seen = ~np.isnan(colors[..., 0])
+    cand = np.zeros((2, 4), dtype=bool)
+    cand[0, 1] = cand[1, 1] = True
+    twins = raw_colour_twins(colors, seen, cand, 0.1)
+    assert twins[0, 1] and not twins[1, 1] and twins.sum() == 1  # only candidates are marked
+    assert not raw_colour_twins(colors, seen, cand, 0.01).any()
+
+
+def test_shared_scenes_transients_and_sky_modes(shared_data):
+    """liberty (a statue against the sky, photographed under every light, no occluder in its photos): no mask, the
+    sky behind every pixel; the other shared scenes keep their decisions (docs/inspect.md)."""
+    expected = {  # name: (mask, sky mode)
+        "liberty": (False, "surround"),
+        "reichstag": (False, "skyline"),
+        "sacre-coeur-mini": (True, "skyline"),
+        "south-building": (False, "off"),
+        "fox-wild": (True, "off"),
+        "fox-transient-only": (True, "off"),
+        "fox-clean": (False, "off"),
+    }
+    for name, (mask, mode) in expected.items():
+        rec = inspect_scene(InspectConfig(data=shared_data / name))["recommendation"]
+        assert (rec["mask"]["on"], rec["sky"]["mode"]) == (mask, mode), (name, rec["mask"], rec["sky"])

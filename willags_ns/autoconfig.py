@@ -8,9 +8,11 @@ that nearby views disagree with) and switches off what the evidence says the sce
 - appearance change without transients: the latent without the mask (and so without the EMA teacher and VGG);
 - transients: the mask and its teacher (with the latent: the mask is part of the willags model);
 - the tri-plane field stays off (measured: it did not help); the latent size follows the image count;
-- the appearance-conditioned sky (`sky.enabled`, without the alpha penalty) where a large share of the photos
-  has no SfM points (sky or far background), off elsewhere; the method's own setting when that was not measured (no
-  SfM points); never with plain 3DGS (no latent to condition it on; `appearance='sh'` builds no sky).
+- the appearance-conditioned sky where a large share of the photos has no SfM points (sky or far background), off
+  elsewhere: above each photo's skyline ("skyline"), or behind every pixel with the alpha penalty where the subject
+  stands against the sky ("surround"; `sky.enabled`, `sky.region`, `sky.alpha_penalty`); the method's own setting
+  when that was not measured (no SfM points); never with plain 3DGS (no latent to condition it on;
+  `appearance='sh'` builds no sky).
 
 Only those switches change (`overrides_from_recommendation`); every other setting is the method's own (the
 resolution schedule, rasterisation mode, learning rates...). A switch the user set on the command line wins: the
@@ -49,11 +51,24 @@ def overrides_from_recommendation(rec: dict[str, Any]) -> dict[str, Any]:
     }
     # unmeasured (no SfM points), or a recommendation written before the sky evidence: the method's own sky stays
     if rec.get("sky", {}).get("measured"):
-        out.update(sky_settings(bool(rec["sky"]["on"])))
+        out.update(sky_settings(sky_mode(rec["sky"])))
     return out
 
 
-AUTO_SWITCHES = ("appearance", "use_mask", "use_field", "vae.latent_dim", "sky.enabled", "sky.alpha_penalty")
+def sky_mode(sky: dict[str, Any]) -> str:
+    """The sky mode of a recommendation's sky entry ("skyline" for an entry that names only on / off)."""
+    return sky.get("mode") or ("skyline" if sky["on"] else "off")
+
+
+AUTO_SWITCHES = (
+    "appearance",
+    "use_mask",
+    "use_field",
+    "vae.latent_dim",
+    "sky.enabled",
+    "sky.region",
+    "sky.alpha_penalty",
+)
 """Every model field `overrides_from_recommendation` may set."""
 
 

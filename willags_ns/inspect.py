@@ -24,7 +24,10 @@ point's median colour exceeds `outlier_floor` (0.2, ~51 levels; optionally also 
 outlier is a *transient* observation only when it also disagrees (same limit) with each of the `neighbours` nearest
 cameras (by centre) that see the point: parallax, visibility errors the z-buffer misses and view-dependent colour are
 shared by nearby views, an occluder in one photo is not (without this test fox-clean's top-down views, where the
-wall hides behind the fox, scored like the occluded scenes). An image is occluded when at least
+wall hides behind the fox, scored like the occluded scenes). Nor does it count an outlier whose raw colour
+another analysed photo repeats (`twin_tolerance`): light that no per-image transform undoes (a statue's sunlit and
+shaded sides, an evening's golden face) recurs in the photos taken under it, an occluder differs from photo to
+photo. An image is occluded when at least
 `image_transient_level` (5%) of its observations are transient; the score is the share of occluded images. It cannot
 see occluders that sit where there are no SfM points (people in front of a facade's base, sky) nor occluders that
 recur at the same place in nearby views.
@@ -53,14 +56,18 @@ side) that hold a point are marked and dilated by one cell, so the gaps between 
 not count; the uncovered share of the cells is the image's `background_fraction`, and the scene's score is the median
 over the analysed images (the mean and the per-image values are reported too). It also counts what SfM misses below
 the horizon: a textureless plaza, crowds (on reichstag about half of the uncovered area lies in the lower half of the
-image, docs/inspect.md). Without SfM points it is not measured (None).
+image, docs/inspect.md). Where the subject stands against the sky matters too (`surround_score`): per image,
+the share of its covered cells that have open background connected to the image's top on both sides in their row
+(`surround_fraction`), median over the images: a statue or a tower seen against the sky scores high, a building under
+the sky (open background above its roofline only) low. Without SfM points neither is measured (None).
 
 The recommendation (see `recommend`): appearance latent on when appearance_score >= `appearance_threshold`; mask (with
 its EMA teacher) on when transient_score >= `transient_threshold`; tri-plane field always off (measured: it did not
-help, docs/benchmarks.md); the appearance-conditioned sky (appearance/sky.py, without its alpha penalty) on when
-background_score >= `sky_threshold` (kept as the method's own setting when not measured; never with plain 3DGS, which
-has no latent to condition it on); the latent size; and the preset, each with a sentence quoting the number and
-threshold.
+help, docs/benchmarks.md); the appearance-conditioned sky (appearance/sky.py) on when background_score >=
+`sky_threshold`, in one of two modes (`SKY_MODES`): above each photo's skyline, or behind every pixel with the alpha
+penalty where surround_score >= `surround_threshold` (kept as the method's own setting when not measured; never with
+plain 3DGS, which has no latent to condition it on); the latent size; and the preset, each with a sentence quoting
+the number and threshold.
 The thresholds come from the measurements on the shared scenes and synthetic scenes in docs/inspect.md.
 """
 
@@ -119,6 +126,13 @@ class InspectConfig:
     and hid the occluders of fox-wild)."""
     outlier_floor: float = 0.2
     """... and beyond this colour distance (RMS over channels, colours in [0, 1]; 0.2 ~ 51 levels)."""
+    twin_tolerance: float = 0.1
+    """Transients: an outlier observation whose raw colour (no transform undone) another analysed photo of the same
+    point repeats within this RMS distance is not counted (0: off). Light that a per-image colour transform cannot
+    undo (the sunlit and the shaded side of a statue, a golden evening on one face) recurs in other photos taken
+    under similar light; an occluder in front of a point differs from photo to photo. Without this test a
+    collection photographed under directional light reads as occluded where none of its photos shows an occluder
+    (docs/inspect.md)."""
     image_transient_level: float = 0.05
     """An image counts as occluded when at least this fraction of its observations are transient."""
     appearance_threshold: float = 4.0
@@ -130,21 +144,24 @@ class InspectConfig:
     """The same threshold for the no-points fallback evidence (spread of per-image mean colours, 8-bit levels)."""
     transient_threshold: float = 0.12
     """transient_score (share of occluded images) at or above which the transient mask (and its teacher) is
-    recommended. Decided on the seven shared scenes at once (2 seeds each, 5000 steps; docs/inspect.md): the mask
-    helps where the score is 0.17 (sacre-coeur-mini: 14.54 with it, 13.81 without), 0.59 (fox-wild) and 0.79
-    (fox-transient-only); it is level or costs where the score is 0.09 (reichstag: 19.34 with, 19.11 without), 0.05
-    (fox-appearance-only), 0.03 (fox-clean) and 0.02 (south-building: 20.77 with, 22.10 without). 0.12 lies between
-    0.09 and 0.17 (their geometric mean); the earlier 0.2 switched the mask off on sacre-coeur-mini."""
+    recommended. Decided on the shared scenes at once, 2 seeds each (docs/inspect.md gives each scene's score and
+    what the mask costs or wins there): it lies between the highest score of a scene where the mask was level or
+    cost, and the lowest where it helped."""
     background_grid: int = 32
     """Open background: cells of the coverage grid along the image's long side (32: cells of 1/32 of it, 25 px at
     800 px; one cell of dilation then bridges gaps of up to ~50 px between neighbouring points)."""
     sky_threshold: float = 0.15
     """background_score (median share of an image that no SfM point covers) at or above which the
-    appearance-conditioned sky is recommended. Decided by the shared scenes (docs/inspect.md): the Internet photo
-    collections measure 0.37 (sacre-coeur-mini) and 0.39 (reichstag), the scenes without sky 0.003 (the four fox
-    scenes, a close-up of an object) and 0.044 (south-building, a facade filling the frame). 0.15 lies between the
-    gap's log-midpoint (0.13) and its midpoint (0.21), and still separates the two groups with a grid of 16 or 64
-    cells (collections 0.21 / 0.51, south-building 0.00 / 0.12)."""
+    appearance-conditioned sky is recommended: between the scenes without sky (a close-up of an object, a facade
+    filling the frame) and the Internet photo collections (docs/inspect.md gives each scene's score); it separates
+    the two groups with a grid of 16 or 64 cells too."""
+    surround_threshold: float = 0.6
+    """surround_score (median share of the covered cells of an image with open background on both sides in their
+    row) at or above which the sky is composited behind every pixel with the alpha penalty (sky mode "surround")
+    instead of only above the skyline: the subject stands against the sky (a statue, a tower), so the sky shows
+    beside it as well as above it, where the skyline region never reaches, and Gaussians floating in that sky show
+    in every new view. A building seen against the sky only above its roofline measures far less (docs/inspect.md
+    gives every shared scene's value)."""
     gaussians_per_point: float = 10.0
     """Resource estimate: expected final Gaussians per SfM point (clipped to [1e5, 1.5e6])."""
     steps: int = 30000
@@ -468,6 +485,21 @@ def nearest_cameras(centres: np.ndarray, k: int) -> np.ndarray:
     return np.argsort(d, axis=1)[:, : min(k, len(centres) - 1)]
 
 
+def raw_colour_twins(colors: np.ndarray, seen: np.ndarray, candidates: np.ndarray, tolerance: float) -> np.ndarray:
+    """[P, M] bool: the `candidates` observations (of colours [P, M, 3], `seen` [P, M]) whose raw colour another
+    photo of the same point repeats within `tolerance` (RMS over channels): the point under a light that recurs,
+    not an occluder (InspectConfig.twin_tolerance)."""
+    twins = np.zeros_like(candidates)
+    for p in np.flatnonzero(candidates.any(axis=1)):
+        ms = np.flatnonzero(seen[p])
+        cand = np.flatnonzero(candidates[p, ms])
+        x = colors[p, ms]  # [k, 3]
+        d = np.sqrt(np.mean((x[cand, None] - x[None]) ** 2, axis=-1))  # [c, k]
+        d[np.arange(len(cand)), cand] = np.inf  # not its own twin
+        twins[p, ms[cand]] = d.min(axis=1) <= tolerance
+    return twins
+
+
 def appearance_and_transients(colors: np.ndarray, cfg: InspectConfig, neighbours: np.ndarray) -> dict[str, Any]:
     """The SfM-point evidence (module docstring) from colours [P, M, 3] (NaN where unseen) and each image's nearest
     cameras [M, k] (indices into M)."""
@@ -515,6 +547,8 @@ def appearance_and_transients(colors: np.ndarray, cfg: InspectConfig, neighbours
         isolated &= ~agree
         checked |= both
     isolated &= checked
+    if cfg.twin_tolerance > 0:
+        isolated &= ~raw_colour_twins(colors, seen, isolated, cfg.twin_tolerance)
     tfrac = isolated.sum(axis=0) / np.maximum(seen.sum(axis=0), 1)
     return {
         "appearance_score": float(np.nanmedian(per_image_change)),
@@ -560,13 +594,13 @@ def covered_cells(uv: np.ndarray, width: float, height: float, grid: int) -> np.
     return np.logical_or.reduce([p[dy : dy + ny, dx : dx + nx] for dy in range(3) for dx in range(3)])
 
 
-def background_fractions(scene: SceneViews, images: np.ndarray, grid: int) -> np.ndarray:
-    """[M] share of each selected image's area that no SfM point covers (evidence 4, module docstring): all the
-    scene's points projected with the image's camera (no visibility test: a hidden point still proves there is
-    geometry along that ray, and open sky has none), cells from `covered_cells`. Needs poses and points."""
+def coverage_maps(scene: SceneViews, images: np.ndarray, grid: int) -> list[np.ndarray]:
+    """Per selected image, the cells [ny, nx] that an SfM point covers (`covered_cells`): all the scene's points
+    projected with the image's camera (no visibility test: a hidden point still proves there is geometry along that
+    ray, and open sky has none). Needs poses and points."""
     assert scene.points is not None and scene.w2c is not None and scene.K is not None and scene.cam_size is not None
-    out = np.empty(len(images))
-    for m, i in enumerate(images):
+    out = []
+    for i in images:
         w, h = scene.cam_size[i]
         dist = None if scene.dist is None else scene.dist[i]
         uv, z = project_points(scene.points, scene.w2c[i], scene.K[i], dist)
@@ -575,18 +609,57 @@ def background_fractions(scene: SceneViews, images: np.ndarray, grid: int) -> np
         # keep only points whose pinhole projection lies within the image plus a margin of half its size
         pin, _ = project_points(scene.points, scene.w2c[i], scene.K[i], None) if dist is not None else (uv, z)
         near = (np.abs(pin[:, 0] / w - 0.5) <= 1.0) & (np.abs(pin[:, 1] / h - 0.5) <= 1.0)
-        out[m] = 1.0 - float(covered_cells(uv[(z > 1e-6) & near], w, h, grid).mean())
+        out.append(covered_cells(uv[(z > 1e-6) & near], w, h, grid))
     return out
 
 
+def background_fractions(scene: SceneViews, images: np.ndarray, grid: int) -> np.ndarray:
+    """[M] share of each selected image's area that no SfM point covers (evidence 4, module docstring)."""
+    return np.array([1.0 - float(c.mean()) for c in coverage_maps(scene, images, grid)])
+
+
+def open_from_top(covered: np.ndarray) -> np.ndarray:
+    """[ny, nx] bool: the uncovered cells connected (4-neighbourhood) to the image's top row through uncovered
+    cells: the sky, and what reaches into it (not a plaza or a crowd under a covered facade)."""
+    free = ~covered
+    reach = np.zeros_like(free)
+    reach[0] = free[0]
+    while True:
+        grown = reach.copy()
+        grown[1:] |= reach[:-1]
+        grown[:-1] |= reach[1:]
+        grown[:, 1:] |= reach[:, :-1]
+        grown[:, :-1] |= reach[:, 1:]
+        grown &= free
+        if (grown == reach).all():
+            return reach
+        reach = grown
+
+
+def surround_fraction(covered: np.ndarray) -> float:
+    """Share of an image's covered cells with open background (`open_from_top`) both to their left and to their
+    right in the same row: how much of what SfM reconstructed stands against the sky (a statue: most of it; a
+    building under the sky: only its roofline). 0 for an image without covered cells."""
+    sky = open_from_top(covered)
+    left = np.maximum.accumulate(sky, axis=1)
+    right = np.maximum.accumulate(sky[:, ::-1], axis=1)[:, ::-1]
+    n = int(covered.sum())
+    return float((covered & left & right).sum()) / n if n else 0.0
+
+
 def open_background_evidence(scene: SceneViews, images: np.ndarray, cfg: InspectConfig) -> dict[str, Any]:
-    """Evidence 4 (module docstring): the median over the selected images of the uncovered share, the mean and
-    the per-image values."""
-    frac = background_fractions(scene, images, cfg.background_grid)
+    """Evidence 4 (module docstring): the median over the selected images of the uncovered share and of the
+    surround share (`surround_fraction`), their means and the per-image values."""
+    maps = coverage_maps(scene, images, cfg.background_grid)
+    frac = np.array([1.0 - float(c.mean()) for c in maps])
+    surround = np.array([surround_fraction(c) for c in maps])
     return {
         "background_score": float(np.median(frac)),
         "background_fraction_mean": float(np.mean(frac)),
+        "surround_score": float(np.median(surround)),
+        "surround_fraction_mean": float(np.mean(surround)),
         "per_image_background_fraction": frac.tolist(),
+        "per_image_surround_fraction": surround.tolist(),
     }
 
 
@@ -635,41 +708,49 @@ def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: Insp
 # the recommendation
 
 
-WILLAGS_SKY: dict[str, Any] = {"sky.enabled": True, "sky.alpha_penalty": 0.0}
-"""The sky of the default `willags` preset (model fields under pipeline.model): on, without the alpha penalty (and
-trained only above the SfM skyline, sky.region "open", which the switch leaves as it is). The command line names
-only what differs from it. Kept in step with method_configs.willags_model_config (tests/test_autoconfig.py checks)."""
+SKY_MODES: dict[str, dict[str, Any]] = {
+    "off": {"sky.enabled": False, "sky.region": "open", "sky.alpha_penalty": 0.0},
+    "skyline": {"sky.enabled": True, "sky.region": "open", "sky.alpha_penalty": 0.0},
+    "surround": {"sky.enabled": True, "sky.region": "everywhere", "sky.alpha_penalty": 0.1},
+}
+"""The sky switch's settings (model fields under pipeline.model), one per mode: "off", no learnt sky (splatfacto's
+background); "skyline", the appearance-conditioned sky trained only above each photo's SfM skyline, so the scene's
+Gaussians stay opaque (a building under the sky); "surround", the sky behind every pixel and the alpha penalty
+where the sky alone explains the photo, so no Gaussian floats in the sky around a subject that stands against it
+(appearance/sky.py). What each costs and wins, per scene: docs/inspect.md."""
 
-SKY_ON: dict[str, Any] = {"sky.enabled": True, "sky.alpha_penalty": 0.0}
-"""What the sky switch turns on: the appearance-conditioned sky without the alpha penalty. Measured (5000 steps,
-2 seeds each, docs/benchmarks.md): on reichstag the sky alone is level with the default (19.18 vs 19.11 dB), while
-the sky with the 0.1 alpha penalty (and the mask's safeguard) lost 0.55 dB there and 0.7-1.8 dB on the fox scenes;
-the penalty stays an option (`--pipeline.model.sky.alpha-penalty`)."""
-
-
-def sky_settings(on: bool) -> dict[str, Any]:
-    """Model fields of the sky switch: SKY_ON when on, no sky when off. The one place the switch
-    maps to settings: `sky_flags` and autoconfig.overrides_from_recommendation read it."""
-    return dict(SKY_ON) if on else {"sky.enabled": False, "sky.alpha_penalty": 0.0}
+WILLAGS_SKY: dict[str, Any] = SKY_MODES["skyline"]
+"""The sky of the default `willags` preset: the command line names only what differs from it. Kept in step with
+method_configs.willags_model_config (tests/test_autoconfig.py checks)."""
 
 
-def sky_flags(on: bool) -> list[str]:
-    """ns-train flags that give the willags preset `sky_settings(on)`: the fields that differ from WILLAGS_SKY (the
-    alpha penalty is read only with the sky enabled, so switching the sky off needs the one flag)."""
+def sky_settings(mode: str) -> dict[str, Any]:
+    """Model fields of a sky mode ("off", "skyline" or "surround"): the one place the switch maps to settings;
+    `sky_flags` and autoconfig.overrides_from_recommendation read it."""
+    if mode not in SKY_MODES:
+        raise ValueError(f"unknown sky mode {mode!r} (one of {', '.join(SKY_MODES)})")
+    return dict(SKY_MODES[mode])
+
+
+def sky_flags(mode: str) -> list[str]:
+    """ns-train flags that give the willags preset `sky_settings(mode)`: the fields that differ from WILLAGS_SKY
+    (the region and the penalty are read only with the sky enabled, so switching it off needs the one flag)."""
     return [
         f"--pipeline.model.{key.replace('_', '-')} {value}"
-        for key, value in sky_settings(on).items()
-        if value != WILLAGS_SKY[key] and (on or key == "sky.enabled")
+        for key, value in sky_settings(mode).items()
+        if value != WILLAGS_SKY[key] and (mode != "off" or key == "sky.enabled")
     ]
 
 
 def _sky(evidence: dict[str, Any], preset: str, cfg: InspectConfig) -> dict[str, Any]:
-    """The sky entry of the recommendation (evidence 4): on when background_score >= sky_threshold, for the willags
-    presets; not measured without SfM points (the method's own setting stays)."""
+    """The sky entry of the recommendation (evidence 4), for the willags presets: "off" below `sky_threshold` of
+    open background, "surround" where the subject stands against it (surround_score >= `surround_threshold`),
+    "skyline" otherwise; not measured without SfM points (the method's own setting stays)."""
     bg = evidence.get("background_score")
     if bg is None:
         return {
             "on": bool(WILLAGS_SKY["sky.enabled"]),
+            "mode": "skyline",
             "measured": False,
             "reason": "open background not measured (no SfM points): the sky is kept as the method's own setting",
         }
@@ -680,8 +761,27 @@ def _sky(evidence: dict[str, Any], preset: str, cfg: InspectConfig) -> dict[str,
     )
     if need and preset == "willags-3dgs":
         # the sky's colour is a function of the appearance latent, which plain 3DGS does not have
-        return {"on": False, "measured": True, "reason": reason + "; plain 3DGS has no latent to condition a sky on"}
-    return {"on": bool(need), "measured": True, "reason": reason}
+        return {
+            "on": False,
+            "mode": "off",
+            "measured": True,
+            "reason": reason + "; plain 3DGS has no latent to condition a sky on",
+        }
+    if not need:
+        return {"on": False, "mode": "off", "measured": True, "reason": reason}
+    sur = evidence.get("surround_score")
+    surround = sur is not None and sur >= cfg.surround_threshold
+    if sur is not None:
+        reason += (
+            f"; the subject stands against it in a median {sur:.2f} of its rows "
+            f"{'>=' if surround else '<'} threshold {cfg.surround_threshold:g}: "
+            + (
+                "surround (the sky behind every pixel, the alpha penalty where it alone explains the photo)"
+                if surround
+                else "skyline (the sky above each photo's skyline only)"
+            )
+        )
+    return {"on": True, "mode": "surround" if surround else "skyline", "measured": True, "reason": reason}
 
 
 def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dict[str, Any]:
@@ -729,7 +829,7 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
         preset_reason = "neither an appearance change nor transients: plain 3DGS through willags' rasteriser"
     sky = _sky(evidence, preset, cfg)
     if preset == "willags" and sky["measured"]:
-        flags = flags + sky_flags(sky["on"])
+        flags = flags + sky_flags(sky["mode"])
     return {
         "appearance_latent": {"on": appearance, "reason": app_reason},
         "mask": {"on": mask, "reason": mask_reason},
@@ -814,10 +914,12 @@ def format_report(report: dict[str, Any]) -> str:
         f"  evidence ({e['method']}): appearance {e['appearance_score']:.2f} levels, transients "
         + ("not measured" if ts is None else f"{ts:.2f} of the images occluded")
         + ", open background "
-        + ("not measured" if bg is None else f"{bg:.2f} of the image (median)"),
+        + ("not measured" if bg is None else f"{bg:.2f} of the image (median)")
+        + ("" if e.get("surround_score") is None else f", subject against it {e['surround_score']:.2f} (median)"),
     ]
     for key in ("appearance_latent", "mask", "teacher", "triplane_field", "sky"):
-        lines.append(f"  {key}: {'ON ' if r[key]['on'] else 'off'}  ({r[key]['reason']})")
+        mode = f" {r[key]['mode']}" if key == "sky" and r[key]["on"] else ""
+        lines.append(f"  {key}: {'ON ' if r[key]['on'] else 'off'}{mode}  ({r[key]['reason']})")
     lines.append(f"  latent_dim: {r['latent_dim']['value']}  ({r['latent_dim']['reason']})")
     lines.append(f"  preset: {r['preset']['value']}  ({r['preset']['reason']})")
     lines.append(f"  command: {r['command']}")
