@@ -52,6 +52,9 @@ def main(argv=None) -> int:
     ap.add_argument("--views", default="0,1,3,5", help="test views to show (indices in the split's order)")
     ap.add_argument("--rows", default=ROWS, help="runs to show: comma-separated <run name>=<label>")
     ap.add_argument("--masks", default="{scene}-willags-*-masks.png", help="glob of the mask sheet ({scene}: its name)")
+    ap.add_argument(
+        "--masks-label", default="willags' transient mask", help="whose mask the mask sheet shows (its caption)"
+    )
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "real_scene_comparison.png")
     args = ap.parse_args(argv)
 
@@ -92,7 +95,7 @@ def main(argv=None) -> int:
             x += b - a
     if mask_sheet is not None:
         y = h * len(rows)
-        draw.text((6, y + 6), "willags' transient mask on 4 training images (red: not supervised)", fill=(0, 0, 0))
+        draw.text((6, y + 6), f"{args.masks_label} on 4 training images (red: not supervised)", fill=(0, 0, 0))
         out.paste(mask_sheet, (0, y + 24))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     out.save(args.out)
