@@ -18,8 +18,8 @@ from typing import Any
 from benchmarks.generalisation import _cell, _diff, _grid, _mean, auto_records
 
 REAL_SCENES = ("liberty", "reichstag", "sacre-coeur-mini", "south-building")
-INSPECTOR_SINCE = "2026-11-26T10:40:00"
-"""`willags` records dated from here on (a record is dated when its run starts) ran the inspector with the surround
+INSPECTOR_SINCE = "2026-11-26T10:25:13"
+"""`willags` records dated from here on (commit ceadd55; a record is dated when its run starts) ran the inspector with the surround
 sky and the colour-twin transient test; liberty's earlier ones ran the previous inspector."""
 RESOLVED_AS = {"liberty": ("willags-skyalpha-nomask",)}
 """Per scene, methods named in full whose model is exactly what today's default resolves to there."""
