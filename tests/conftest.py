@@ -39,6 +39,6 @@ def appearance_run(tmp_path_factory):
     config, trainer, _ = _train(tmp, "willags", steps=6)
     model = trainer.pipeline.model
     _look_trained(trainer)  # a latent-dependent colour transform, as after training; saves the checkpoint
-    seen = model.train_latent_seen.nonzero().flatten().tolist()
+    seen = model.image_latents()[1].nonzero().flatten().tolist()  # the training images with a known latent
     assert len(seen) >= 2, "the fixture needs two encoded training images"
     return config.get_base_dir() / "config.yml", list(model.image_names), seen

@@ -587,3 +587,19 @@ def test_default_strategy_accepts_meta():
             # a duplicate adds one Gaussian, a split replaces one by two
             assert params["means"].shape[0] == N + n_dupli + n_split
             assert all(p.shape[0] == N + n_dupli + n_split for p in params.values())
+
+
+def test_homogeneous_monomials_span_the_sh_basis():
+    """The monomials of degree L and L-1 are what their exponents say, and a fixed matrix maps them onto the SH
+    basis on the unit sphere (float64: to rounding)."""
+    from willags_ns.render.sh import _monomial_exponents, eval_sh_bases, homogeneous_monomials, monomial_to_sh
+
+    d = torch.nn.functional.normalize(torch.randn(300, 3, dtype=torch.float64), dim=-1)
+    for degree in range(5):
+        m = homogeneous_monomials(degree, d)
+        exps = torch.tensor(_monomial_exponents(degree), dtype=torch.float64)
+        assert m.shape == (300, (degree + 1) ** 2) and len(set(_monomial_exponents(degree))) == m.shape[1]
+        torch.testing.assert_close(m, (d[:, None, :] ** exps).prod(-1))
+        torch.testing.assert_close(m @ monomial_to_sh(degree), eval_sh_bases(degree, d), atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="sh_degree must be in"):
+        homogeneous_monomials(5, d)

@@ -180,3 +180,22 @@ def test_open_region_sky_without_keypoints_is_off():
 
     model = _bare_model(use_vae=True, sky=SkyConfig(enabled=True, region="open"))
     assert model.appearance_nets.sky is None and model.open_regions is None and not model.config.sky.enabled
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
+def test_sky_equals_the_sh_expansion_it_stands_for(degree):
+    """The sky's colour, evaluated through the monomials, is sum_k c_k(z) Y_k(d) + 0.5 clamped, with the SH basis of
+    render/sh.py (gsplat's constants), in float32 rounding; and the gradient reaches the latent network."""
+    from willags_ns.render.sh import eval_sh_bases
+
+    torch.manual_seed(degree)
+    sky = SkyModel(8, SkyConfig(enabled=True, sh_degree=degree, hidden=16))
+    torch.nn.init.normal_(sky.mlp[-1].weight, std=0.3)  # away from the grey start
+    z = torch.randn(8)
+    dirs = torch.nn.functional.normalize(torch.randn(4000, 3), dim=-1)
+    ref = (eval_sh_bases(degree, dirs) @ sky.coefficients(z) + 0.5).clamp(0.0, 1.0)
+    out = sky(z, dirs)
+    torch.testing.assert_close(out, ref, atol=2e-6, rtol=0)
+    out.sum().backward()
+    assert sky.mlp[-1].weight.grad.abs().sum() > 0
+    assert "monomial_to_sh" not in sky.state_dict()  # a constant of the degree, not a parameter of checkpoints

@@ -90,7 +90,9 @@ def training_latent(
         z = mu
         record.update({"z": z})
     record["image_idx"] = torch.tensor(idx)
-    if idx < train_latents.shape[0]:
+    # the VAE's latents are remembered per image; an embedding table is its own record (stored_latents reads it), and
+    # writing a flag into a device tensor from the host every step would cost a synchronisation
+    if nets.embeddings is None and idx < train_latents.shape[0]:
         train_latents[idx] = mu.detach()
         train_latent_seen[idx] = True
     return z

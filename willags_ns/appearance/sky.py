@@ -30,7 +30,7 @@ from jaxtyping import Float
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 
-from willags_ns.render.sh import eval_sh_bases, num_sh_bases
+from willags_ns.render.sh import homogeneous_monomials, monomial_to_sh, num_sh_bases
 from willags_ns.static_support import open_background_map, support_at
 
 
@@ -75,14 +75,18 @@ class SkyModel(nn.Module):
         # grey at initialisation, and no direction dependence until the data asks for it
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
+        # Y(d) = monomials(d) @ P on the unit sphere: the per-pixel work is a handful of tensor operations whatever
+        # the degree (render/sh.py); not saved in checkpoints (a constant of the degree)
+        self.register_buffer("monomial_to_sh", monomial_to_sh(cfg.sh_degree).float(), persistent=False)
 
     def coefficients(self, z: Float[Tensor, " D"]) -> Float[Tensor, "K 3"]:
         return self.mlp(z).reshape(self.num_coeffs, 3)
 
     def forward(self, z: Float[Tensor, " D"], dirs: Float[Tensor, "*B 3"]) -> Float[Tensor, "*B 3"]:
-        """Background colour in [0, 1] along unit world directions ``dirs``."""
-        basis = eval_sh_bases(self.sh_degree, dirs)  # [*B, K]
-        return (basis @ self.coefficients(z) + 0.5).clamp(0.0, 1.0)
+        """Background colour in [0, 1] along unit world directions ``dirs``: sum_k c_k(z) Y_k(d) + 0.5, clamped,
+        evaluated as monomials(d) @ (P c(z)) (the same function on the unit sphere)."""
+        coeffs = self.monomial_to_sh.to(dirs.dtype) @ self.coefficients(z).to(dirs.dtype)  # [K, 3]
+        return (homogeneous_monomials(self.sh_degree, dirs) @ coeffs + 0.5).clamp(0.0, 1.0)
 
 
 def pixel_directions(

@@ -77,6 +77,73 @@ def eval_sh_bases(degree: int, dirs: Tensor) -> Tensor:
     return torch.stack(out, dim=-1)
 
 
+def _monomial_exponents(degree: int) -> list[tuple[int, int, int]]:
+    """Exponents (i, j, k) of x^i y^j z^k: every monomial of total degree `degree`, then of `degree - 1`."""
+    out = []
+    for d in (degree, degree - 1):
+        out += [(i, j, d - i - j) for i in range(d, -1, -1) for j in range(d - i, -1, -1)] if d >= 0 else []
+    return out
+
+
+def homogeneous_monomials(degree: int, dirs: Tensor) -> Tensor:
+    """The monomials of total degree `degree` and `degree - 1` of unit directions (in `_monomial_exponents`'
+    order): (degree + 1) ** 2 of them, as many as SH bases up to `degree`, and on the unit sphere they span the same
+    functions (every lower-degree monomial is one of them times (x^2 + y^2 + z^2)^k = 1). A handful of tensor
+    operations for any degree, against one per term of `eval_sh_bases`.
+
+    Args:
+        degree: in [0, 4].
+        dirs: unit directions. [..., 3]
+
+    Returns:
+        [..., (degree + 1) ** 2]
+    """
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise ValueError(f"sh_degree must be in [0, {MAX_SH_DEGREE}], got {degree}")
+    if degree == 0:
+        return torch.ones_like(dirs[..., :1])
+    by_degree = [dirs]  # the monomials of degree 1, 2, ...: each the previous times x, y or z
+    keys = [[(1, 0, 0), (0, 1, 0), (0, 0, 1)]]
+    for _ in range(1, degree):
+        prev = keys[-1]
+        pairs = {}
+        for a, e in enumerate(prev):
+            for b in range(3):
+                key = (e[0] + (b == 0), e[1] + (b == 1), e[2] + (b == 2))
+                pairs.setdefault(key, a * 3 + b)
+        keys.append(list(pairs))
+        index = torch.tensor(list(pairs.values()), device=dirs.device)
+        prod = (by_degree[-1][..., :, None] * dirs[..., None, :]).flatten(-2)
+        by_degree.append(prod.index_select(-1, index))
+    table = {e: (d, i) for d, ks in enumerate(keys) for i, e in enumerate(ks)}
+    parts = []
+    for d in (degree, degree - 1):
+        if d == 0:
+            parts.append(torch.ones_like(dirs[..., :1]))
+            continue
+        order = torch.tensor(
+            [table[e][1] for e in _monomial_exponents(d)[: (d + 1) * (d + 2) // 2]], device=dirs.device
+        )
+        parts.append(by_degree[d - 1].index_select(-1, order))
+    return torch.cat(parts, dim=-1)
+
+
+_MONOMIAL_TO_SH: dict[int, Tensor] = {}
+
+
+def monomial_to_sh(degree: int) -> Tensor:
+    """[K, K] float64 matrix P with eval_sh_bases(degree, d) = homogeneous_monomials(degree, d) @ P for every unit
+    direction d (K = (degree + 1) ** 2): solved once by least squares over directions spread over the sphere (exact
+    to float64 rounding: both sides are polynomials of degree <= `degree` in d)."""
+    if degree not in _MONOMIAL_TO_SH:
+        g = torch.Generator().manual_seed(0)
+        d = torch.nn.functional.normalize(torch.randn(512, 3, generator=g, dtype=torch.float64), dim=-1)
+        _MONOMIAL_TO_SH[degree] = torch.linalg.lstsq(
+            homogeneous_monomials(degree, d), eval_sh_bases(degree, d)
+        ).solution
+    return _MONOMIAL_TO_SH[degree]
+
+
 _GSPLAT_SH: list = []
 
 

@@ -139,7 +139,7 @@ def appearance_grid(pipeline, out_dir: Path, n_train: int = 4, n_interp: int = 5
     test = pipeline.datamanager.eval_dataset
     cam = test.cameras[0:1]
     names = list(model.image_names)
-    seen = torch.nonzero(model.train_latent_seen).flatten().tolist()
+    seen = torch.nonzero(model.image_latents()[1]).flatten().tolist()  # training images with a known latent
     picks = [seen[int(k)] for k in np.linspace(0, len(seen) - 1, min(n_train, len(seen)))] if seen else []
 
     def tile(spec: str) -> tuple[str, np.ndarray]:
