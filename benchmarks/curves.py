@@ -1,7 +1,9 @@
-"""Speed vs accuracy per scene: right-half PSNR against training wall time, from the run records.
+"""Speed vs accuracy per scene: right-half PSNR against training wall time, from the run records. The command that
+writes docs/curves.md and the PNGs is benchmarks/curves_report.py:
 
-    python -m benchmarks.curves                                   # docs/benchmarks.json -> docs/curves.md + PNGs
-    python -m benchmarks.curves --records docs/benchmarks.json $OUT/long-*.json --scenes reichstag south-building
+    python -m benchmarks.curves_report          # benchmarks/records/benchmarks.json -> docs/curves.md + PNGs
+    python -m benchmarks.curves_report --records benchmarks/records/benchmarks.json $OUT/long-*.json \
+        --scenes reichstag south-building
 
 Points (one per run and step count) come from two kinds of record:
 
@@ -26,7 +28,6 @@ runs ringed; matplotlib, Agg backend) and one markdown file with a table per sce
 reach the peer's 15000-step PSNR (the markdown: benchmarks/curves_report.py).
 """
 
-import argparse
 import json
 import re
 import statistics
@@ -36,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.methods import configuration
+from benchmarks.records import merge_records
 
 REPO = Path(__file__).resolve().parents[1]
 CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer", "splatfacto")
@@ -546,50 +548,8 @@ def plot_scene(points: Sequence[Point], path: Path, knobs: Sequence[KnobRun] = (
 def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
     """Records of several files (each a JSON list); a later record with the same (scene, method, device, steps, tag)
     replaces an earlier one, as benchmarks/harness.py merges them."""
-    from benchmarks.records import merge_records
-
     records: list[dict[str, Any]] = []
     for p in paths:
         data = json.loads(Path(p).read_text())
         records = merge_records(records, data if isinstance(data, list) else [data])
     return records
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    from benchmarks.curves_report import render_markdown
-
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--records", nargs="+", default=[str(REPO / "docs" / "benchmarks.json")])
-    ap.add_argument("--scenes", nargs="+", default=list(SCENES))
-    ap.add_argument("--out-dir", default=str(REPO / "docs"), help="where curves_<scene>.png go")
-    ap.add_argument("--md", default=None, help="markdown output (default: <out-dir>/curves.md)")
-    args = ap.parse_args(argv)
-    records = load_records([Path(p) for p in args.records])
-    grids = grid_descriptions()
-    skipped = {
-        "failed runs": sum(r.get("status", "ok") != "ok" for r in records if r.get("scene") in args.scenes),
-        "records with a tree_note (not a clean record of their method)": sum(
-            bool(r.get("tree_note")) for r in records if r.get("scene") in args.scenes
-        ),
-    }
-    by_scene = {s: scene_points(records, s, grids=grids) for s in args.scenes}
-    knobs = {s: knob_runs(records, s, grids=grids) for s in args.scenes}
-    out_dir = Path(args.out_dir)
-    pngs = {s: plot_scene(pts, out_dir / f"curves_{s}.png", knobs[s]) for s, pts in by_scene.items() if has_curve(pts)}
-    md = Path(args.md) if args.md else out_dir / "curves.md"
-    sources = [
-        str(Path(p).resolve().relative_to(REPO)) if Path(p).resolve().is_relative_to(REPO) else p for p in args.records
-    ]
-    md.write_text(render_markdown(by_scene, pngs, skipped, sources, knobs) + "\n")
-    for s, pts in by_scene.items():
-        print(
-            f"curves: {s}: {len(pts)} points ({sum(p.train_s is not None for p in pts)} timed)"
-            + (f", {len(knobs[s])} time-budget runs" if knobs[s] else "")
-            + (f" -> {pngs[s]}" if s in pngs else " (no plot)")
-        )
-    print(f"curves: {md}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -61,6 +61,14 @@ def _share(recs: list[dict[str, Any]], key: str) -> str:
     return f"{100 * min(vals):.1f}-{100 * max(vals):.1f} %" if len(vals) > 1 else f"{100 * vals[0]:.1f} %"
 
 
+def goal_cell(today: list[dict[str, Any]], peer: list[dict[str, Any]]) -> str:
+    """`met` when the mean of `today` is at least GOAL_DB above the mean of `peer`, else by how much it is missed."""
+    mt, mp = _mean([float(r["psnr"]) for r in today]), _mean([float(r["psnr"]) for r in peer])
+    if mt is None or mp is None:
+        return "–"
+    return "met" if mt >= mp + GOAL_DB else f"missed by {mp + GOAL_DB - mt:.2f}"
+
+
 def sky_rows(records: list[dict[str, Any]]) -> list[str]:
     """One row per real scene: splatfacto, the peer, today's default and its margin over the peer against the goal,
     the previous default, the sky candidates."""
@@ -75,17 +83,13 @@ def sky_rows(records: list[dict[str, Any]]) -> list[str]:
         peer, today, prev = by.get((sc, "peer"), []), today_records(by, sc), previous_records(by, sc)
         if not today and not peer:
             continue
-        mt, mp = _mean([float(r["psnr"]) for r in today]), _mean([float(r["psnr"]) for r in peer])
-        goal = (
-            "–" if mt is None or mp is None else ("met" if mt >= mp + GOAL_DB else f"missed by {mp + GOAL_DB - mt:.2f}")
-        )
         row = [
             sc,
             _cell(by.get((sc, "splatfacto"), [])),
             _cell(peer),
             _cell(today),
             _diff(today, peer),
-            goal,
+            goal_cell(today, peer),
             _cell(prev) if sc in RESOLVED_AS else "= willags",
             _diff(today, prev) if sc in RESOLVED_AS else "+0.00",
         ]

@@ -208,7 +208,7 @@ def generalisation_section(records: list[dict[str, Any]]) -> list[str]:
         "seeds 42-47), every fidelity-grid record of every session (H100 tags h100-r*, H200 tags h200-r*; runs shared "
         "one GPU). splatfacto and the peer are run by this harness (`benchmarks/peer.py`). A candidate becomes the "
         "default only when it is not worse on any scene beyond the seed spread; † marks records whose tree was not "
-        "exactly their commit (`tree_note` in docs/benchmarks.json). Decisions and their reasons: "
+        "exactly their commit (`tree_note` in benchmarks/records/benchmarks.json). Decisions and their reasons: "
         "docs/fidelity.md, section of the eighth session.",
         "",
         *scene_rows(records),

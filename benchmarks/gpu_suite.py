@@ -53,7 +53,7 @@ from benchmarks.suite.timing import environment, log, measure_ceilings  # noqa: 
 
 
 def build_records(res: dict, env: dict, args) -> list[dict]:
-    """docs/benchmarks.json records: {"scene", "method", "device", metric fields...}."""
+    """benchmarks/records/benchmarks.json records: {"scene", "method", "device", metric fields...}."""
     scene = f"synthetic-box-{args.n_gaussians}-{args.size}px"
     common = {"device": env["device"], "torch": env["torch"], "gsplat": env.get("gsplat"), "quick": args.quick}
     records = []

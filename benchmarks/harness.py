@@ -1,6 +1,6 @@
 """Benchmark harness: train a grid of methods x scenes x step budgets, evaluate each run, keep the records.
 
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --out docs/benchmarks
+    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json
 
 This module is the harness's one name for scripts and tests, and the child process's entry point
 (``python -m benchmarks.harness child SPEC RESULT``, how :func:`benchmarks.runner.run_one` starts a run). The work
@@ -54,7 +54,7 @@ from benchmarks.methods import (
     set_nested,
     stock_adam,
 )
-from benchmarks.records import load_records, merge_records, record_key, write_outputs
+from benchmarks.records import load_records, merge_records, record_key
 from benchmarks.runner import (
     GRID_KEYS,
     IMAGE_SUFFIXES,
@@ -74,7 +74,7 @@ from benchmarks.runner import (
     run_one,
     scene_name,
 )
-from benchmarks.tables import goal_rows, pareto_rows, render_markdown
+from benchmarks.tables import goal_rows, pareto_rows, render_markdown, write_outputs
 
 __all__ = [
     "ABLATIONS",

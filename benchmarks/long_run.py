@@ -7,7 +7,7 @@ last step it finished and stops. Milestone checkpoints (--milestones) are kept, 
 run's first step to the end of each milestone's step (measured, so a milestone inside a segment has its own time);
 `eval` scores each milestone under the NeRF-W protocol once. Everything it learns goes into RUN_DIR/state.json (train
 seconds per segment and per milestone, runs sharing the GPU per segment, steps, scores), which `record` turns into a
-docs/benchmarks.json record (benchmarks/curves.py draws PSNR vs time from the milestones).
+benchmarks/records/benchmarks.json record (benchmarks/curves.py draws PSNR vs time from the milestones).
 
     python -m benchmarks.long_run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
     python -m benchmarks.long_run eval   --run-dir /tmp/lr/willags
@@ -307,7 +307,8 @@ def evaluate(args) -> int:
 
 
 def record(args) -> int:
-    """The run as a docs/benchmarks.json record: train wall time summed over segments, PSNR at each milestone."""
+    """The run as a record of benchmarks/records/benchmarks.json: train wall time summed over segments, PSNR at each
+    milestone."""
     import datetime as _dt
 
     from benchmarks.runner import _git_commit, machine_description

@@ -1,5 +1,6 @@
-"""Merge the JSON that GPU runs brought back (docs/gpu_runs/*.json, written by benchmarks/train_eval.py and
-benchmarks/gpu_suite.py on the lent H200) into docs/benchmarks.json, and regenerate docs/benchmarks.md.
+"""Merge the JSON that GPU runs brought back (benchmarks/records/gpu_runs/*.json, written by benchmarks/train_eval.py
+and benchmarks/gpu_suite.py on a lent GPU) into benchmarks/records/benchmarks.json, and regenerate
+docs/benchmarks.md.
 
     python benchmarks/merge_gpu_records.py
 
@@ -13,7 +14,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.records import load_records, merge_records, write_outputs  # noqa: E402
+from benchmarks.records import GPU_RUNS, RECORDS, load_records, merge_records  # noqa: E402
+from benchmarks.tables import write_outputs  # noqa: E402
 
 COMMANDS = {
     "train_eval": "python3 benchmarks/train_eval.py --scene <scene> --methods <method> --steps <steps> --protocol-steps 128",
@@ -37,16 +39,15 @@ def normalise(rec: dict, source: str) -> dict:
 
 
 def main() -> None:
-    runs = sorted((REPO / "docs" / "gpu_runs").glob("*.json"))
+    runs = sorted(GPU_RUNS.glob("*.json"))
     new = []
     for p in runs:
         if p.name.endswith("_details.json"):
             continue
         data = json.loads(p.read_text())
         new.extend(normalise(r, p.name) for r in (data if isinstance(data, list) else [data]) if "error" not in r)
-    path = REPO / "docs" / "benchmarks.json"
-    records = merge_records(load_records(path), new)
-    md, js = write_outputs(records, REPO / "docs" / "benchmarks")
+    records = merge_records(load_records(RECORDS), new)
+    js, md = write_outputs(records, RECORDS.with_suffix(""))
     print(f"merged {len(new)} GPU records from {len(runs)} files -> {js}, {md}")
 
 

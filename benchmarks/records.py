@@ -1,11 +1,21 @@
-"""The records file: a record's key, merging new records into old ones, reading ``<out>.json`` and writing
-``<out>.json`` with ``<out>.md`` regenerated from it."""
+"""The records: where they are, a record's key, merging new records into old ones, reading and writing the JSON.
+
+Every run record lives under ``benchmarks/records/``: ``benchmarks.json`` holds the merged records every table and
+curve is generated from (docs/benchmarks.md, docs/curves.md, docs/results.md); ``gpu_runs/`` and ``cpu_runs/`` hold
+the files runs brought back as they wrote them (``*_details.json``: per-case details the merged records leave out).
+The markdown is written by :func:`benchmarks.tables.write_outputs`."""
 
 import json
 from pathlib import Path
 from typing import Any
 
-from benchmarks.tables import render_markdown
+REPO = Path(__file__).resolve().parents[1]
+RECORDS_DIR = REPO / "benchmarks" / "records"
+"""The one place for run records (outside the package and outside docs/)."""
+RECORDS = RECORDS_DIR / "benchmarks.json"
+"""The merged records."""
+GPU_RUNS = RECORDS_DIR / "gpu_runs"
+"""Records as GPU runs (and a few CPU runs of the time budget) brought them back, before merging."""
 
 
 def record_key(rec: dict[str, Any]) -> tuple:
@@ -28,15 +38,17 @@ def load_records(path: Path) -> list[dict[str, Any]]:
     return data["records"] if isinstance(data, dict) else data
 
 
-def write_outputs(records: list[dict[str, Any]], out_prefix: Path) -> tuple[Path, Path]:
-    """Write `<out>.json` (sorted records) and `<out>.md` (regenerated from them)."""
-    out_prefix = Path(out_prefix)
-    out_prefix.parent.mkdir(parents=True, exist_ok=True)
-    records = sorted(records, key=lambda r: (r["device"], r["scene"], r["method"], int(r["steps"]), r.get("tag") or ""))
-    jpath, mpath = out_prefix.with_suffix(".json"), out_prefix.with_suffix(".md")
-    jpath.write_text(json.dumps(records, indent=1, sort_keys=True, default=_json_default) + "\n")
-    mpath.write_text(render_markdown(records))
-    return jpath, mpath
+def sort_records(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The records in file order: by (device, scene, method, steps, tag)."""
+    return sorted(records, key=lambda r: (r["device"], r["scene"], r["method"], int(r["steps"]), r.get("tag") or ""))
+
+
+def write_records(records: list[dict[str, Any]], path: Path) -> Path:
+    """Write the records to `path` in file order (:func:`sort_records`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(sort_records(records), indent=1, sort_keys=True, default=_json_default) + "\n")
+    return path
 
 
 def _json_default(o):

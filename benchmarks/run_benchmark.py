@@ -1,10 +1,12 @@
-"""Train and evaluate a grid of methods x scenes x step budgets; write docs/benchmarks.{json,md}.
+"""Train and evaluate a grid of methods x scenes x step budgets; merge the records into
+benchmarks/records/benchmarks.json and regenerate docs/benchmarks.md.
 
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --out docs/benchmarks
-    python benchmarks/run_benchmark.py --grid configs/benchmark_gpu.json --out docs/benchmarks   # adds GPU records
-    python benchmarks/run_benchmark.py --render-only --out docs/benchmarks                        # markdown from JSON
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --dry-run                # list the runs
-    python benchmarks/run_benchmark.py --merge gpu_out/benchmarks.json --out docs/benchmarks      # fetched records
+    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json
+    python benchmarks/run_benchmark.py --grid configs/benchmark_gpu.json                  # adds GPU records
+    python benchmarks/run_benchmark.py --render-only                                      # markdown from the JSON
+    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --dry-run        # list the runs
+    python benchmarks/run_benchmark.py --merge gpu_out/benchmarks.json                    # fetched records
+    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --out /tmp/b     # /tmp/b.json, /tmp/b.md
 
 Each run trains in its own subprocess (see benchmarks/runner.py); records merge into the existing JSON
 (same (scene, method, device, steps, tag) replaced, others kept) and the markdown is regenerated after every run.
@@ -18,8 +20,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # `python benchmarks/run_benchmark.py` from anywhere
     sys.path.insert(0, str(REPO))
 
-from benchmarks.records import load_records, merge_records, write_outputs  # noqa: E402
+from benchmarks.records import RECORDS, load_records, merge_records  # noqa: E402
 from benchmarks.runner import run_grid  # noqa: E402
+from benchmarks.tables import write_outputs  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -28,8 +31,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--out",
         type=Path,
-        default=REPO / "docs" / "benchmarks",
-        help="output prefix: writes <out>.json and <out>.md (default docs/benchmarks)",
+        default=RECORDS.with_suffix(""),
+        help="output prefix: writes <out>.json and <out>.md (default: benchmarks/records/benchmarks.json, whose "
+        "markdown is docs/benchmarks.md)",
     )
     ap.add_argument(
         "--work-dir",

@@ -371,7 +371,10 @@ def test_main_writes_the_png_and_labels_shared_times(tmp_path):
     src = tmp_path / "records.json"
     src.write_text(json.dumps(records))
     out = tmp_path / "docs"
-    assert curves.main(["--records", str(src), "--out-dir", str(out), "--scenes", "reichstag", "south-building"]) == 0
+    assert (
+        curves_report.main(["--records", str(src), "--out-dir", str(out), "--scenes", "reichstag", "south-building"])
+        == 0
+    )
     png = out / "curves_reichstag.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     assert not (out / "curves_south-building.png").exists()

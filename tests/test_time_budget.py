@@ -245,10 +245,10 @@ def test_schedules_end_at_the_planned_step():
 
 
 def _records():
-    """docs/benchmarks.json, with each long run's scored milestones as records of their own (benchmarks/long_run.py
+    """benchmarks/records/benchmarks.json, with each long run's scored milestones as records of their own (benchmarks/long_run.py
     writes one record per run: its last step, and every milestone's PSNR and train seconds inside it)."""
     out = []
-    for r in json.loads((REPO / "docs" / "benchmarks.json").read_text()):
+    for r in json.loads((REPO / "benchmarks" / "records" / "benchmarks.json").read_text()):
         out.append(r)
         for step, m in (r.get("milestones") or {}).items():
             if int(step) != r["steps"] and m.get("psnr") is not None:

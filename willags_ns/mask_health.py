@@ -1,12 +1,10 @@
 """Watches the transient mask for a feedback loop and says so while training.
 
 What the mask drops gets no loss, so it renders worse; the teacher (an EMA of the student) then differs more from
-the photo there, and the next mask drops more. Measured: the paper preset on south-building (seed 42, one H200)
-climbs to a training PSNR of 21.2 dB by step 1000, then its masked share rises from 8 % to 17 % while the training
-PSNR falls to 17.7 by step 2000 and its test PSNR from 18.45 to 15.57; without the mask it keeps rising
-(docs/fidelity.md, thirteenth session). The default's safeguards (the inspector drops the mask on clean scenes, the
-SfM-track support keeps long-track pixels in the loss) are switches a user can turn off, and the paper preset has
-neither, so the loop is watched for wherever the mask runs.
+the photo there, and the next mask drops more: the masked share climbs while the training PSNR falls, and the test
+PSNR with it (the paper preset does this on south-building: docs/design.md). The default's safeguards (the inspector
+drops the mask on clean scenes, the SfM-track support keeps long-track pixels in the loss) are switches a user can
+turn off, and the paper preset has neither, so the loop is watched for wherever the mask runs.
 
 Means over windows of training steps (each step is one photo, so single steps are noise): once a window's masked
 share has risen by ``min_fraction_rise`` over the lowest window's *and* its training PSNR has fallen
@@ -30,11 +28,12 @@ class MaskHealthConfig:
     window: int = 250
     """Training steps per window: the share and the PSNR are compared as means over this many steps."""
     min_fraction_rise: float = 0.05
-    """The masked share (0-1) must rise at least this much above its lowest window's mean. The measured loop: 0.09 ->
-    0.17 within 750 steps; the share on a scene with real transients moves by a few hundredths between windows."""
+    """The masked share (0-1) must rise at least this much above its lowest window's mean: below what a feedback
+    loop adds within a few windows, above the few hundredths by which the share moves between windows on a scene
+    with real transients (docs/design.md)."""
     min_psnr_drop: float = 1.5
-    """... while the training PSNR falls at least this many dB under its best window's mean (the measured loop: 3.5
-    dB). Both at once: a rising share alone is the mask finding transients, a falling PSNR alone is harder photos."""
+    """... while the training PSNR falls at least this many dB under its best window's mean. Both at once: a rising
+    share alone is the mask finding transients, a falling PSNR alone is harder photos."""
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,8 @@
-"""nerfstudio method specifications: `willags` (the best measured configuration: SH colours transformed by the
-appearance latent, the scene inspected first and only what it needs trained), `willags-full` (every component, no
-inspection), `willags-paper` (the paper's exact configuration: colour decoder + tri-plane field),
-`willags-lite` (fast preset), `willags-3dgs` (plain 3DGS through the same code: the CPU stand-in for splatfacto in
-benchmarks).
+"""nerfstudio method specifications: `willags` (the default: SH colours transformed by the appearance latent, the
+scene inspected first and only what it needs trained), `willags-full` (every component, no inspection),
+`willags-paper` (the paper's exact configuration: colour decoder + tri-plane field), `willags-lite` (fast preset for
+short CPU budgets), `willags-3dgs` (plain 3DGS through the same code: the CPU stand-in for splatfacto in benchmarks),
+`willags-auto` (another name of `willags`). Why each default is set as it is: docs/design.md.
 
 Without CUDA the methods default to the CPU (`--machine.device-type cpu` is not needed) and to our torch
 rasteriser; with CUDA, to gsplat.
@@ -36,8 +36,8 @@ def default_device_type() -> str:
 class FusedAdamOptimizerConfig(AdamOptimizerConfig):
     """Adam as splatfacto configures it, but on CUDA through torch's fused implementation (``fused=True``): one
     kernel per parameter group instead of one per foreach operation, the same update to float rounding. A willags
-    step launches ~600 device operations and its GPU waits on the host for a third of the step (torch.profiler,
-    docs/gpu_notes.md), so launches count; on the CPU, torch's default implementation."""
+    step launches hundreds of device operations and its GPU waits on the host for part of the step, so launches
+    count (docs/design.md); on the CPU, torch's default implementation."""
 
     def setup(self, params) -> torch.optim.Optimizer:
         params = list(params)
@@ -98,24 +98,20 @@ def _trainer(name: str, model: WillagsModelConfig, steps: int) -> WillagsTrainer
 
 
 def willags_model_config() -> WillagsModelConfig:
-    """The default `willags` model: the configuration that measured best (docs/benchmarks.md, docs/fidelity.md).
+    """The default `willags` model (each choice and the measurement behind it: docs/design.md).
 
-    - appearance latent: a 64-d per-image embedding table (lr 0.02), not the paper's beta-VAE encoder: better or
-      level on every scene measured (reichstag 19.06 vs 18.50 dB, mean of 2; fox-wild 21.92 vs 21.17). A new
-      photo's appearance is fitted to it (`willags-render --appearance photo:P --refine-steps N`);
+    - appearance latent: a 64-d per-image embedding table (lr 0.02), not the paper's beta-VAE encoder. A new photo's
+      appearance is fitted to it (`willags-render --appearance photo:P --refine-steps N`);
       `--pipeline.model.use-vae True` brings the encoder back;
     - the EMA teacher and the perceptual mask of the paper, the mask refreshed on every 4th visit of an image with
-      VGG at 256 px (the paper: every step at full size; measured on reichstag with the VAE latent: 18.39 dB vs
-      18.50 +-0.31, at 0.74x the step time);
+      VGG at 256 px (the paper: every step at full size), for a fraction of the step time;
     - colour: each Gaussian's SH colour under a global colour transform of z plus a penalised per-Gaussian
       residual (16-d f_s), no tri-plane field;
     - gsplat's antialiased rasterisation, which keeps renders consistent across the resolution schedule (a
-      5000-step run trains at 1/4 and 1/2 resolution and is scored at full: +2.3 dB on fox-clean, measured);
+      5000-step run trains at 1/4 and 1/2 resolution and is scored at full);
     - the appearance-conditioned sky, trained only above each photo's SfM skyline (sky.region "open"), and the
-      mask's SfM-track safeguard (static_support): decided on the three real scenes at once, 2 seeds each, 5000
-      steps (issue 26, docs/fidelity.md): reichstag 19.34 vs 19.11, sacre-coeur-mini 14.54 vs 13.75,
-      south-building 20.77 vs 20.49 dB; both need COLMAP's keypoints, so on scenes without them (the fox scenes)
-      the model is exactly the previous default (tests/test_train.py)."""
+      mask's SfM-track safeguard (static_support). Both need COLMAP's keypoints: on a scene without them (a
+      transforms.json scene) the model trains as without both (tests/test_train.py)."""
     return WillagsModelConfig(
         color_mode="modulated",
         use_vae=False,
@@ -133,20 +129,17 @@ def willags_config() -> WillagsTrainerConfig:
     """The default method: the full model (willags_model_config) with `auto_config`, 30k steps. Before the model is
     built, willags-inspect's evidence switches off what the scene does not need: the mask and its teacher where no
     transients are measured, the latent where no appearance change is, the sky where no photo has open background
-    (willags_ns/autoconfig.py). Decided on all seven shared scenes at once, 2 seeds each, 5000 steps (docs/inspect.md,
-    docs/fidelity.md): never more than 0.10 dB below the full model (reichstag, fox-transient-only, inside their seed
-    spreads), above it on four scenes: south-building +1.33 (its mask flagged foliage and window glass),
-    sacre-coeur-mini +0.37, fox-clean +0.23, fox-appearance-only +0.19. Where the mask is dropped the step is ~20 %
-    cheaper. `willags-full` keeps every component without inspecting; a switch named on the command line wins."""
+    (willags_ns/autoconfig.py, docs/inspect.md). Dropping what a scene does not need loses nothing measurable there
+    and makes the step cheaper (docs/design.md). `willags-full` keeps every component without inspecting; a switch
+    named on the command line wins."""
     model = willags_model_config()
     model.auto_config = True
     return _trainer("willags", model, 30000)
 
 
 def willags_full_config() -> WillagsTrainerConfig:
-    """Every component of the default on every scene, no inspection (the default `willags` up to the commit that
-    made it inspect the scene first): the latent, the EMA teacher and the mask, the sky above the SfM skyline and the
-    mask's safeguard, 30k steps."""
+    """Every component of the default on every scene, no inspection: the latent, the EMA teacher and the mask, the
+    sky above the SfM skyline and the mask's safeguard, 30k steps (willags_model_config without `auto_config`)."""
     return _trainer("willags-full", willags_model_config(), 30000)
 
 
@@ -166,10 +159,9 @@ def willags_lite_config() -> WillagsTrainerConfig:
     Smaller planes shrink the hypernetwork's last layer 8x (3*16*32*32 outputs); the cheaper mask cadence removes
     most teacher renders and VGG passes. Ships the same components, so every switch still applies.
 
-    Measured: cheaper than `willags` per step on the 2-core CPU (0.130 vs 0.171 s), which is where the time budget
-    picks it (willags_ns/time_budget.py). On the GPU it is not: alone on an H200 to 15k steps it stayed below
-    `willags` at every milestone on reichstag (18.00 vs 19.46 dB at 15k) and south-building (20.32 vs 22.25) and took
-    longer (328 vs 308 s): it runs the beta-VAE encoder on every step's photo and VGG at 512 px (docs/curves.md).
+    Cheaper than `willags` per step on a small CPU, which is where the time budget picks it
+    (willags_ns/time_budget.py). On the GPU it is neither better nor faster than `willags`: it runs the beta-VAE
+    encoder on every step's photo and VGG at 512 px (docs/design.md).
     """
     model = WillagsModelConfig(
         color_mode="modulated",
@@ -195,8 +187,9 @@ def willags_3dgs_config() -> WillagsTrainerConfig:
 
 
 def willags_auto_config() -> WillagsTrainerConfig:
-    """The same configuration as `willags` (the full model with `auto_config`), under the name earlier commands and
-    records use: the scene is inspected before the model is built (willags_ns/autoconfig.py, docs/inspect.md)."""
+    """The same configuration as `willags` (the full model with `auto_config`) under a second name, which commands
+    and benchmark records may use: the scene is inspected before the model is built (willags_ns/autoconfig.py,
+    docs/inspect.md)."""
     config = willags_config()
     config.method_name = "willags-auto"
     return config
@@ -225,11 +218,11 @@ willags_method = MethodSpecification(
 willags_full_method = MethodSpecification(
     config=willags_full_config(),
     description="WilLaGS with every component on every scene (latent, EMA teacher, transient mask, sky, the mask's "
-    "SfM safeguard), no inspection: the default before it inspected the scene.",
+    "SfM safeguard), no inspection.",
 )
 willags_auto_method = MethodSpecification(
     config=willags_auto_config(),
-    description="The same as willags (inspects the scene, trains only what it needs), under its earlier name.",
+    description="The same as willags (inspects the scene, trains only what it needs), under a second name.",
 )
 willags_paper_method = MethodSpecification(
     config=willags_paper_config(),

@@ -1,10 +1,9 @@
 """Colour modulation: a per-Gaussian base colour (3DGS spherical harmonics) transformed by the appearance latent.
 
 The paper's decoder (``decoder.py``) regresses every Gaussian's colour from features alone, so the static scene's
-colours must pass through a small MLP: that costs fitting capacity (measured: on fox-clean, with no transients
-and almost no appearance change, it fits 2 dB worse than the peer, and on real photos it fits its own training
-views 2.7 dB worse with the tri-plane field than without). Here the scene's colour is what 3DGS uses (SH of
-degree 3 per Gaussian: full capacity, view dependence included) and the latent only *transforms* it:
+colours must pass through a small MLP: that costs fitting capacity, even on a scene with no transients and almost
+no appearance change (docs/design.md). Here the scene's colour is what 3DGS uses (SH of degree 3 per Gaussian: full
+capacity, view dependence included) and the latent only *transforms* it:
 
     base_i(d) = max(SH_i(d) + 0.5, 0)                                   the Gaussian's own colour (as gsplat)
     c_i(d)    = (A(z) base_i(d)^g(z) + b(z)) * (1 + s_i) + o_i          A 3x3, b 3: global (camera, exposure, WB)
@@ -38,10 +37,10 @@ class ColorModulationConfig:
     """Width of the hidden layer of z -> (A, b)."""
     gamma: bool = False
     """A per-channel gamma g(z) on the base colour before the 3x3 transform (base^g, g in [1/3, 3], 1 at
-    initialisation). Why: `benchmarks/appearance_ceiling.py` puts the best left-half-fitted *affine* transform of a
-    perfect reconstruction at 23.39 dB on fox-appearance-only / fox-wild and the log-linear one (exposure, white
-    balance, gamma) at 23.75: cameras' tone curves are not affine. Off by default until measured on the GPU grid
-    (`willags-gamma`). With it the SH bake (viewer, export) is a least-squares fit instead of exact."""
+    initialisation). Why: cameras' tone curves are not affine, and on a perfect reconstruction a log-linear transform
+    (exposure, white balance, gamma) fitted on the left half scores higher than the best affine one
+    (`benchmarks/appearance_ceiling.py`). Off by default: on the benchmark scenes it changed nothing beyond the seed
+    spread (docs/design.md), and with it the SH bake (viewer, export) is a least-squares fit instead of exact."""
     local: bool = True
     """Per-Gaussian residual scale/offset (s_i, o_i) on top of the global transform. Off: global transform only."""
     local_hidden: int = 64
@@ -55,10 +54,10 @@ class ColorModulationConfig:
     residual_chunk: int = 131072
     """Gaussians per chunk of the local residual's own backward (``LocalResidualMLP``): it keeps no [N, hidden]
     activation between forward and backward and recomputes the hidden layer chunk by chunk, so the MLP's extra
-    memory is two [chunk, hidden] buffers instead of ~3 x [N, hidden] (768 MB at 1M Gaussians, hidden 64).
-    Measured at 1M Gaussians, 800 px, H100 (docs/gpu_notes.md): extra peak VRAM over splatfacto +0.32-0.39 GB vs
-    +0.77 GB with plain autograd, for 0.5-1.6 ms more per step (0.55 ms in the latest run); 262144 was no faster.
-    0: plain autograd (also what runs with the tri-plane field, whose feature enters the hidden layer per Gaussian)."""
+    memory is two [chunk, hidden] buffers instead of ~3 x [N, hidden] (768 MB at 1M Gaussians, hidden 64), which
+    roughly halves the model's extra peak memory over splatfacto for about a millisecond more per step
+    (docs/design.md). 0: plain autograd (also what runs with the tri-plane field, whose feature enters the hidden
+    layer per Gaussian)."""
 
 
 GAMMA_LOG_RANGE = math.log(3.0)

@@ -1,7 +1,9 @@
 """`make demo`: train willags on the embedded default scene on CPU, then render test views next to ground truth
 and a labelled appearance grid: one test view under training images' appearances, a new photo's (a test image the
-model never trained on, through the encoder), two samples z ~ N(0, I) and an interpolation. Each tile is labelled
-with the SPEC that renders it (`willags-render ... --appearance SPEC`).
+model never trained on: its latent fitted to the photo, or through the encoder of a VAE-latent model), two sampled
+appearances and an interpolation. Each tile is labelled with the SPEC that renders it
+(`willags-render ... --appearance SPEC`). The test views render with the mean appearance, or with the test image's
+own through the encoder of a VAE-latent model.
 
 Training goes through nerfstudio's own `ns-train` (a subprocess, exactly what a user runs); rendering loads the
 checkpoint through nerfstudio's `eval_setup`.
