@@ -85,11 +85,24 @@ def _monomial_exponents(degree: int) -> list[tuple[int, int, int]]:
     return out
 
 
+def _monomial_factors(degree: int) -> list[list[int]]:
+    """For each monomial of `_monomial_exponents(degree)`, its `degree` factors as indices into (1, x, y, z)."""
+    out = []
+    for e in _monomial_exponents(degree):
+        f = [1] * e[0] + [2] * e[1] + [3] * e[2]
+        out.append([0] * (degree - len(f)) + f)
+    return out
+
+
+_FACTOR_INDEX: dict[tuple[int, str], list[Tensor]] = {}
+
+
 def homogeneous_monomials(degree: int, dirs: Tensor) -> Tensor:
     """The monomials of total degree `degree` and `degree - 1` of unit directions (in `_monomial_exponents`'
     order): (degree + 1) ** 2 of them, as many as SH bases up to `degree`, and on the unit sphere they span the same
-    functions (every lower-degree monomial is one of them times (x^2 + y^2 + z^2)^k = 1). A handful of tensor
-    operations for any degree, against one per term of `eval_sh_bases`.
+    functions (every lower-degree monomial is one of them times (x^2 + y^2 + z^2)^k = 1). Each is a product of
+    `degree` entries of (1, x, y, z): 2 * degree tensor operations for any degree, against one per term of
+    `eval_sh_bases`.
 
     Args:
         degree: in [0, 4].
@@ -102,30 +115,15 @@ def homogeneous_monomials(degree: int, dirs: Tensor) -> Tensor:
         raise ValueError(f"sh_degree must be in [0, {MAX_SH_DEGREE}], got {degree}")
     if degree == 0:
         return torch.ones_like(dirs[..., :1])
-    by_degree = [dirs]  # the monomials of degree 1, 2, ...: each the previous times x, y or z
-    keys = [[(1, 0, 0), (0, 1, 0), (0, 0, 1)]]
-    for _ in range(1, degree):
-        prev = keys[-1]
-        pairs = {}
-        for a, e in enumerate(prev):
-            for b in range(3):
-                key = (e[0] + (b == 0), e[1] + (b == 1), e[2] + (b == 2))
-                pairs.setdefault(key, a * 3 + b)
-        keys.append(list(pairs))
-        index = torch.tensor(list(pairs.values()), device=dirs.device)
-        prod = (by_degree[-1][..., :, None] * dirs[..., None, :]).flatten(-2)
-        by_degree.append(prod.index_select(-1, index))
-    table = {e: (d, i) for d, ks in enumerate(keys) for i, e in enumerate(ks)}
-    parts = []
-    for d in (degree, degree - 1):
-        if d == 0:
-            parts.append(torch.ones_like(dirs[..., :1]))
-            continue
-        order = torch.tensor(
-            [table[e][1] for e in _monomial_exponents(d)[: (d + 1) * (d + 2) // 2]], device=dirs.device
-        )
-        parts.append(by_degree[d - 1].index_select(-1, order))
-    return torch.cat(parts, dim=-1)
+    key = (degree, str(dirs.device))
+    if key not in _FACTOR_INDEX:  # built once per device: a host-to-device copy in a training step would wait
+        cols = list(zip(*_monomial_factors(degree), strict=True))
+        _FACTOR_INDEX[key] = [torch.tensor(c, device=dirs.device) for c in cols]
+    v = torch.cat([torch.ones_like(dirs[..., :1]), dirs], dim=-1)  # (1, x, y, z)
+    out = v.index_select(-1, _FACTOR_INDEX[key][0])
+    for index in _FACTOR_INDEX[key][1:]:
+        out = out * v.index_select(-1, index)
+    return out
 
 
 _MONOMIAL_TO_SH: dict[int, Tensor] = {}
