@@ -84,4 +84,7 @@ def train_and_record(local_rank: int, world_size: int, config, global_rank: int 
     )
     trainer.train()
     record["final"] = tensors(model)
+    from willags_ns.distributed import is_placeholder
+
+    record["decoded"] = [i for i, c in enumerate(pipeline.datamanager.cached_train) if not is_placeholder(c["image"])]
     torch.save(record, record_path(config, global_rank))
