@@ -407,6 +407,52 @@ def test_ranks_end_with_identical_parameters(launched_run):
     assert r0["final"]["train_latent_seen"].all()
 
 
+@pytest.mark.slow
+def test_two_machines_of_one_device_train_together(tmp_path):
+    """Two launches started separately, as two machines of one device each (`--machine.num-machines 2
+    --machine.machine-rank 0|1 --machine.dist-url tcp://127.0.0.1:PORT`): global ranks 0 and 1 train on the even and
+    the odd images, refine together (at step 6) and end with the same parameters, bit for bit."""
+    import os
+    import subprocess
+    import sys
+
+    from tests._distributed_launch import record_path
+    from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
+
+    scene_cfg = SyntheticSceneConfig(num_train=6, num_test=1, width=32, height=24, num_points=400, supersample=1)
+    config = _tiny_config(tmp_path, ensure_default_scene(scene_cfg, root=tmp_path / "scenes"))
+    config.max_num_iterations = 8
+    config.pipeline.data_parallel.step_profile = False
+    config.machine.num_devices, config.machine.num_machines = 1, 2
+    config.machine.dist_url = f"tcp://127.0.0.1:{_free_port()}"
+    config.set_timestamp()
+    config.save_config()
+    yml = Path(config.get_base_dir()) / "config.yml"
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")])}
+    code = "import sys; from tests._distributed_launch import launch_machine; launch_machine(sys.argv[1], int(sys.argv[2]))"
+    machines = [
+        subprocess.Popen(
+            [sys.executable, "-c", code, str(yml), str(r)],
+            cwd=repo,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for r in (1, 0)  # the second machine may start first: it waits for the first at the rendezvous
+    ]
+    logs = [m.communicate(timeout=600)[0] for m in machines]
+    assert all(m.returncode == 0 for m in machines), "\n".join(log[-3000:] for log in logs)
+    r0, r1 = (torch.load(record_path(config, r), weights_only=False) for r in range(2))
+    assert all(i % 2 == 0 for i in r0["images"]) and all(i % 2 == 1 for i in r1["images"])
+    assert len(r0["images"]) == len(r1["images"]) == 8
+    assert r0["num_points"] == r1["num_points"] and r0["num_points"][6] != r0["num_points"][5]  # refined at step 6
+    for state in ("initial", "final"):
+        for k in r0[state]:
+            assert torch.equal(r0[state][k], r1[state][k]), f"{state} {k} differs between the machines"
+
+
 def _reference(config, records):
     """One process, the same initial state, each step the two ranks' images: forward + backward of each image (its
     densification statistics recorded after its own backward, as on its rank), gradients divided by 2, one
