@@ -22,9 +22,9 @@ evaluation images and checkpoints included). A step without a reduction (one dev
 that step is the rank's wait for the others (benchmarks/multi_gpu.py does that sum).
 
 Files, per global rank r, under ``<run>/step_profile/``: ``rank<r>.jsonl`` (one JSON object per step) and
-``rank<r>.json`` (rank, world size, device, and the start-up phases as Unix times: the process started, the pipeline
-was entered, the data parsed and the model built, the data-parallel set-up done, the training images cached, the
-first step started, the last step ended).
+``rank<r>.json`` (rank, world size, device, CPU count and torch's threads, and the start-up phases as Unix times:
+the process started, the pipeline was entered, the data parsed, the inputs checked, the model built, the
+data-parallel set-up done, the training images cached, the first step started, training ended).
 
 Cost when on: eight CUDA events and eight clock reads per step (tens of microseconds of host time); events are read
 back only once the device has passed them (``Event.query``), so the profile adds no host wait. When off, nothing of
@@ -95,6 +95,8 @@ class StepProfile:
             "world_size": world_size,
             "host": socket.gethostname(),
             "device": torch.cuda.get_device_name() if cuda else "cpu",
+            "cpu_count": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
             "phases": {"process_start": process_start_time()},
             **(meta or {}),
         }
@@ -133,6 +135,8 @@ class StepProfile:
             self._close(self._open)
         self._resolve(block=False)
         self._open = {"fields": {}, "host": {}, "events": {}}
+        if not self.steps:
+            self.phase("first_step")
         if self.steps and self.steps % FLUSH_EVERY == 0:
             self.flush()
         self.steps += 1
