@@ -173,6 +173,14 @@ def _averagers(rank: int) -> None:
     assert torch.equal(a.grad, torch.full((3,), 1.5)) and torch.equal(b.grad, torch.tensor([2.0, -1.0]))
     assert averager.host_reads == (1 if rank == 0 else 0)
 
+    # gradient accumulation (a group stepped every other step): the backward adds into the last call's averaged view
+    c = torch.nn.Parameter(torch.zeros(3))
+    c.grad = torch.full((3,), float(rank))
+    averager.average([a, c])  # c: mean 0.5
+    c.grad.add_(float(rank + 2))  # 0.5 + 2 | 0.5 + 3
+    averager.average([c])
+    assert torch.equal(c.grad, torch.full((3,), 3.0))
+
     # extra rows ride along: rank r's row arrives exactly at row r of every rank
     mine = torch.tensor([float(rank), 1.0 / 3.0 + rank, -7.25])
     rows = averager.average([a], mine, 3)

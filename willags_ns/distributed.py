@@ -339,11 +339,17 @@ class GradientAverager:
             buf[:n_flags].copy_(flags)
         grads = buf[n_flags : n_flags + n_grads]
         slots = list(grads.split(sizes)) if params else []
-        for p, slot in zip(params, slots, strict=True):
-            if p.grad is None:
-                slot.zero_()
-            else:
-                slot.copy_(p.grad.reshape(-1))
+        if params:  # one kernel for every gradient (zeros for a parameter without one)
+            own = buf.untyped_storage().data_ptr()
+            flat = []
+            for p in params:
+                if p.grad is None:
+                    flat.append(torch.zeros(p.numel(), device=device))
+                elif p.grad.untyped_storage().data_ptr() == own:  # last call's view, accumulated into (not zeroed)
+                    flat.append(p.grad.reshape(-1).clone())
+                else:
+                    flat.append(p.grad.reshape(-1))
+            torch.cat(flat, out=grads)
         rows = buf[n_flags + n_grads :].view(n, extra_width) if extra_width else None
         if rows is not None:
             rows.zero_()
