@@ -27,6 +27,7 @@ from willags_ns.distributed import (
     average_gradients,
     broadcast_module,
     check_parameters_agree,
+    from_rank_zero,
     is_placeholder,
     latent_row,
     rank_images,
@@ -114,6 +115,17 @@ def _collectives(rank: int) -> None:
         means[2, 0] = 1.5
     with pytest.raises(DataParallelError, match="'means'.*rank"):
         check_parameters_agree({"quats": torch.ones(5, 4), "means": means}, "in the test")
+
+    # work done once, on rank 0, its result on every rank; its failure raised everywhere
+    calls = []
+    value, here = from_rank_zero(lambda: calls.append(rank) or {"settings": {"use_mask": False}})
+    assert value == {"settings": {"use_mask": False}} and here == (rank == 0) and calls == ([0] if rank == 0 else [])
+
+    def fails():
+        raise ValueError("no scene")
+
+    with pytest.raises(ValueError if rank == 0 else DataParallelError, match="no scene"):
+        from_rank_zero(fails)
 
     # shared RNG for the refinement; each rank's own stream is untouched by it
     torch.manual_seed(7 + rank)

@@ -30,7 +30,7 @@ Every function here is a no-op or a plain computation for world_size == 1; the s
 """
 
 import itertools
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from typing import Any, Literal
@@ -241,6 +241,29 @@ def broadcast_module(module: nn.Module, src: int = 0) -> None:
     device = comm_device()
     for t in itertools.chain(module.parameters(), module.buffers()):
         _broadcast_(t, src, device)
+
+
+def from_rank_zero(fn: Callable[[], Any]) -> tuple[Any, bool]:
+    """``(fn()'s result, whether it ran here)``: with several ranks fn runs on rank 0 alone and its result (pickled)
+    reaches every rank: for work every rank would repeat to the same end (the scene's inspection), which N ranks on
+    one host would otherwise run N times at once. An exception on rank 0 is raised on every rank (a
+    DataParallelError naming it there), so that none is left waiting."""
+    rank, world_size = rank_and_world_size()
+    if world_size <= 1:
+        return fn(), True
+    box: list[Any] = [None]
+    if rank == 0:
+        try:
+            box[0] = ("ok", fn())
+        except Exception as e:
+            box[0] = ("error", e)
+    dist.broadcast_object_list(box, src=0)
+    status, value = box[0]
+    if status == "error":
+        if rank == 0:
+            raise value
+        raise DataParallelError(f"willags: rank 0 failed: {type(value).__name__}: {value}")
+    return value, rank == 0
 
 
 def broadcast_int(value: int, src: int = 0) -> int:

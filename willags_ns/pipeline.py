@@ -56,6 +56,7 @@ from willags_ns.distributed import (
     broadcast_module,
     comm_device,
     draw_refine_seed,
+    from_rank_zero,
     latent_row,
     optimizer_parameters,
     rank_and_world_size,
@@ -224,13 +225,26 @@ class WillagsPipeline(VanillaPipeline):
             precheck_dataparser_config(config.datamanager)
         self.auto_config_summary = None
         if getattr(config.model, "auto_config", False):
-            # before the model exists: the switches decide which modules and parameters it has
-            summary = apply_auto_config(config.model, scene_dir(config.datamanager), keep=config.auto_config_keep)
-            CONSOLE.print(format_summary(summary))
+            # before the model exists: the switches decide which modules and parameters it has. Several ranks:
+            # rank 0 inspects, the others take its settings (the same scene, the same decision)
+            summary, inspected = from_rank_zero(
+                lambda: apply_auto_config(config.model, scene_dir(config.datamanager), keep=config.auto_config_keep)
+            )
+            if not inspected:
+                for key, value in summary.get("settings", {}).items():
+                    *parents, last = key.split(".")
+                    target = config.model
+                    for part in parents:
+                        target = getattr(target, part)
+                    setattr(target, last, value)
+            if inspected:
+                CONSOLE.print(format_summary(summary))
             # resolved either way (the recommended switches, or the method's own where nothing could be inspected):
             # config.yml is rewritten with it, so reloading builds the trained model without inspecting again
             config.model.auto_config = False
             self.auto_config_summary = summary
+        if self.step_profile is not None:
+            self.step_profile.phase("scene_inspected")
         # The model is built inside VanillaPipeline.__init__ right after the datamanager parses the scene; the
         # outputs are validated in between (a NaN pose would otherwise surface in the model's kNN as a sklearn
         # error). The hook is an instance attribute on this config only, removed again below.
@@ -244,7 +258,7 @@ class WillagsPipeline(VanillaPipeline):
                 device = setup_kwargs.get("device")
                 outputs = self.datamanager.train_dataparser_outputs
                 warn_all(validate_dataparser_outputs(outputs, device=str(device) if device is not None else None))
-                if config.check_photo_content:
+                if config.check_photo_content and rank_and_world_size()[0] == 0:  # warnings, printed once
                     warn_all(foreign_photo_warnings(outputs))
             if self.step_profile is not None:
                 self.step_profile.phase("inputs_checked")
