@@ -8,19 +8,24 @@ Gaussians' parameters every `refine_every` steps, so WillagsPipeline does not wr
 - every rank holds all Gaussians and appearance networks; rank 0's initial state is broadcast to the others
   (`broadcast_module`), after checking that every rank built the same parameter set;
 - each rank trains on its own share of the training images (`shard_train_images`: image i belongs to rank
-  i mod N, shuffled per epoch), so one step sees N different images;
+  i mod N, shuffled per epoch), so one step sees N different images, and decodes only those when nerfstudio caches
+  them (`shard_image_cache`);
 - after the backward pass and before the optimiser step, every gradient is summed over the ranks and divided by N
-  (`average_gradients`): one step is the single-process step on the *mean* loss of the N images. Averaged, not
-  summed: the learning rates keep their meaning (Adam is scale-invariant anyway) and an average of identical values
-  is a no-op, so gradient accumulation stays correct;
+  (`GradientAverager`: one all-reduce through a buffer kept between steps, nothing read back on the host in a normal
+  step; `average_gradients`, the first implementation, gives the same averages): one step is the single-process step
+  on the *mean* loss of the N images. Averaged, not summed: the learning rates keep their meaning (Adam is
+  scale-invariant anyway) and an average of identical values is a no-op, so gradient accumulation stays correct;
 - densification statistics (gsplat's DefaultStrategy state: grad2d and count summed, radii max) are all-reduced
   just before each refinement, so every rank takes the same densify / prune decisions, and the refinement runs
   under the same RNG state on every rank (`same_rng`, seeded from rank 0's draw + the step), so split Gaussians get
   the same random offsets everywhere (no broadcast of the Gaussians afterwards). `check_parameters_agree` then
   compares the Gaussians' signatures over the ranks and stops with an error should they ever differ;
 - each step's latent of a training image (the per-image embedding row or the VAE mean recorded in
-  `train_latents`) is shared with every rank (`share_train_latents`), so every rank's checkpoint and viewer know
-  the appearances of all images.
+  `train_latents`) is shared with every rank (riding in the gradients' all-reduce: `latent_row`,
+  `apply_latent_rows`; or `share_train_latents`), so every rank's checkpoint and viewer know the appearances of all
+  images;
+- work every rank would repeat to the same end runs on rank 0 alone and its result reaches the others
+  (`from_rank_zero`: the scene's inspection).
 
 Per rank and not shared: the EMA teacher (computed from identical student weights, so it stays identical), the VAE
 forward of the rank's own image, the transient masks of the rank's images and their per-image visit counts (image i
