@@ -341,7 +341,8 @@ def tables(results: list[dict[str, Any]]) -> str:
             f"{_f(b.get('callbacks'), '6.2f')} {_f(b.get('rest'), '6.2f')} {_f(b.get('iteration'), '6.2f')} "
             f"{_f(b.get('host_iteration'), '8.2f')} {_f(b.get('host_reads'), '5.1f')}"
         )
-    phases = ("process_start", "pipeline_init", "data_parsed", "inputs_checked", "model_built", "data_parallel_ready")
+    phases = ("process_start", "pipeline_init", "scene_inspected", "data_parsed", "inputs_checked", "model_built")
+    phases += ("data_parallel_ready",)
     phases += ("images_cache_start", "images_cached", "first_step", "first_step_last_rank", "train_end")
     lines += ["", "start-up, seconds after the launch (rank 0): " + ", ".join(phases) + ", exit"]
     for r in results:
