@@ -206,9 +206,9 @@ class WillagsPipeline(VanillaPipeline):
         self.step_profile: StepProfile | None = None
         if self.data_parallel.step_profile and test_mode == "val":
             rank = rank_and_world_size()[0]
-            cuda = torch.device(str(setup_kwargs.get("device", "cpu"))).type == "cuda"
+            device = torch.device(str(setup_kwargs.get("device", "cpu")))
             meta = {"local_rank": setup_kwargs.get("local_rank", 0), "reduction": self.data_parallel.reduction}
-            self.step_profile = StepProfile(Path("."), rank, world_size, cuda, meta)
+            self.step_profile = StepProfile(Path("."), rank, world_size, device, meta)
             self.step_profile.phase("pipeline_init")
         if world_size > 1:
             validate_data_parallel(world_size, setup_kwargs.get("device"), config.datamanager)

@@ -86,15 +86,18 @@ def spans_ms(times: dict[str, float], scale: float = 1000.0) -> dict[str, float]
 class StepProfile:
     """Marks of the steps of one rank, written to `directory` (see the module docstring)."""
 
-    def __init__(self, directory: Path, rank: int, world_size: int, cuda: bool, meta: dict[str, Any] | None = None):
+    def __init__(
+        self, directory: Path, rank: int, world_size: int, device: torch.device, meta: dict[str, Any] | None = None
+    ):
         self.directory = Path(directory)
         self.rank = rank
-        self.cuda = cuda
+        self.cuda = device.type == "cuda"
+        cuda = self.cuda
         self.meta: dict[str, Any] = {
             "rank": rank,
             "world_size": world_size,
             "host": socket.gethostname(),
-            "device": torch.cuda.get_device_name() if cuda else "cpu",
+            "device": torch.cuda.get_device_name(device) if cuda else "cpu",  # not the current device: not set yet
             "cpu_count": os.cpu_count(),
             "torch_threads": torch.get_num_threads(),
             "phases": {"process_start": process_start_time()},
