@@ -329,6 +329,9 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "stand-in for splatfacto (stock splatfacto needs CUDA); goals use stock splatfacto where it ran.",
         "",
     ]
+    # data-parallel runs (benchmarks/multi_gpu.py) have a section of their own: their steps are not images
+    devices = [r for r in records if "num_devices" in r]
+    records = [r for r in records if "num_devices" not in r]
     out += fidelity_section(records)
     out += every_scene_section(records)
     out += generalisation_section(records)
@@ -406,4 +409,46 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
                     f"{_f(p['full_psnr'], '.2f')} | {'*' if p['pareto'] else ''} |"
                 )
             out.append("")
+    out += devices_section(devices)
     return "\n".join(out) + "\n"
+
+
+def devices_section(records: list[dict[str, Any]]) -> list[str]:
+    """Data-parallel runs (benchmarks/multi_gpu.py, docs/distributed.md): per scene and group of runs measured
+    together, each run's GPUs, steps and images seen, wall time, steady-state step time and throughput against the
+    group's one-GPU run, protocol PSNR and Gaussians."""
+    if not records:
+        return []
+    out = [
+        "## Several GPUs (data-parallel)",
+        "",
+        "benchmarks/multi_gpu.py: every run of a group sees the same number of images (steps x GPUs), with every "
+        "step-counted setting divided by the GPUs. **wall s**: the training command from launch to exit (start-up "
+        "included); **step ms**: the median loop iteration over the last quarter of the steps (the ranks' step "
+        "profile); **x1**: images per second against the group's one-GPU run.",
+        "",
+    ]
+    for scene, group in sorted({(r["scene"], r.get("group", "")) for r in records}):
+        recs = sorted(
+            (r for r in records if (r["scene"], r.get("group", "")) == (scene, group)),
+            key=lambda r: (r["num_devices"], r.get("num_machines", 1), r.get("reduction", "")),
+        )
+        one = next((r for r in recs if r["num_devices"] == 1 and r.get("step_ms")), None)
+        out += [
+            f"### {scene} ({group})",
+            "",
+            "| GPUs | machines | reduction | steps | images | status | wall s | step ms | x1 | PSNR | Gaussians |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in recs:
+            x1 = None
+            if one is not None and r.get("step_ms"):
+                x1 = r["num_devices"] * one["step_ms"] / r["step_ms"]
+            out.append(
+                f"| {r['num_devices']} | {r.get('num_machines', 1)} | {r.get('reduction', '')} | {r['steps']} | "
+                f"{r.get('images', '')} | {r.get('status', 'ok')} | {_f(r.get('train_wall_s'), '.1f')} | "
+                f"{_f(r.get('step_ms'), '.2f')} | {_f(x1, '.2f')} | {_f(r.get('psnr'), '.2f')} | "
+                f"{_f(r.get('num_gaussians'), '.0f')} |"
+            )
+        out.append("")
+    return out

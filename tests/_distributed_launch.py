@@ -9,6 +9,7 @@ in nerfstudio.scripts.train only (the launcher's asserts) and the truth to every
 """
 
 import multiprocessing
+import os
 import sys
 from pathlib import Path
 
@@ -56,6 +57,11 @@ def train_and_record(local_rank: int, world_size: int, config, global_rank: int 
     from nerfstudio.scripts.train import _set_random_seed
 
     torch.set_num_threads(1)  # 2 ranks on a 2-core machine; also makes the CPU reductions reproducible
+    windows = os.environ.get("WILLAGS_TEST_BUDGET_STEPS")  # "warm-up,window,replan": a time budget's, shortened
+    if windows:
+        from willags_ns import time_budget
+
+        time_budget.WARMUP_STEPS, time_budget.WINDOW_STEPS, time_budget.REPLAN_EVERY = map(int, windows.split(","))
     _set_random_seed(config.machine.seed + global_rank)
     trainer = config.setup(local_rank=local_rank, world_size=world_size)
     trainer.setup()
@@ -84,4 +90,28 @@ def train_and_record(local_rank: int, world_size: int, config, global_rank: int 
     )
     trainer.train()
     record["final"] = tensors(model)
+    from willags_ns.distributed import is_placeholder
+
+    record["decoded"] = [i for i, c in enumerate(pipeline.datamanager.cached_train) if not is_placeholder(c["image"])]
     torch.save(record, record_path(config, global_rank))
+
+
+def launch_machine(config_yml: str, machine_rank: int) -> None:
+    """One "machine" of a several-machine run, as `ns-train ... --machine.num-machines M --machine.machine-rank R
+    --machine.dist-url URL` starts it (nerfstudio.scripts.train.main: the launcher with the config's machine
+    settings), recording each rank as `train_and_record` does. `config_yml`: the run's config.yml, the same on every
+    machine but for machine_rank."""
+    import yaml
+    from nerfstudio.scripts.train import launch
+
+    config = yaml.load(Path(config_yml).read_text(), Loader=yaml.Loader)
+    config.machine.machine_rank = machine_rank
+    launch(
+        main_func=train_and_record,
+        num_devices_per_machine=config.machine.num_devices,
+        num_machines=config.machine.num_machines,
+        machine_rank=config.machine.machine_rank,
+        dist_url=config.machine.dist_url,
+        device_type=config.machine.device_type,
+        config=config,
+    )

@@ -8,6 +8,7 @@
 - clear errors for settings data-parallel training does not support.
 """
 
+import itertools
 import socket
 from pathlib import Path
 from types import SimpleNamespace
@@ -19,13 +20,19 @@ import torch.multiprocessing as mp
 
 from willags_ns.distributed import (
     DataParallelError,
+    GradientAverager,
     RankSyncedStrategy,
     all_reduce_strategy_state,
+    apply_latent_rows,
     average_gradients,
     broadcast_module,
     check_parameters_agree,
+    from_rank_zero,
+    is_placeholder,
+    latent_row,
     rank_images,
     same_rng,
+    shard_image_cache,
     shard_train_images,
     share_train_latents,
     synced_strategy,
@@ -109,6 +116,17 @@ def _collectives(rank: int) -> None:
     with pytest.raises(DataParallelError, match="'means'.*rank"):
         check_parameters_agree({"quats": torch.ones(5, 4), "means": means}, "in the test")
 
+    # work done once, on rank 0, its result on every rank; its failure raised everywhere
+    calls = []
+    value, here = from_rank_zero(lambda: calls.append(rank) or {"settings": {"use_mask": False}})
+    assert value == {"settings": {"use_mask": False}} and here == (rank == 0) and calls == ([0] if rank == 0 else [])
+
+    def fails():
+        raise ValueError("no scene")
+
+    with pytest.raises(ValueError if rank == 0 else DataParallelError, match="no scene"):
+        from_rank_zero(fails)
+
     # shared RNG for the refinement; each rank's own stream is untouched by it
     torch.manual_seed(7 + rank)
     expected_own = torch.randn(4, generator=torch.Generator().manual_seed(7 + rank))
@@ -120,8 +138,122 @@ def _collectives(rank: int) -> None:
     assert torch.equal(everyone[0], everyone[1])
 
 
+def _toy_training(rank: int, average) -> tuple[list[torch.Tensor], list[list[bool]]]:
+    """Six Adam steps of three parameters on this rank's own data, gradients averaged by `average(params)`; at
+    step 3 the first parameter grows (as densification replaces the Gaussians: a new Parameter of another size); the
+    second is unused at step 2 on rank 1 and at step 4 everywhere, the third used on rank 1 only. Returns the final
+    values and, per step, which parameters had a gradient after averaging."""
+    gen = torch.Generator().manual_seed(0)  # the same initial values on every rank
+    params = [torch.nn.Parameter(torch.randn(40, 3, generator=gen)) for _ in range(1)]
+    params += [torch.nn.Parameter(torch.randn(7, generator=gen)), torch.nn.Parameter(torch.randn(4, 2, generator=gen))]
+    opt = torch.optim.Adam(params, lr=0.05)
+    has_grad = []
+    for step in range(6):
+        if step == 3:
+            params[0] = torch.nn.Parameter(torch.cat([params[0].detach(), params[0].detach()[:9] * 0.5]))
+            opt = torch.optim.Adam(params, lr=0.05)
+        opt.zero_grad()
+        data = torch.Generator().manual_seed(100 * rank + step)
+        loss = (params[0] * torch.randn(params[0].shape, generator=data)).sum().square()
+        if not ((step == 2 and rank == 1) or step == 4):
+            loss = loss + (params[1] * torch.randn(7, generator=data)).sin().sum()
+        if rank == 1:
+            loss = loss + params[2].square().sum()
+        loss.backward()
+        average(params)
+        has_grad.append([p.grad is not None for p in params])
+        opt.step()
+    return [p.detach().clone() for p in params], has_grad
+
+
+def _averagers(rank: int) -> None:
+    # the buffered averager gives the reference implementation's averages, step after step (sizes changing)
+    reference = _toy_training(rank, lambda ps: average_gradients(ps, WORLD))
+    averager = GradientAverager(WORLD)
+    buffered = _toy_training(rank, lambda ps: averager.average(ps))
+    assert reference[1] == buffered[1]
+    assert reference[1][4] == [True, False, True]  # no rank used the second: no gradient, as in one process
+    for a, b in zip(reference[0], buffered[0], strict=True):
+        assert torch.equal(a, b)
+    assert averager.bytes_reduced == 4 * (3 + 49 * 3 + 7 + 8)
+    # a gradient this rank lacks but another has is read back once; none lacking: no read-back
+    a, b = torch.nn.Parameter(torch.zeros(3)), torch.nn.Parameter(torch.zeros(2))
+    a.grad = torch.full((3,), float(rank + 1))
+    if rank == 1:
+        b.grad = torch.tensor([4.0, -2.0])
+    averager.average([a, b])
+    assert torch.equal(a.grad, torch.full((3,), 1.5)) and torch.equal(b.grad, torch.tensor([2.0, -1.0]))
+    assert averager.host_reads == (1 if rank == 0 else 0)
+
+    # gradient accumulation (a group stepped every other step): the backward adds into the last call's averaged view
+    c = torch.nn.Parameter(torch.zeros(3))
+    c.grad = torch.full((3,), float(rank))
+    averager.average([a, c])  # c: mean 0.5
+    c.grad.add_(float(rank + 2))  # 0.5 + 2 | 0.5 + 3
+    averager.average([c])
+    assert torch.equal(c.grad, torch.full((3,), 3.0))
+
+    # extra rows ride along: rank r's row arrives exactly at row r of every rank
+    mine = torch.tensor([float(rank), 1.0 / 3.0 + rank, -7.25])
+    rows = averager.average([a], mine, 3)
+    assert rows is not None and rows.shape == (WORLD, 3)
+    everyone = [torch.empty(3) for _ in range(WORLD)]
+    dist.all_gather(everyone, mine)
+    assert torch.equal(rows, torch.stack(everyone))
+
+    # the training images' latents shared through the rows, without reading anything back
+    latents, seen = torch.zeros(4, 2), torch.zeros(4, dtype=torch.bool)
+    idx = 2 * rank + 1  # rank 0 saw image 1, rank 1 image 3
+    latents[idx], seen[idx] = torch.tensor([float(idx), -1.0]), True
+    rows = averager.average([a], latent_row(latents, seen, idx, torch.device("cpu")), 3)
+    apply_latent_rows(latents, seen, rows)
+    assert seen.tolist() == [False, True, False, True]
+    assert torch.equal(latents[1], torch.tensor([1.0, -1.0])) and torch.equal(latents[3], torch.tensor([3.0, -1.0]))
+
+
 def test_collectives_over_two_gloo_ranks():
     _run_gloo(_collectives)
+
+
+def test_buffered_averaging_equals_the_reference_over_two_gloo_ranks():
+    _run_gloo(_averagers)
+
+
+def test_latent_rows_name_their_image_or_nothing():
+    latents = torch.arange(8, dtype=torch.float32).view(4, 2)
+    seen = torch.tensor([True, False, True, True])
+    assert latent_row(latents, seen, 1, torch.device("cpu")).tolist() == [-1.0, -1.0, -1.0]  # not seen yet
+    assert latent_row(latents, seen, 9, torch.device("cpu")).tolist() == [-1.0, -1.0, -1.0]  # no such image
+    assert latent_row(latents, seen, 2, torch.device("cpu")).tolist() == [2.0, 4.0, 5.0]
+    target, known = torch.zeros(4, 2), torch.zeros(4, dtype=torch.bool)
+    apply_latent_rows(target, known, torch.tensor([[2.0, 4.0, 5.0], [-1.0, -1.0, -1.0], [0.0, -0.5, 7.0]]))
+    assert known.tolist() == [True, False, True, False]
+    assert target.tolist() == [[-0.5, 7.0], [0.0, 0.0], [4.0, 5.0], [0.0, 0.0]]
+
+
+def test_image_cache_holds_only_the_rank_s_own_images():
+    decoded = []
+
+    class Dataset:
+        cameras = SimpleNamespace(
+            height=torch.tensor([4, 5, 6]), width=torch.tensor([7, 8, 9]), distortion_params=torch.zeros(3, 6)
+        )
+
+        def get_data(self, image_idx, image_type="float32"):
+            decoded.append(image_idx)
+            return {"image_idx": image_idx, "image": torch.ones(4 + image_idx, 7 + image_idx, 3)}
+
+    dm = SimpleNamespace(train_dataset=Dataset())
+    shard_image_cache(dm, 1, 2)
+    own, other = dm.train_dataset.get_data(1), dm.train_dataset.get_data(2, image_type="uint8")
+    assert decoded == [1] and not is_placeholder(own["image"])
+    assert is_placeholder(other["image"]) and other["image"].shape == (6, 9, 3) and other["image"].dtype == torch.uint8
+    Dataset.cameras.distortion_params[0, 0] = 0.1  # undistortion needs a real array
+    distorted = dm.train_dataset.get_data(0)["image"]
+    assert distorted.shape == (4, 7, 3) and distorted.is_contiguous() and decoded == [1]
+    dm.cached_train = []
+    with pytest.raises(DataParallelError, match="cached before"):
+        shard_image_cache(dm, 0, 2)
 
 
 # ---------------------------------------------------------------------------------------------------- pure parts
@@ -199,7 +331,20 @@ def _tiny_config(tmp_path: Path, scene: Path):
     m.background_color = "black"  # "random" draws per rank; the single-process reference must draw the same
     m.mask.warmup_steps = 4
     m.mask.vgg_weights = "seeded"
+    config.pipeline.data_parallel.step_profile = True
     return config
+
+
+def _read_profile(config) -> dict:
+    """The step profile's files of a run: {rank: (meta, [step rows])}."""
+    import json
+
+    out = {}
+    for meta_path in sorted((Path(config.get_base_dir()) / "step_profile").glob("rank*.json")):
+        rank = int(meta_path.stem[4:])
+        rows = [json.loads(line) for line in meta_path.with_suffix(".jsonl").read_text().splitlines()]
+        out[rank] = (json.loads(meta_path.read_text()), rows)
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -217,7 +362,10 @@ def launched_run(tmp_path_factory):
     config.set_timestamp()
     config.save_config()
     launch(main_func=train_and_record, num_devices_per_machine=WORLD, device_type="cpu", config=config)
-    return config, [torch.load(record_path(config, r), weights_only=False) for r in range(WORLD)]
+    records = [torch.load(record_path(config, r), weights_only=False) for r in range(WORLD)]
+    for r, (meta, rows) in _read_profile(config).items():  # read now: the single-process reference writes rank 0's
+        records[r]["profile"] = (meta, rows)
+    return config, records
 
 
 @pytest.mark.slow
@@ -230,6 +378,7 @@ def test_launch_trains_on_two_ranks_with_their_own_images(launched_run):
     imgs0, imgs1 = records[0]["images"], records[1]["images"]
     assert all(i % 2 == 0 for i in imgs0) and all(i % 2 == 1 for i in imgs1), (imgs0, imgs1)
     assert set(imgs0) | set(imgs1) == set(range(6))
+    assert records[0]["decoded"] == [0, 2, 4] and records[1]["decoded"] == [1, 3, 5]  # the image cache is sharded
     assert records[0]["refine_seed"] == records[1]["refine_seed"]
     assert records[0]["pause_refine_after_reset"] == 3 + 3  # one epoch of each rank's 3 images + refine_every
     counts, n0 = records[0]["num_points"], records[0]["initial"]["gauss_params.means"].shape[0]
@@ -243,6 +392,32 @@ def test_launch_trains_on_two_ranks_with_their_own_images(launched_run):
 
 
 @pytest.mark.slow
+def test_step_profile_of_each_rank(launched_run):
+    """Each rank writes one row per step: its image, the spans in order, the bytes of the all-reduce (every gradient,
+    the presence flags and one latent row per rank: nothing is read back on the host); and its start-up phases."""
+    config, records = launched_run
+    for rank, rec in enumerate(records):
+        meta, rows = rec["profile"]
+        assert meta["rank"] == rank and meta["world_size"] == WORLD and meta["reduction"] == "buffer"
+        phases = meta["phases"]
+        order = ["pipeline_init", "data_parsed", "model_built", "data_parallel_ready", "images_cached", "first_step"]
+        order += ["train_end"]
+        assert all(phases[a] <= phases[b] for a, b in itertools.pairwise(order)), phases
+        assert [row["step"] for row in rows] == list(range(STEPS))
+        assert [row["image"] for row in rows] == rec["images"]
+        for row in rows:
+            assert row["host_reads"] == 0
+            assert row["gaussians"] > 0 and row["pixels"] > 0
+            spans = [
+                row[f"h_{k}"] for k in ("forward", "backward", "pack", "collective", "unpack", "optimizer", "callbacks")
+            ]
+            assert all(v >= 0 for v in spans)
+            assert row["h_iteration"] >= sum(spans) - 1e-3
+        n_params = sum(v.numel() for k, v in rec["final"].items() if k.startswith("gauss_params."))
+        assert rows[-1]["bytes"] > 4 * n_params  # the Gaussians' gradients of the last step, at least
+
+
+@pytest.mark.slow
 def test_ranks_end_with_identical_parameters(launched_run):
     _, (r0, r1) = launched_run
     for state in ("initial", "final"):
@@ -253,6 +428,52 @@ def test_ranks_end_with_identical_parameters(launched_run):
     assert r0["final"]["train_latent_seen"].all()
 
 
+@pytest.mark.slow
+def test_two_machines_of_one_device_train_together(tmp_path):
+    """Two launches started separately, as two machines of one device each (`--machine.num-machines 2
+    --machine.machine-rank 0|1 --machine.dist-url tcp://127.0.0.1:PORT`): global ranks 0 and 1 train on the even and
+    the odd images, refine together (at step 6) and end with the same parameters, bit for bit."""
+    import os
+    import subprocess
+    import sys
+
+    from tests._distributed_launch import record_path
+    from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
+
+    scene_cfg = SyntheticSceneConfig(num_train=6, num_test=1, width=32, height=24, num_points=400, supersample=1)
+    config = _tiny_config(tmp_path, ensure_default_scene(scene_cfg, root=tmp_path / "scenes"))
+    config.max_num_iterations = 8
+    config.pipeline.data_parallel.step_profile = False
+    config.machine.num_devices, config.machine.num_machines = 1, 2
+    config.machine.dist_url = f"tcp://127.0.0.1:{_free_port()}"
+    config.set_timestamp()
+    config.save_config()
+    yml = Path(config.get_base_dir()) / "config.yml"
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")])}
+    code = "import sys; from tests._distributed_launch import launch_machine; launch_machine(sys.argv[1], int(sys.argv[2]))"
+    machines = [
+        subprocess.Popen(
+            [sys.executable, "-c", code, str(yml), str(r)],
+            cwd=repo,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for r in (1, 0)  # the second machine may start first: it waits for the first at the rendezvous
+    ]
+    logs = [m.communicate(timeout=600)[0] for m in machines]
+    assert all(m.returncode == 0 for m in machines), "\n".join(log[-3000:] for log in logs)
+    r0, r1 = (torch.load(record_path(config, r), weights_only=False) for r in range(2))
+    assert all(i % 2 == 0 for i in r0["images"]) and all(i % 2 == 1 for i in r1["images"])
+    assert len(r0["images"]) == len(r1["images"]) == 8
+    assert r0["num_points"] == r1["num_points"] and r0["num_points"][6] != r0["num_points"][5]  # refined at step 6
+    for state in ("initial", "final"):
+        for k in r0[state]:
+            assert torch.equal(r0[state][k], r1[state][k]), f"{state} {k} differs between the machines"
+
+
 def _reference(config, records):
     """One process, the same initial state, each step the two ranks' images: forward + backward of each image (its
     densification statistics recorded after its own backward, as on its rank), gradients divided by 2, one
@@ -261,6 +482,7 @@ def _reference(config, records):
 
     torch.manual_seed(0)
     config.pipeline.checkpoint_on_interrupt = False  # no SIGINT handler in the test process
+    config.pipeline.data_parallel.step_profile = False  # the reference drives the optimiser step itself
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     pipeline, model, optimizers = trainer.pipeline, trainer.pipeline.model, trainer.optimizers

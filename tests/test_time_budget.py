@@ -178,6 +178,51 @@ def _run(budget: TimeBudget, clock: FakeClock, step_s, start: int = 0, limit: in
     return start + limit - 1
 
 
+def _budget_on_two_ranks(rank: int) -> None:
+    """Each rank times its own step (rank 1 is slower; in the second run it also pauses for 10 s at step 100): both
+    plan from the slower rank's step time and stop after the same step, the clock's stop being read where the ranks
+    exchange it (every AGREE_EVERY steps)."""
+    import torch.distributed as dist
+
+    step_s = 0.125 if rank == 0 else 0.25
+    for pause in (0.0, 10.0):
+        clock = FakeClock()
+        budget = TimeBudget(60.0, max_steps=30000, clock=clock, log=lambda m: None)
+
+        def step_time(s: int, pause: float = pause) -> float:
+            return step_s + (pause if (rank == 1 and s == 100) else 0.0)
+
+        last = _run(budget, clock, step_time)
+        assert budget.agree is tb.agreed_max
+        everyone: list = [None, None]
+        dist.all_gather_object(everyone, (last, budget.end_step, budget.stop_reason, budget.history))
+        assert everyone[0] == everyone[1], everyone
+        if pause == 0.0:  # 70 steps of 0.25 s in 17.5 s, 42.5 s left = 170 steps
+            assert budget.history[0]["step_s"] == 0.25 and budget.end_step == 240 and last == 239
+        else:  # the pause makes the clock run out before the plan's end: read at step 199 (200 steps done)
+            assert budget.stop_reason.startswith("the clock") and last == 199
+
+
+def test_ranks_plan_from_the_slowest_and_stop_together():
+    from tests.test_distributed import _run_gloo
+
+    _run_gloo(_budget_on_two_ranks)
+
+
+def test_one_process_reads_the_clock_at_every_step():
+    clock = FakeClock()
+    budget = TimeBudget(60.0, max_steps=30000, clock=clock, log=lambda m: None)
+    last = _run(budget, clock, lambda s: 0.25 + (3.0 if s == 100 else 0.0))
+    assert budget.agree is None
+    assert last == 227 and budget.stop_reason.startswith("the clock")  # 228 * 0.25 + 3 = 60 s
+
+
+def test_the_choice_says_what_a_step_is_on_several_devices():
+    text = tb.format_choice(choose(600.0, "cuda", CAPS), 10.0, "cuda", num_devices=4)
+    assert "devices:  4, one image each per step" in text
+    assert "devices:" not in tb.format_choice(choose(600.0, "cuda", CAPS), 10.0, "cuda")
+
+
 def test_measures_steps_20_to_70_and_stops_within_the_budget():
     clock, ends, logs = FakeClock(), [], []
     budget = TimeBudget(12.5, max_steps=30000, on_plan=ends.append, clock=clock, log=logs.append)
@@ -449,3 +494,51 @@ def test_the_users_own_resolution_schedule_is_kept_and_not_restored():
     choice, notes, replaced = apply_budget(config, 600.0)
     assert not choice.keep_resolution_schedule and config.pipeline.model.num_downscales == 1
     assert replaced is None and "your --pipeline.model.num-downscales 1 kept" in notes
+
+
+def _trainer_takes_a_budget_on_several_devices(tmp_path: Path) -> bool:
+    """Whether willags' trainer goes on to build the pipeline with a budget and world_size 2 (it then stops there: no
+    process group in this test) rather than refusing the budget first."""
+    from willags_ns import method_configs
+    from willags_ns.distributed import DataParallelError
+
+    config = method_configs.willags_config()
+    config.output_dir, config.machine.device_type = tmp_path, "cpu"
+    config.pipeline.time_budget_minutes = 1.0
+    try:
+        config.setup(local_rank=0, world_size=2).setup()
+    except TimeBudgetError:
+        return False
+    except DataParallelError:
+        return True
+    return True
+
+
+@pytest.mark.slow
+def test_budget_on_two_ranks_stops_both_after_the_same_step(tmp_path, monkeypatch):
+    """Two CPU ranks through nerfstudio's launcher under a budget of a few seconds: the ranks measure their steps,
+    agree on the plan and on the clock, and stop after the same step with the same parameters."""
+    if not _trainer_takes_a_budget_on_several_devices(tmp_path / "probe"):
+        pytest.skip("willags_ns/trainer.py refuses a time budget on several devices (see docs/distributed.md)")
+    from nerfstudio.scripts.train import launch
+
+    from tests._distributed_launch import record_path, train_and_record
+    from tests.test_distributed import _tiny_config
+    from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
+
+    scene_cfg = SyntheticSceneConfig(num_train=6, num_test=1, width=32, height=24, num_points=400, supersample=1)
+    config = _tiny_config(tmp_path, ensure_default_scene(scene_cfg, root=tmp_path / "scenes"))
+    config.method_name = "willags-3dgs"  # a method named explicitly keeps its model: only the steps follow the budget
+    config.max_num_iterations = 400
+    config.pipeline.time_budget_minutes = 0.05  # 3 s
+    config.pipeline.data_parallel.step_profile = False
+    config.set_timestamp()
+    config.save_config()
+    monkeypatch.setenv("WILLAGS_TEST_BUDGET_STEPS", "2,3,5")
+    launch(main_func=train_and_record, num_devices_per_machine=2, device_type="cpu", config=config)
+    r0, r1 = (torch.load(record_path(config, r), weights_only=False) for r in range(2))
+    assert len(r0["images"]) == len(r1["images"]) < 400
+    for k in r0["final"]:
+        assert torch.equal(r0["final"][k], r1["final"][k]), k
+    record = json.loads((Path(config.get_base_dir()) / "time_budget.json").read_text())
+    assert record["run"]["steps_trained"] == len(r0["images"]) and record["run"]["plans"]

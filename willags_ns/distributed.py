@@ -8,19 +8,24 @@ Gaussians' parameters every `refine_every` steps, so WillagsPipeline does not wr
 - every rank holds all Gaussians and appearance networks; rank 0's initial state is broadcast to the others
   (`broadcast_module`), after checking that every rank built the same parameter set;
 - each rank trains on its own share of the training images (`shard_train_images`: image i belongs to rank
-  i mod N, shuffled per epoch), so one step sees N different images;
+  i mod N, shuffled per epoch), so one step sees N different images, and decodes only those when nerfstudio caches
+  them (`shard_image_cache`);
 - after the backward pass and before the optimiser step, every gradient is summed over the ranks and divided by N
-  (`average_gradients`): one step is the single-process step on the *mean* loss of the N images. Averaged, not
-  summed: the learning rates keep their meaning (Adam is scale-invariant anyway) and an average of identical values
-  is a no-op, so gradient accumulation stays correct;
+  (`GradientAverager`: one all-reduce through a buffer kept between steps, nothing read back on the host in a normal
+  step; `average_gradients`, the first implementation, gives the same averages): one step is the single-process step
+  on the *mean* loss of the N images. Averaged, not summed: the learning rates keep their meaning (Adam is
+  scale-invariant anyway) and an average of identical values is a no-op, so gradient accumulation stays correct;
 - densification statistics (gsplat's DefaultStrategy state: grad2d and count summed, radii max) are all-reduced
   just before each refinement, so every rank takes the same densify / prune decisions, and the refinement runs
   under the same RNG state on every rank (`same_rng`, seeded from rank 0's draw + the step), so split Gaussians get
   the same random offsets everywhere (no broadcast of the Gaussians afterwards). `check_parameters_agree` then
   compares the Gaussians' signatures over the ranks and stops with an error should they ever differ;
 - each step's latent of a training image (the per-image embedding row or the VAE mean recorded in
-  `train_latents`) is shared with every rank (`share_train_latents`), so every rank's checkpoint and viewer know
-  the appearances of all images.
+  `train_latents`) is shared with every rank (riding in the gradients' all-reduce: `latent_row`,
+  `apply_latent_rows`; or `share_train_latents`), so every rank's checkpoint and viewer know the appearances of all
+  images;
+- work every rank would repeat to the same end runs on rank 0 alone and its result reaches the others
+  (`from_rank_zero`: the scene's inspection).
 
 Per rank and not shared: the EMA teacher (computed from identical student weights, so it stays identical), the VAE
 forward of the rank's own image, the transient masks of the rank's images and their per-image visit counts (image i
@@ -30,10 +35,10 @@ Every function here is a no-op or a plain computation for world_size == 1; the s
 """
 
 import itertools
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, Literal
 
 import torch
 import torch.distributed as dist
@@ -48,6 +53,25 @@ reductions round differently."""
 
 class DataParallelError(ValueError):
     """A setting that data-parallel training (num_devices > 1) does not support, or ranks that disagree."""
+
+
+@dataclass
+class DataParallelConfig:
+    """How the ranks of a data-parallel run exchange gradients and images (`--pipeline.data-parallel.*`)."""
+
+    reduction: Literal["buffer", "reference"] = "buffer"
+    """"buffer": every gradient averaged in one all-reduce through a persistent buffer that also carries this step's
+    training-image latents, nothing read back on the host unless this rank lacks a gradient that another rank may have
+    (`GradientAverager`); "reference": the first implementation, kept to compare against (a new concatenation every
+    step, the presence counts read back on the host, the latents gathered in a second collective and read back row by
+    row: `average_gradients`, `share_train_latents`). Both give the same averages."""
+    shard_image_cache: bool = True
+    """Each rank decodes and caches only its own training images (image i belongs to rank i mod N); the others' slots
+    hold placeholders of the right size that no step of this rank reads (`shard_image_cache`)."""
+    step_profile: bool = False
+    """Write each rank's per-step timings (forward, backward, gradient reduction and its bytes, the wait in the
+    collective, optimiser, callbacks, the whole loop iteration; host clock, and CUDA events on a GPU) and its start-up
+    phases to <run>/step_profile/ (willags_ns/step_profile.py). Also on one device, to compare against."""
 
 
 def rank_and_world_size() -> tuple[int, int]:
@@ -140,6 +164,41 @@ def shard_train_images(datamanager: Any, rank: int, world_size: int) -> None:
     datamanager.train_unseen_cameras = rank_images(datamanager.train_unseen_cameras, rank, world_size)
 
 
+def shard_image_cache(datamanager: Any, rank: int, world_size: int) -> None:
+    """Make nerfstudio's full-image datamanager decode only this rank's training images when it caches them.
+
+    nerfstudio 1.1.5 caches every training image on every rank (`cached_train`, loaded at the first step), though a
+    rank only ever trains on its own (i mod world_size == rank). The dataset's `get_data` then returns, for another
+    rank's image, a placeholder of the image's size (zeros, one value broadcast over the whole image unless the camera
+    is distorted: nerfstudio undistorts a cached image with OpenCV, which needs a real array) without reading the file.
+    The cameras are the same everywhere: undistortion changes a camera's intrinsics from its parameters alone. Must run
+    before the first access to `cached_train`."""
+    if world_size <= 1:
+        return
+    if "cached_train" in vars(datamanager):
+        raise DataParallelError("willags: the training images were cached before the image cache was sharded")
+    dataset = datamanager.train_dataset
+    get_data = dataset.get_data
+    cameras = dataset.cameras
+
+    def own_or_placeholder(image_idx: int, image_type: str = "float32") -> dict[str, Any]:
+        if int(image_idx) % world_size == rank:
+            return get_data(image_idx, image_type=image_type)
+        h, w = int(cameras.height[image_idx]), int(cameras.width[image_idx])
+        dtype = torch.uint8 if image_type == "uint8" else torch.float32
+        distortion = cameras.distortion_params
+        flat = distortion is None or bool(torch.all(distortion[image_idx] == 0))
+        image = torch.zeros((1, 1, 3), dtype=dtype).expand(h, w, 3) if flat else torch.zeros((h, w, 3), dtype=dtype)
+        return {"image_idx": image_idx, "image": image}
+
+    dataset.get_data = own_or_placeholder
+
+
+def is_placeholder(image: Tensor) -> bool:
+    """Whether a cached image is `shard_image_cache`'s placeholder for another rank's image (one broadcast value)."""
+    return image.dim() == 3 and image.numel() > 3 and image.stride()[:2] == (0, 0)
+
+
 # ---------------------------------------------------------------------------------------------------- tensors
 def _broadcast_(t: Tensor, src: int, device: torch.device) -> None:
     """Broadcast `t` in place from `src`, through `device` when the backend cannot send it where it is."""
@@ -189,6 +248,29 @@ def broadcast_module(module: nn.Module, src: int = 0) -> None:
         _broadcast_(t, src, device)
 
 
+def from_rank_zero(fn: Callable[[], Any]) -> tuple[Any, bool]:
+    """``(fn()'s result, whether it ran here)``: with several ranks fn runs on rank 0 alone and its result (pickled)
+    reaches every rank: for work every rank would repeat to the same end (the scene's inspection), which N ranks on
+    one host would otherwise run N times at once. An exception on rank 0 is raised on every rank (a
+    DataParallelError naming it there), so that none is left waiting."""
+    rank, world_size = rank_and_world_size()
+    if world_size <= 1:
+        return fn(), True
+    box: list[Any] = [None]
+    if rank == 0:
+        try:
+            box[0] = ("ok", fn())
+        except Exception as e:
+            box[0] = ("error", e)
+    dist.broadcast_object_list(box, src=0)
+    status, value = box[0]
+    if status == "error":
+        if rank == 0:
+            raise value
+        raise DataParallelError(f"willags: rank 0 failed: {type(value).__name__}: {value}")
+    return value, rank == 0
+
+
 def broadcast_int(value: int, src: int = 0) -> int:
     """`value` of rank `src` on every rank."""
     if rank_and_world_size()[1] <= 1:
@@ -226,6 +308,95 @@ def average_gradients(params: Sequence[Tensor], world_size: int) -> None:
             else:
                 p.grad.copy_(mean)
         offset += n
+
+
+class GradientAverager:
+    """Averages every gradient over the ranks in one all-reduce through a buffer kept from step to step; each rank's
+    row of extra values (this step's training-image latent) rides along in the same collective.
+
+    Buffer (float32, where the backend reduces): ``[P presence flags | the P gradients, in order | world_size rows of
+    extra_width]``. Each rank writes 1.0 into the flag of every parameter it has a gradient for, its gradients (zeros
+    where it has none: an unused parameter) and its own extra row (zeros in the other ranks' rows). After the sum the
+    flags count the ranks with a gradient, the gradients are divided by N (the sum, then the division: the values of
+    `average_gradients`), and row r holds rank r's extra values exactly (a value plus zeros). The averaged gradients
+    become views into the buffer (no copy back), valid until the next call; nerfstudio sets them to None before the
+    next backward.
+
+    Why: the first implementation (`average_gradients`) copied every gradient into a new tensor each step and read
+    the presence counts back on the host, which waits for the all-reduce to finish (and so for the slowest rank) before
+    the host can queue the optimiser step. Here the host reads nothing back unless this rank lacks a gradient for a
+    parameter: only then do the counts decide between another rank's mean and no gradient at all (None, skipped by its
+    optimiser as in one process). `params` must be the same list, in the same order, on every rank (float32)."""
+
+    def __init__(self, world_size: int):
+        self.world_size = world_size
+        self._buffer: Tensor | None = None
+        self.bytes_reduced = 0
+        """Bytes of the last all-reduce."""
+        self.host_reads = 0
+        """Host read-backs of the last call (0 unless this rank lacked a gradient)."""
+        self.collective: tuple[Any, Any] | None = None
+        """(before, after) hooks around the all-reduce (the step profile's CUDA events), or None."""
+
+    def _buffer_of(self, numel: int, device: torch.device) -> Tensor:
+        buf = self._buffer
+        if buf is None or buf.numel() != numel or buf.device != device:
+            buf = self._buffer = torch.empty(numel, dtype=torch.float32, device=device)
+        return buf
+
+    def average(self, params: Sequence[Tensor], extra: Tensor | None = None, extra_width: int = 0) -> Tensor | None:
+        """Average the gradients of `params` in place (as `average_gradients` does) and return the ranks' extra rows
+        ``[world_size, extra_width]`` (a view into the buffer: use it before the next call), or None without extras.
+        `extra` is this rank's row ([extra_width]) or None (zeros)."""
+        self.host_reads = 0
+        self.bytes_reduced = 0
+        n = self.world_size
+        if n <= 1 or (not params and extra_width == 0):
+            return None
+        for p in params:
+            if p.dtype != torch.float32:
+                raise DataParallelError(f"willags: data-parallel gradients are float32, got a {p.dtype} parameter")
+        device = comm_device()
+        sizes = [p.numel() for p in params]
+        n_flags, n_grads = len(params), sum(sizes)
+        buf = self._buffer_of(n_flags + n_grads + n * extra_width, device)
+        flags = torch.tensor([float(p.grad is not None) for p in params], dtype=torch.float32)
+        if device.type == "cuda":  # pinned: an asynchronous copy, no wait for the device
+            buf[:n_flags].copy_(flags.pin_memory(), non_blocking=True)
+        else:
+            buf[:n_flags].copy_(flags)
+        grads = buf[n_flags : n_flags + n_grads]
+        slots = list(grads.split(sizes)) if params else []
+        if params:  # one kernel for every gradient (zeros for a parameter without one)
+            own = buf.untyped_storage().data_ptr()
+            flat = []
+            for p in params:
+                if p.grad is None:
+                    flat.append(torch.zeros(p.numel(), device=device))
+                elif p.grad.untyped_storage().data_ptr() == own:  # last call's view, accumulated into (not zeroed)
+                    flat.append(p.grad.reshape(-1).clone())
+                else:
+                    flat.append(p.grad.reshape(-1))
+            torch.cat(flat, out=grads)
+        rows = buf[n_flags + n_grads :].view(n, extra_width) if extra_width else None
+        if rows is not None:
+            rows.zero_()
+            if extra is not None:
+                rows[rank_and_world_size()[0]].copy_(extra.reshape(-1))
+        if self.collective is not None:
+            self.collective[0]()
+        dist.all_reduce(buf, op=dist.ReduceOp.SUM)
+        if self.collective is not None:
+            self.collective[1]()
+        self.bytes_reduced = buf.numel() * buf.element_size()
+        grads.div_(n)
+        missing = [i for i, p in enumerate(params) if p.grad is None]
+        seen = dict(zip(missing, buf[:n_flags][missing].tolist(), strict=True)) if missing else {}
+        self.host_reads = 1 if missing else 0
+        for i, (p, slot) in enumerate(zip(params, slots, strict=True)):
+            if p.grad is not None or seen.get(i, 0.0) > 0:
+                p.grad = slot.view_as(p)
+        return rows
 
 
 def optimizer_parameters(optimizers: dict[str, torch.optim.Optimizer]) -> list[Tensor]:
@@ -268,6 +439,32 @@ def share_train_latents(latents: Tensor, seen: Tensor, image_idx: int) -> None:
         if i >= 0:
             latents[i] = r[1:].to(latents.device, latents.dtype)
             seen[i] = True
+
+
+@torch.no_grad()
+def latent_row(latents: Tensor, seen: Tensor, image_idx: int, device: torch.device) -> Tensor:
+    """[D + 1] on `device`: (image_idx, its latent) when image `image_idx` has a recorded latent, else all -1, built
+    on the device (whether the row is seen is not read back on the host)."""
+    row = torch.full((latents.shape[1] + 1,), -1.0, device=device)
+    if 0 <= image_idx < latents.shape[0]:
+        known = seen[image_idx].to(device)
+        row[0] = torch.where(known, float(image_idx), -1.0)
+        row[1:] = torch.where(known, latents[image_idx].to(device, torch.float32), -1.0)
+    return row
+
+
+@torch.no_grad()
+def apply_latent_rows(latents: Tensor, seen: Tensor, rows: Tensor) -> None:
+    """Write every rank's row ([N, D + 1], `latent_row`'s format; index -1: none) into `latents` / `seen`, on the
+    device and without reading anything back: each image row takes the value of the rank row naming it (at most one
+    rank trains an image in a step), the others are kept."""
+    rows = rows.to(latents.device)
+    idx = rows[:, 0].round().long()  # [N], -1: none
+    onehot = idx[:, None] == torch.arange(latents.shape[0], device=latents.device)[None, :]  # [N, n]
+    hit = onehot.any(dim=0)  # [n]
+    values = torch.where(onehot[..., None], rows[:, None, 1:].to(latents.dtype), 0.0).sum(dim=0)  # [n, D]
+    latents.copy_(torch.where(hit[:, None], values, latents))
+    seen.logical_or_(hit)
 
 
 def parameter_signature(tensors: Sequence[Tensor]) -> Tensor:

@@ -48,11 +48,19 @@ from willags_ns.checks import (
 )
 from willags_ns.data.consistency import foreign_photo_warnings
 from willags_ns.distributed import (
+    DataParallelConfig,
+    DataParallelError,
+    GradientAverager,
+    apply_latent_rows,
     average_gradients,
     broadcast_module,
+    comm_device,
     draw_refine_seed,
+    from_rank_zero,
+    latent_row,
     optimizer_parameters,
     rank_and_world_size,
+    shard_image_cache,
     shard_train_images,
     share_train_latents,
     synced_strategy,
@@ -60,6 +68,7 @@ from willags_ns.distributed import (
     validate_train_images,
 )
 from willags_ns.eval.protocol import EvalProtocolConfig, eval_split_images, evaluate_model
+from willags_ns.step_profile import StepProfile
 from willags_ns.viewer import appearance_controls, guard_viewer_host
 
 MASK_REJECTED_WARN_EVERY_S = 60.0
@@ -87,6 +96,9 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     """Model switches (dotted fields under pipeline.model, e.g. "use_mask") that `auto_config` leaves as they are:
     the trainer fills it with those the command line set (named as a flag, or changed from the method's own preset),
     so a user's flag wins over the inspector's recommendation."""
+    data_parallel: DataParallelConfig = field(default_factory=DataParallelConfig)
+    """With --machine.num-devices N > 1: how the ranks average gradients and cache images; the step profile (one
+    device too). willags_ns/distributed.py, docs/distributed.md."""
     time_budget_minutes: float | None = None
     """Train within this many minutes of training steps (None or 0: off; set-up not counted). Before training
     `ns-train willags` chooses the preset (willags-lite or willags), the step count and the resolution schedule from
@@ -189,6 +201,15 @@ class WillagsPipeline(VanillaPipeline):
         )
         test_mode = setup_kwargs.get("test_mode", "val")
         world_size = int(setup_kwargs.get("world_size", 1))
+        # a config.yml written before the field existed has no data_parallel
+        self.data_parallel = getattr(config, "data_parallel", None) or DataParallelConfig()
+        self.step_profile: StepProfile | None = None
+        if self.data_parallel.step_profile and test_mode == "val":
+            rank = rank_and_world_size()[0]
+            device = torch.device(str(setup_kwargs.get("device", "cpu")))
+            meta = {"local_rank": setup_kwargs.get("local_rank", 0), "reduction": self.data_parallel.reduction}
+            self.step_profile = StepProfile(Path("."), rank, world_size, device, meta)
+            self.step_profile.phase("pipeline_init")
         if world_size > 1:
             validate_data_parallel(world_size, setup_kwargs.get("device"), config.datamanager)
             device = torch.device(str(setup_kwargs.get("device")))
@@ -204,13 +225,26 @@ class WillagsPipeline(VanillaPipeline):
             precheck_dataparser_config(config.datamanager)
         self.auto_config_summary = None
         if getattr(config.model, "auto_config", False):
-            # before the model exists: the switches decide which modules and parameters it has
-            summary = apply_auto_config(config.model, scene_dir(config.datamanager), keep=config.auto_config_keep)
-            CONSOLE.print(format_summary(summary))
+            # before the model exists: the switches decide which modules and parameters it has. Several ranks:
+            # rank 0 inspects, the others take its settings (the same scene, the same decision)
+            summary, inspected = from_rank_zero(
+                lambda: apply_auto_config(config.model, scene_dir(config.datamanager), keep=config.auto_config_keep)
+            )
+            if not inspected:
+                for key, value in summary.get("settings", {}).items():
+                    *parents, last = key.split(".")
+                    target = config.model
+                    for part in parents:
+                        target = getattr(target, part)
+                    setattr(target, last, value)
+            if inspected:
+                CONSOLE.print(format_summary(summary))
             # resolved either way (the recommended switches, or the method's own where nothing could be inspected):
             # config.yml is rewritten with it, so reloading builds the trained model without inspecting again
             config.model.auto_config = False
             self.auto_config_summary = summary
+        if self.step_profile is not None:
+            self.step_profile.phase("scene_inspected")
         # The model is built inside VanillaPipeline.__init__ right after the datamanager parses the scene; the
         # outputs are validated in between (a NaN pose would otherwise surface in the model's kNN as a sklearn
         # error). The hook is an instance attribute on this config only, removed again below.
@@ -218,12 +252,16 @@ class WillagsPipeline(VanillaPipeline):
         original_setup = model_config.setup
 
         def setup_after_checks(**model_kwargs):
+            if self.step_profile is not None:
+                self.step_profile.phase("data_parsed")
             if checking:
                 device = setup_kwargs.get("device")
                 outputs = self.datamanager.train_dataparser_outputs
                 warn_all(validate_dataparser_outputs(outputs, device=str(device) if device is not None else None))
-                if config.check_photo_content:
+                if config.check_photo_content and rank_and_world_size()[0] == 0:  # warnings, printed once
                     warn_all(foreign_photo_warnings(outputs))
+            if self.step_profile is not None:
+                self.step_profile.phase("inputs_checked")
             return original_setup(**model_kwargs)
 
         model_config.setup = setup_after_checks  # type: ignore[method-assign]
@@ -231,7 +269,10 @@ class WillagsPipeline(VanillaPipeline):
             super().__init__(config, **setup_kwargs)
         finally:
             del model_config.setup
+        if self.step_profile is not None:
+            self.step_profile.phase("model_built")
         self.world_size = world_size
+        self.rank = rank_and_world_size()[0]
         names = [Path(p).name for p in self.datamanager.train_dataparser_outputs.image_filenames]
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
@@ -245,6 +286,8 @@ class WillagsPipeline(VanillaPipeline):
         self._step_image_idx = -1
         if world_size > 1:
             self._setup_data_parallel(world_size)
+            if self.step_profile is not None:
+                self.step_profile.phase("data_parallel_ready")
 
     def _setup_data_parallel(self, world_size: int) -> None:
         """Same model on every rank, a share of the images per rank, densification that agrees over the ranks."""
@@ -252,6 +295,8 @@ class WillagsPipeline(VanillaPipeline):
         num_images = len(self.datamanager.train_dataset)
         validate_train_images(num_images, world_size)
         shard_train_images(self.datamanager, rank, world_size)
+        if self.data_parallel.shard_image_cache:
+            shard_image_cache(self.datamanager, rank, world_size)
         broadcast_module(self.model)  # nerfstudio seeds rank r with seed + r: rank 0's initialisation wins
         strategy = synced_strategy(self.model.strategy, draw_refine_seed(), world_size)
         # after an opacity reset gsplat waits one epoch (splatfacto: num_train_data + refine_every steps) before
@@ -277,7 +322,11 @@ class WillagsPipeline(VanillaPipeline):
         if self.auto_config_summary is not None and trainer is not None:
             cbs.append(self._record_auto_config(trainer))
         optimizers = training_callback_attributes.optimizers
-        if self.world_size > 1 and optimizers is not None:
+        profile = self.step_profile
+        if profile is not None and trainer is not None:
+            profile.directory = Path(trainer.base_dir) / "step_profile"
+            cbs += self._profile_callbacks(profile)
+        if (self.world_size > 1 or profile is not None) and optimizers is not None:
             self._average_gradients_before_step(optimizers)
         if self.config.checkpoint_on_interrupt and trainer is not None and self.world_size > 1:
             # nerfstudio's launcher terminates every rank on Ctrl-C (the parent gets the SIGINT too), so a rank
@@ -295,20 +344,76 @@ class WillagsPipeline(VanillaPipeline):
     def _average_gradients_before_step(self, optimizers: Optimizers) -> None:
         """Data-parallel: the trainer's optimiser step first averages every gradient over the ranks (after the
         backward pass, which nerfstudio runs between get_train_loss_dict and this step) and shares this step's
-        image latents."""
+        image latents (`data_parallel.reduction`). With the step profile, it also marks the reduction and the
+        optimiser step (on one device: the optimiser step alone)."""
         step_some = optimizers.optimizer_scaler_step_some
         if getattr(step_some, "willags_averages_gradients", False):
             return  # already installed (callbacks requested twice)
+        profile = self.step_profile
+        averager = None
+        if self.world_size > 1 and self.data_parallel.reduction == "buffer":
+            averager = GradientAverager(self.world_size)
+            if profile is not None:
+                averager.collective = (lambda: profile.mark("collective_start"), lambda: profile.mark("collective_end"))
 
         def averaged_step_some(grad_scaler, param_groups):
-            average_gradients(optimizer_parameters(optimizers.optimizers), self.world_size)
-            model = self.model
-            if hasattr(model, "train_latents"):
-                share_train_latents(model.train_latents, model.train_latent_seen, self._step_image_idx)
-            return step_some(grad_scaler, param_groups)
+            if profile is not None:
+                profile.mark("reduce_start")
+            if self.world_size > 1:
+                self._average(optimizers, averager)
+            if profile is not None:
+                profile.mark("reduce_end")
+            out = step_some(grad_scaler, param_groups)
+            if profile is not None:
+                profile.mark("optimizer_end")
+            return out
 
         averaged_step_some.willags_averages_gradients = True  # type: ignore[attr-defined]
         optimizers.optimizer_scaler_step_some = averaged_step_some  # type: ignore[method-assign]
+
+    def _average(self, optimizers: Optimizers, averager: GradientAverager | None) -> None:
+        """Average the gradients over the ranks and share this step's training-image latents."""
+        params = optimizer_parameters(optimizers.optimizers)
+        model, profile = self.model, self.step_profile
+        latents = getattr(model, "train_latents", None)
+        seen = getattr(model, "train_latent_seen", None)
+        if averager is None:  # the reference implementation
+            if profile is not None:
+                profile.mark("collective_start")
+            average_gradients(params, self.world_size)
+            if latents is not None:
+                share_train_latents(latents, seen, self._step_image_idx)
+            if profile is not None:
+                profile.mark("collective_end")
+                profile.note(bytes=4 * (len(params) + sum(p.numel() for p in params)))
+            return
+        row, width = None, 0
+        if latents is not None:
+            width = latents.shape[1] + 1
+            row = latent_row(latents, seen, self._step_image_idx, comm_device())
+        rows = averager.average(params, row, width)
+        if rows is not None and latents is not None:
+            apply_latent_rows(latents, seen, rows)
+        if profile is not None:
+            profile.note(bytes=averager.bytes_reduced, host_reads=averager.host_reads)
+
+    def _profile_callbacks(self, profile: StepProfile) -> list[TrainingCallback]:
+        """The step profile's marks around the trainer's loop: the training images cached (timed apart, before the
+        first step, so that the first step's timing is its own), the end of the after-step callbacks, the files."""
+
+        def cache_images(step: int) -> None:
+            if "images_cached" not in profile.meta["phases"]:
+                profile.phase("images_cache_start")
+                _ = self.datamanager.cached_train  # nerfstudio loads them at the first access
+                profile.phase("images_cached")
+
+        return [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], cache_images),
+            TrainingCallback(
+                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: profile.mark("callbacks_end")
+            ),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], lambda step: profile.flush(final=True)),
+        ]
 
     def _record_auto_config(self, trainer) -> TrainingCallback:
         """auto_config.json and the resolved config.yml now; tensorboard at the first step (writers are set up)."""
@@ -334,9 +439,17 @@ class WillagsPipeline(VanillaPipeline):
         return TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], log_once)
 
     def get_train_loss_dict(self, step: int):
+        profile = self.step_profile
+        if profile is not None:
+            profile.mark("start")
         check_gaussians_alive(self.model.num_points, step)
         camera, batch = self.datamanager.next_train(step)
         self._step_image_idx = int(batch.get("image_idx", -1))  # shared with the other ranks (several devices)
+        if self.world_size > 1 and self._step_image_idx >= 0 and self._step_image_idx % self.world_size != self.rank:
+            raise DataParallelError(
+                f"willags: rank {self.rank} drew training image {self._step_image_idx}, which belongs to rank "
+                f"{self._step_image_idx % self.world_size} (its image cache holds a placeholder there)"
+            )
         self._report_rejected_mask()
         self.model.set_train_batch(batch)  # type: ignore[attr-defined]
         model_outputs = self._model(camera)
@@ -344,6 +457,16 @@ class WillagsPipeline(VanillaPipeline):
         loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
         if "mask_rejected" in metrics_dict:
             self._pending_rejected = (step, batch, metrics_dict["mask_rejected"])
+        if profile is not None:
+            profile.mark("forward_end")
+            size = getattr(self.model, "last_size", None)
+            profile.note(
+                step=step,
+                image=self._step_image_idx,
+                pixels=int(size[0] * size[1]) if size else None,
+                gaussians=int(self.model.num_points),
+                teacher="teacher_rgb" in model_outputs,
+            )
         return model_outputs, loss_dict, metrics_dict
 
     def _report_rejected_mask(self) -> None:

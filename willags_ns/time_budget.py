@@ -3,12 +3,12 @@
 Two decisions, both from measurements:
 
 1. **Before training** (:func:`choose`; for ``ns-train willags``: a method named explicitly, willags-lite included,
-   keeps its model), from the table of measured points below: for each preset, the steps that fit
-   in the budget at its step time; among the measured points that fit, the one with the highest right-half PSNR
-   decides the preset. The run then reproduces that point's resolution schedule (splatfacto's stock one on the GPU
-   points, full resolution from the first step on the CPU ones, measured on 128 px images: larger training
-   images keep the stock schedule, :func:`full_resolution_suits`). The preset cannot change later: willags-lite and
-   willags build different appearance networks.
+   keeps its model), from the measured points (``TABLE``, loaded from willags_ns/data/time_budget_points.json): for
+   each preset, the steps that fit in the budget at its step time; among the measured points that fit, the one with
+   the highest right-half PSNR decides the preset. The run then reproduces that point's resolution schedule
+   (splatfacto's stock one on the GPU points, full resolution from the first step on the CPU ones, measured on 128 px
+   images: larger training images keep the stock schedule, :func:`full_resolution_suits`). The preset cannot change
+   later: willags-lite and willags build different appearance networks.
 2. **While training** (:class:`TimeBudget`), from the run's own clock: the wall time of steps 20-70 (after the first
    steps' warm-up: allocations, kernel caches) gives the step time on this machine and scene; the last step is set so
    that the run ends within the budget (never after the preset's own default, nor after ``--max-num-iterations``),
@@ -20,39 +20,37 @@ The budget is wall-clock time of the trainer's loop (its periodic evaluation and
 viewer, included) from the first step; not the set-up before it (loading and caching images, gsplat's first JIT
 compile) nor the final checkpoint.
 
-**The table** holds what has been measured, nothing else. Its limits, stated where the choice is printed:
+**Several devices** (``--machine.num-devices N``, several machines too): a step trains N images, one per device, and
+every schedule stays counted in steps (docs/distributed.md), so the budget plans steps, as on one device. A measured
+point of S steps on one device is reached by S steps on N devices (the same schedules, N times the images), so the
+points keep their steps; what differs is the step's cost. Before the run has measured its own, the plan uses the
+single-device step time (a data-parallel step costs more: the first plan is optimistic and the measurement at step 70
+corrects it). While training, each rank times the distributed step (the wait for the others in the gradient
+all-reduce included), and every decision is taken on values the ranks agree on (the largest elapsed time and step
+time over the ranks, :func:`agreed_max`), so that every rank stops after the same step: a rank that stopped alone
+would leave the others waiting in their next all-reduce. The clock is therefore read against the budget only where
+the ranks exchange it: at the plans and every ``AGREE_EVERY`` steps.
 
-- the PSNR of a point is the NeRF-W protocol's right-half PSNR on one reference scene per device class (the GPU:
-  fox-wild, the only scene where both presets were measured; the CPU: the embedded default scene);
+**The table** holds what has been measured, nothing else (the data file names every record and says where the runs
+come from). Its limits, stated where the choice is printed:
+
+- the PSNR of a point is the NeRF-W protocol's right-half PSNR on one reference scene per device class;
 - points of an earlier configuration are in the table (cited) but do not decide (``choose(current_only=True)``):
-  willags-lite-v0 (the fast preset before the modulated colour path) and the CPU's willags points, measured as the
-  default of that time, the paper's configuration (records relabelled ``willags-paper``). The GPU points of today's
-  presets come from one run each alone on an H200 on fox-wild (the default there is the same model before and after
-  issue 26's sky and safeguard, which need COLMAP keypoints): willags beats willags-lite at every step count and costs
-  less per step (10.8 vs 14.5 ms: lite keeps the beta-VAE encoder, run on every step's photo, and computes the mask's
-  VGG at 512 px where willags uses 256), so on the GPU the measured choice is willags for every budget. The real
-  scenes agree (one run of willags-lite alone on an H200 to 15k, tag h200-curve13, not in the table: reichstag
-  18.36 -> 18.00 dB, south-building 18.92 -> 20.32, below willags at every milestone, 328 s for 15k vs 308 s). On the CPU
-  (one run of each alone on the 2-core machine, the embedded scene, the CPU grid's short schedule) willags-lite is
-  cheaper per step (0.130 vs 0.171 s) and willags better at equal steps (23.01 vs 22.25 dB at 600 steps): the best
-  point that fits decides (lite's 300 steps below 51 s, willags' 300 to 78 s, lite's 600 to 103 s, then willags'
-  600: the points are few, so the choice alternates between them);
-- the points of ``willags`` were measured with the full model (``willags-full`` since the default inspects the scene
-  first): on the GPU's reference scene the inspection keeps the same components (fox-wild's transients keep the mask;
-  it has no keypoints for the sky), and the CPU's embedded scene (no ``--data``) is not inspected;
-- GPU step times are of runs alone on one GPU (the fidelity grid's runs share it with 4-12 others, so their times
-  are not step costs);
+  their configuration says nothing about today's preset, neither its PSNR nor its step cost;
+- GPU step times are of runs alone on one GPU (runs sharing a GPU measure the sharing, not the step);
 - ``one_scene``: only one scene has a record of this (configuration, steps, device); the others were measured on
   several (PSNR still from the reference scene).
 
 The records are in docs/benchmarks.json (keys: scene, method, device, steps, tag); tests/test_time_budget.py checks
-every number below against them.
+every number of the data file against them.
 """
 
+import json
 import math
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from willags_ns.checks import WillagsTrainingError
@@ -73,10 +71,13 @@ REPLAN_EVERY = 200
 """After the first plan, the step time is measured again over each span of this many steps and the plan redone."""
 REPRINT_CHANGE = 0.05
 """A re-plan is printed when it moves the last step by more than this fraction (the schedules follow every re-plan)."""
+AGREE_EVERY = 50
+"""Several devices: steps between two readings of the clock against the budget (each one an exchange of the elapsed
+time between the ranks, so that they stop after the same step), besides the readings of the plans."""
 
 
 class TimeBudgetError(WillagsTrainingError, ValueError):
-    """A bad time budget (negative, NaN, several devices); the message names the option. A WillagsTrainingError, so
+    """A bad time budget (negative, NaN, infinite, not a number); the message names the option. A WillagsTrainingError, so
     ns-train prints one line instead of a traceback."""
 
 
@@ -121,63 +122,24 @@ class StepTime:
     """The method name of the records (as MeasuredPoint.measured_as)."""
 
 
-_LITE_V0 = "willags-lite-v0"
-TABLE: tuple[MeasuredPoint, ...] = (
-    # GPU, fox-wild, splatfacto's stock schedule, NeRF-W protocol with 128 steps. Today's presets: one run each alone
-    # on an H200 scored at milestones (tag h200-solo, benchmarks/long_run.py); willags' 5000-step point adds the eight
-    # H100 grid runs (shared GPU: their PSNR counts, not their times). willags-lite-v0: the earlier fast preset.
-    MeasuredPoint("willags-lite", "cuda", 1000, 19.631, "fox-wild", ("h100-seq",), _LITE_V0, "stock", True),
-    MeasuredPoint("willags-lite", "cuda", 2000, 19.184, "fox-wild", ("h100-seq", "h100-seq2"), _LITE_V0, "stock", True),
-    MeasuredPoint("willags-lite", "cuda", 5000, 20.615, "fox-wild", ("h100",), _LITE_V0, "stock", True),
-    MeasuredPoint("willags-lite", "cuda", 1000, 20.155, "fox-wild", ("h200-solo",), "willags-lite", "stock", False),
-    MeasuredPoint("willags-lite", "cuda", 2000, 20.580, "fox-wild", ("h200-solo",), "willags-lite", "stock", False),
-    MeasuredPoint("willags-lite", "cuda", 5000, 21.003, "fox-wild", ("h200-solo",), "willags-lite", "stock", False),
-    MeasuredPoint("willags", "cuda", 1000, 21.134, "fox-wild", ("h200-solo",), "willags", "stock", False),
-    MeasuredPoint("willags", "cuda", 2000, 21.172, "fox-wild", ("h200-solo",), "willags", "stock", False),
-    MeasuredPoint(
-        "willags",
-        "cuda",
-        5000,
-        22.243,
-        "fox-wild",
-        ("h100-r1", "h100-r2", "h100-r7", "h100-r7b", "h100-r7c", "h100-r7d", "h100-r7e", "h100-r7f", "h200-solo"),
-        "willags",
-        "stock",
-        False,
-    ),
-    MeasuredPoint("willags", "cuda", 15000, 22.391, "fox-wild", ("h100-15k",), "willags", "stock", False),
-    # CPU (2 cores), the embedded default scene (128x96), the CPU grid's short schedule, protocol with 32 steps
-    MeasuredPoint("willags-lite", "cpu", 300, 17.733, "default", ("",), _LITE_V0, "full", False),
-    # today's presets, one run each alone on the 2-core machine (tag cpu-knob, docs/gpu_runs/cpu_knob_session11.json)
-    MeasuredPoint("willags-lite", "cpu", 300, 20.140, "default", ("cpu-knob",), "willags-lite", "full", True),
-    MeasuredPoint("willags-lite", "cpu", 600, 22.246, "default", ("cpu-knob",), "willags-lite", "full", True),
-    MeasuredPoint("willags", "cpu", 300, 21.379, "default", ("cpu-knob",), "willags", "full", True),
-    MeasuredPoint("willags", "cpu", 600, 23.015, "default", ("cpu-knob",), "willags", "full", True),
-    MeasuredPoint("willags", "cpu", 200, 17.516, "default", ("",), "willags-paper", "full", False),
-    MeasuredPoint("willags", "cpu", 300, 18.840, "default", ("",), "willags-paper", "full", False),
-    MeasuredPoint("willags", "cpu", 600, 20.533, "default", ("",), "willags-paper", "full", True),
-)
-"""Every measured point the choice uses (docs/benchmarks.json; see the module docstring for what each column means)."""
+POINTS_FILE = Path(__file__).parent / "data" / "time_budget_points.json"
+"""The measured points and step times, with the records that measured them and where those runs come from."""
 
-STEP_TIMES: dict[tuple[str, str], StepTime] = {
-    ("willags-lite", "cuda"): StepTime(
-        0.014502, "fox-wild, willags-lite, 5000 steps, tag h200-solo (72.5 s), alone on an H200", "willags-lite"
-    ),
-    ("willags", "cuda"): StepTime(
-        0.010795,
-        "fox-wild, willags, 5000 steps, tag h200-solo (54.0 s), alone on an H200 (reichstag alone: 78.7 s)",
-        "willags",
-    ),
-    ("willags-lite", "cpu"): StepTime(
-        0.13004,
-        "default scene, willags-lite, 600 steps (78.0 s), tag cpu-knob, 2-core CPU, load 1.9-2.0",
-        "willags-lite",
-    ),
-    ("willags", "cpu"): StepTime(
-        0.17102, "default scene, willags, 600 steps (102.6 s), tag cpu-knob, 2-core CPU, load 1.6-1.9", "willags"
-    ),
-}
-"""Seconds per step of each preset on each device class, before this run has measured its own."""
+
+def load_points(path: Path = POINTS_FILE) -> tuple[tuple[MeasuredPoint, ...], dict[tuple[str, str], StepTime]]:
+    """(TABLE, STEP_TIMES) from the data file `path` (its "what", "fields" and "provenance" say what each column means
+    and where each number was measured)."""
+    data = json.loads(Path(path).read_text())
+    points = tuple(MeasuredPoint(**{**p, "records": tuple(p["records"])}) for p in data["points"])
+    times = {
+        (t["preset"], t["device"]): StepTime(t["seconds"], t["source"], t["measured_as"]) for t in data["step_times"]
+    }
+    return points, times
+
+
+TABLE, STEP_TIMES = load_points()
+"""TABLE: every measured point the choice uses; STEP_TIMES: seconds per step of each preset on each device class on
+one device, before this run has measured its own."""
 
 
 CPU_SCENE_SIDE = 128
@@ -341,8 +303,11 @@ def _describe(p: MeasuredPoint) -> str:
     return f"{p.preset}{as_}, {p.steps} steps, {p.psnr:.2f} dB on {p.scene}"
 
 
-def format_choice(choice: BudgetChoice, budget_min: float, device: str, notes: list[str] | None = None) -> str:
-    """The block printed before training: budget, preset and why, the table point, the steps and the schedules."""
+def format_choice(
+    choice: BudgetChoice, budget_min: float, device: str, notes: list[str] | None = None, num_devices: int = 1
+) -> str:
+    """The block printed before training: budget, preset and why, the table point, the steps and the schedules (and,
+    with several devices, what a step is)."""
     p = choice.point
     src = STEP_TIMES.get((choice.preset, device))
     lines = [
@@ -372,6 +337,12 @@ def format_choice(choice: BudgetChoice, budget_min: float, device: str, notes: l
     else:
         sched = f"full resolution from the first step (the {device} points were measured so, on small images)"
     lines.append(f"  schedule: {sched}; learning-rate schedules end at the last step")
+    if num_devices > 1:
+        lines.append(
+            f"  devices:  {num_devices}, one image each per step: the steps and every schedule as on one device, with "
+            f"{num_devices} times the images; planned first at the one-device step time, then at the measured "
+            "data-parallel step (the slowest rank's)"
+        )
     lines += [f"  note:     {n}" for n in notes or []]
     return "\n".join(lines)
 
@@ -408,11 +379,35 @@ def end_schedules_at(
             sched.warmup_steps = own if own < end_step else int(end_step) // 10
 
 
+def agreed_max(values: list[float]) -> list[float]:
+    """The element-wise maximum of `values` over the ranks of the initialised process group (every rank calls it at
+    the same step with as many values); the values themselves without a group of several ranks."""
+    import torch
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() <= 1:
+        return [float(v) for v in values]
+    from willags_ns.distributed import comm_device
+
+    t = torch.tensor([float(v) for v in values], dtype=torch.float64, device=comm_device())
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return t.tolist()
+
+
+def several_ranks() -> bool:
+    """Whether this process is one rank of an initialised process group of several."""
+    import torch.distributed as dist
+
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+
+
 @dataclass
 class TimeBudget:
     """The budget during training: call :meth:`before_step` and :meth:`after_step` around every step (the trainer's
     callbacks do); ``after_step`` says when to stop. ``clock`` and ``sync`` are injectable (tests use a fake clock;
-    on CUDA, ``sync`` waits for the device so the clock measures finished work)."""
+    on CUDA, ``sync`` waits for the device so the clock measures finished work). With several ranks every decision
+    is taken on values the ranks agree on (``agree``), read at the same steps on every rank, so that they all stop
+    after the same step."""
 
     budget_s: float
     """The budget in seconds, from the first step on."""
@@ -425,9 +420,13 @@ class TimeBudget:
     log: Callable[[str], None] = print
     clock: Callable[[], float] = time.perf_counter
     sync: Callable[[], None] | None = None
+    agree: Callable[[list[float]], list[float]] | None = None
+    """Values -> the same values on every rank (their maximum over the ranks: :func:`agreed_max`). None: agreed_max
+    when this process is one rank of several (:func:`several_ranks`, read at the first step), else no exchange."""
     warmup_steps: int = WARMUP_STEPS
     window_steps: int = WINDOW_STEPS
     replan_every: int = REPLAN_EVERY
+    agree_every: int = AGREE_EVERY
     t0: float | None = None
     end_step: int | None = None
     """Planned end (exclusive step index): training stops after step end_step - 1. None until measured."""
@@ -441,6 +440,8 @@ class TimeBudget:
     def before_step(self, step: int) -> None:
         if self.t0 is None:
             self.t0 = self._now()
+            if self.agree is None and several_ranks():
+                self.agree = agreed_max
 
     def _now(self) -> float:
         if self.sync is not None:
@@ -451,7 +452,7 @@ class TimeBudget:
         return 0.0 if self.t0 is None else self.clock() - self.t0
 
     def after_step(self, step: int) -> bool:
-        """Record step ``step`` as done; True when training must stop after it."""
+        """Record step ``step`` as done; True when training must stop after it (on every rank at the same step)."""
         if self.t0 is None:
             self.before_step(step)
         t0 = self.t0
@@ -462,16 +463,28 @@ class TimeBudget:
             or (self.end_step is None and done == self.warmup_steps + self.window_steps)
             or (self.end_step is not None and self._mark is not None and done - self._mark[0] >= self.replan_every)
         )
+        # with several ranks the clock is held against the budget only where the ranks exchange it
+        read = self.agree is None or due or done % self.agree_every == 0
         now = self._now() if due else self.clock()
+        elapsed = now - t0
         if due:
             if self._mark is not None and done > self._mark[0]:
-                self._plan(step, done, (now - self._mark[1]) / (done - self._mark[0]), now - t0)
+                step_s = (now - self._mark[1]) / (done - self._mark[0])
+                elapsed, step_s = self._agreed([elapsed, step_s])
+                self._plan(step, done, step_s, elapsed)
+            else:
+                elapsed = self._agreed([elapsed])[0]
             self._mark = (done, now)
+        elif read:
+            elapsed = self._agreed([elapsed])[0]
         if self.end_step is not None and step + 1 >= self.end_step:
             return self._stop(step, f"reached the planned last step {step}")
-        if now - t0 >= self.budget_s:
-            return self._stop(step, f"the clock: {now - t0:.0f} s of {self.budget_s:.0f} s used")
+        if read and elapsed >= self.budget_s:
+            return self._stop(step, f"the clock: {elapsed:.0f} s of {self.budget_s:.0f} s used")
         return False
+
+    def _agreed(self, values: list[float]) -> list[float]:
+        return self.agree(values) if self.agree is not None else values
 
     def _plan(self, step: int, done: int, step_s: float, elapsed: float) -> None:
         total = plan_steps(self.budget_s, elapsed, done, step_s, self.max_steps)
