@@ -27,7 +27,7 @@ Deadline: nothing starts that would not end before ``--deadline-s`` seconds afte
 command's start, set by benchmarks/multi_gpu.sh; else this script's start); a run or evaluation still going at the
 deadline is stopped (its process group killed) and counted as such; the results are rewritten under ``--out``
 after every stage: ``multi_gpu.tgz`` (logs, step profiles, configs, evaluations, summary, records),
-``multi_gpu_records.json`` (docs/benchmarks.json records: copy into docs/gpu_runs/ and run
+``multi_gpu_records.json`` (benchmarks/records/benchmarks.json records: copy into benchmarks/records/gpu_runs/ and run
 benchmarks/merge_gpu_records.py) and ``multi_gpu_summary.txt`` (the tables printed at the end).
 """
 
@@ -369,7 +369,7 @@ def tables(results: list[dict[str, Any]]) -> str:
 
 
 def record(result: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
-    """A docs/benchmarks.json record of one run."""
+    """A benchmarks/records/benchmarks.json record of one run."""
     b = result.get("breakdown") or {}
     step = b.get("iteration")
     return {

@@ -41,7 +41,7 @@ come from). Its limits, stated where the choice is printed:
 - ``one_scene``: only one scene has a record of this (configuration, steps, device); the others were measured on
   several (PSNR still from the reference scene).
 
-The records are in docs/benchmarks.json (keys: scene, method, device, steps, tag); tests/test_time_budget.py checks
+The records are in benchmarks/records/benchmarks.json (keys: scene, method, device, steps, tag); tests/test_time_budget.py checks
 every number of the data file against them.
 """
 
@@ -100,7 +100,7 @@ class MeasuredPoint:
     scene: str
     """The reference scene the runs trained on."""
     records: tuple[str, ...]
-    """The runs: tags in docs/benchmarks.json (scene, measured_as, device, steps, tag)."""
+    """The runs: tags in benchmarks/records/benchmarks.json (scene, measured_as, device, steps, tag)."""
     measured_as: str
     """The method name of the records: the configuration that actually ran."""
     schedule: str
