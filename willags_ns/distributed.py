@@ -203,7 +203,7 @@ def is_placeholder(image: Tensor) -> bool:
 def _broadcast_(t: Tensor, src: int, device: torch.device) -> None:
     """Broadcast `t` in place from `src`, through `device` when the backend cannot send it where it is."""
     work = t.detach()
-    if work.device != device or work.dtype == torch.bool:
+    if work.device != device or work.dtype == torch.bool or not work.is_contiguous():
         buf = work.to(device=device, dtype=torch.uint8 if work.dtype == torch.bool else work.dtype).contiguous()
         dist.broadcast(buf, src)
         work.copy_(buf.to(dtype=work.dtype))

@@ -77,7 +77,7 @@ class SkyModel(nn.Module):
         nn.init.zeros_(self.mlp[-1].bias)
         # Y(d) = monomials(d) @ P on the unit sphere: the per-pixel work is a handful of tensor operations whatever
         # the degree (render/sh.py); not saved in checkpoints (a constant of the degree)
-        self.register_buffer("monomial_to_sh", monomial_to_sh(cfg.sh_degree).float(), persistent=False)
+        self.register_buffer("monomial_to_sh", monomial_to_sh(cfg.sh_degree).float().contiguous(), persistent=False)
 
     def coefficients(self, z: Float[Tensor, " D"]) -> Float[Tensor, "K 3"]:
         return self.mlp(z).reshape(self.num_coeffs, 3)
