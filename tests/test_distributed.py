@@ -100,9 +100,13 @@ def _collectives(rank: int) -> None:
     net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
     net[1].running_mean.fill_(rank)
     net.register_buffer("flag", torch.tensor([rank == 0, rank == 1]))
+    # a non-contiguous buffer (a column-major solve result, say): the collective needs contiguous memory
+    net.register_buffer("cols", torch.arange(6.0).reshape(2, 3).t() * (rank + 1))
+    assert not net.cols.is_contiguous()
     broadcast_module(net)
     check_parameters_agree(dict(net.named_parameters()), "after the broadcast")
     assert net[1].running_mean.eq(0).all() and net.flag.tolist() == [True, False]
+    assert torch.equal(net.cols, torch.arange(6.0).reshape(2, 3).t())
 
     # ranks that built different models are named, not left to hang or silently diverge
     other = torch.nn.Linear(3, 4 + rank)
