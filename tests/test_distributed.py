@@ -100,10 +100,24 @@ def _collectives(rank: int) -> None:
     net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
     net[1].running_mean.fill_(rank)
     net.register_buffer("flag", torch.tensor([rank == 0, rank == 1]))
-    # a non-contiguous buffer (a column-major solve result, say): the collective needs contiguous memory
+    # a non-contiguous buffer (a column-major solve result, say): NCCL refuses non-contiguous tensors (gloo takes
+    # them), so the broadcast here refuses them as NCCL does
     net.register_buffer("cols", torch.arange(6.0).reshape(2, 3).t() * (rank + 1))
     assert not net.cols.is_contiguous()
-    broadcast_module(net)
+    import willags_ns.distributed as wd
+
+    gloo_broadcast = wd.dist.broadcast
+
+    def nccl_like_broadcast(tensor, src, *args, **kwargs):
+        if not tensor.is_contiguous():
+            raise ValueError("Tensors must be contiguous")
+        return gloo_broadcast(tensor, src, *args, **kwargs)
+
+    wd.dist.broadcast = nccl_like_broadcast
+    try:
+        broadcast_module(net)
+    finally:
+        wd.dist.broadcast = gloo_broadcast
     check_parameters_agree(dict(net.named_parameters()), "after the broadcast")
     assert net[1].running_mean.eq(0).all() and net.flag.tolist() == [True, False]
     assert torch.equal(net.cols, torch.arange(6.0).reshape(2, 3).t())
