@@ -413,11 +413,13 @@ def test_row16_checkpoints_load_weights_only_and_pickled_objects_are_refused(tin
     with pytest.raises(pickle.UnpicklingError, match="(?i)weights only load failed"):
         torch.load(bad, map_location="cpu")  # nerfstudio's call in Trainer._load_checkpoint / eval_setup
     assert not marker.exists()
-    # through nerfstudio's own resume path
+    # through the trainer's resume path: refused with one line naming the file, never skipped for an older one
+    from willags_ns.checkpoints import CheckpointRefusedError
+
     config = _tiny_config(tmp_path / "resume", tiny_scene_src, steps=1)
     config.load_dir = tmp_path / "bad"
     trainer2 = config.setup(local_rank=0, world_size=1)
-    with pytest.raises(pickle.UnpicklingError):
+    with pytest.raises(CheckpointRefusedError, match=rf"{bad}.*pickled Python objects.*refused"):
         trainer2.setup()
     assert not marker.exists()
 
