@@ -32,6 +32,7 @@ import pickle
 import re
 import shlex
 import shutil
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -39,7 +40,7 @@ from typing import Any
 
 import torch
 
-from willags_ns.checks import WillagsTrainingError
+from willags_ns.checks import WillagsIOError
 
 CKPT_RE = re.compile(r"^step-(\d+)\.ckpt$")
 """nerfstudio's checkpoint file names (``step-000000100.ckpt``)."""
@@ -50,9 +51,9 @@ RESUME_FILE = "resume_command.txt"
 MB = 1024 * 1024
 
 
-class CheckpointError(WillagsTrainingError):
-    """A checkpoint cannot be written or read; the message names the file or directory and what to do. A
-    WillagsTrainingError, so the command line prints it as one line (checks.install_cli_excepthook)."""
+class CheckpointError(WillagsIOError):
+    """A checkpoint cannot be written or read; the message names the file or directory and what to do (the command
+    line prints it as one line: checks.install_cli_excepthook)."""
 
 
 class CheckpointSpaceError(CheckpointError):
@@ -175,9 +176,27 @@ def _free_bytes(d: Path) -> int | None:
         return None
 
 
+def is_disk_full(e: BaseException) -> bool:
+    """Whether an error is a full disk or an exhausted quota."""
+    return isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def no_space_message(d: Path, need_bytes: int, what: str) -> str:
+    """``no space left on DIR: <what> needs about N MB, M MB free`` (free space measured now)."""
+    free = _free_bytes(d)
+    return f"no space left on {d}: {what} needs about {_mb(need_bytes)}" + (
+        f", {_mb(free)} free" if free is not None else ""
+    )
+
+
+def _open_partial(path: Path):
+    """Opens a partial checkpoint file for writing (a module function: tests replace it with a disk that fills)."""
+    return open(path, "wb")
+
+
 def save_atomic(state: dict, path: Path, opener: Callable[[Path], Any] | None = None) -> Path:
     """Write ``state`` with ``torch.save`` to ``path`` atomically (see the module docstring). ``opener(path)``
-    opens the partial file for binary writing (default: ``open(path, "wb")``; tests pass one that fails).
+    opens the partial file for binary writing (default: :func:`_open_partial`).
 
     Raises CheckpointSpaceError when the disk is full, CheckpointError for any other failed write (the partial file
     removed, an existing ``path`` untouched). Returns ``path``."""
@@ -192,7 +211,7 @@ def save_atomic(state: dict, path: Path, opener: Callable[[Path], Any] | None = 
     need = state_nbytes(state)
     writer = None
     try:
-        f = (opener or (lambda p: open(p, "wb")))(tmp)
+        f = (opener or _open_partial)(tmp)
         try:
             writer = _RecordingWriter(f)
             torch.save(state, writer)
@@ -209,12 +228,8 @@ def save_atomic(state: dict, path: Path, opener: Callable[[Path], Any] | None = 
         cause = writer.error if writer is not None and writer.error is not None else e
         if not isinstance(cause, OSError):
             raise  # not an I/O failure (e.g. an object torch cannot pickle): a bug, keep its traceback
-        if cause.errno in (errno.ENOSPC, errno.EDQUOT):
-            free = _free_bytes(d)
-            raise CheckpointSpaceError(
-                f"no space left on {d}: the checkpoint needs about {_mb(need)}"
-                + (f", {_mb(free)} free" if free is not None else "")
-            ) from None
+        if is_disk_full(cause):
+            raise CheckpointSpaceError(no_space_message(d, need, "the checkpoint")) from None
         raise CheckpointError(f"cannot write checkpoint {path}: {cause.strerror or cause}") from None
     _fsync_dir(d)
     return path
@@ -370,10 +385,11 @@ def eval_load_checkpoint(config, pipeline) -> tuple[Path, int]:
 def install_eval_loader() -> None:
     """Make nerfstudio's ``eval_setup`` load through :func:`eval_load_checkpoint` (it looks the function up in its
     module at each call). Called when a willags pipeline is built, so every command that loads a willags checkpoint
-    gets it; idempotent."""
-    from nerfstudio.utils import eval_utils
-
-    eval_utils.eval_load_checkpoint = eval_load_checkpoint
+    gets it; idempotent. Only where nerfstudio's eval_utils is imported already (eval_setup is running): importing
+    it builds nerfstudio's method list, seconds a training process does not need."""
+    eval_utils = sys.modules.get("nerfstudio.utils.eval_utils")
+    if eval_utils is not None:
+        eval_utils.eval_load_checkpoint = eval_load_checkpoint
 
 
 # --------------------------------------------------------------------------------------------------------------------

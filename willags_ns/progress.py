@@ -28,13 +28,17 @@ def format_duration(seconds: float) -> str:
     return f"{s / 3600:.1f} h"
 
 
+def _count(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else f"{x:.1f}"
+
+
 def progress_line(label: str, completed: float, total: float | None, elapsed_s: float) -> str:
     """One progress line: ``label: 3/10 (30%), 12 s, ~28 s left`` (without a total: ``label: 3, 12 s``)."""
-    done = f"{completed:g}"
+    done = _count(completed)
     if total is None or total <= 0:
         return f"{label}: {done}, {format_duration(elapsed_s)}"
     pct = 100.0 * completed / total
-    text = f"{label}: {done}/{total:g} ({pct:.0f}%), {format_duration(elapsed_s)}"
+    text = f"{label}: {done}/{_count(total)} ({pct:.0f}%), {format_duration(elapsed_s)}"
     if 0 < completed < total and elapsed_s > 0:
         text += f", ~{format_duration(elapsed_s * (total - completed) / completed)} left"
     return text

@@ -237,6 +237,10 @@ class WillagsTrainer(Trainer):
         except CheckpointError:
             self.shutdown()  # the viewer's server threads would keep the process alive
             raise
+        finally:  # training ended by an error: give Ctrl-C back (a normal end has done so already)
+            interrupt = getattr(self.pipeline, "interrupt_checkpoint", None)
+            if interrupt is not None:
+                interrupt.uninstall()
 
     def _save_if_due(self, step: int) -> None:
         if self._save_timer.due() and not step_check(step, self.config.steps_per_save):
@@ -265,7 +269,7 @@ class WillagsTrainer(Trainer):
         try:
             save_atomic(state, path)
         except CheckpointError as e:
-            raise CheckpointError(f"{e}. {self._stopped_at(step)}") from None
+            raise type(e)(f"{e}. {self._stopped_at(step)}") from None
         if self.config.save_only_latest_checkpoint:
             for f in list_checkpoints(self.checkpoint_dir):
                 if f != path:
