@@ -5,6 +5,7 @@ import json
 import math
 import os
 import pickle
+import shlex
 import shutil
 import signal
 import subprocess
@@ -611,9 +612,16 @@ def test_row15_ctrl_c_on_ns_train_writes_a_checkpoint_and_exits_cleanly(tiny_sce
     assert "Traceback" not in err and "Traceback" not in out, err[-3000:]
     m = re.search(r"interrupted after step (\d+)", out)
     assert m, out[-2000:]
-    ckpts = [p.name for p in tmp_path.rglob("*.ckpt")]
-    assert ckpts == [f"step-{int(m.group(1)):09d}.ckpt"], ckpts
-    assert "--load-dir" in out
+    step = int(m.group(1))
+    ckpts = list(tmp_path.rglob("*.ckpt"))
+    assert [p.name for p in ckpts] == [f"step-{step:09d}.ckpt"], ckpts
+    # the exact command: the same arguments, the checkpoint directory, and the steps left of the 100000 planned
+    resume = re.search(r"^resume with: (.*)$", out, re.M)
+    assert resume, out[-2000:]
+    args = cmd[1:]
+    at = args.index("--max-num-iterations")
+    expected = ["ns-train", "willags", "--load-dir", str(ckpts[0].parent), "--max-num-iterations", str(99999 - step)]
+    assert shlex.split(resume.group(1)) == expected + args[1:at] + args[at + 2 :], resume.group(1)
 
 
 def test_row6_all_black_and_all_white_training_images_train_finite_through_nerfstudio(scene, tmp_path):
