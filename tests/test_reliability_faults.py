@@ -438,6 +438,13 @@ def test_row27_progress_lines_in_a_log():
         "frames: 41/60 (68%), 41 s, ~19 s left",
         "frames: 60/60 (100%), 60 s",
     ]
+    # rich's track (nerfstudio's renders), whose updater thread reports nothing without a display
+    buf = io.StringIO()
+    t[0] = 0.0
+    with Progress(console=Console(file=buf), clock=lambda: t[0], every_s=20.0, label="frames") as p:
+        for _ in p.track(range(3)):
+            t[0] += 5.0
+    assert buf.getvalue().splitlines() == ["frames: 1/3 (33%), 5 s, ~10 s left", "frames: 3/3 (100%), 15 s"]
 
 
 def test_row27_ns_eval_says_what_it_does_and_shows_progress_per_image_and_step(appearance_run, capsys):
@@ -474,6 +481,7 @@ def test_row27_render_and_export_print_the_appearance_and_the_written_path(appea
     DatasetRender(load_config=cfg, output_path=tmp_path / "renders", split="test", rendered_output_names=["rgb"]).main()
     out = capsys.readouterr().out
     assert "willags-render: appearance: mean (the mean of the training images' latents)" in out
+    assert re.search(r"^willags-render: frames: (\d+)/\1 \(100%\)", out, re.M), out  # progress, in a log too
     assert f"willags-render: wrote {tmp_path / 'renders'} (appearance: mean" in out
 
 

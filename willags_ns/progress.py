@@ -10,6 +10,7 @@ hung in a log, and the first line tells how long the whole will take.
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from operator import length_hint
 
 from rich import progress as rp
 from rich.console import Console
@@ -93,6 +94,22 @@ class Progress(rp.Progress):
         now = self.clock()
         self._line_state[task_id] = _LineState(start=now, last=now)
         return task_id
+
+    def track(self, sequence, total=None, completed=0, task_id=None, description="Working...", update_period=0.1):
+        """rich's track; in lines mode it advances after each item itself (rich's updater thread stops at once
+        when the display is off, and would report nothing)."""
+        if not self.lines:
+            yield from super().track(sequence, total, completed, task_id, description, update_period)
+            return
+        if total is None:
+            total = float(length_hint(sequence)) or None
+        if task_id is None:
+            task_id = self.add_task(description, total=total, completed=completed)
+        else:
+            self.update(task_id, total=total, completed=completed)
+        for value in sequence:
+            yield value
+            self.advance(task_id, 1)
 
     def advance(self, task_id: rp.TaskID, advance: float = 1) -> None:
         super().advance(task_id, advance)
