@@ -461,6 +461,8 @@ def test_row27_ns_eval_says_what_it_does_and_shows_progress_per_image_and_step(a
     for i in (1, 2):
         assert re.search(rf"image {i}/2 \S+ \(latent fit, left half at \d+x\d+ px\): 1/{steps} ", out), out
         assert re.search(rf"image {i}/2 .*: {steps}/{steps} \(100%\)", out), out
+    # and the whole protocol's time left, from its first step
+    assert re.search(rf"all 2 test images: 1/{2 * steps} \(\d+%\), \d+ s, ~[\d.]+ (s|min) left", out), out
     assert metrics["num_images"] == 2 and np.isfinite(metrics["psnr"])
 
 

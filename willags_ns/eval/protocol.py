@@ -271,13 +271,16 @@ def evaluate_model(
     latent), `left_loss_before` / `left_loss_after`, `fit_scale` (the fit's downscale k). `on_prediction(i, pred,
     gt)` sees each scored render (whole image, fitted latent) and its ground truth, e.g. to save pictures.
     `progress`: a rich-style progress (``add_task`` / ``advance``, e.g. willags_ns.progress.Progress) given one task
-    per image, advanced at each Adam step.
+    per image, advanced at each Adam step, and one for all images (its time left is the whole protocol's).
     """
     model.eval()
     lpips_fn = model.lpips_metric() if hasattr(model, "lpips_metric") else None
     appearance = getattr(model.config, "appearance", "sh") == "willags"
     n = len(images) if cfg.max_images < 0 else min(cfg.max_images, len(images))
     max_side = resolve_fit_max_side(cfg.fit_max_side, model.device)
+    fitting = appearance and cfg.steps > 0
+    units = cfg.steps * (2 if cfg.oracle else 1) if fitting else 1  # progress units of one image
+    overall = progress.add_task(f"all {n} test images", total=n * units) if progress is not None and n > 1 else None
     per_image = []
     with frozen(model):
         for i in range(n):
@@ -301,15 +304,16 @@ def evaluate_model(
                 return render_with_latent(model, cam, z)
 
             label = f"image {i + 1}/{n}" + (f" {names[i]}" if names else "")
-            fitting = appearance and cfg.steps > 0
             task = None
             if progress is not None:
                 what = f"latent fit, left half at {fit_gt.shape[1]}x{fit_gt.shape[0]} px" if fitting else "render"
-                task = progress.add_task(f"{label} ({what})", total=cfg.steps * (2 if cfg.oracle else 1) or 1)
+                task = progress.add_task(f"{label} ({what})", total=units)
 
             def advance(task=task) -> None:
                 if task is not None:
                     progress.advance(task)
+                if overall is not None:
+                    progress.advance(overall)
 
             rec: dict[str, float] = {"fit_scale": float(scale)}
             if appearance:
