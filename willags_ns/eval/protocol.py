@@ -68,19 +68,21 @@ def describe_protocol(cfg: EvalProtocolConfig, cameras, model) -> str:
     if not appearance or cfg.steps <= 0:
         return f"ns-eval: {n} test images, each rendered once and scored (PSNR, SSIM, LPIPS)"
     max_side = resolve_fit_max_side(cfg.fit_max_side, model.device)
-    w, h = int(cameras.width.max()), int(cameras.height.max())
-    scale = fit_factor(w, h, max_side)
-    where = (
-        f"at {w // scale}x{h // scale} px (1/{scale} of {w}x{h}; fit_max_side {max_side}: "
-        "--pipeline.eval-protocol.fit-max-side 0 fits at full resolution)"
-        if scale > 1
-        else f"at full resolution ({w}x{h} px)"
-    )
+    sizes = sorted({(int(cameras.width[i]), int(cameras.height[i])) for i in range(n)}, reverse=True)
+    fits = [(w, h, fit_factor(w, h, max_side)) for w, h in sizes]
+    if all(k == 1 for _, _, k in fits):
+        where = "at full resolution (" + ", ".join(f"{w}x{h}" for w, h, _ in fits[:3]) + " px)"
+    else:
+        shown = ", ".join(f"{w}x{h} -> {w // k}x{h // k}" for w, h, k in fits[:3]) + (" ..." if len(fits) > 3 else "")
+        where = (
+            f"downscaled to at most {max_side} px ({shown}; --pipeline.eval-protocol.fit-max-side 0 fits at full "
+            "resolution)"
+        )
     oracle = " plus the oracle fit on the whole image," if cfg.oracle else ""
     return (
         f"ns-eval: NeRF-W protocol on {n} test images: per image, {cfg.steps} Adam steps fit the appearance latent "
         f"to its left half {where},{oracle} then the right half is scored at full resolution (PSNR, SSIM, LPIPS); "
-        "each step renders the image once, so the fit is the time"
+        "each Adam step renders the image once: the steps are most of the time"
     )
 
 
@@ -280,7 +282,7 @@ def evaluate_model(
     max_side = resolve_fit_max_side(cfg.fit_max_side, model.device)
     fitting = appearance and cfg.steps > 0
     units = cfg.steps * (2 if cfg.oracle else 1) if fitting else 1  # progress units of one image
-    overall = progress.add_task(f"all {n} test images", total=n * units) if progress is not None and n > 1 else None
+    tasks: dict[str, Any] = {}  # progress tasks: "all" (from the first unit of work on), "image" (this image's)
     per_image = []
     with frozen(model):
         for i in range(n):
@@ -304,16 +306,21 @@ def evaluate_model(
                 return render_with_latent(model, cam, z)
 
             label = f"image {i + 1}/{n}" + (f" {names[i]}" if names else "")
-            task = None
-            if progress is not None:
-                what = f"latent fit, left half at {fit_gt.shape[1]}x{fit_gt.shape[0]} px" if fitting else "render"
-                task = progress.add_task(f"{label} ({what})", total=units)
+            what = f"latent fit, left half at {fit_gt.shape[1]}x{fit_gt.shape[0]} px" if fitting else "render"
 
-            def advance(task=task) -> None:
-                if task is not None:
-                    progress.advance(task)
-                if overall is not None:
-                    progress.advance(overall)
+            def start(label=label, what=what) -> None:
+                """Start this image's progress task (and at the first image, the overall one) at the work it counts,
+                so that the first rate, and the time left printed with it, is that of this work alone."""
+                if progress is None:
+                    return
+                if n > 1 and "all" not in tasks:
+                    tasks["all"] = progress.add_task(f"all {n} test images", total=n * units)
+                tasks["image"] = progress.add_task(f"{label} ({what})", total=units)
+
+            def advance() -> None:
+                for key in ("image", "all"):
+                    if key in tasks:
+                        progress.advance(tasks[key])
 
             rec: dict[str, float] = {"fit_scale": float(scale)}
             if appearance:
@@ -324,6 +331,8 @@ def evaluate_model(
                 with torch.no_grad():
                     enc = render_fn(z0)
                 rec.update({f"encoder_{k}": v for k, v in image_scores(enc[:, right], gt[:, right], lpips_fn).items()})
+                if fitting:
+                    start()
                 with torch.enable_grad():
                     z, hist = fit_latent(render_fit, fit_gt, z0, fit_left, cfg.steps, cfg.lr, advance)
                 rec["left_loss_before"], rec["left_loss_after"] = hist[0], hist[-1]
@@ -335,9 +344,11 @@ def evaluate_model(
                     rec.update({f"oracle_{k}": v for k, v in image_scores(pred_o[:, right], gt[:, right]).items()})
             else:  # no appearance model: nothing to fit
                 z = None
+            if not fitting:
+                start()
             with torch.no_grad():
                 pred = render_fn(z)
-            if task is not None and not fitting:
+            if not fitting:
                 advance()
             if on_prediction is not None:
                 on_prediction(i, pred.detach(), gt)
