@@ -620,7 +620,7 @@ def test_row15_ctrl_c_on_ns_train_writes_a_checkpoint_and_exits_cleanly(tiny_sce
     assert resume, out[-2000:]
     args = cmd[1:]
     at = args.index("--max-num-iterations")
-    expected = ["ns-train", "willags", "--load-dir", str(ckpts[0].parent), "--max-num-iterations", str(99999 - step)]
+    expected = ["ns-train", "willags", "--load-checkpoint", str(ckpts[0]), "--max-num-iterations", str(99999 - step)]
     assert shlex.split(resume.group(1)) == expected + args[1:at] + args[at + 2 :], resume.group(1)
 
 

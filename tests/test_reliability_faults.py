@@ -161,7 +161,8 @@ def test_row22_a_full_disk_stops_training_naming_the_last_good_checkpoint_and_th
     assert re.match(rf"no space left on {re.escape(str(d))}: the checkpoint needs about \d+\.\d MB, ", msg), msg
     assert f"Training stopped at step 4; the last good checkpoint is {d / 'step-000000002.ckpt'} (step 2)" in msg
     # 8 planned steps, the last good save after step 2: 5 steps left (nerfstudio counts them from step 3)
-    assert f"resume with:\n  ns-train willags --load-dir {d} --max-num-iterations 5" in msg
+    good = d / "step-000000002.ckpt"
+    assert f"resume with:\n  ns-train willags --load-checkpoint {good} --max-num-iterations 5" in msg
     assert trainer.step == 4  # no step trained after the failed save
     assert sorted(p.name for p in d.iterdir()) == ["step-000000002.ckpt"]
     assert read_checkpoint(d / "step-000000002.ckpt")["step"] == 2
@@ -289,19 +290,22 @@ def test_row24_resume_command_parses_to_the_resumed_run():
 
     argv = ["/venv/bin/ns-train", "willags", "--data", "/d", "--max-num-iterations", "400", "--load-dir", "/old"]
     argv += ["--pipeline.model.num-downscales", "0", "nerfstudio-data", "--downscale-factor", "2"]
-    cmd = resume_command(argv, "willags", Path("/out/run dir/nerfstudio_models"), 299)
+    ckpt = Path("/out/run dir/nerfstudio_models/step-000000100.ckpt")
+    cmd = resume_command(argv, "willags", ckpt, 299)
     assert cmd == (
-        "ns-train willags --load-dir '/out/run dir/nerfstudio_models' --max-num-iterations 299 --data /d "
-        "--pipeline.model.num-downscales 0 nerfstudio-data --downscale-factor 2"
+        "ns-train willags --load-checkpoint '/out/run dir/nerfstudio_models/step-000000100.ckpt' "
+        "--max-num-iterations 299 --data /d --pipeline.model.num-downscales 0 nerfstudio-data --downscale-factor 2"
     )
     config = tyro.cli(AnnotatedBaseConfigUnion, args=shlex.split(cmd)[1:])
-    assert config.load_dir == Path("/out/run dir/nerfstudio_models") and config.max_num_iterations == 299
+    assert config.load_checkpoint == ckpt and config.load_dir is None and config.max_num_iterations == 299
     assert config.pipeline.model.num_downscales == 0 and config.pipeline.datamanager.dataparser.downscale_factor == 2
     # --a=b and --a_b spellings are replaced too; a command line that is not ns-train's gets the plain form
-    cmd = resume_command(["ns-train", "willags", "--max_num_iterations=400", "--load-step=3"], "willags", Path("/c"), 9)
-    assert cmd == "ns-train willags --load-dir /c --max-num-iterations 9"
+    argv = ["ns-train", "willags", "--max_num_iterations=400", "--load-step=3", "--load-dir", "/a"]
+    assert (
+        resume_command(argv, "willags", Path("/c"), 9) == "ns-train willags --load-checkpoint /c --max-num-iterations 9"
+    )
     assert resume_command(["pytest"], "willags", Path("/c"), 9).startswith(
-        "ns-train willags --load-dir /c --max-num-iterations 9  (plus this run's other ns-train options)"
+        "ns-train willags --load-checkpoint /c --max-num-iterations 9  (plus this run's other ns-train options)"
     )
 
 
@@ -365,7 +369,7 @@ def test_row25_sigkill_loses_nothing_beyond_the_last_save_and_the_written_comman
 
     # the written command resumes after that step and ends the run at its planned step
     command = (d.parent / ck.RESUME_FILE).read_text().strip()
-    assert f"--load-dir {d} --max-num-iterations {plan - saved - 1}" in command, (command, seed)
+    assert f"--load-checkpoint {found[0]} --max-num-iterations {plan - saved - 1}" in command, (command, seed)
     words = shlex.split(command)
     assert words[0] == "ns-train"
     _ns_train_in_process(words[1:])

@@ -22,7 +22,7 @@ could run code), never skipped silently.
 ``ns-render``, ``ns-viewer``, ``willags-render``, ``willags-export`` and ``willags-latents`` read checkpoints this way;
 the training side (``--load-dir``) is ``WillagsTrainer._load_checkpoint``.
 
-:func:`resume_command` writes the command that continues a run from a checkpoint and ends it at the planned step
+:func:`resume_command` writes the command that continues a run from a checkpoint file and ends it at the planned step
 (nerfstudio counts ``--max-num-iterations`` from the resumed step). :class:`SaveTimer` decides saves by wall time.
 """
 
@@ -412,16 +412,20 @@ def is_ns_train(argv: Sequence[str]) -> bool:
     return exe.name == "ns-train" or exe.as_posix().endswith("nerfstudio/scripts/train.py")
 
 
-def resume_command(argv: Sequence[str], method: str, load_dir: Path, remaining_steps: int) -> str:
-    """The shell command that resumes a run from the newest checkpoint in ``load_dir`` and trains its
-    ``remaining_steps`` (nerfstudio runs ``--max-num-iterations`` steps from the resumed one, so the count left, not
-    the original plan, ends the run at the planned step).
+def resume_command(argv: Sequence[str], method: str, checkpoint: Path, remaining_steps: int) -> str:
+    """The shell command that resumes a run from ``checkpoint`` (a file) and trains its ``remaining_steps``
+    (nerfstudio runs ``--max-num-iterations`` steps from the resumed one, so the count left, not the original plan,
+    ends the run at the planned step).
 
-    ``argv`` is the original ``ns-train`` command line: the command is that line with ``--load-dir`` and
+    The file is named (``--load-checkpoint``), not the newest of its directory (``--load-dir``), so the command and
+    its step count always agree: the trainer writes the command of a new checkpoint after the checkpoint and before
+    it deletes the older one, so a process killed in between leaves a command whose file still exists.
+
+    ``argv`` is the original ``ns-train`` command line: the command is that line with ``--load-checkpoint`` and
     ``--max-num-iterations`` set right after the method (before any dataparser subcommand, where tyro reads them),
-    earlier values of these and of ``--load-step`` / ``--load-checkpoint`` removed. For another command line (a script
+    earlier values of these and of ``--load-dir`` / ``--load-step`` removed. For another command line (a script
     driving the trainer), ``ns-train METHOD`` with the two options and a note to add the run's other options."""
-    own = ["--load-dir", str(load_dir), "--max-num-iterations", str(int(remaining_steps))]
+    own = ["--load-checkpoint", str(checkpoint), "--max-num-iterations", str(int(remaining_steps))]
     if not is_ns_train(argv) or method not in argv[1:] or any(_flag_name(a) == "--load-config" for a in argv):
         return shlex.join(["ns-train", method, *own]) + "  (plus this run's other ns-train options)"
     args = list(argv[1:])

@@ -88,7 +88,7 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     photo of another place under a registered frame; willags_ns/data/consistency.py). Needs SfM points; ~2 s per 50
     photos on a CPU."""
     checkpoint_on_interrupt: bool = True
-    """Ctrl-C finishes the current step, writes a checkpoint and exits; resume with --load-dir. A second Ctrl-C
+    """Ctrl-C finishes the current step, writes a checkpoint and exits; the printed command resumes it. A second Ctrl-C
     interrupts at once."""
     auto_config_keep: tuple[str, ...] = ()
     """Model switches (dotted fields under pipeline.model, e.g. "use_mask") that `auto_config` leaves as they are:
@@ -183,9 +183,7 @@ class InterruptCheckpoint:
             from willags_ns.checkpoints import resume_command
 
             end = self.trainer._start_step + self.trainer.config.max_num_iterations
-            command = resume_command(
-                [], str(self.trainer.config.method_name), self.trainer.checkpoint_dir, end - step - 1
-            )
+            command = resume_command([], str(self.trainer.config.method_name), path, end - step - 1)
         CONSOLE.print(
             f"willags: interrupted after step {step}; checkpoint {path}\nresume with: {command}",
             soft_wrap=True,  # one line however long: it is copied into a shell

@@ -10,7 +10,7 @@ Checkpoints (willags_ns/checkpoints.py, docs/reliability.md): every save is atom
 stops training with one line naming the directory, the size needed, the last good checkpoint and the command that
 resumes from it; saves come every ``steps_per_save`` steps and also every ``save_every_minutes`` of wall time (a
 killed run loses at most that much work); after each save, ``resume_command.txt`` beside config.yml holds the exact
-command that resumes from it and ends at the planned step. ``--load-dir`` resumes from the newest readable
+command that resumes from it (``--load-checkpoint`` naming its file) and ends at the planned step. ``--load-dir`` resumes from the newest readable
 checkpoint, naming any damaged newer one it skipped. On a log that is not a terminal, nerfstudio's step table (which
 redraws itself with cursor movements, and with it the viewer's address, at every log step) prints each line once.
 """
@@ -249,7 +249,8 @@ class WillagsTrainer(Trainer):
     def resume_command(self, saved_step: int) -> str:
         """The command that resumes this run from the checkpoint of ``saved_step`` and ends at its planned step."""
         end = getattr(self, "planned_end", self._start_step + self.config.max_num_iterations)
-        return resume_command(sys.argv, str(self.config.method_name), self.checkpoint_dir, end - saved_step - 1)
+        path = checkpoint_path(self.checkpoint_dir, saved_step)
+        return resume_command(sys.argv, str(self.config.method_name), path, end - saved_step - 1)
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
@@ -270,13 +271,13 @@ class WillagsTrainer(Trainer):
             save_atomic(state, path)
         except CheckpointError as e:
             raise type(e)(f"{e}. {self._stopped_at(step)}") from None
+        self._write_resume_file(step)  # before the older checkpoints go: the command in it always names a file
         if self.config.save_only_latest_checkpoint:
             for f in list_checkpoints(self.checkpoint_dir):
                 if f != path:
                     f.unlink()
         if hasattr(self, "_save_timer"):
             self._save_timer.saved()
-        self._write_resume_file(step)
 
     def _stopped_at(self, step: int) -> str:
         """What a failed save at ``step`` leaves: the last good checkpoint and the command that resumes from it."""
