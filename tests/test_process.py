@@ -280,6 +280,7 @@ def test_unrelated_photos_fail_with_too_few_registered(tmp_path, capsys):
         Image.fromarray(noise).resize((200, 160), Image.Resampling.BICUBIC).save(photos / f"{i}.png")
     code, text = _main(capsys, photos, tmp_path / "out")
     assert code == 1 and "fewer than 3" in text
+    assert "feature extraction: 5/5 (100%)" in text  # the stages' progress reaches a log (not a terminal) too
     assert (tmp_path / "out" / "colmap" / "database.db").is_file()  # kept: a rerun would not extract again
     assert not (tmp_path / "out" / "images").exists()
 

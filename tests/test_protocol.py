@@ -197,3 +197,49 @@ def test_oracle_latent_and_train_view_scores():
     assert scores["train_num_images"] == 1 and scores["train_psnr"] > 40  # its own latent reproduces its render
     model.train_latents[0] = -z_true
     assert train_view_scores(model, cam, [gt])["train_psnr"] < scores["train_psnr"] - 3  # a wrong latent does not
+
+
+def test_reduced_fit_never_sees_the_right_half_and_still_fits():
+    """fit_max_side: the latent is fitted on a k-times smaller image (k = 3 for 72 px at 24), the score stays at
+    full resolution. The fitted pixels come from the left half only: a different right half gives the same latent;
+    the fit still explains the held-out half better than the encoder's latent; progress sees every Adam step."""
+    from willags_ns.eval.protocol import block_mean, downscale_camera, fit_factor, resolve_fit_max_side
+
+    assert fit_factor(72, 48, 24) == 3 and fit_factor(72, 48, 0) == 1 and fit_factor(20, 10, 24) == 1
+    assert resolve_fit_max_side(-1, "cpu") == 320 and resolve_fit_max_side(0, "cpu") == 0
+    assert resolve_fit_max_side(-1, "cuda") == 0 and resolve_fit_max_side(100, "cuda") == 100
+    img = torch.arange(7 * 8 * 1, dtype=torch.float32).view(7, 8, 1)
+    torch.testing.assert_close(block_mean(img, 3), torch.tensor([[[9.0], [12.0]], [[33.0], [36.0]]]))
+    cam = _camera(72, 48)
+    small = downscale_camera(cam, 3)
+    assert (int(small.width), int(small.height)) == (24, 16)
+    torch.testing.assert_close(small.fx, cam.fx / 3)
+    torch.testing.assert_close(small.cx, cam.cx / 3)
+
+    model = _tiny_model()
+    model.eval()
+    z_true = 3.0 * torch.randn(8, generator=torch.Generator().manual_seed(1))
+    gt = _render_under(model, cam, z_true)
+    other = gt.clone()
+    other[:, 36:] = torch.rand(48, 36, 3, generator=torch.Generator().manual_seed(2))  # another right half
+
+    class Recorder:
+        def __init__(self):
+            self.tasks: dict[int, list] = {}
+
+        def add_task(self, description, total):
+            self.tasks[len(self.tasks)] = [description, total, 0]
+            return len(self.tasks) - 1
+
+        def advance(self, task, n=1):
+            self.tasks[task][2] += n
+
+    cfg = EvalProtocolConfig(steps=20, lr=0.1, fit_max_side=24)
+    rec = Recorder()
+    agg, per_image = evaluate_model(model, cam, [gt], cfg, names=["a.png"], progress=rec)
+    assert rec.tasks == {0: ["image 1/1 a.png (latent fit, left half at 24x16 px)", 20, 20]}
+    assert per_image[0]["fit_scale"] == 3.0
+    assert agg["left_loss_after"] < agg["left_loss_before"] and agg["psnr"] > agg["encoder_psnr"]
+    _, per_other = evaluate_model(model, cam, [other], cfg)
+    assert per_other[0]["left_loss_after"] == per_image[0]["left_loss_after"]  # the right half never entered the fit
+    assert per_other[0]["full_psnr"] != per_image[0]["full_psnr"]  # ... though it is scored

@@ -5,6 +5,7 @@ import json
 import math
 import os
 import pickle
+import shlex
 import shutil
 import signal
 import subprocess
@@ -413,11 +414,13 @@ def test_row16_checkpoints_load_weights_only_and_pickled_objects_are_refused(tin
     with pytest.raises(pickle.UnpicklingError, match="(?i)weights only load failed"):
         torch.load(bad, map_location="cpu")  # nerfstudio's call in Trainer._load_checkpoint / eval_setup
     assert not marker.exists()
-    # through nerfstudio's own resume path
+    # through the trainer's resume path: refused with one line naming the file, never skipped for an older one
+    from willags_ns.checkpoints import CheckpointRefusedError
+
     config = _tiny_config(tmp_path / "resume", tiny_scene_src, steps=1)
     config.load_dir = tmp_path / "bad"
     trainer2 = config.setup(local_rank=0, world_size=1)
-    with pytest.raises(pickle.UnpicklingError):
+    with pytest.raises(CheckpointRefusedError, match=rf"{bad}.*pickled Python objects.*refused"):
         trainer2.setup()
     assert not marker.exists()
 
@@ -609,9 +612,16 @@ def test_row15_ctrl_c_on_ns_train_writes_a_checkpoint_and_exits_cleanly(tiny_sce
     assert "Traceback" not in err and "Traceback" not in out, err[-3000:]
     m = re.search(r"interrupted after step (\d+)", out)
     assert m, out[-2000:]
-    ckpts = [p.name for p in tmp_path.rglob("*.ckpt")]
-    assert ckpts == [f"step-{int(m.group(1)):09d}.ckpt"], ckpts
-    assert "--load-dir" in out
+    step = int(m.group(1))
+    ckpts = list(tmp_path.rglob("*.ckpt"))
+    assert [p.name for p in ckpts] == [f"step-{step:09d}.ckpt"], ckpts
+    # the exact command: the same arguments, the checkpoint directory, and the steps left of the 100000 planned
+    resume = re.search(r"^resume with: (.*)$", out, re.M)
+    assert resume, out[-2000:]
+    args = cmd[1:]
+    at = args.index("--max-num-iterations")
+    expected = ["ns-train", "willags", "--load-checkpoint", str(ckpts[0]), "--max-num-iterations", str(99999 - step)]
+    assert shlex.split(resume.group(1)) == expected + args[1:at] + args[at + 2 :], resume.group(1)
 
 
 def test_row6_all_black_and_all_white_training_images_train_finite_through_nerfstudio(scene, tmp_path):

@@ -41,6 +41,10 @@ class WillagsTrainingError(RuntimeError):
     """Training reached a state it cannot continue from (e.g. every Gaussian pruned); the message says what to do."""
 
 
+class WillagsIOError(RuntimeError):
+    """A file cannot be written or read (a full disk, a damaged checkpoint); the message names it and what to do."""
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # images
 
@@ -334,7 +338,7 @@ def warn_all(messages: Sequence[str]) -> None:
 
 def _excepthook(prev):
     def hook(exc_type, exc, tb):
-        if isinstance(exc, (WillagsDataError, WillagsTrainingError)):
+        if isinstance(exc, (WillagsDataError, WillagsTrainingError, WillagsIOError)):
             print(f"\nwillags: {exc}", file=sys.stderr)
             return
         prev(exc_type, exc, tb)
@@ -344,8 +348,8 @@ def _excepthook(prev):
 
 
 def install_cli_excepthook() -> None:
-    """Make an uncaught WillagsDataError / WillagsTrainingError print ``willags: <message>`` (exit status 1)
-    instead of a 30-frame traceback through nerfstudio. Only these two classes; every other error keeps Python's
-    traceback. Idempotent."""
+    """Make an uncaught WillagsDataError / WillagsTrainingError / WillagsIOError print ``willags: <message>`` (exit
+    status 1) instead of a 30-frame traceback through nerfstudio. Only these classes; every other error keeps
+    Python's traceback. Idempotent."""
     if not getattr(sys.excepthook, "willags", False):
         sys.excepthook = _excepthook(sys.excepthook)

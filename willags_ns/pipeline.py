@@ -18,7 +18,11 @@ It is also where every willags method checks its inputs and guards training, wha
 - with `--pipeline.model.auto-config True` (method willags-auto), the scene is inspected and the model's switches
   set before the model is built (willags_ns/autoconfig.py);
 - Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
-  at the next step with the same parameters and optimiser state (`InterruptCheckpoint`).
+  at the next step with the same parameters and optimiser state (`InterruptCheckpoint`); the printed command
+  resumes it and ends at the planned step;
+- every willags command that loads a checkpoint (ns-eval, ns-render, ns-viewer, willags-render, willags-export)
+  reads it through willags_ns/checkpoints.py: the newest readable one, a damaged one named
+  (`checkpoints.install_eval_loader`, installed when the pipeline is built).
 
 With `--machine.num-devices N` (N > 1) it trains data-parallel without nerfstudio's DDP wrapper: each rank renders
 its own image, gradients are averaged before the optimiser step and densification agrees over the ranks
@@ -40,6 +44,7 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.autoconfig import AUTO_CONFIG_FILE, apply_auto_config, format_summary, scene_dir, tensorboard_entries
+from willags_ns.checkpoints import install_eval_loader
 from willags_ns.checks import (
     check_gaussians_alive,
     install_cli_excepthook,
@@ -67,7 +72,8 @@ from willags_ns.distributed import (
     validate_data_parallel,
     validate_train_images,
 )
-from willags_ns.eval.protocol import EvalProtocolConfig, eval_split_images, evaluate_model
+from willags_ns.eval.protocol import EvalProtocolConfig, describe_protocol, eval_split_images, evaluate_model
+from willags_ns.progress import Progress
 from willags_ns.step_profile import StepProfile
 from willags_ns.viewer import appearance_controls, guard_viewer_host
 
@@ -80,8 +86,9 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     """VanillaPipeline that passes the training batch to the model before its forward pass."""
 
     _target: type = field(default_factory=lambda: WillagsPipeline)
-    eval_protocol: EvalProtocolConfig = field(default_factory=EvalProtocolConfig)
-    """NeRF-W protocol used by `ns-eval` (fit the latent on the left half of each test image, score the right)."""
+    eval_protocol: EvalProtocolConfig = field(default_factory=lambda: EvalProtocolConfig(fit_max_side=-1))
+    """NeRF-W protocol used by `ns-eval` (fit the latent on the left half of each test image, score the right). Its
+    fit runs at most CPU_FIT_MAX_SIDE px on the CPU (fit_max_side -1; 0 = full resolution)."""
     check_inputs: bool = True
     """Before training: check every training image (exists, decodes, matches its camera's size), the poses
     (finite, proper rotations) and the intrinsics (fx, fy > 0); stop with a message naming the file / frame."""
@@ -90,7 +97,7 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     photo of another place under a registered frame; willags_ns/data/consistency.py). Needs SfM points; ~2 s per 50
     photos on a CPU."""
     checkpoint_on_interrupt: bool = True
-    """Ctrl-C finishes the current step, writes a checkpoint and exits; resume with --load-dir. A second Ctrl-C
+    """Ctrl-C finishes the current step, writes a checkpoint and exits; the printed command resumes it. A second Ctrl-C
     interrupts at once."""
     auto_config_keep: tuple[str, ...] = ()
     """Model switches (dotted fields under pipeline.model, e.g. "use_mask") that `auto_config` leaves as they are:
@@ -182,10 +189,18 @@ class InterruptCheckpoint:
         from nerfstudio.utils import writer
 
         writer.write_out_storage()
+        if hasattr(self.trainer, "resume_command"):  # willags' trainer: the exact command
+            command = self.trainer.resume_command(step)
+        else:
+            from willags_ns.checkpoints import resume_command
+
+            end = self.trainer._start_step + self.trainer.config.max_num_iterations
+            command = resume_command([], str(self.trainer.config.method_name), path, end - step - 1)
         CONSOLE.print(
-            f"willags: interrupted after step {step}; checkpoint {path}\n"
-            f"resume with: ns-train {self.trainer.config.method_name} --load-dir {self.trainer.checkpoint_dir} "
-            "(and the same other arguments)"
+            f"willags: interrupted after step {step}; checkpoint {path}\nresume with: {command}",
+            soft_wrap=True,  # one line however long: it is copied into a shell
+            markup=False,
+            highlight=False,
         )
         raise SystemExit(130)
 
@@ -195,6 +210,7 @@ class WillagsPipeline(VanillaPipeline):
 
     def __init__(self, config: WillagsPipelineConfig, *args, **kwargs):
         install_cli_excepthook()
+        install_eval_loader()  # eval_setup loads the checkpoint after this pipeline is built
         # VanillaPipeline's arguments by name: (device, test_mode, world_size, local_rank, grad_scaler)
         setup_kwargs = dict(
             zip(("device", "test_mode", "world_size", "local_rank", "grad_scaler"), args, strict=False), **kwargs
@@ -487,7 +503,10 @@ class WillagsPipeline(VanillaPipeline):
         images = eval_split_images(self.datamanager)
         names = [Path(p).name for p in ds.image_filenames]
         self.eval()
-        agg, per_image = evaluate_model(self.model, ds.cameras, images, self.config.eval_protocol, names)
+        cfg = self.config.eval_protocol
+        CONSOLE.print(describe_protocol(cfg, ds.cameras, self.model), soft_wrap=True, markup=False, highlight=False)
+        with Progress(label="ns-eval") as progress:
+            agg, per_image = evaluate_model(self.model, ds.cameras, images, cfg, names, progress=progress)
         self.train()
         if get_std and len(per_image) > 1:
             import statistics

@@ -1,15 +1,26 @@
-"""WillagsTrainer: nerfstudio's Trainer, plus the time budget (`--pipeline.time-budget-minutes N`).
+"""WillagsTrainer: nerfstudio's Trainer, plus the time budget (`--pipeline.time-budget-minutes N`) and checkpoints
+that survive faults.
 
 Why a Trainer of our own: the budget decides things only the trainer owns. Before the pipeline is built it picks the
 preset (its model config), the step cap and where the learning-rate schedules end; during training it stops the loop
-at the step the run's own clock allows (nerfstudio's loop runs a fixed ``max_num_iterations``). Without a budget it is
-nerfstudio's Trainer unchanged. The decisions themselves are pure functions in willags_ns/time_budget.py.
+at the step the run's own clock allows (nerfstudio's loop runs a fixed ``max_num_iterations``). The decisions
+themselves are pure functions in willags_ns/time_budget.py.
+
+Checkpoints (willags_ns/checkpoints.py, docs/reliability.md): every save is atomic, and one that fails (a full disk)
+stops training with one line naming the directory, the size needed, the last good checkpoint and the command that
+resumes from it; saves come every ``steps_per_save`` steps and also every ``save_every_minutes`` of wall time (a
+killed run loses at most that much work); after each save, ``resume_command.txt`` beside config.yml holds the exact
+command that resumes from it (``--load-checkpoint`` naming its file) and ends at the planned step. ``--load-dir`` resumes from the newest readable
+checkpoint, naming any damaged newer one it skipped. On a log that is not a terminal, nerfstudio's step table (which
+redraws itself with cursor movements, and with it the viewer's address, at every log step) prints each line once.
 """
 
 import copy
 import dataclasses
 import json
 import sys
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -17,9 +28,25 @@ from typing import Any, Literal
 import torch
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import writer
+from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns import time_budget as tb
+from willags_ns.checkpoints import (
+    RESUME_FILE,
+    CheckpointError,
+    SaveTimer,
+    checkpoint_path,
+    checkpoint_step,
+    list_checkpoints,
+    load_file,
+    load_latest,
+    resume_command,
+    save_atomic,
+    write_text_atomic,
+)
 from willags_ns.checks import install_cli_excepthook
 from willags_ns.time_budget import (
     DEFAULT_PRESET,
@@ -46,6 +73,11 @@ class WillagsTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/time_budget.py)."""
 
     _target: type = field(default_factory=lambda: WillagsTrainer)
+    save_every_minutes: float = 5.0
+    """Also write a checkpoint once this many minutes of wall time have passed since the last one (0: only every
+    steps_per_save steps), so a killed run loses at most this much work. Saves are atomic and, with
+    save_only_latest_checkpoint, replace the previous one; a CPU step can take seconds, so steps alone can leave
+    hours between saves."""
 
 
 PRESET_CONFIGS: dict[str, Any] = {}
@@ -120,10 +152,31 @@ def apply_budget(
     return choice, notes, replaced
 
 
+def quiet_local_writer(writers: list, is_terminal: bool) -> list[str]:
+    """On a log that is not a terminal, make nerfstudio's LocalWriter in ``writers`` print each step line once
+    (``max_log_size`` 0, on a copy of its config) without its banner (re-printed with every redraw). Returns the
+    banner lines taken off, for the caller to print once."""
+    if is_terminal:
+        return []
+    banner: list[str] = []
+    for w in writers:
+        if not isinstance(w, writer.LocalWriter):
+            continue
+        if w.banner_len:
+            banner += [m for m in w.past_mssgs[-(w.banner_len - 1) :] if m]
+            w.past_mssgs = w.past_mssgs[: -w.banner_len]
+            w.banner_len = 0
+        w.config = dataclasses.replace(w.config, max_log_size=0)
+    return banner
+
+
 class WillagsTrainer(Trainer):
-    """nerfstudio's Trainer; with a time budget it also chooses, measures and stops (see the module docstring)."""
+    """nerfstudio's Trainer; with a time budget it also chooses, measures and stops; its checkpoints are atomic, by
+    steps and by time, and resumable with one printed command (see the module docstring)."""
 
     config: WillagsTrainerConfig
+    clock: Callable[[], float] = staticmethod(time.monotonic)  # type: ignore[assignment]
+    """Wall clock of the timed saves (tests replace it)."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         install_cli_excepthook()  # a bad budget prints one line, as bad inputs do
@@ -157,6 +210,116 @@ class WillagsTrainer(Trainer):
             if replaced is not None:
                 self._resolution_for_images(replaced)
             self._attach_budget(minutes * 60.0, choice)
+        for line in quiet_local_writer(writer.EVENT_WRITERS, sys.stdout.isatty()):
+            CONSOLE.print(line)
+        # last: after the model's own callbacks (densification) the step's state is complete
+        self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._save_if_due))
+
+    # ---- checkpoints
+
+    def train(self) -> None:
+        # the step after the last one this run plans to train (nerfstudio: max_num_iterations from the start)
+        self.planned_end = self._start_step + self.config.max_num_iterations
+        self._save_timer = SaveTimer(self.config.save_every_minutes * 60.0, clock=self.clock)
+        if self.local_rank == 0:
+            every = [f"every {self.config.steps_per_save} steps"] if self.config.steps_per_save > 0 else []
+            if self.config.save_every_minutes > 0:
+                every.append(f"every {self.config.save_every_minutes:g} min")
+            CONSOLE.print(
+                f"willags: checkpoints {' and '.join(every) or 'at the end only'} in {self.checkpoint_dir}; "
+                f"if the run stops, {Path(self.base_dir) / RESUME_FILE} holds the command that resumes it",
+                soft_wrap=True,
+                markup=False,
+                highlight=False,
+            )
+        try:
+            super().train()
+        except CheckpointError:
+            self.shutdown()  # the viewer's server threads would keep the process alive
+            raise
+        finally:  # training ended by an error: give Ctrl-C back (a normal end has done so already)
+            interrupt = getattr(self.pipeline, "interrupt_checkpoint", None)
+            if interrupt is not None:
+                interrupt.uninstall()
+
+    def _save_if_due(self, step: int) -> None:
+        if self._save_timer.due() and not step_check(step, self.config.steps_per_save):
+            self.save_checkpoint(step)  # nerfstudio's loop saves the steps_per_save steps itself
+
+    def resume_command(self, saved_step: int) -> str:
+        """The command that resumes this run from the checkpoint of ``saved_step`` and ends at its planned step."""
+        end = getattr(self, "planned_end", self._start_step + self.config.max_num_iterations)
+        path = checkpoint_path(self.checkpoint_dir, saved_step)
+        return resume_command(sys.argv, str(self.config.method_name), path, end - saved_step - 1)
+
+    @check_main_thread
+    def save_checkpoint(self, step: int) -> None:
+        """nerfstudio's checkpoint (same file, same contents) written atomically; the older ones removed only once it
+        is complete. A failed write stops training: CheckpointError naming the last good checkpoint and the
+        command that resumes from it."""
+        path = checkpoint_path(self.checkpoint_dir, step)
+        state = {
+            "step": step,
+            "pipeline": self.pipeline.module.state_dict()  # type: ignore
+            if hasattr(self.pipeline, "module")
+            else self.pipeline.state_dict(),
+            "optimizers": {k: v.state_dict() for (k, v) in self.optimizers.optimizers.items()},
+            "schedulers": {k: v.state_dict() for (k, v) in self.optimizers.schedulers.items()},
+            "scalers": self.grad_scaler.state_dict(),
+        }
+        try:
+            save_atomic(state, path)
+        except CheckpointError as e:
+            raise type(e)(f"{e}. {self._stopped_at(step)}") from None
+        self._write_resume_file(step)  # before the older checkpoints go: the command in it always names a file
+        if self.config.save_only_latest_checkpoint:
+            for f in list_checkpoints(self.checkpoint_dir):
+                if f != path:
+                    f.unlink()
+        if hasattr(self, "_save_timer"):
+            self._save_timer.saved()
+
+    def _stopped_at(self, step: int) -> str:
+        """What a failed save at ``step`` leaves: the last good checkpoint and the command that resumes from it."""
+        good = list_checkpoints(self.checkpoint_dir)
+        if not good:
+            return f"Training stopped at step {step}; no checkpoint was written yet: make room and start again"
+        last = checkpoint_step(good[0])
+        assert last is not None
+        return (
+            f"Training stopped at step {step}; the last good checkpoint is {good[0]} (step {last}). Make room, then "
+            f"resume with:\n  {self.resume_command(last)}"
+        )
+
+    def _write_resume_file(self, step: int) -> None:
+        path = Path(self.base_dir) / RESUME_FILE
+        try:
+            end = getattr(self, "planned_end", None)
+            if end is not None and end - step - 1 > 0:
+                write_text_atomic(path, self.resume_command(step) + "\n")
+            elif path.exists():
+                path.unlink()
+        except OSError as e:
+            CONSOLE.print(f"[bold yellow]willags warning:[/bold yellow] cannot write {path}: {e.strerror or e}")
+
+    def _load_checkpoint(self) -> None:
+        """nerfstudio's resume (--load-dir / --load-step / --load-checkpoint), reading through
+        willags_ns/checkpoints.py: the newest readable checkpoint of --load-dir, a damaged one named."""
+        cfg = self.config
+        if cfg.load_dir is not None:
+            path, state = load_latest(cfg.load_dir, cfg.load_step)
+        elif cfg.load_checkpoint is not None:
+            path, state = Path(cfg.load_checkpoint), load_file(cfg.load_checkpoint)
+        else:
+            super()._load_checkpoint()
+            return
+        self._start_step = int(state["step"]) + 1
+        self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        self.optimizers.load_optimizers(state["optimizers"])
+        if "schedulers" in state and cfg.load_scheduler:
+            self.optimizers.load_schedulers(state["schedulers"])
+        self.grad_scaler.load_state_dict(state["scalers"])
+        CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
 
     def _resolution_for_images(self, downscales: int) -> None:
         """The budget set full resolution from the first step in place of the preset's ``downscales`` (the CPU points
@@ -234,6 +397,7 @@ class WillagsTrainer(Trainer):
         # the loop set self.step to the step it broke before (never trained): checkpoint the last trained one
         if self.time_budget is not None and self.time_budget.stopped_after is not None:
             self.step = self.time_budget.stopped_after
+        self.planned_end = self.step + 1  # finished (the budget may end it early): nothing left to resume
         super()._after_train()
 
     def _budget_done(self, step: int) -> None:

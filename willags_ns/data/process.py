@@ -314,8 +314,11 @@ def _cancellable() -> Iterator[Any]:
 
 
 def _progress():
+    """A bar per stage on a terminal; in a log, a line per stage every half minute (willags_ns.progress)."""
     from nerfstudio.utils.rich_utils import CONSOLE
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+
+    from willags_ns.progress import Progress
 
     return Progress(
         TextColumn("[bold blue]{task.description:<22}"),
@@ -324,6 +327,7 @@ def _progress():
         TimeElapsedColumn(),
         console=CONSOLE,
         transient=False,
+        label="willags-process",
     )
 
 

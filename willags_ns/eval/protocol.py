@@ -10,10 +10,18 @@ A test image's appearance (exposure, weather, camera) is unknown to the model, s
 
 Also reported, so each number's meaning is visible: the encoder latent without optimisation (right half) and
 full-image scores. Defaults: 128 Adam steps at lr 0.01, the same budget as the peer table in ../shared/gpu/README.
+
+Cost: every Adam step renders the image and back-propagates, so the fit is the protocol's time. With `fit_max_side`
+the fit runs on a k-times smaller image (k an integer: the camera's intrinsics divided by k, the ground truth
+averaged over k x k blocks, so every low-resolution pixel of the left half lies in the full-resolution left half);
+the right half is still scored at full resolution. ns-eval fits at most CPU_FIT_MAX_SIDE px on the CPU
+(`fit_max_side` -1) and shows its progress per image and Adam step (`progress`).
 """
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -34,6 +42,88 @@ class EvalProtocolConfig:
     oracle: bool = False
     """Also fit the latent on the *whole* test image and score its right half (`oracle_*`): the gap to the
     headline number is what inferring the appearance from half an image costs (a diagnosis, not the protocol)."""
+    fit_max_side: int = 0
+    """Longest side (px) of the image the latent is fitted on (the right half is always scored at full resolution):
+    0 = full resolution; N > 0 = downscaled by the smallest integer that brings it to N px or less; -1 = automatic,
+    CPU_FIT_MAX_SIDE px on the CPU and full resolution on a GPU (each Adam step renders and back-propagates the image:
+    on a CPU a full-resolution fit of 800 px images takes about half an hour per two images, docs/reliability.md).
+    willags' pipeline (ns-eval) uses -1."""
+
+
+CPU_FIT_MAX_SIDE = 320
+"""Largest side of the latent fit on the CPU under `fit_max_side` -1."""
+
+
+def resolve_fit_max_side(fit_max_side: int, device: Any) -> int:
+    """The fit's largest side (0 = full resolution) for `fit_max_side` on `device` (see EvalProtocolConfig)."""
+    if fit_max_side >= 0:
+        return int(fit_max_side)
+    return CPU_FIT_MAX_SIDE if torch.device(device).type == "cpu" else 0
+
+
+def describe_protocol(cfg: EvalProtocolConfig, cameras, model) -> str:
+    """What evaluate_model will do with `cfg` on `cameras` (printed by ns-eval before it starts)."""
+    n = len(cameras) if cfg.max_images < 0 else min(cfg.max_images, len(cameras))
+    appearance = getattr(model.config, "appearance", "sh") == "willags"
+    if not appearance or cfg.steps <= 0:
+        return f"ns-eval: {n} test images, each rendered once and scored (PSNR, SSIM, LPIPS)"
+    max_side = resolve_fit_max_side(cfg.fit_max_side, model.device)
+    sizes = sorted({(int(cameras.width[i]), int(cameras.height[i])) for i in range(n)}, reverse=True)
+    fits = [(w, h, fit_factor(w, h, max_side)) for w, h in sizes]
+    if all(k == 1 for _, _, k in fits):
+        where = "at full resolution (" + ", ".join(f"{w}x{h}" for w, h, _ in fits[:3]) + " px)"
+    else:
+        shown = ", ".join(f"{w}x{h} -> {w // k}x{h // k}" for w, h, k in fits[:3]) + (" ..." if len(fits) > 3 else "")
+        where = (
+            f"downscaled to at most {max_side} px ({shown}; --pipeline.eval-protocol.fit-max-side 0 fits at full "
+            "resolution)"
+        )
+    oracle = " plus the oracle fit on the whole image," if cfg.oracle else ""
+    return (
+        f"ns-eval: NeRF-W protocol on {n} test images: per image, {cfg.steps} Adam steps fit the appearance latent "
+        f"to its left half {where},{oracle} then the right half is scored at full resolution (PSNR, SSIM, LPIPS); "
+        "each Adam step renders the image once: the steps are most of the time"
+    )
+
+
+def fit_factor(width: int, height: int, max_side: int) -> int:
+    """The integer downscale k of the latent fit: 1 for max_side <= 0 or an image that fits, else the smallest k with
+    max(width, height) / k <= max_side."""
+    side = max(int(width), int(height))
+    if max_side <= 0 or side <= max_side:
+        return 1
+    return math.ceil(side / max_side)
+
+
+def downscale_camera(cam, k: int):
+    """One camera [1] rendering a k-times smaller image: width // k by height // k, intrinsics divided by k (pixel j's
+    centre falls on the centre of full-resolution block [jk, jk + k))."""
+    if k == 1:
+        return cam
+    from nerfstudio.cameras.cameras import Cameras
+
+    return Cameras(
+        camera_to_worlds=cam.camera_to_worlds,
+        fx=cam.fx / k,
+        fy=cam.fy / k,
+        cx=cam.cx / k,
+        cy=cam.cy / k,
+        width=torch.div(cam.width, k, rounding_mode="floor"),
+        height=torch.div(cam.height, k, rounding_mode="floor"),
+        distortion_params=cam.distortion_params,
+        camera_type=cam.camera_type,
+        times=cam.times,
+        metadata=cam.metadata,
+    )
+
+
+def block_mean(img: Tensor, k: int) -> Tensor:
+    """[H, W, C] -> [H // k, W // k, C]: the mean of each k x k block (the remainder rows / columns dropped)."""
+    if k == 1:
+        return img
+    h, w = img.shape[0] // k, img.shape[1] // k
+    x = img[: h * k, : w * k].permute(2, 0, 1)[None]
+    return torch.nn.functional.avg_pool2d(x, k)[0].permute(1, 2, 0)
 
 
 def split_halves(width: int) -> tuple[slice, slice]:
@@ -73,11 +163,12 @@ def fit_latent(
     cols: slice,
     steps: int,
     lr: float,
+    on_step: Callable[[], None] | None = None,
 ) -> tuple[Tensor, list[float]]:
     """Optimise a latent so `render_fn(z)` [H, W, 3] matches `gt` on the columns `cols`.
 
     Only z receives updates (the caller freezes the scene). Returns (z, per-step loss history; the first entry is
-    the loss at z0).
+    the loss at z0). `on_step()` is called after each Adam step (progress).
     """
     z = z0.detach().clone().requires_grad_(True)
     opt = torch.optim.Adam([z], lr=lr)
@@ -90,6 +181,8 @@ def fit_latent(
         loss.backward()
         history.append(float(loss.detach()))
         opt.step()
+        if on_step is not None:
+            on_step()
     with torch.no_grad():
         history.append(float(reconstruction_loss(render_fn(z)[:, cols].permute(2, 0, 1)[None], target, None)))
     return z.detach(), history
@@ -171,18 +264,25 @@ def evaluate_model(
     cfg: EvalProtocolConfig,
     names: list[str] | None = None,
     on_prediction: Callable[[int, Tensor, Tensor], None] | None = None,
+    progress: Any = None,
 ):
     """Run the protocol over test `cameras` (nerfstudio Cameras, one per image) and GT `images` [H, W, 3] in [0, 1].
 
     Returns (aggregate dict, per-image list). Keys: `psnr`/`ssim`/`lpips` (right half, fitted latent: the
     headline numbers), `encoder_*` (right half, encoder latent, no optimisation), `full_*` (whole image, fitted
-    latent), `left_loss_before` / `left_loss_after`. `on_prediction(i, pred, gt)` sees each scored render (whole
-    image, fitted latent) and its ground truth, e.g. to save pictures.
+    latent), `left_loss_before` / `left_loss_after`, `fit_scale` (the fit's downscale k). `on_prediction(i, pred,
+    gt)` sees each scored render (whole image, fitted latent) and its ground truth, e.g. to save pictures.
+    `progress`: a rich-style progress (``add_task`` / ``advance``, e.g. willags_ns.progress.Progress) given one task
+    per image, advanced at each Adam step, and one for all images (its time left is the whole protocol's).
     """
     model.eval()
     lpips_fn = model.lpips_metric() if hasattr(model, "lpips_metric") else None
     appearance = getattr(model.config, "appearance", "sh") == "willags"
     n = len(images) if cfg.max_images < 0 else min(cfg.max_images, len(images))
+    max_side = resolve_fit_max_side(cfg.fit_max_side, model.device)
+    fitting = appearance and cfg.steps > 0
+    units = cfg.steps * (2 if cfg.oracle else 1) if fitting else 1  # progress units of one image
+    tasks: dict[str, Any] = {}  # progress tasks: "all" (from the first unit of work on), "image" (this image's)
     per_image = []
     with frozen(model):
         for i in range(n):
@@ -195,11 +295,34 @@ def evaluate_model(
                     f"camera renders {w}x{h} (were the images undistorted/cropped? use eval_split_images())"
                 )
             left, right = split_halves(w)
+            scale = fit_factor(w, h, max_side)
+            fit_cam, fit_gt = downscale_camera(cam, scale), block_mean(gt, scale)
+            fit_left, _ = split_halves(fit_gt.shape[1])
 
             def render_fn(z: Tensor | None, cam=cam) -> Tensor:
                 return render_with_latent(model, cam, z)
 
-            rec: dict[str, float] = {}
+            def render_fit(z: Tensor | None, cam=fit_cam) -> Tensor:
+                return render_with_latent(model, cam, z)
+
+            label = f"image {i + 1}/{n}" + (f" {names[i]}" if names else "")
+            what = f"latent fit, left half at {fit_gt.shape[1]}x{fit_gt.shape[0]} px" if fitting else "render"
+
+            def start(label=label, what=what) -> None:
+                """Start this image's progress task (and at the first image, the overall one) at the work it counts,
+                so that the first rate, and the time left printed with it, is that of this work alone."""
+                if progress is None:
+                    return
+                if n > 1 and "all" not in tasks:
+                    tasks["all"] = progress.add_task(f"all {n} test images", total=n * units)
+                tasks["image"] = progress.add_task(f"{label} ({what})", total=units)
+
+            def advance() -> None:
+                for key in ("image", "all"):
+                    if key in tasks:
+                        progress.advance(tasks[key])
+
+            rec: dict[str, float] = {"fit_scale": float(scale)}
             if appearance:
                 if model.appearance_nets.vae is not None:
                     z0 = model.encode_image(gt[:, left])
@@ -208,19 +331,25 @@ def evaluate_model(
                 with torch.no_grad():
                     enc = render_fn(z0)
                 rec.update({f"encoder_{k}": v for k, v in image_scores(enc[:, right], gt[:, right], lpips_fn).items()})
+                if fitting:
+                    start()
                 with torch.enable_grad():
-                    z, hist = fit_latent(render_fn, gt, z0, left, cfg.steps, cfg.lr)
+                    z, hist = fit_latent(render_fit, fit_gt, z0, fit_left, cfg.steps, cfg.lr, advance)
                 rec["left_loss_before"], rec["left_loss_after"] = hist[0], hist[-1]
                 if cfg.oracle:
                     with torch.enable_grad():
-                        z_o, _ = fit_latent(render_fn, gt, z0, slice(0, w), cfg.steps, cfg.lr)
+                        z_o, _ = fit_latent(render_fit, fit_gt, z0, slice(None), cfg.steps, cfg.lr, advance)
                     with torch.no_grad():
                         pred_o = render_fn(z_o)
                     rec.update({f"oracle_{k}": v for k, v in image_scores(pred_o[:, right], gt[:, right]).items()})
             else:  # no appearance model: nothing to fit
                 z = None
+            if not fitting:
+                start()
             with torch.no_grad():
                 pred = render_fn(z)
+            if not fitting:
+                advance()
             if on_prediction is not None:
                 on_prediction(i, pred.detach(), gt)
             rec.update(image_scores(pred[:, right], gt[:, right], lpips_fn))

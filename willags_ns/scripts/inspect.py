@@ -14,12 +14,15 @@ from willags_ns.inspect import InspectConfig, InspectError, format_report, inspe
 
 
 def main(cfg: InspectConfig) -> int:
+    # the analysis takes seconds (docs/inspect.md), but reads up to max_images photos first: say so before it starts
+    print(f"willags-inspect: analysing {cfg.data} (up to {cfg.max_images} {cfg.split} images) ...", flush=True)
     try:
         report = inspect_scene(cfg)
     except InspectError as e:
         print(f"willags-inspect: {e}", file=sys.stderr)
         return 1
     print(format_report(report))
+    print(f"  analysed in {report.get('wall_s', 0):.1f} s")
     if cfg.output is not None:
         try:
             cfg.output.parent.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,10 @@ subclassed with the appearance options; their `main()` is run unchanged inside :
 chooses the appearance right after nerfstudio loads the checkpoint (its `eval_setup`) and, for `interp:A,B`
 without T, gives each camera of the path its own latent (camera metadata `appearance_latent`, which the model
 honours), sweeping T from 0 to 1 along the path.
+
+The commands print the appearance they resolved (which training image, photo, seed or file, and the latent's norm)
+and the path they wrote; frame progress is a bar on a terminal and a line every half minute in a log
+(willags_ns.progress). A damaged checkpoint is named in one line (willags_ns.checkpoints).
 """
 
 import contextlib
@@ -21,14 +25,21 @@ from nerfstudio.scripts import render as ns_render
 from nerfstudio.utils import install_checks
 
 from willags_ns.appearance_spec import (
+    PHOTO_FIT_STEPS,
     AppearanceSpecError,
+    ImageSpec,
     InterpSpec,
+    LatentFileSpec,
     MeanSpec,
+    PhotoSpec,
     RefineOptions,
+    SampleSpec,
+    image_index,
     interpolate_latents,
     parse_spec,
     resolve_latent,
 )
+from willags_ns.progress import Progress
 
 APPEARANCE_HELP = (
     "Appearance SPEC: mean | image:NAME|STEM|INDEX | photo:PATH | sample:SEED | latent:FILE.npy | interp:A,B[,T] "
@@ -75,8 +86,11 @@ def with_appearance_options(cls: type, module: Any = ns_render) -> type:
             parse_spec(_spec_text(self), "--appearance")
         except AppearanceSpecError as e:
             raise SystemExit(f"error: {e}") from None
-        with appearance_hooks(self, module):
+        with appearance_hooks(self, module) as state:
             cls.main(self)
+        out = written_path(self)
+        size = f", {out.stat().st_size / 2**20:.1f} MB" if out.is_file() else ""
+        _print_plain(f"{_command(module)}: wrote {out}{size} (appearance: {state.get('appearance', '-')})")
 
     fields = [(n, t, dataclasses.field(default=d)) for n, t, d in _OPTION_FIELDS]
     sub = dataclasses.make_dataclass(cls.__name__, fields, bases=(cls,), namespace={"main": main})
@@ -90,6 +104,54 @@ def _spec_text(opts) -> str:
         return opts.appearance
     cam_idx = getattr(opts, "camera_idx", None)
     return f"image:{cam_idx}" if cam_idx is not None else "mean"  # ns-render --camera-idx N: image N's look
+
+
+def _print_plain(text: str) -> None:
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    CONSOLE.print(text, soft_wrap=True, markup=False, highlight=False)
+
+
+def _command(module: Any) -> str:
+    return "willags-render" if module is ns_render else "willags-export"
+
+
+def written_path(opts: Any) -> Any:
+    """Where a render or export command writes: the video file, the folder of images (nerfstudio names it after the
+    output path without its suffix), the dataset render's folder, or the export's PLY."""
+    if hasattr(opts, "output_filename") and hasattr(opts, "output_dir"):  # ns-export gaussian-splat
+        return opts.output_dir / opts.output_filename
+    path = opts.output_path
+    if isinstance(opts, ns_render.DatasetRender) or getattr(opts, "output_format", "video") == "video":
+        return path
+    return path.parent / path.stem
+
+
+def describe_appearance(spec: Any, model, opts: Any) -> str:
+    """What a SPEC resolved to for `model`, in words: the training image (index and file name), the photo and how
+    its latent was found, the seed, the file; for interp, both ends and the weight (or the sweep)."""
+    if isinstance(spec, MeanSpec):
+        return "mean (the mean of the training images' latents)"
+    if isinstance(spec, ImageSpec):
+        names = list(model.image_names)
+        i = image_index(spec.key, names)
+        return f"{spec} = training image {i} ({names[i]})"
+    if isinstance(spec, PhotoSpec):
+        steps = opts.refine_steps
+        if model.appearance_nets is not None and model.appearance_nets.vae is None:
+            how = f"fitted {steps or PHOTO_FIT_STEPS} steps from the mean latent (the model has no encoder)"
+        else:
+            how = "the encoder's latent" + (f", refined {steps} steps" if steps else "")
+        return f"{spec} ({how})"
+    if isinstance(spec, SampleSpec):
+        return f"{spec} (a random latent, the same for the same seed)"
+    if isinstance(spec, LatentFileSpec):
+        return f"{spec} (a latent saved with numpy)"
+    if isinstance(spec, InterpSpec):
+        ends = f"{describe_appearance(spec.a, model, opts)} -> {describe_appearance(spec.b, model, opts)}"
+        weight = f"T = {spec.t:g}" if spec.t is not None else "T from 0 to 1 along the path"
+        return f"interp {ends}, {weight}"
+    return str(spec)
 
 
 def _training_cameras(pipeline):
@@ -146,11 +208,18 @@ def appearance_hooks(opts: Any, module: Any = ns_render):
         if getattr(pipeline.model.config, "appearance", None) != "willags":
             if opts.appearance is not None:
                 raise SystemExit("--appearance: this checkpoint has no appearance model (willags-3dgs)")
+            state["appearance"] = "the model's own colours (no appearance model)"
+            _print_plain(f"{_command(module)}: appearance: {state['appearance']}")
             return out
         try:
             state["sweep"] = choose_appearance(pipeline, opts)
+            spec = parse_spec(_spec_text(opts), "--appearance")
+            text = describe_appearance(spec, pipeline.model, opts)
         except AppearanceSpecError as e:
             raise SystemExit(f"error: {e}") from None
+        z = pipeline.model.render_latent
+        state["appearance"] = text + (f", |z| = {float(z.norm()):.3g}" if z is not None else "")
+        _print_plain(f"{_command(module)}: appearance: {state['appearance']}")
         if state["sweep"] is not None and (isinstance(opts, ns_render.DatasetRender) or orig_video is None):
             raise SystemExit(
                 f"error: --appearance {_spec_text(opts)}: only videos sweep; a still needs the weight: interp:A,B,T"
@@ -173,9 +242,15 @@ def appearance_hooks(opts: Any, module: Any = ns_render):
         if getattr(opts, "output_format", "video") == "video":
             orig_ffmpeg()
 
+    def progress(*columns, **kwargs):
+        return Progress(*columns, label=f"{_command(module)}: frames", **kwargs)
+
+    orig_progress = getattr(module, "Progress", None)
     module.eval_setup = eval_setup
     if orig_video is not None:
         module._render_trajectory_video = render_trajectory_video
+    if orig_progress is not None:
+        module.Progress = progress  # frames: a line every half minute where rich's bar would not show
     install_checks.check_ffmpeg_installed = check_ffmpeg_installed
     try:
         yield state
@@ -183,6 +258,8 @@ def appearance_hooks(opts: Any, module: Any = ns_render):
         module.eval_setup = orig_setup
         if orig_video is not None:
             module._render_trajectory_video = orig_video
+        if orig_progress is not None:
+            module.Progress = orig_progress
         install_checks.check_ffmpeg_installed = orig_ffmpeg
 
 
