@@ -51,7 +51,9 @@ def previous_records(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str
 def _mask_off(r: dict[str, Any]) -> bool:
     """A run trained without the transient mask: the inspector switched it off, or the method has none."""
     settings = (r.get("auto_config") or {}).get("settings") or {}
-    return settings.get("use_mask") is False or str(r.get("method", "")).endswith("-nomask")
+    # "use_mask": the field's name in records written before the mask's settings became one group
+    off = settings.get("mask.enabled", settings.get("use_mask")) is False
+    return off or str(r.get("method", "")).endswith("-nomask")
 
 
 def _share(recs: list[dict[str, Any]], key: str) -> str:

@@ -54,10 +54,10 @@ flags = {
     "pipeline.model.resolution-schedule": div(m.resolution_schedule),
     "pipeline.model.sh-degree-interval": div(m.sh_degree_interval),
 }
-if getattr(m, "appearance", "sh") == "willags" and m.use_mask:
+if getattr(m, "appearance", "sh") == "willags" and m.mask.enabled:
     flags["pipeline.model.mask.warmup-steps"] = div(m.mask.warmup_steps)
     flags["pipeline.model.mask.ramp-steps"] = div(m.mask.ramp_steps)
-    flags["pipeline.model.teacher.tau"] = repr(m.teacher.tau**n)
+    flags["pipeline.model.mask.teacher.tau"] = repr(m.mask.teacher.tau**n)
 for group, settings in config.optimizers.items():
     scheduler = settings.get("scheduler")
     name = group.replace("_", "-")

@@ -26,7 +26,7 @@ def test_sh_basis_known_values():
 
 def test_output_range_and_shape():
     cfg = ColorDecoderConfig()
-    dec = ColorDecoder(cfg.dynamic_dim, cfg.intrinsic_dim, cfg.hidden, cfg.dir_sh_degree)
+    dec = ColorDecoder(32, 32, cfg.hidden, cfg.dir_sh_degree)
     n = 500
     rgb = dec(torch.randn(n, 32) * 10, torch.randn(n, 32) * 10, torch.randn(n, 3) * 5)
     assert rgb.shape == (n, 3)

@@ -102,7 +102,7 @@ def test_recommendation_follows_the_evidence(reports, scenes):
             assert rec[part]["reason"], part
         assert "threshold" in rec["appearance_latent"]["reason"] and "threshold" in rec["mask"]["reason"]
         assert str(scenes[key]) in rec["command"]
-    assert "--pipeline.model.use-mask False" in reports[(True, False)]["recommendation"]["preset"]["flags"]
+    assert "--pipeline.model.mask.enabled False" in reports[(True, False)]["recommendation"]["preset"]["flags"]
     assert reports[(False, True)]["recommendation"]["latent_dim"]["value"] == 8
     # the train split is analysed: 20 of the 22 images
     assert reports[(True, True)]["facts"]["analysed_images"] == 20 and reports[(True, True)]["facts"]["images"] == 22

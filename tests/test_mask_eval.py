@@ -83,28 +83,27 @@ def _camera(width, height):
 def _tiny_model(use_vae: bool, color_mode: str = "modulated", **overrides):
     from nerfstudio.data.scene_box import SceneBox
 
+    from tests._configs import all_components, latent, mask
     from willags_ns.appearance.triplane import TriplaneConfig
     from willags_ns.appearance.vae import VAEConfig
     from willags_ns.model import WillagsModelConfig
-    from willags_ns.transient import PerceptualMaskConfig
 
     g = torch.Generator().manual_seed(0)
     xyz = (torch.rand(800, 3, generator=g) - 0.5) * torch.tensor([2.4, 1.8, 0.4])
     rgb = (torch.rand(800, 3, generator=g) * 255).to(torch.uint8)
     torch.manual_seed(0)
     cfg = WillagsModelConfig(
-        vae=VAEConfig(latent_dim=8, image_size=16, channels=(8, 8)),
-        triplane=TriplaneConfig(
-            latent_dim=8, resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16
-        ),
-        intrinsic_dim=8,
-        use_vae=use_vae,
-        color_mode=color_mode,
-        mask=PerceptualMaskConfig(vgg_weights="seeded"),
-        backend="torch",
-        background_color="black",
-        num_downscales=0,
-        **overrides,
+        **all_components(
+            latent=latent(use_vae, dim=8, vae=VAEConfig(image_size=16, channels=(8, 8))),
+            triplane=TriplaneConfig(resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16),
+            intrinsic_dim=8,
+            color_mode=color_mode,
+            mask=mask(vgg_weights="seeded"),
+            backend="torch",
+            background_color="black",
+            num_downscales=0,
+            **overrides,
+        )
     )
     scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
     with warnings.catch_warnings():

@@ -48,7 +48,7 @@ def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_g
         names += ["features_dc", "features_rest"]
     results = {}
     for fused in (True, False):
-        model.config.fuse_teacher_render = fused
+        model.config.mask.teacher.fused = fused
         model._mask_cache.clear()
         model.mask_step.visits.clear()
         torch.manual_seed(3)  # same reparameterisation noise in both runs
@@ -238,7 +238,7 @@ def test_embedding_row_lookup_matches_the_table_and_names_a_bad_index():
     from willags_ns.appearance.networks import AppearanceNetworks
     from willags_ns.model import WillagsModelConfig
 
-    nets = AppearanceNetworks(WillagsModelConfig(use_vae=False, use_field=False), num_train=5)
+    nets = AppearanceNetworks(WillagsModelConfig(use_field=False), num_train=5)  # the embedding table
     mu, logvar = nets.latent_stats(None, 3)
     assert logvar is None
     torch.testing.assert_close(mu, nets.embeddings(torch.tensor([3]))[0])

@@ -92,7 +92,7 @@ def test_the_model_keeps_supported_pixels_its_perceptual_mask_flags():
     from tests.test_model import _tiny_model
 
     model = _tiny_model()
-    model.config.static_support.enabled = True
+    model.config.mask.safeguard.enabled = True
     model.train()
     h, w = 32, 48
     model.sfm_observations = [_cluster(0.25, 0.3, 40, 9), np.zeros((0, 3), np.float32)]
@@ -107,7 +107,7 @@ def test_the_model_keeps_supported_pixels_its_perceptual_mask_flags():
             assert mask[int(0.8 * h), int(0.8 * w)] == 0.0
         else:  # no tracks in this image: the perceptual mask alone
             assert mask.sum() == 0
-    model.config.static_support.enabled = False
+    model.config.mask.safeguard.enabled = False
     model.mask_step.support_cache.clear()
     model._step_cache["image_idx"] = torch.tensor(0)
     assert model._static_mask({}, gt).sum() == 0

@@ -42,12 +42,12 @@ def overrides_from_recommendation(rec: dict[str, Any]) -> dict[str, Any]:
     """The model-config fields (dotted paths) a recommendation sets. Pure: the mapping is tested on its own."""
     if rec["preset"]["value"] == "willags-3dgs":
         # plain 3DGS colours: appearance='sh' also turns the latent, the mask and the teacher off in the model
-        return {"appearance": "sh", "use_mask": False, "use_field": False}
+        return {"appearance": "sh", "mask.enabled": False, "use_field": False}
     out = {
         "appearance": "willags",
-        "use_mask": bool(rec["mask"]["on"]),
+        "mask.enabled": bool(rec["mask"]["on"]),
         "use_field": bool(rec["triplane_field"]["on"]),
-        "vae.latent_dim": int(rec["latent_dim"]["value"]),
+        "latent.dim": int(rec["latent_dim"]["value"]),
     }
     # unmeasured (no SfM points), or a recommendation written before the sky evidence: the method's own sky stays
     if rec.get("sky", {}).get("measured"):
@@ -62,9 +62,9 @@ def sky_mode(sky: dict[str, Any]) -> str:
 
 AUTO_SWITCHES = (
     "appearance",
-    "use_mask",
+    "mask.enabled",
     "use_field",
-    "vae.latent_dim",
+    "latent.dim",
     "sky.enabled",
     "sky.region",
     "sky.alpha_penalty",
@@ -73,7 +73,7 @@ AUTO_SWITCHES = (
 
 
 def user_switches(model_config, preset_model_config, argv: list[str] | None = None) -> tuple[str, ...]:
-    """The switches (AUTO_SWITCHES) the user chose: named as a flag in `argv` (`--pipeline.model.use-mask ...`), or
+    """The switches (AUTO_SWITCHES) the user chose: named as a flag in `argv` (`--pipeline.model.mask.enabled ...`), or
     differing from the method's own preset (`preset_model_config`; None: flags only). A flag that repeats the
     preset's value is only seen in argv: after parsing, it cannot be told from the default."""
     flags = {a.split("=", 1)[0] for a in (argv or []) if a.startswith("--pipeline.model.")}
@@ -148,15 +148,21 @@ def apply_auto_config(
     reasons["preset"] = rec["preset"]["reason"]
     switches = {k: bool(rec[k]["on"]) for k in ("appearance_latent", "mask", "teacher", "triplane_field")}
     # the user's switches stand: report the components as the model will build them
-    mine = {"appearance": "appearance_latent", "use_mask": "mask", "use_field": "triplane_field", "sky.enabled": "sky"}
+    mine = {
+        "appearance": "appearance_latent",
+        "mask.enabled": "mask",
+        "use_field": "triplane_field",
+        "sky.enabled": "sky",
+    }
     for key in kept:
         if key in mine:
             reasons[mine[key]] += f"; kept as you set it: {key}={kept[key]}"
     if "appearance" in kept:
         switches["appearance_latent"] = model_config.appearance == "willags"
-    if "use_mask" in kept:
-        switches["mask"] = bool(model_config.use_mask)
-        switches["teacher"] = bool(model_config.use_mask and model_config.teacher.enabled)
+    if "mask.enabled" in kept:
+        mask = model_config.mask
+        switches["mask"] = bool(mask.enabled)
+        switches["teacher"] = bool(mask.enabled and mask.teacher.enabled)
     if "use_field" in kept:
         switches["triplane_field"] = bool(model_config.use_field)
     return {
@@ -205,5 +211,5 @@ def tensorboard_entries(summary: dict[str, Any]) -> tuple[dict[str, Any], dict[s
     text = {"auto_config": format_summary(summary)}
     scalars = {f"auto_config/{k}": float(v) for k, v in _switches(summary).items()}
     if summary["applied"]:
-        scalars["auto_config/latent_dim"] = float(summary["settings"].get("vae.latent_dim", 0))
+        scalars["auto_config/latent_dim"] = float(summary["settings"].get("latent.dim", 0))
     return text, scalars

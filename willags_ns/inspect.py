@@ -814,14 +814,14 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
         latent_reason = "no latent (plain 3DGS)"
     if mask:
         preset = "willags"
-        flags = [] if latent == 64 else [f"--pipeline.model.vae.latent-dim {latent}"]
+        flags = [] if latent == 64 else [f"--pipeline.model.latent.dim {latent}"]
         preset_reason = "the mask (with its EMA teacher) is part of the willags model"
         if not appearance:
             preset_reason += "; willags cannot switch the latent off while keeping the mask, so the latent stays small"
     elif appearance:
         preset = "willags"
-        flags = ["--pipeline.model.use-mask False"] + (
-            [] if latent == 64 else [f"--pipeline.model.vae.latent-dim {latent}"]
+        flags = ["--pipeline.model.mask.enabled False"] + (
+            [] if latent == 64 else [f"--pipeline.model.latent.dim {latent}"]
         )
         preset_reason = "appearance latent without the mask (and so without the teacher's renders)"
     else:

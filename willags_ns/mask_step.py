@@ -4,7 +4,7 @@ threshold, and the static-scene safeguard.
     teacher latent (teacher VAE mean of the photo, or its embedding row) --teacher colours--> teacher render
     (fused into the student's rasterisation as 3 extra channels, or a second one: `teacher_render`)
     D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/transient.py)
-    transient = D > threshold(step)   (rejected when it would drop more than max_masked_fraction of the image)
+    transient = D > threshold(step)   (rejected when it would drop more than mask.max_masked_fraction of the image)
     static = ~transient | SfM support (pixels near points many photos saw; willags_ns/static_support.py)
 
 :func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
@@ -28,12 +28,12 @@ from willags_ns.transient import PerceptualFeatures, image_distance, mask_active
 
 def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | None, PerceptualFeatures | None]:
     """(EMA teacher, VGG16 features) of the mask for the student's networks `nets` (cfg: the model's config): the
-    teacher a frozen copy of `nets` (use_mask with teacher.enabled), the features per cfg.mask (use_mask); None
-    where off."""
-    if not cfg.use_mask:
-        return None, None
-    teacher = cast(AppearanceNetworks, make_teacher(nets)) if cfg.teacher.enabled else None
+    teacher a frozen copy of `nets` (mask.enabled with mask.teacher.enabled), the features per cfg.mask
+    (mask.enabled); None where off."""
     m = cfg.mask
+    if not m.enabled:
+        return None, None
+    teacher = cast(AppearanceNetworks, make_teacher(nets)) if m.teacher.enabled else None
     return teacher, PerceptualFeatures(weights=m.vgg_weights, path=m.vgg_weights_path, max_resolution=m.max_resolution)
 
 
@@ -42,8 +42,8 @@ class MaskStep:
 
     def __init__(self, cfg, observations: list | None):
         self.cfg = cfg
-        """The model's config (WillagsModelConfig: appearance, use_mask, mask, mask_every, max_masked_fraction,
-        static_support), read at every call so edits after construction count."""
+        """The model's config (WillagsModelConfig: appearance and the mask group), read at every call so edits
+        after construction count."""
         self.observations = observations
         """SfM observations per training image (COLMAP scenes; None elsewhere): the safeguard's input."""
         self.masks: dict[int, Tensor] = {}
@@ -53,16 +53,16 @@ class MaskStep:
 
     def active(self, step: int) -> bool:
         cfg = self.cfg
-        return cfg.appearance == "willags" and cfg.use_mask and mask_active(step, cfg.mask.warmup_steps)
+        return cfg.appearance == "willags" and cfg.mask.enabled and mask_active(step, cfg.mask.warmup_steps)
 
     def teacher_needed(self, step: int, idx: int) -> bool:
-        """Whether this training step renders the teacher for image `idx` (counts the visit): on every mask_every-th
+        """Whether this training step renders the teacher for image `idx` (counts the visit): on every mask.every-th
         visit of the image, and whenever it has no mask yet."""
         if not self.active(step):
             return False
         visits = self.visits.get(idx, 0)
         self.visits[idx] = visits + 1
-        return idx not in self.masks or visits % max(1, self.cfg.mask_every) == 0
+        return idx not in self.masks or visits % max(1, self.cfg.mask.every) == 0
 
     def static_mask(
         self,
@@ -77,7 +77,7 @@ class MaskStep:
         """[H, W] float mask of static pixels (1 = supervised) of image `idx`, or None when masking is off / warming
         up / the image has no mask yet. With this step's teacher render, a new mask (D and the rejection flag go
         into `record`); without, the image's last one at the current resolution."""
-        cfg = self.cfg
+        cfg = self.cfg.mask
         if not self.active(step):
             return None
         H, W = gt_img.shape[:2]
@@ -85,10 +85,8 @@ class MaskStep:
             assert perceptual is not None
             d = image_distance(perceptual, gt_img, teacher_rgb)  # [H, W]
             record["D"] = d
-            thr = mask_threshold(step, cfg.mask.threshold, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
-            transient, rejected = transient_mask(
-                d, thr, cfg.mask.threshold_rule, cfg.mask.robust_k, cfg.max_masked_fraction
-            )
+            thr = mask_threshold(step, cfg.threshold, cfg.warmup_steps, cfg.ramp_steps)
+            transient, rejected = transient_mask(d, thr, cfg.threshold_rule, cfg.robust_k, cfg.max_masked_fraction)
             mask = ~transient  # a rejected mask supervises every pixel rather than none
             record["mask_rejected"] = rejected.float()  # a device tensor: no wait for VGG here
             self.masks[idx] = mask
@@ -104,7 +102,7 @@ class MaskStep:
         """Training image `idx`'s SfM support grid (True = vouched static; willags_ns/static_support.py), or None
         (safeguard off, no tracks in the scene). Built once per image on the device; the grid's aspect follows the
         image's, so any resolution of the schedule maps onto it."""
-        cfg = self.cfg.static_support
+        cfg = self.cfg.mask.safeguard
         obs = self.observations
         if not cfg.enabled or obs is None or not 0 <= idx < len(obs):
             return None
@@ -134,7 +132,7 @@ def teacher_colors(teacher: AppearanceNetworks, gp, cam_center: Tensor, record: 
 
 
 def fused_teacher_rgb(render: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
-    """Pseudo-GT [H, W, 3] from the fused rasterisation (fuse_teacher_render=True): the teacher's channels 3:6 of
+    """Pseudo-GT [H, W, 3] from the fused rasterisation (mask.teacher.fused): the teacher's channels 3:6 of
     `render` [1, H, W, >=6] composited on `background` (the teacher's sky, or the student's colour), all detached."""
     teacher = render[..., 3:6].detach() + (1 - alpha.detach()) * background.detach()
     return torch.clamp(teacher, 0.0, 1.0).squeeze(0)
@@ -143,7 +141,7 @@ def fused_teacher_rgb(render: Tensor, alpha: Tensor, background: Tensor) -> Tens
 @torch.no_grad()
 def teacher_render(colors: Tensor, gp, viewmat: Tensor, K, W: int, H: int, background, rasterize) -> Tensor:
     """Pseudo-GT [H, W, 3]: the teacher's `colors` on the student's current Gaussians (detached), rasterised by
-    `rasterize` (the model's) and composited on `background`: the unfused path (fuse_teacher_render=False)."""
+    `rasterize` (the model's) and composited on `background`: the unfused path (without mask.teacher.fused)."""
     render, alpha, _ = rasterize(
         gp["means"].detach(),
         gp["quats"].detach(),

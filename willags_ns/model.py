@@ -19,7 +19,7 @@ stand-in for splatfacto in benchmarks (method `willags-3dgs`).
 """
 
 from dataclasses import dataclass, field
-from typing import Literal, Union
+from typing import Union
 
 import torch
 import torch.nn.functional as F
@@ -27,20 +27,18 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.lib_bilagrid import color_correct
-from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.models.splatfacto import SplatfactoModel
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
 from willags_ns.appearance.color_path import ColorContext, ColorPath, sh_coeffs
-from willags_ns.appearance.decoder import ColorDecoderConfig
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.latents import image_as_float as image_as_float  # benchmarks/child.py imports it from here
-from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.appearance.sky import SkyConfig, background, open_regions_for, pixel_directions
-from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
-from willags_ns.appearance.vae import VAEConfig
+from willags_ns.appearance.sky import background, pixel_directions, sky_for_scene
+from willags_ns.appearance.triplane import robust_bounds
+from willags_ns.config import WillagsSettings, check_settings
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
@@ -55,7 +53,7 @@ from willags_ns.gaussians import (
     strategy_absgrad,
 )
 from willags_ns.losses import reconstruction_loss
-from willags_ns.mask_health import MaskHealth, MaskHealthConfig
+from willags_ns.mask_health import MaskHealth
 from willags_ns.mask_step import (
     MaskStep,
     fused_teacher_rgb,
@@ -67,89 +65,18 @@ from willags_ns.mask_step import (
 from willags_ns.regularizers import regularization_terms
 from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
 from willags_ns.splat_export import SplatExport
-from willags_ns.static_support import StaticSupportConfig
-from willags_ns.teacher import TeacherConfig, ema_update_
-from willags_ns.transient import PerceptualFeatures, PerceptualMaskConfig
+from willags_ns.teacher import ema_update_
+from willags_ns.transient import PerceptualFeatures
 
 __all__ = ["AppearanceNetworks", "WillagsModel", "WillagsModelConfig", "viewmat_from_c2w"]
 
 
 @dataclass
-class WillagsModelConfig(SplatfactoModelConfig):
-    """WilLaGS: splatfacto + beta-VAE latent + tri-plane hypernetwork colour field + EMA teacher + perceptual mask."""
+class WillagsModelConfig(WillagsSettings):
+    """WilLaGS: splatfacto + appearance latent + colour transform (or tri-plane field and decoder) + EMA teacher +
+    perceptual transient mask + sky. Every field and its group: willags_ns/config.py; the defaults are `willags`."""
 
     _target: type = field(default_factory=lambda: WillagsModel)
-    appearance: Literal["willags", "sh"] = "willags"
-    """'willags': the latent-conditioned appearance field (the method). 'sh': plain 3DGS colours (splatfacto's
-    spherical harmonics), no appearance model and no mask: the baseline configuration (method willags-3dgs)."""
-    color_mode: Literal["modulated", "decoder"] = "modulated"
-    """How the appearance makes a Gaussian's colour. 'modulated' (default, measured best: docs/benchmarks.md): the
-    Gaussian's own 3DGS SH colour transformed by the latent (a global colour transform of z plus an optional,
-    penalised per-Gaussian residual fed by f_s, z and the tri-plane feature; appearance/modulation.py). 'decoder':
-    the paper's T_color MLP regresses the colour from (f_d, f_s, view direction) (method willags-paper)."""
-    modulation: ColorModulationConfig = field(default_factory=ColorModulationConfig)
-    """The colour transform of color_mode='modulated' (global transform, local residual and its penalty)."""
-    sky: SkyConfig = field(default_factory=SkyConfig)
-    """Appearance-conditioned background bg(z, ray direction) behind the Gaussians (appearance/sky.py)."""
-    use_vae: bool = True
-    """Appearance latent from the beta-VAE encoder. Off: a per-image embedding table (NeRF-W / Splatfacto-W style)."""
-    use_field: bool = True
-    """Tri-plane hypernetwork field f_d(z, x). Off: the latent z is concatenated with f_s (no spatial field)."""
-    use_mask: bool = True
-    """Perceptual transient mask from the EMA teacher. Off: every pixel is supervised."""
-    intrinsic_dim: int = 32
-    """Size of the learnable per-Gaussian intrinsic feature f_s."""
-    vae: VAEConfig = field(default_factory=VAEConfig)
-    """beta-VAE appearance encoder/decoder (latent size, input size, beta)."""
-    triplane: TriplaneConfig = field(default_factory=TriplaneConfig)
-    """Tri-plane hypernetwork field (plane resolution/channels, MLP sizes). Its latent_dim follows vae.latent_dim."""
-    decoder: ColorDecoderConfig = field(default_factory=ColorDecoderConfig)
-    """Colour decoder T_color(f_d, f_s, view direction)."""
-    teacher: TeacherConfig = field(default_factory=TeacherConfig)
-    """EMA teacher (decay tau) that renders the pseudo ground truth for the mask."""
-    mask: PerceptualMaskConfig = field(default_factory=PerceptualMaskConfig)
-    """Perceptual transient mask (VGG16 weights source, threshold 0.85, warm-up)."""
-    static_support: StaticSupportConfig = field(default_factory=StaticSupportConfig)
-    """The mask's safeguard: pixels around observations of SfM points seen by many training images are static and
-    never masked (willags_ns/static_support.py; COLMAP scenes, where the tracks exist)."""
-    mask_health: MaskHealthConfig = field(default_factory=MaskHealthConfig)
-    """Warn once while training when the mask feeds on itself (its masked share rising while the training PSNR
-    falls; willags_ns/mask_health.py)."""
-    mask_every: int = 1
-    """Recompute an image's mask on every k-th step (teacher render + VGG); other steps reuse that image's last
-    mask. 1 = the paper (every step). Larger values trade mask freshness for speed."""
-    fuse_teacher_render: bool = True
-    """Render the teacher's colours as 3 extra channels of the student's rasterisation (same Gaussians, same
-    camera) instead of a second rasterisation. Identical pseudo-GT and identical student gradients (the teacher
-    channels are detached, so their share of every geometry gradient is zero); saves the teacher's projection,
-    sorting and compositing (measured in docs/gpu_notes.md)."""
-    max_masked_fraction: float = 0.5
-    """If the mask would drop more than this fraction of an image, the teacher is not trustworthy there (still
-    training, or an appearance it cannot explain): that image is supervised everywhere instead (logged as
-    mask_rejected). Occluders in photo collections cover far less than half an image."""
-    lambda_vae: float = 0.01
-    """Weight of L_VAE = L1 recon + beta * KL in the total loss."""
-    embedding_init_std: float = 0.01
-    """Init std of the per-image embedding table (use_vae=False only)."""
-    backend: Literal["auto", "gsplat", "torch"] = "auto"
-    """Rasteriser backend: gsplat (CUDA), our pure-torch rasteriser (any device), or auto (gsplat on CUDA)."""
-    log_images_every: int = 500
-    """Write training images (render, teacher render, D map, mask, VAE reconstruction) to tensorboard every N
-    steps (0 = never)."""
-    render_sh_degree: int = 3
-    """Rendering with a chosen appearance and no gradient (viewer, ns-render, eval images during training; not
-    training, not the NeRF-W protocol, whose latent arrives in the camera's metadata): once per appearance change the
-    colour decoder is projected by least squares onto real SH of this degree per Gaussian (over RENDER_SH_SAMPLES
-    view directions), and every frame the rasteriser evaluates SH like 3DGS: the decoder MLP no longer runs per
-    frame. The bake happens on the second frame with the same appearance and Gaussians (a viewer open during
-    training, where the Gaussians change every step, keeps the exact decoder). -1 = the decoder every frame."""
-    export_view_samples: int = 26
-    """Number of view directions averaged when baking the view-dependent colour into a PLY (ns-export)."""
-    auto_config: bool = False
-    """Before the model is built, inspect the scene (willags-inspect) and switch off what it does not need: the
-    appearance latent, the transient mask and its teacher, the tri-plane field; the latent size follows the image
-    count (willags_ns/autoconfig.py). The choice is printed, logged to tensorboard and written to auto_config.json;
-    config.yml is rewritten with the resolved switches. Method `willags-auto` turns it on."""
 
 
 class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
@@ -168,6 +95,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
     # ------------------------------------------------------------------ set-up
     def populate_modules(self):
         cfg = self.config
+        check_settings(cfg)
         means, seed_rgb = initial_points(cfg, self.seed_points)
         distances, _ = self.k_nearest_sklearn(means, 3)
         avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True).clamp_min(1e-7)
@@ -188,8 +116,6 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
             from nerfstudio.utils.colors import get_color
 
             self.background_color = get_color(cfg.background_color)
-        if cfg.use_bilateral_grid:
-            raise ValueError("willags: use_bilateral_grid is not supported (the appearance field models the ISP)")
         self.strategy = densification_strategy(cfg, self.num_train_data)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
 
@@ -198,16 +124,15 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         self.teacher: AppearanceNetworks | None = None
         self.perceptual: PerceptualFeatures | None = None
         observations = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
-        # where the sky shows while training (before the networks: region "open" without keypoints turns it off)
-        self.open_regions = open_regions_for(cfg.sky, observations)
+        # whether there is a sky and where it shows while training (region "open" without keypoints: no sky)
+        with_sky, self.open_regions = sky_for_scene(cfg.sky, observations)
         if cfg.appearance == "willags":
-            cfg.triplane.latent_dim = cfg.vae.latent_dim
-            self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data)
+            self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data, with_sky)
             self.teacher, self.perceptual = mask_networks(cfg, self.appearance_nets)
             lo, hi = robust_bounds(means)  # fixed at initialisation (see triplane.robust_bounds for the rule)
             self.register_buffer("bounds_lo", lo.float())
             self.register_buffer("bounds_hi", hi.float())
-            d = cfg.vae.latent_dim
+            d = cfg.latent.dim
             # mean latent of each training image, refreshed whenever it is visited: the appearances users pick
             self.register_buffer("train_latents", torch.zeros(max(self.num_train_data, 1), d))
             self.register_buffer("train_latent_seen", torch.zeros(max(self.num_train_data, 1), dtype=torch.bool))
@@ -215,7 +140,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         self.color_path = ColorPath(self.latents.key_of)  # the f_d and baked-SH caches
         # each image's last mask, visits and SfM support (the safeguard's observations: COLMAP scenes)
         self.mask_step = MaskStep(cfg, observations)
-        self.mask_health = MaskHealth(cfg.mask_health)
+        self.mask_health = MaskHealth(cfg.mask.health)
         self._train_batch: dict | None = None
         self._step_cache: dict[str, Tensor] = {}  # this training step's scratch, passed to the rooms as `record`
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
@@ -323,7 +248,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
                 colors = self.appearance_colors(z, gp["means"], f_s, cam_center, cacheable=fixed, sh=self.sh_coeffs(gp))
 
         teacher_needed = self.training and self.mask_step.teacher_needed(self.step, self._image_idx())
-        fused = teacher_needed and cfg.fuse_teacher_render and self.teacher is not None
+        fused = teacher_needed and cfg.mask.teacher.fused and self.teacher is not None
         if fused:  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
             assert self.teacher is not None
             t_colors = teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
@@ -496,7 +421,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
     def update_teacher(self, step: int) -> None:
         """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
         assert self.teacher is not None and self.appearance_nets is not None
-        ema_update_(self.teacher, self.appearance_nets, self.config.teacher.tau)
+        ema_update_(self.teacher, self.appearance_nets, self.config.mask.teacher.tau)
 
     def _end_step(self, step: int) -> None:
         self._step_cache = {}

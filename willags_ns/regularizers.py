@@ -1,7 +1,7 @@
 """The terms a training step adds to the reconstruction loss, each weighted by the model's config.
 
     loss = reconstruction (losses.py, masked by the transient mask)
-         + lambda_vae * L_VAE               the beta-VAE of the step's photo        appearance/latents.py, vae.py
+         + latent.vae.weight * L_VAE        the beta-VAE of the step's photo        appearance/latents.py, vae.py
          + sky.alpha_penalty * mean alpha   where the sky alone explains the photo  appearance/sky.py
          + modulation.local_penalty * mean(s^2 + o^2)   the per-Gaussian residual   appearance/modulation.py
          + splatfacto's scale penalty (every 10th step)                              losses.py
@@ -38,7 +38,7 @@ def regularization_terms(
     ``appearance.latents.training_latent`` and the colour path wrote); ``outputs``: the step's render. In the order
     the trainer sums them (the order of a float sum sets its last bits):
 
-    - ``vae_loss``: lambda_vae * L_VAE of the step's photo (training with the VAE; metrics ``vae_kl``, ``vae_recon``);
+    - ``vae_loss``: latent.vae.weight * L_VAE of the step's photo (training with the VAE; metrics ``vae_kl``, ``vae_recon``);
     - ``sky_alpha``: sky.alpha_penalty * the mean alpha over pixels the sky alone reproduces (training with a sky);
     - ``appearance_local``: modulation.local_penalty * mean(s^2 + o^2) of the student's local residual (training);
     - ``scale_reg``: splatfacto's needle penalty on every 10th step (use_scale_regularization, training or not).
@@ -47,8 +47,9 @@ def regularization_terms(
     metrics: dict[str, Tensor] = {}
     if training and "logvar" in record:  # only the VAE records a log-variance
         assert vae is not None
-        l_vae, parts = latent_loss(vae, record, cfg.vae.beta, cfg.vae.recon_reduction)
-        terms["vae_loss"] = cfg.lambda_vae * l_vae
+        vcfg = cfg.latent.vae
+        l_vae, parts = latent_loss(vae, record, vcfg.beta, vcfg.recon_reduction)
+        terms["vae_loss"] = vcfg.weight * l_vae
         metrics["vae_kl"] = parts["vae_kl"].detach()
         metrics["vae_recon"] = parts["vae_recon"].detach()
     if training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:

@@ -33,12 +33,9 @@ SH_C3 = (
 
 @dataclass
 class ColorDecoderConfig:
-    """Hyper-parameters of the colour decoder."""
+    """Hyper-parameters of the colour decoder (its input sizes follow the model: triplane.feature_dim for f_d,
+    intrinsic_dim for f_s, plus latent.dim without the field)."""
 
-    dynamic_dim: int = 32
-    """Size of the dynamic feature f_d from the tri-plane field; 0 for the "no field" ablation (f_d absent)."""
-    intrinsic_dim: int = 32
-    """Size of the per-Gaussian intrinsic feature f_s (in the no-field ablation: f_s concatenated with z)."""
     hidden: int = 64
     """Width of the two hidden layers."""
     dir_sh_degree: int = 2

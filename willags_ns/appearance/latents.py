@@ -252,7 +252,7 @@ class LatentFace:
     @torch.no_grad()
     def encode_image(self, image: Tensor) -> Tensor:
         """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
-        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs use_vae=True"
+        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs latent.kind='vae'"
         mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
         return mu[0]
 

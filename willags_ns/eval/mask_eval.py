@@ -3,7 +3,7 @@
 For every training image with a ground-truth mask (``masks_gt/<stem>.png``, 255 = transient) the mask is computed
 exactly as a training step at the end of training computes it (``MaskStep.static_mask``, willags_ns/mask_step.py):
 
-    z   = teacher VAE encoder mean of the training image      (use_vae=False: the teacher's embedding row)
+    z   = teacher VAE encoder mean of the training image      (latent.kind embedding: the teacher's table row)
     R   = teacher render of the view (teacher networks, the student's current Gaussians, full resolution)
     D   = perceptual_error(VGG(I), VGG(R))                     [H, W]
     static = D < threshold(step)     (an image with more than max_masked_fraction flagged is rejected:
@@ -222,7 +222,7 @@ def mask_scores(
     ``d_median_clean``, ``status`` ("ok" or why nothing was measured) and, with keep_per_image, ``per_image``.
     """
     cfg = model.config
-    if getattr(cfg, "appearance", "sh") != "willags" or not cfg.use_mask or model.perceptual is None:
+    if getattr(cfg, "appearance", "sh") != "willags" or not cfg.mask.enabled or model.perceptual is None:
         return {"status": "no perceptual mask in this model"}
     masks_gt_dir = Path(masks_gt_dir)
     thr = threshold
@@ -250,13 +250,13 @@ def mask_scores(
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
             render = teacher_render(model, cam, img, i)
             pred, rejected, d = predicted_transient(
-                model.perceptual, img, render, thr, cfg.max_masked_fraction, rule, k
+                model.perceptual, img, render, thr, cfg.mask.max_masked_fraction, rule, k
             )
             gt_t = torch.from_numpy(gt_mask).to(pred.device)
             c = count_pixels(pred, gt_t, rejected)
             counts.append(c)
             # the paper's fixed rule on the same D, for comparison
-            fixed, fixed_rej = transient_mask(d, thr, "fixed", max_masked_fraction=cfg.max_masked_fraction)
+            fixed, fixed_rej = transient_mask(d, thr, "fixed", max_masked_fraction=cfg.mask.max_masked_fraction)
             counts_fixed.append(count_pixels(fixed, gt_t, bool(fixed_rej)))
             d_cpu = d.float().cpu()
             gt_cpu = gt_t.cpu()
