@@ -218,11 +218,11 @@ def test_teacher_render_matches_the_training_path(use_vae):
         for p in model.teacher.parameters():
             p.add_(0.1 * torch.randn(p.shape, generator=g))
     ours = teacher_render(model, cam, image, 1)
-    model._step_cache = {"image_idx": torch.tensor(1), "vae_in": image.permute(2, 0, 1)}
     c2w = cam.camera_to_worlds
     K = cam.get_intrinsics_matrices()
     bg = model.background_color
-    ref = model._teacher_render(dict(model.gauss_params), c2w[0, :3, 3], viewmat_from_c2w(c2w), K, W, H, bg)
+    gp, vae_in = dict(model.gauss_params), image.permute(2, 0, 1)
+    ref, _ = model._teacher_render(gp, vae_in, 1, c2w[0, :3, 3], viewmat_from_c2w(c2w), K, W, H, None, bg)
     torch.testing.assert_close(ours, ref)
     # and it is the teacher, not the student
     student = model.get_outputs(cam)["rgb"] if not use_vae else None

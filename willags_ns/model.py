@@ -3,19 +3,21 @@ perceptual transient mask (WilLaGS). Runs on any device; rasterises through `wil
 
 Per training step (the pipeline hands the model the training image first):
 
-    image --VAE encoder--> z [D]                                        appearance/latents.py
+    image --table row or VAE encoder--> z [D]                           appearance/latents.py
     z, Gaussians, camera --> colours [N, 3]                             appearance/color_path.py, networks.py
     colours (+ the EMA teacher's, fused) --rasterize--> render          gaussians.py, render/
     VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask_step.py
-    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)   losses.py, regularizers.py
+    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + the terms of regularizers.py   losses.py, regularizers.py
 
-This file is the wiring (config, parameter groups, get_outputs, losses, callbacks); docs/architecture.md maps the
-rooms. Two public faces are mixins beside their rooms: the exporter's names (splat_export.py), the latent methods
-(appearance/latents.py). The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check
-`isinstance(model, SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution
-schedule and metrics, and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights
-(LPIPS). `appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the CPU
-stand-in for splatfacto in benchmarks (method `willags-3dgs`).
+The step's intermediates travel in `get_outputs`' dictionary (nerfstudio's habit) to `get_metrics_dict` and
+`get_loss_dict`: the image index, the latent (and the VAE's posterior and input), the modulation's residual, the
+teacher's latent and render, the ground truth at the render's resolution. This file is the wiring (parameter groups,
+get_outputs, losses, callbacks; the settings: config.py); docs/architecture.md maps the rooms. The class subclasses
+SplatfactoModel because nerfstudio's exporter and viewer check `isinstance(model, SplatfactoModel)`; it reuses
+splatfacto's densification (gsplat's DefaultStrategy), resolution schedule and metrics, and replaces what hard-codes
+CUDA (`populate_modules`, `get_outputs`) or downloads weights (LPIPS). `appearance="sh"` turns it into plain 3DGS
+(splatfacto's SH colours, no appearance model, no mask): the CPU stand-in for splatfacto in benchmarks
+(method `willags-3dgs`).
 """
 
 from dataclasses import dataclass, field
@@ -32,7 +34,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
-from willags_ns.appearance.color_path import ColorContext, ColorPath, sh_coeffs
+from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.latents import image_as_float as image_as_float  # benchmarks/child.py imports it from here
 from willags_ns.appearance.networks import AppearanceNetworks
@@ -45,27 +47,30 @@ from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached 
 from willags_ns.eval.lpips import make_lpips
 from willags_ns.gaussians import (
     active_sh_degree,
+    composite,
     densification_strategy,
     initial_gauss_params,
     initial_points,
     rasterize_gaussians,
+    sh_coeffs,
     sh_colors,
     strategy_absgrad,
 )
 from willags_ns.losses import reconstruction_loss
 from willags_ns.mask_health import MaskHealth
 from willags_ns.mask_step import (
+    MaskFace,
     MaskStep,
+    StepMask,
     fused_teacher_rgb,
     log_step_images,
     mask_networks,
     teacher_colors,
-    teacher_render,
+    teacher_latent,
 )
 from willags_ns.regularizers import regularization_terms
 from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
 from willags_ns.splat_export import SplatExport
-from willags_ns.teacher import ema_update_
 from willags_ns.transient import PerceptualFeatures
 
 __all__ = ["AppearanceNetworks", "WillagsModel", "WillagsModelConfig", "viewmat_from_c2w"]
@@ -79,11 +84,12 @@ class WillagsModelConfig(WillagsSettings):
     _target: type = field(default_factory=lambda: WillagsModel)
 
 
-class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
-    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Two mixins carry public
-    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splat_export.SplatExport) and the
+class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
+    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Three mixins carry public
+    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splat_export.SplatExport), the
     latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...:
-    appearance/latents.LatentFace)."""
+    appearance/latents.LatentFace) and the mask's (`update_teacher`, `static_support`, `sfm_observations`, the
+    teacher's second rasterisation, ...: mask_step.MaskFace)."""
 
     config: WillagsModelConfig
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
@@ -141,8 +147,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         # each image's last mask, visits and SfM support (the safeguard's observations: COLMAP scenes)
         self.mask_step = MaskStep(cfg, observations)
         self.mask_health = MaskHealth(cfg.mask.health)
-        self._train_batch: dict | None = None
-        self._step_cache: dict[str, Tensor] = {}  # this training step's scratch, passed to the rooms as `record`
+        self._train_batch: dict | None = None  # this step's batch (set_train_batch), until the step ends
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
 
     # ------------------------------------------------------------------ the Gaussians, parameter groups, checkpoints
@@ -177,27 +182,20 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
     def _color_context(self) -> ColorContext:
         return ColorContext(self.bounds_lo, self.bounds_hi, self.step, active_sh_degree(self.config, self.step))
 
-    def _dynamic_features(self, nets: AppearanceNetworks, z: Tensor, means: Tensor, cacheable: bool):
-        return self.color_path.dynamic_features(nets, z, means, self._color_context(), cacheable)
-
     def appearance_colors(
         self, z: Tensor, means: Tensor, f_s, cam_center: Tensor, nets=None, cacheable=False, sh=None, base=None
-    ) -> Tensor:
-        """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D] (ColorPath.colors).
+    ) -> GaussianColors:
+        """Colours of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D] (ColorPath.colors),
+        with the modulation's residual and the SH colours they came from.
 
-        `nets`: the student's networks by default (the teacher's for the pseudo-GT). `sh` [N, K, 3]: the Gaussians'
-        SH coefficients (color_mode='modulated'); default: all the model's Gaussians. `base` [N, 3]: their SH colours
-        from cam_center, already evaluated (then sh is not used). The student's training step records its local
-        residual (for the penalty) and SH colours (for the teacher) in the step cache."""
+        `nets`: the student's networks by default. `sh` [N, K, 3]: the Gaussians' SH coefficients
+        (color_mode='modulated'); default: all the model's Gaussians. `base` [N, 3]: their SH colours from
+        cam_center, already evaluated (then sh is not used)."""
         nets = nets if nets is not None else self.appearance_nets
         assert nets is not None
-        student_step = self.training and nets is self.appearance_nets and torch.is_grad_enabled()
         if sh is None and base is None and nets.modulation is not None:
             sh = self.sh_coeffs()
-        record = self._step_cache if student_step else None
-        return self.color_path.colors(
-            nets, z, means, f_s, cam_center, self._color_context(), cacheable, sh, base, record
-        )
+        return self.color_path.colors(nets, z, means, f_s, cam_center, self._color_context(), cacheable, sh, base)
 
     # ------------------------------------------------------------------ rendering
     def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
@@ -219,9 +217,8 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         if self.crop_box is not None and not self.training:
             crop_ids = self.crop_box.within(self.means).squeeze()
             if crop_ids.sum() == 0:
-                return self.get_empty_outputs(
-                    int(camera.width.item()), int(camera.height.item()), self.background_color
-                )
+                w, h = int(camera.width.item()), int(camera.height.item())
+                return self.get_empty_outputs(w, h, self.background_color)
         gp = {k: (v[crop_ids] if crop_ids is not None else v) for k, v in self.gauss_params.items()}
 
         viewmat = viewmat_from_c2w(c2w)
@@ -230,28 +227,39 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         render_mode = "RGB+ED" if (cfg.output_depth_during_training or not self.training) else "RGB"
         cam_center = c2w[0, :3, 3]
 
-        # the Gaussians' colours: 3DGS SH, the baked SH of a fixed appearance, or the colour path for latent z
-        z: Tensor | None = None
+        # the Gaussians' colours: 3DGS SH, the training image's latent, or a chosen appearance
+        outputs: dict[str, Union[Tensor, list]] = {}
+        z = lat = student = None
         if cfg.appearance == "sh":
             colors, sh_degree = sh_colors(cfg, gp, self.step)
-        else:
+        elif self.training:
+            lat = self._training_latent(camera)
+            z = lat.z
+            student = self.appearance_colors(z, gp["means"], gp.get("features"), cam_center, sh=sh_coeffs(gp))
+            colors, sh_degree = student.rgb, None
+            step_data = {"image_idx": lat.image_idx, "latent": z, "latent_mu": lat.mu, "latent_logvar": lat.logvar}
+            step_data.update(vae_in=lat.vae_in, local_residual=student.residual)
+            outputs.update({k: v for k, v in step_data.items() if v is not None})  # type: ignore[misc]
+        else:  # a fixed appearance (no gradient) renders its baked SH (render_sh_degree) once it is cached
             z = self._latent_for_forward(camera)
-            fixed = not self.training and not torch.is_grad_enabled()
-            deg, sh_degree = cfg.render_sh_degree, None
-            colors = None
-            if fixed and deg >= 0 and "appearance_latent" not in (camera.metadata or {}):
-                ctx, nets = self._color_context(), self.appearance_nets
-                colors = self.color_path.frame_sh(nets, z, gp["means"], gp.get("features"), deg, ctx, gp)
-                sh_degree = deg if colors is not None else None
+            colors, fixed, sh_degree = None, not torch.is_grad_enabled(), cfg.render_sh_degree
+            if fixed and sh_degree >= 0 and "appearance_latent" not in (camera.metadata or {}):
+                ctx, f_s = self._color_context(), gp.get("features")
+                colors = self.color_path.frame_sh(self.appearance_nets, z, gp["means"], f_s, sh_degree, ctx, gp)
             if colors is None:
-                f_s = gp.get("features")
-                colors = self.appearance_colors(z, gp["means"], f_s, cam_center, cacheable=fixed, sh=self.sh_coeffs(gp))
+                args = (z, gp["means"], gp.get("features"), cam_center)
+                colors, sh_degree = self.appearance_colors(*args, cacheable=fixed, sh=sh_coeffs(gp)).rgb, None
 
-        teacher_needed = self.training and self.mask_step.teacher_needed(self.step, self._image_idx())
+        idx = lat.image_idx if lat is not None else -1
+        teacher_needed = self.training and self.mask_step.teacher_needed(self.step, idx)
         fused = teacher_needed and cfg.mask.teacher.fused and self.teacher is not None
+        sh_base = student.sh_base.detach() if student is not None and student.sh_base is not None else None
+        z_t = None
         if fused:  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
-            assert self.teacher is not None
-            t_colors = teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
+            assert self.teacher is not None and lat is not None
+            with torch.no_grad():
+                z_t = teacher_latent(self.teacher, lat.vae_in, idx)
+            t_colors = teacher_colors(self.teacher, z_t, gp, cam_center, self._color_context(), sh_base)
             colors = torch.cat([colors, t_colors], dim=-1)
         render, alpha, self.info = self._rasterize(
             gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, render_mode, sh_degree
@@ -264,17 +272,20 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         if z is not None and self.appearance_nets is not None and self.appearance_nets.sky is not None:
             dirs = pixel_directions(c2w[0], K[0], W, H)
         fallback = self._get_background_color()  # random while training: one colour for student and teacher
-        background = self._background(self.appearance_nets, z, dirs, fallback)
-        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        background = self._background(self.appearance_nets, z, dirs, fallback, idx)
+        rgb = composite(render[..., :3], alpha, background)
 
-        outputs: dict[str, Union[Tensor, list]] = {}
-        if fused:  # over the teacher's own sky, under the teacher's latent (set with its colours)
-            teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback)
+        if fused:  # over the teacher's own sky, under the teacher's latent
+            teacher_bg = self._background(self.teacher, z_t, dirs, fallback, idx)
             outputs["teacher_rgb"] = fused_teacher_rgb(render, alpha, teacher_bg)
         elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render
             outputs["teacher_rgb"] = rgb.detach().squeeze(0)
         elif teacher_needed:
-            outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background, dirs, fallback)
+            assert lat is not None
+            view = (cam_center, viewmat, K, W, H)
+            outputs["teacher_rgb"], z_t = self._teacher_render(gp, lat.vae_in, idx, *view, dirs, fallback, sh_base)
+        if z_t is not None:
+            outputs["teacher_latent"] = z_t
 
         depth_im = None
         if render_mode == "RGB+ED":
@@ -286,67 +297,23 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
             background = background.squeeze(0)
         outputs.update({"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0)})  # type: ignore[dict-item]
         outputs["background"] = background
+        if self.training and self._train_batch is not None:  # the ground truth, once per step (metrics and loss)
+            outputs["gt_rgb"] = self.composite_with_background(self.get_gt_img(self._train_batch["image"]), background)
         return outputs
 
-    def _background(self, nets: AppearanceNetworks | None, z: Tensor | None, dirs: Tensor | None, fallback: Tensor):
+    def _background(self, nets, z: Tensor | None, dirs: Tensor | None, fallback: Tensor, idx: int = -1) -> Tensor:
         """What shows behind the Gaussians rendered with `nets` (appearance/sky.py's `background`): their sky under z,
-        only above the photo's skyline while training with sky.region "open"; `fallback` without a sky."""
+        only above training image `idx`'s skyline while training with sky.region "open"; `fallback` without a sky."""
         regions = self.open_regions if self.training else None
-        idx = self._image_idx() if regions is not None else -1
         return background(nets.sky if nets is not None else None, z, dirs, fallback, regions, idx)
-
-    # ------------------------------------------------------------------ the transient mask (mask_step.py)
-    def _image_idx(self) -> int:
-        return int(self._step_cache.get("image_idx", torch.tensor(-1)))
-
-    @torch.no_grad()
-    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background, dirs=None, fallback=None) -> Tensor:
-        """Pseudo-GT [H, W, 3] from the EMA teacher networks with the student's current Gaussians (no grad): a
-        second rasterisation (fuse_teacher_render=False; the fused path renders the same image). With a sky
-        (`dirs` given), the teacher's own sky replaces `background`."""
-        assert self.teacher is not None
-        colors = teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
-        if dirs is not None:
-            fallback = self._get_background_color() if fallback is None else fallback
-            background = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback)
-        return teacher_render(colors, gp, viewmat, K, W, H, background, self._rasterize)
-
-    def _static_mask(self, outputs, gt_img: Tensor) -> Tensor | None:
-        """[H, W] float mask of static pixels (1 = supervised), or None when masking is off / warming up."""
-        t_rgb, idx = outputs.get("teacher_rgb"), self._image_idx()
-        return self.mask_step.static_mask(self.step, idx, gt_img, t_rgb, self.perceptual, self._step_cache, self.device)
-
-    def static_support(self, idx: int, height: int, width: int) -> Tensor | None:
-        """Training image `idx`'s SfM support grid (True = vouched static), or None (MaskStep.support)."""
-        return self.mask_step.support(idx, height, width, self.device)
-
-    @property
-    def sfm_observations(self) -> list | None:
-        """SfM observations per training image (COLMAP scenes): the mask's safeguard (MaskStep.observations)."""
-        return self.mask_step.observations
-
-    @sfm_observations.setter
-    def sfm_observations(self, obs: list | None) -> None:
-        self.mask_step.observations = obs
-
-    @property
-    def _mask_cache(self) -> dict[int, Tensor]:
-        """Each image's last perceptual mask (MaskStep.masks; read by benchmarks/harness.py)."""
-        return self.mask_step.masks
 
     # ------------------------------------------------------------------ losses / metrics
     def _gt_image(self, outputs, batch) -> Tensor:
-        """This step's ground truth [H, W, 3] (float, at the render's resolution, composited on its background),
-        made once for the metrics and the loss: both need it, and each conversion of a cached uint8 photo is a
-        full-image pass."""
-        cached = self._step_cache.get("gt_img")
-        # keyed by the objects themselves (held, so never a recycled id): this step's render of this photo
-        if cached is not None and cached[0] is outputs and cached[1] is batch["image"]:
-            return cached[2]
-        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        if self.training:  # the step cache is emptied after every training step (_end_step)
-            self._step_cache["gt_img"] = (outputs, batch["image"], gt)  # type: ignore[assignment]
-        return gt
+        """The ground truth [H, W, 3] of `batch` (float, at the render's resolution, composited on its background):
+        what get_outputs made of it when it is this step's training batch (set_train_batch), else made here."""
+        if "gt_rgb" in outputs and batch is self._train_batch:
+            return outputs["gt_rgb"]
+        return self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
 
     def get_metrics_dict(self, outputs, batch) -> dict[str, torch.Tensor]:
         """splatfacto's training metrics, with the PSNR as a function: torchmetrics' module updates and resets its
@@ -356,15 +323,16 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         if self.config.color_corrected_metrics:
             metrics["cc_psnr"] = self.psnr(color_correct(pred, gt), gt)
         self.camera_optimizer.get_metrics_dict(metrics)
-        if self.training and "z" in self._step_cache:
-            metrics["latent_norm"] = self._step_cache["z"].detach().norm()
+        if self.training and "latent" in outputs:
+            metrics["latent_norm"] = outputs["latent"].detach().norm()
         return metrics
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> dict[str, torch.Tensor]:
-        cfg, sc = self.config, self._step_cache
+        cfg = self.config
         gt_img = self._gt_image(outputs, batch)
         pred_img = outputs["rgb"]
-        mask = self._static_mask(outputs, gt_img) if self.training else None
+        step_mask = self._static_mask(outputs, gt_img) if self.training else StepMask(None, None, None)
+        mask = step_mask.mask
         if "mask" in batch:  # user-provided masks (nerfstudio convention) combine with ours
             user = self._downscale_if_required(batch["mask"]).to(self.device)[..., 0].float()
             mask = user if mask is None else mask * user
@@ -373,8 +341,8 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         loss_dict = {"main_loss": reconstruction_loss(pred_b, gt_b, mask_b, ssim_lambda=cfg.ssim_lambda)}
         if mask is not None and metrics_dict is not None:
             metrics_dict["masked_fraction"] = 1.0 - mask.mean().detach()
-            if "mask_rejected" in sc:
-                metrics_dict["mask_rejected"] = sc["mask_rejected"]
+            if step_mask.rejected is not None:
+                metrics_dict["mask_rejected"] = step_mask.rejected
             if self.training and "psnr" in metrics_dict:
                 # compared within one resolution and between opacity resets: both move the PSNR by themselves
                 regime = (self._get_downscale_factor(), self.step // self.strategy.reset_every)
@@ -386,15 +354,15 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
 
         # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (regularizers.py)
         vae = self.appearance_nets.vae if self.appearance_nets is not None else None
-        args = (cfg, sc, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
-        terms, term_metrics = regularization_terms(*args)
+        args = (cfg, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
+        terms, term_metrics, recon = regularization_terms(*args)
         loss_dict.update(terms)
         if metrics_dict is not None:
             metrics_dict.update(term_metrics)
         if self.training:
             self.camera_optimizer.get_loss_dict(loss_dict)
             if cfg.log_images_every > 0 and self.step % cfg.log_images_every == 0:
-                log_step_images(self.step, outputs, gt_img, mask, sc)
+                log_step_images(self.step, outputs, gt_img, mask, step_mask.distance, recon)
         return loss_dict
 
     def get_image_metrics_and_images(self, outputs, batch):
@@ -418,13 +386,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._end_step))
         return cbs
 
-    def update_teacher(self, step: int) -> None:
-        """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
-        assert self.teacher is not None and self.appearance_nets is not None
-        ema_update_(self.teacher, self.appearance_nets, self.config.mask.teacher.tau)
-
     def _end_step(self, step: int) -> None:
-        self._step_cache = {}
         self._train_batch = None
 
     # ------------------------------------------------------------------ checkpoints carry the mask provenance

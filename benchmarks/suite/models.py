@@ -177,7 +177,7 @@ def _wrap_appearance(model, wrapper: str, dev: torch.device) -> None:
         def colors_bf16(*a, **k):
             with torch.autocast(device_type=dev.type, dtype=torch.bfloat16):
                 out = orig(*a, **k)
-            return out.float()  # the rasteriser takes float32
+            return out._replace(rgb=out.rgb.float())  # the rasteriser takes float32
 
         model.appearance_colors = colors_bf16
     elif wrapper == "ckpt":

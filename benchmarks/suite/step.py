@@ -50,7 +50,7 @@ def install_profile(model, timer: RegionTimer, is_willags: bool) -> list:
                 wrap(nets.field.mlp, "forward", "field MLP")
             if nets.color is not None:
                 wrap(nets.color, "forward", "decoder MLP")
-            if nets.modulation is not None:  # SH evaluation + local residual + colour transform, student and teacher
+            if nets.modulation is not None:  # SH evaluation + local residual + colour transform of the student
                 wrap(model, "appearance_colors", "appearance colours (SH + modulation)")
         if model.teacher is not None:
 

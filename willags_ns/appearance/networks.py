@@ -18,7 +18,7 @@ from willags_ns.appearance.modulation import ColorModulation, ColorModulationCon
 from willags_ns.appearance.sky import SkyConfig, SkyModel
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField
 from willags_ns.appearance.vae import AppearanceVAE
-from willags_ns.render.sh import spherical_harmonics
+from willags_ns.render.sh import sh_color
 
 
 class LatentSettings(Protocol):
@@ -156,7 +156,7 @@ class AppearanceNetworks(nn.Module):
             if base is None:
                 if sh is None:
                     raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
-                base = (spherical_harmonics(sh_degree, dirs, sh) + 0.5).clamp_min(0.0)  # gsplat's SH colour
+                base = sh_color(sh_degree, dirs, sh)  # gsplat's SH colour
             # clamped like gsplat clamps SH colours, so the exact render and the SH bake agree
             return self.modulation(z, base, f_s, f_d, residual=residual).clamp_min(0.0)
         assert self.color is not None and f_s is not None
