@@ -2,7 +2,7 @@
 sky candidates on the four real collections, 5000 steps, with the goal (the peer + 1 dB) and what the transient mask
 eats there ("subject masked" on liberty's statue, "static observations masked" on every real scene).
 
-Today's default is what `willags` trains after inspecting each scene (willags_ns/inspect.py). Where the inspector's
+Today's default is what `willags` trains after inspecting each scene (willags_ns/tools/inspect.py). Where the inspector's
 decision for a scene did not change with the surround sky and the colour-twin test (reichstag, sacre-coeur-mini,
 south-building: tests/test_inspect.py checks the decisions), its records are generalisation.auto_records'. On
 liberty the inspector now picks no mask and the sky behind every pixel with its alpha penalty: exactly the model of

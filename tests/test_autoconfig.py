@@ -8,14 +8,14 @@ import torch
 import yaml
 
 from tests._scenes import small_scene
-from willags_ns.autoconfig import (
+from willags_ns.method_configs import willags_auto_config, willags_model_config
+from willags_ns.tools.autoconfig import (
     AUTO_CONFIG_FILE,
     apply_auto_config,
     format_summary,
     overrides_from_recommendation,
     tensorboard_entries,
 )
-from willags_ns.method_configs import willags_auto_config, willags_model_config
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +144,7 @@ def test_training_applies_logs_and_reloads(tmp_path, scenes, monkeypatch):
 
     from nerfstudio.utils.eval_utils import eval_setup
 
-    import willags_ns.autoconfig as ac
+    import willags_ns.tools.autoconfig as ac
 
     monkeypatch.setattr(ac, "inspect_scene", lambda *a, **k: pytest.fail("reload must not inspect again"))
     _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")
@@ -226,7 +226,7 @@ def test_scene_without_points_keeps_the_methods_sky(scenes, tmp_path):
 
 def test_the_inspectors_default_sky_is_the_willags_presets():
     """inspect.WILLAGS_SKY names the default preset's sky (the recommended command lists only what differs)."""
-    from willags_ns.inspect import WILLAGS_SKY
+    from willags_ns.tools.inspect import WILLAGS_SKY
 
     cfg = willags_model_config()
     own = {"sky.enabled": cfg.sky.enabled, "sky.region": cfg.sky.region, "sky.alpha_penalty": cfg.sky.alpha_penalty}
@@ -251,7 +251,7 @@ def test_a_subject_against_the_sky_sets_the_surround_sky_unless_the_user_named_t
 
 
 def test_user_switches_are_flags_named_or_values_changed_from_the_preset():
-    from willags_ns.autoconfig import user_switches
+    from willags_ns.tools.autoconfig import user_switches
 
     cfg, preset = willags_model_config(), willags_model_config()
     assert user_switches(cfg, preset, []) == ()

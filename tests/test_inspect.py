@@ -11,7 +11,8 @@ import pytest
 from PIL import Image
 
 from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, project, write_ply_points, write_scene
-from willags_ns.inspect import (
+from willags_ns.scripts import inspect as cli
+from willags_ns.tools.inspect import (
     InspectConfig,
     InspectError,
     SceneViews,
@@ -29,7 +30,6 @@ from willags_ns.inspect import (
     surround_fraction,
     zbuffer_visible,
 )
-from willags_ns.scripts import inspect as cli
 
 SMALL = dict(num_train=20, num_test=2, width=96, height=72, num_points=3000, supersample=1)
 

@@ -80,7 +80,7 @@ def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_i
     import pytest
     import torch
 
-    import willags_ns.autoconfig as ac
+    import willags_ns.tools.autoconfig as ac
     from tests._scenes import small_scene
 
     data = small_scene(tmp_path / "appearance", appearance=1.0, transients=0.0)

@@ -95,7 +95,7 @@ class WillagsSettings(SplatfactoModelConfig):
     auto_config: bool = True
     """Before the model is built, inspect the scene (willags-inspect) and switch off what it does not need: the
     appearance latent, the transient mask and its teacher, the tri-plane field, the sky; the latent size follows the
-    image count (willags_ns/autoconfig.py). The choice is printed, logged to tensorboard and written to
+    image count (willags_ns/tools/autoconfig.py). The choice is printed, logged to tensorboard and written to
     auto_config.json; the pipeline stores the resolved switches in config.yml (with auto_config False), so a reload
     builds the trained model. Off: the configuration as given (method willags-full)."""
 

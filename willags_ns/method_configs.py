@@ -121,7 +121,7 @@ def willags_config() -> WillagsTrainerConfig:
     """The default method: the full model (willags_model_config) with `auto_config`, 30k steps. Before the model is
     built, willags-inspect's evidence switches off what the scene does not need: the mask and its teacher where no
     transients are measured, the latent where no appearance change is, the sky where no photo has open background
-    (willags_ns/autoconfig.py, docs/inspect.md). Dropping what a scene does not need loses nothing measurable there
+    (willags_ns/tools/autoconfig.py, docs/inspect.md). Dropping what a scene does not need loses nothing measurable there
     and makes the step cheaper (docs/design.md). `willags-full` keeps every component without inspecting; a switch
     named on the command line wins."""
     return _trainer("willags", WillagsModelConfig(), 30000)
@@ -193,7 +193,7 @@ def willags_3dgs_config() -> WillagsTrainerConfig:
 
 def willags_auto_config() -> WillagsTrainerConfig:
     """The same configuration as `willags` (the full model with `auto_config`) under a second name, which commands
-    and benchmark records may use: the scene is inspected before the model is built (willags_ns/autoconfig.py,
+    and benchmark records may use: the scene is inspected before the model is built (willags_ns/tools/autoconfig.py,
     docs/inspect.md)."""
     config = willags_config()
     config.method_name = "willags-auto"
