@@ -10,8 +10,9 @@ as it is: docs/design.md). Settings come in groups, one flag prefix each:
 
 No field is rewritten while the model is built: what a scene lacks (a skyline without SfM keypoints) is decided
 again from the same config and scene, so config.yml is what trains. Splatfacto's knobs that willags does not read are
-refused with a message (`check_settings`). config.yml files of earlier versions, whose fields had other names
-(RENAMED), load through `WillagsSettings.__setstate__`, which moves each value to its new place.
+refused with a message (`check_settings`). config.yml files of the flat layout (`use_vae`,
+`use_mask`, `mask_every`, `teacher`, `static_support`, ... at the top: RENAMED) load through
+`WillagsSettings.__setstate__`, which moves each value to its place in the groups.
 """
 
 import dataclasses
@@ -108,7 +109,7 @@ class WillagsSettings(SplatfactoModelConfig):
         return self.mask.max_masked_fraction
 
     def __getattr__(self, name: str) -> Any:
-        # only reached for names the object lacks: an earlier version's field says where it went
+        # only reached for names the object lacks: a field of the flat layout says where it is
         if name in _RENAMED_FROM:
             raise AttributeError(renamed_message(name))
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
@@ -119,8 +120,8 @@ class WillagsSettings(SplatfactoModelConfig):
         super().__setattr__(name, value)
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        """Unpickling and YAML loading (config.yml): an earlier version's fields are moved to their new places
-        (`migrate_state`), and fields a file predates get their defaults."""
+        """Unpickling and YAML loading (config.yml): fields of the flat layout move to their places in the groups
+        (`migrate_state`), and fields a file lacks get their defaults."""
         self.__dict__.update(migrate_state(dict(state)))
         fill_defaults(self)
 
@@ -139,27 +140,27 @@ RENAMED: tuple[tuple[str, str], ...] = (
     ("static_support", "mask.safeguard"),
     ("mask_health", "mask.health"),
 )
-"""(earlier field, its place now) of the model config, in the order `migrate_state` moves them (a group before the
-fields moved into it). use_vae True / False is latent.kind "vae" / "embedding"."""
+"""(field of the flat layout, its place in the groups) of the model config, in the order `migrate_state` moves them
+(a group before the fields moved into it). use_vae True / False is latent.kind "vae" / "embedding"."""
 
 DROPPED: dict[str, str] = {
     "triplane.latent_dim": "the field's input is latent.dim",
     "decoder.dynamic_dim": "the decoder's f_d input is triplane.feature_dim",
     "decoder.intrinsic_dim": "the decoder's f_s input is intrinsic_dim",
 }
-"""Earlier fields that never set anything (the model overwrote or ignored them): dropped when a file is loaded."""
+"""Fields of the flat layout that set nothing (the model overwrote or ignored them): dropped when a file is loaded."""
 
 _RENAMED_FROM = {old: new for old, new in RENAMED if "." not in old}
 
 
 def renamed_message(old: str) -> str:
-    """What an earlier version's field is called now, as flag and field."""
+    """Where a field of the flat layout is in the groups, as field and flag."""
     new = dict(RENAMED).get(old)
     if new is None:
         return f"willags: {old} was removed ({DROPPED[old]})"
     flag = f"--pipeline.model.{new.replace('_', '-')}"
     extra = ' ("vae" for True, "embedding" for False)' if old == "use_vae" else ""
-    return f"willags: the model setting {old} is now {new} ({flag}{extra})"
+    return f"willags: the model setting {old} is {new} ({flag}{extra})"
 
 
 def _convert(old: str, value: Any) -> Any:
@@ -167,9 +168,8 @@ def _convert(old: str, value: Any) -> Any:
 
 
 def migrate_state(state: dict[str, Any]) -> dict[str, Any]:
-    """An earlier config.yml's model fields (`state`: attribute name -> value, nested configs as objects) in
-    today's layout: each RENAMED field moved to its new place, each DROPPED one removed. Today's state passes
-    through unchanged."""
+    """A config.yml's model fields (`state`: attribute name -> value, nested configs as objects) in the groups: each
+    RENAMED field moved to its place, each DROPPED one removed. A state of the groups passes through unchanged."""
     for old, new in RENAMED:
         found, value = _pop(state, old)
         if found:
@@ -210,8 +210,8 @@ _GROUPS: dict[str, Any] = {
 
 
 def fill_defaults(obj: Any) -> None:
-    """Give every dataclass field `obj` (and its nested configs) lacks its default: a file written before a field
-    existed loads with the field's default."""
+    """Give every dataclass field `obj` (and its nested configs) lacks its default: a file without a field loads
+    with the field's default."""
     for f in dataclasses.fields(obj):
         if f.name not in obj.__dict__:
             if f.default is not dataclasses.MISSING:

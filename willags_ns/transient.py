@@ -143,7 +143,7 @@ class MaskConfig:
 
 
 PerceptualMaskConfig = MaskConfig
-"""The name under which config.yml files of earlier versions store the mask's settings (their YAML tag)."""
+"""The name under which config.yml files of the flat layout store the mask's settings (their YAML tag)."""
 
 
 MIN_VGG_SIDE = 16
