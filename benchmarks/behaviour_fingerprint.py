@@ -19,7 +19,7 @@ import torch
 
 CONFIGS = {
     "default": {},
-    "paper-like": {"color_mode": "decoder", "use_vae": True, "use_field": True, "fuse_teacher_render": False},
+    "paper-like": {"color_mode": "decoder", "latent.kind": "vae", "use_field": True, "mask.teacher.fused": False},
 }
 """Model overrides of each fingerprinted configuration."""
 

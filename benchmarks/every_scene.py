@@ -2,7 +2,7 @@
 sky candidates on the four real collections, 5000 steps, with the goal (the peer + 1 dB) and what the transient mask
 eats there ("subject masked" on liberty's statue, "static observations masked" on every real scene).
 
-Today's default is what `willags` trains after inspecting each scene (willags_ns/inspect.py). Where the inspector's
+Today's default is what `willags` trains after inspecting each scene (willags_ns/tools/inspect.py). Where the inspector's
 decision for a scene did not change with the surround sky and the colour-twin test (reichstag, sacre-coeur-mini,
 south-building: tests/test_inspect.py checks the decisions), its records are generalisation.auto_records'. On
 liberty the inspector now picks no mask and the sky behind every pixel with its alpha penalty: exactly the model of
@@ -51,7 +51,9 @@ def previous_records(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str
 def _mask_off(r: dict[str, Any]) -> bool:
     """A run trained without the transient mask: the inspector switched it off, or the method has none."""
     settings = (r.get("auto_config") or {}).get("settings") or {}
-    return settings.get("use_mask") is False or str(r.get("method", "")).endswith("-nomask")
+    # "use_mask": the field's name in records written before the mask's settings became one group
+    off = settings.get("mask.enabled", settings.get("use_mask")) is False
+    return off or str(r.get("method", "")).endswith("-nomask")
 
 
 def _share(recs: list[dict[str, Any]], key: str) -> str:

@@ -207,7 +207,7 @@ def parse_args(argv=None):
     args.n_gaussians = args.n_gaussians or (3000 if q else 1_000_000)
     args.size = args.size or (64 if q else 800)
     args.warmup = args.warmup if args.warmup is not None else (1 if q else 5)
-    args.iters = args.iters or (4 if q else 20)  # a multiple of 4: mask_every=4 variants average fairly
+    args.iters = args.iters or (4 if q else 20)  # a multiple of 4: mask.every=4 variants average fairly
     args.frames = args.frames or (4 if q else 100)
     args.profile_iters = args.profile_iters or (4 if q else 12)
     args.variants = args.variants.split(",") if args.variants else (QUICK_VARIANTS if q else DEFAULT_VARIANTS)

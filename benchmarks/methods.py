@@ -52,28 +52,30 @@ METHODS: dict[str, MethodSpec] = {
     ),
     "willags-vae": MethodSpec(
         "willags",
-        (("use_vae", True), ("mask_every", 1), ("mask.max_resolution", 512)),
+        (("latent.kind", "vae"), ("mask.every", 1), ("mask.max_resolution", 512)),
         note="default with the paper's beta-VAE latent (mask every step)",
     ),
     "willags-slowemb": MethodSpec(
         "willags",
-        (("optimizers.appearance_embed.lr", 1e-3), ("mask_every", 1), ("mask.max_resolution", 512)),
+        (("optimizers.appearance_embed.lr", 1e-3), ("mask.every", 1), ("mask.max_resolution", 512)),
         note="per-image embedding at the shared networks' lr 1e-3 (before the embedding had its own group)",
     ),
-    "willags-novae": MethodSpec("willags", (("use_vae", False),), note="= the default (per-image embedding, no VAE)"),
+    "willags-novae": MethodSpec(
+        "willags", (("latent.kind", "embedding"),), note="= the default (per-image embedding, no VAE)"
+    ),
     "willags-everymask": MethodSpec(
         "willags",
-        (("mask_every", 1), ("mask.max_resolution", 512)),
+        (("mask.every", 1), ("mask.max_resolution", 512)),
         note="default with the paper's mask cadence: refreshed every step, VGG at 512 px",
     ),
     "willags-lowlr": MethodSpec(
         "willags",
-        (("optimizers.means.lr", 1.6e-5), ("mask_every", 1), ("mask.max_resolution", 512)),
+        (("optimizers.means.lr", 1.6e-5), ("mask.every", 1), ("mask.max_resolution", 512)),
         note="default (mask every step), means lr 1.6e-5",
     ),
     "willags-fast": MethodSpec(
         "willags",
-        (("mask_every", 4), ("mask.max_resolution", 256)),
+        (("mask.every", 4), ("mask.max_resolution", 256)),
         note="= the default's mask cadence (every 4th visit of an image, VGG at 256 px)",
     ),
     "willags-auto": MethodSpec(
@@ -85,29 +87,29 @@ METHODS: dict[str, MethodSpec] = {
     # issue 26: willags-auto on top of the candidate defaults (auto's sky switch keeps the method's sky.region)
     "willags-auto-support": MethodSpec(
         "willags",
-        (("auto_config", True), ("sky.region", "everywhere"), ("static_support.enabled", True)),
+        (("auto_config", True), ("sky.region", "everywhere"), ("mask.safeguard.enabled", True)),
         note="auto_config with the mask's SfM-track safeguard, auto's sky behind every pixel (candidate: the safeguard alone)",
     ),
     "willags-auto-skyopen-support": MethodSpec(
         "willags",
-        (("auto_config", True), ("sky.region", "open"), ("static_support.enabled", True)),
+        (("auto_config", True), ("sky.region", "open"), ("mask.safeguard.enabled", True)),
         note="auto_config with the sky above the skyline and the safeguard (candidate default: willags-skyopen-support)",
     ),
     "willags-plain": MethodSpec(
         "willags",
-        (("appearance", "sh"), ("use_mask", False)),
+        (("appearance", "sh"), ("mask.enabled", False)),
         note="plain 3DGS colours with the default's antialiased rasterisation (what auto picks for a static scene)",
     ),
     "willags-nofield": MethodSpec(
         "willags-paper", (("use_field", False),), note="paper ablation: decoder without the tri-plane field"
     ),
-    "willags-paper-novae": MethodSpec("willags-paper", (("use_vae", False),), note="paper ablation: no VAE"),
+    "willags-paper-novae": MethodSpec("willags-paper", (("latent.kind", "embedding"),), note="paper ablation: no VAE"),
     # the paper preset's south-building runs lose PSNR on their own training views from 1k to 5k steps
     # (docs/fidelity.md, thirteenth session): which of its differences from the default does it
-    "willags-paper-nomask": MethodSpec("willags-paper", (("use_mask", False),), note="paper ablation: no mask"),
+    "willags-paper-nomask": MethodSpec("willags-paper", (("mask.enabled", False),), note="paper ablation: no mask"),
     "willags-paper-support": MethodSpec(
         "willags-paper",
-        (("static_support.enabled", True),),
+        (("mask.safeguard.enabled", True),),
         note="paper ablation: the mask's SfM-track safeguard on (the default's; COLMAP scenes)",
     ),
     "willags-paper-aa": MethodSpec(
@@ -126,26 +128,26 @@ METHODS: dict[str, MethodSpec] = {
     ),
 }
 # Ablations of the VAE-latent default (measured when `willags` used the beta-VAE, up to commit 46d6320): the
-# default with use_vae=True plus the change
+# default with latent.kind "vae" plus the change
 for _name, _over, _note in (
     ("field", (("use_field", True),), "tri-plane field feeding the local residual"),
     ("global", (("modulation.local", False),), "global colour transform only (no local residual)"),
-    ("nomask", (("use_mask", False),), "no transient mask"),
-    ("noteacher", (("teacher.enabled", False),), "the student's own render makes the mask"),
+    ("nomask", (("mask.enabled", False),), "no transient mask"),
+    ("noteacher", (("mask.teacher.enabled", False),), "the student's own render makes the mask"),
     ("classic", (("rasterize_mode", "classic"),), "classic rasterisation"),
     ("lowlr", (("optimizers.means.lr", 1.6e-5),), "means lr 1.6e-5"),
-    ("fast", (("mask_every", 4), ("mask.max_resolution", 256)), "mask every 4th visit, VGG at 256 px"),
+    ("fast", (("mask.every", 4), ("mask.max_resolution", 256)), "mask every 4th visit, VGG at 256 px"),
 ):
     METHODS[f"willags-vae-{_name}"] = MethodSpec(
         "willags",
-        (("use_vae", True), ("mask_every", 1), ("mask.max_resolution", 512), *_over),
+        (("latent.kind", "vae"), ("mask.every", 1), ("mask.max_resolution", 512), *_over),
         note=f"VAE latent, {_note}",
     )
 # ablations of the default itself
 for _name, _over, _note in (
     ("field", (("use_field", True),), "tri-plane field feeding the local residual"),
-    ("nomask", (("use_mask", False),), "no transient mask"),
-    ("noteacher", (("teacher.enabled", False),), "the student's own render makes the mask"),
+    ("nomask", (("mask.enabled", False),), "no transient mask"),
+    ("noteacher", (("mask.teacher.enabled", False),), "the student's own render makes the mask"),
     ("global", (("modulation.local", False),), "global colour transform only"),
     ("classic", (("rasterize_mode", "classic"),), "classic rasterisation"),
     ("sh1", (("sh_degree", 1),), "SH degree 1 (less view-dependent colour to overfit)"),
@@ -155,7 +157,7 @@ for _name, _over, _note in (
     ("sparse", (("densify_grad_thresh", 0.0016),), "densify at twice splatfacto's gradient threshold"),
     (
         "sky",
-        (("sky.enabled", True), ("sky.region", "everywhere"), ("static_support.enabled", False)),
+        (("sky.enabled", True), ("sky.region", "everywhere"), ("mask.safeguard.enabled", False)),
         "appearance-conditioned sky behind every pixel, no safeguard",
     ),
     (
@@ -164,7 +166,7 @@ for _name, _over, _note in (
             ("sky.enabled", True),
             ("sky.region", "everywhere"),
             ("sky.alpha_penalty", 0.1),
-            ("static_support.enabled", False),
+            ("mask.safeguard.enabled", False),
         ),
         "sky everywhere, Gaussians pay alpha where the sky alone explains the photo, no safeguard",
     ),
@@ -174,13 +176,13 @@ for _name, _over, _note in (
             ("sky.enabled", True),
             ("sky.region", "everywhere"),
             ("sky.alpha_penalty", 0.1),
-            ("use_mask", False),
+            ("mask.enabled", False),
         ),
         "sky everywhere with the alpha penalty, no transient mask",
     ),
     (
         "sky-sh1",
-        (("sky.enabled", True), ("sky.region", "everywhere"), ("static_support.enabled", False), ("sh_degree", 1)),
+        (("sky.enabled", True), ("sky.region", "everywhere"), ("mask.safeguard.enabled", False), ("sh_degree", 1)),
         "sky everywhere and SH degree 1, no safeguard",
     ),
     # issue 26 (sky and safeguard settings named in full, so each keeps its meaning now that the default has both):
@@ -188,8 +190,8 @@ for _name, _over, _note in (
     # measured with 2 seeds on the six shared scenes (h200-r2) and rejected: -0.5 to -1.8 dB
     (
         "support",
-        (("sky.enabled", False), ("static_support.enabled", True)),
-        "the mask's SfM-track safeguard (static_support), no sky",
+        (("sky.enabled", False), ("mask.safeguard.enabled", True)),
+        "the mask's SfM-track safeguard (mask.safeguard), no sky",
     ),
     (
         "skyalpha-support",
@@ -197,7 +199,7 @@ for _name, _over, _note in (
             ("sky.enabled", True),
             ("sky.region", "everywhere"),
             ("sky.alpha_penalty", 0.1),
-            ("static_support.enabled", True),
+            ("mask.safeguard.enabled", True),
         ),
         "sky with the alpha penalty and the mask's safeguard (issue 26's first candidate default)",
     ),
@@ -206,17 +208,17 @@ for _name, _over, _note in (
     # (h200-r3: better on all three real scenes, 2 seeds each; willags-skyopen-support = willags)
     (
         "skyopen",
-        (("sky.enabled", True), ("sky.region", "open"), ("static_support.enabled", False)),
+        (("sky.enabled", True), ("sky.region", "open"), ("mask.safeguard.enabled", False)),
         "sky above each training photo's SfM skyline only (sky.region open), no safeguard",
     ),
     (
         "skyopen-support",
-        (("sky.enabled", True), ("sky.region", "open"), ("static_support.enabled", True)),
+        (("sky.enabled", True), ("sky.region", "open"), ("mask.safeguard.enabled", True)),
         "sky above the skyline only, and the mask's safeguard (= the default since issue 26)",
     ),
     (
         "prev",
-        (("sky.enabled", False), ("static_support.enabled", False)),
+        (("sky.enabled", False), ("mask.safeguard.enabled", False)),
         "the default before issue 26: no sky, no safeguard",
     ),
     ("gamma", (("modulation.gamma", True),), "per-channel gamma g(z) in the global colour transform"),
@@ -267,6 +269,10 @@ def apply_schedule(config, steps: int, schedule: str = "short") -> None:
 
 def set_nested(obj, dotted: str, value) -> None:
     """setattr through a dotted path ("modulation.local"): the overrides of a MethodSpec."""
+    from willags_ns.config import RENAMED, renamed_message
+
+    if dotted in dict(RENAMED):  # an earlier version's name: say the new one
+        raise AttributeError(renamed_message(dotted) + f" (override {dotted!r})")
     *parents, leaf = dotted.split(".")
     for p in parents:
         obj = getattr(obj, p)

@@ -121,11 +121,11 @@ def scale_schedules(config: Any, n: int) -> dict[str, Any]:
         done[name] = getattr(m, name)
     m.sh_degree_interval = div(m.sh_degree_interval)
     done["sh_degree_interval"] = m.sh_degree_interval
-    if getattr(m, "appearance", "sh") == "willags" and m.use_mask:  # before auto_config decides (it may drop it)
+    if getattr(m, "appearance", "sh") == "willags" and m.mask.enabled:  # before auto_config decides (it may drop it)
         m.mask.warmup_steps, m.mask.ramp_steps = div(m.mask.warmup_steps), div(m.mask.ramp_steps)
-        m.teacher.tau = m.teacher.tau**n
+        m.mask.teacher.tau = m.mask.teacher.tau**n
         done.update({"mask.warmup_steps": m.mask.warmup_steps, "mask.ramp_steps": m.mask.ramp_steps})
-        done["teacher.tau"] = m.teacher.tau
+        done["mask.teacher.tau"] = m.mask.teacher.tau
     for group, settings in config.optimizers.items():
         sched = settings.get("scheduler")
         if sched is not None and hasattr(sched, "max_steps"):

@@ -323,7 +323,7 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "**peak mem**: CUDA `max_memory_allocated` during training on GPU, the run process's max RSS on CPU. "
         "**mask IoU**: transient mask vs `masks_gt/` over the training images, pooled over all pixels; "
         "**IoU/img**: mean over images with transients; **clean FP**: predicted transient among GT-clean pixels "
-        "(see willags_ns/eval/mask_eval.py); **rejected**: images whose mask the max_masked_fraction guard dropped "
+        "(see willags_ns/eval/mask_eval.py); **rejected**: images whose mask the mask.max_masked_fraction guard dropped "
         "(training supervises them everywhere). **load**: the machine's 1-minute load average around training "
         "(wall times are only comparable between rows with similar load on a shared machine). `willags-3dgs` is plain 3DGS through willags' rasteriser: the CPU "
         "stand-in for splatfacto (stock splatfacto needs CUDA); goals use stock splatfacto where it ran.",

@@ -16,9 +16,9 @@ from pathlib import Path
 import torch
 
 ABLATIONS = {
-    "willags-novae": {"use_vae": False},
+    "willags-novae": {"latent.kind": "embedding"},
     "willags-nofield": {"use_field": False},
-    "willags-nomask": {"use_mask": False},
+    "willags-nomask": {"mask.enabled": False},
 }
 
 

@@ -8,14 +8,14 @@ import torch
 import yaml
 
 from tests._scenes import small_scene
-from willags_ns.autoconfig import (
+from willags_ns.method_configs import willags_auto_config, willags_model_config
+from willags_ns.tools.autoconfig import (
     AUTO_CONFIG_FILE,
     apply_auto_config,
     format_summary,
     overrides_from_recommendation,
     tensorboard_entries,
 )
-from willags_ns.method_configs import willags_auto_config, willags_model_config
 
 
 @pytest.fixture(scope="module")
@@ -42,29 +42,29 @@ def _rec(preset: str, latent: bool, mask: bool, dim: int) -> dict:
 def test_overrides_map_each_recommendation():
     assert overrides_from_recommendation(_rec("willags-3dgs", False, False, 0)) == {
         "appearance": "sh",
-        "use_mask": False,
+        "mask.enabled": False,
         "use_field": False,
     }
     assert overrides_from_recommendation(_rec("willags", True, False, 64)) == {
         "appearance": "willags",
-        "use_mask": False,
+        "mask.enabled": False,
         "use_field": False,
-        "vae.latent_dim": 64,
+        "latent.dim": 64,
     }
-    assert overrides_from_recommendation(_rec("willags", False, True, 8))["use_mask"] is True
+    assert overrides_from_recommendation(_rec("willags", False, True, 8))["mask.enabled"] is True
 
 
 def test_apply_follows_the_scene(scenes):
     static, appearance, wild = (willags_model_config() for _ in range(3))
     s = apply_auto_config(static, scenes["static"])
-    assert s["applied"] and static.appearance == "sh" and not static.use_mask
+    assert s["applied"] and static.appearance == "sh" and not static.mask.enabled
     assert s["changes"]["appearance"] == ["willags", "sh"]
     a = apply_auto_config(appearance, scenes["appearance"])
-    assert appearance.appearance == "willags" and appearance.use_mask is False
-    assert appearance.vae.latent_dim == 32  # 20 training images: the smaller latent
-    assert a["changes"]["use_mask"] == [True, False] and "threshold" in a["reasons"]["mask"]
+    assert appearance.appearance == "willags" and appearance.mask.enabled is False
+    assert appearance.latent.dim == 32  # 20 training images: the smaller latent
+    assert a["changes"]["mask.enabled"] == [True, False] and "threshold" in a["reasons"]["mask"]
     w = apply_auto_config(wild, scenes["wild"])
-    assert wild.appearance == "willags" and wild.use_mask is True and not wild.use_field
+    assert wild.appearance == "willags" and wild.mask.enabled is True and not wild.use_field
     assert w["switches"] == {"appearance_latent": True, "mask": True, "teacher": True, "triplane_field": False}
     text, scalars = tensorboard_entries(w)
     assert scalars["auto_config/mask"] == 1.0 and scalars["auto_config/latent_dim"] == 32.0
@@ -73,10 +73,10 @@ def test_apply_follows_the_scene(scenes):
 
 def test_uninspectable_scene_keeps_the_method(tmp_path):
     cfg = willags_model_config()
-    before = (cfg.appearance, cfg.use_mask, cfg.vae.latent_dim)
+    before = (cfg.appearance, cfg.mask.enabled, cfg.latent.dim)
     s = apply_auto_config(cfg, tmp_path / "nope")
     assert not s["applied"] and str(tmp_path / "nope") in s["error"]
-    assert (cfg.appearance, cfg.use_mask, cfg.vae.latent_dim) == before
+    assert (cfg.appearance, cfg.mask.enabled, cfg.latent.dim) == before
     assert "not applied" in format_summary(s)
 
 
@@ -85,7 +85,7 @@ def test_willags_auto_method_is_registered():
 
     methods, _ = discover_methods()
     assert "willags-auto" in methods and methods["willags-auto"].pipeline.model.auto_config is True
-    assert willags_auto_config().pipeline.model.use_mask is True  # before inspection: the full model
+    assert willags_auto_config().pipeline.model.mask.enabled is True  # before inspection: the full model
 
 
 def test_the_default_inspects_first_and_willags_full_does_not():
@@ -128,7 +128,7 @@ def test_training_applies_logs_and_reloads(tmp_path, scenes, monkeypatch):
     )
     config, trainer, losses = _train(tmp_path, "willags", steps=6, data=scenes["appearance"], auto_config=True)
     model = trainer.pipeline.model
-    assert model.teacher is None and not model.config.use_mask
+    assert model.teacher is None and not model.config.mask.enabled
     assert model.appearance_nets.latent_dim == 32
     assert not any("masked_fraction" in m for _, m in losses)
     ours = [c for n, c in logged if n == "auto_config"]  # nerfstudio logs its own "config" too
@@ -136,15 +136,15 @@ def test_training_applies_logs_and_reloads(tmp_path, scenes, monkeypatch):
 
     run_dir = config.get_base_dir()
     saved = json.loads((run_dir / AUTO_CONFIG_FILE).read_text())
-    assert saved["applied"] and saved["settings"]["use_mask"] is False
+    assert saved["applied"] and saved["settings"]["mask.enabled"] is False
     assert saved["report"]["evidence"]["transient_score"] < 0.2
     text = (run_dir / "config.yml").read_text()
     reloaded = yaml.load(text, Loader=yaml.Loader)
-    assert reloaded.pipeline.model.auto_config is False and reloaded.pipeline.model.use_mask is False
+    assert reloaded.pipeline.model.auto_config is False and reloaded.pipeline.model.mask.enabled is False
 
     from nerfstudio.utils.eval_utils import eval_setup
 
-    import willags_ns.autoconfig as ac
+    import willags_ns.tools.autoconfig as ac
 
     monkeypatch.setattr(ac, "inspect_scene", lambda *a, **k: pytest.fail("reload must not inspect again"))
     _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")
@@ -178,7 +178,7 @@ def test_overrides_map_the_sky():
     # plain 3DGS: appearance='sh' builds no sky, nothing to set
     assert overrides_from_recommendation(_rec_sky("willags-3dgs", False)) == {
         "appearance": "sh",
-        "use_mask": False,
+        "mask.enabled": False,
         "use_field": False,
     }
 
@@ -226,7 +226,7 @@ def test_scene_without_points_keeps_the_methods_sky(scenes, tmp_path):
 
 def test_the_inspectors_default_sky_is_the_willags_presets():
     """inspect.WILLAGS_SKY names the default preset's sky (the recommended command lists only what differs)."""
-    from willags_ns.inspect import WILLAGS_SKY
+    from willags_ns.tools.inspect import WILLAGS_SKY
 
     cfg = willags_model_config()
     own = {"sky.enabled": cfg.sky.enabled, "sky.region": cfg.sky.region, "sky.alpha_penalty": cfg.sky.alpha_penalty}
@@ -251,29 +251,29 @@ def test_a_subject_against_the_sky_sets_the_surround_sky_unless_the_user_named_t
 
 
 def test_user_switches_are_flags_named_or_values_changed_from_the_preset():
-    from willags_ns.autoconfig import user_switches
+    from willags_ns.tools.autoconfig import user_switches
 
     cfg, preset = willags_model_config(), willags_model_config()
     assert user_switches(cfg, preset, []) == ()
     cfg.use_field, cfg.sky.alpha_penalty = True, 0.1
     assert user_switches(cfg, preset, []) == ("use_field", "sky.alpha_penalty")
     # a flag repeating the preset's value is only seen on the command line (both spellings of tyro's flags)
-    argv = ["--data", "x", "--pipeline.model.use-mask", "True", "--pipeline.model.sky.enabled=True"]
-    assert user_switches(cfg, preset, argv) == ("use_mask", "use_field", "sky.enabled", "sky.alpha_penalty")
-    assert user_switches(cfg, None, ["--pipeline.model.use-mask", "True"]) == ("use_mask",)  # preset unknown
+    argv = ["--data", "x", "--pipeline.model.mask.enabled", "True", "--pipeline.model.sky.enabled=True"]
+    assert user_switches(cfg, preset, argv) == ("mask.enabled", "use_field", "sky.enabled", "sky.alpha_penalty")
+    assert user_switches(cfg, None, ["--pipeline.model.mask.enabled", "True"]) == ("mask.enabled",)  # preset unknown
 
 
 def test_kept_switches_are_left_reported_and_printed(scenes):
     """The 'appearance' scene has no transients: the inspector turns the mask off, unless the user set it."""
     cfg = willags_model_config()
-    s = apply_auto_config(cfg, scenes["appearance"], keep=("use_mask",))
-    assert cfg.use_mask is True and "use_mask" not in s["settings"] and s["kept"] == {"use_mask": True}
+    s = apply_auto_config(cfg, scenes["appearance"], keep=("mask.enabled",))
+    assert cfg.mask.enabled is True and "mask.enabled" not in s["settings"] and s["kept"] == {"mask.enabled": True}
     assert s["switches"]["mask"] is True and s["switches"]["teacher"] is True
-    assert "kept as you set it: use_mask=True" in s["reasons"]["mask"]
-    assert "kept (your flags win): use_mask=True" in format_summary(s)
+    assert "kept as you set it: mask.enabled=True" in s["reasons"]["mask"]
+    assert "kept (your flags win): mask.enabled=True" in format_summary(s)
     plain = willags_model_config()
     s = apply_auto_config(plain, scenes["appearance"])
-    assert plain.use_mask is False and s["kept"] == {} and s["switches"]["mask"] is False
+    assert plain.mask.enabled is False and s["kept"] == {} and s["switches"]["mask"] is False
 
 
 def test_training_keeps_a_switch_the_user_changed_from_the_preset(tmp_path, scenes):
@@ -284,7 +284,7 @@ def test_training_keeps_a_switch_the_user_changed_from_the_preset(tmp_path, scen
     )
     model = trainer.pipeline.model
     assert config.pipeline.auto_config_keep == ("use_field",)
-    assert model.appearance_nets.field is not None and not model.config.use_mask  # the field kept, the mask decided
+    assert model.appearance_nets.field is not None and not model.config.mask.enabled  # the field kept, the mask decided
     assert trainer.pipeline.auto_config_summary["kept"] == {"use_field": True}
 
 
@@ -298,7 +298,7 @@ def test_on_liberty_the_default_resolves_to_the_measured_surround_sky_without_ma
     resolved = willags_model_config()
     summary = apply_auto_config(resolved, shared_data / "liberty")
     assert summary["applied"] and summary["changes"] == {
-        "use_mask": [True, False],
+        "mask.enabled": [True, False],
         "sky.region": ["open", "everywhere"],
         "sky.alpha_penalty": [0.0, 0.1],
     }

@@ -17,6 +17,17 @@ def test_sh_basis_is_orthonormal(degree):
     torch.testing.assert_close(gram, torch.eye(y.shape[1], dtype=torch.float64), atol=0.03, rtol=0)
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_basis_is_the_rasterisers_basis_to_float_rounding(degree):
+    """The decoder's encoding and the rasteriser's SH (render/sh.py's eval_sh_bases, gsplat's order) are one basis,
+    evaluated in two orders: equal to float32 rounding."""
+    from willags_ns.render.sh import eval_sh_bases
+
+    d = torch.randn(10_000, 3, generator=torch.Generator().manual_seed(1))
+    d = d / d.norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(sh_basis(d, degree), eval_sh_bases(degree, d), atol=2e-6, rtol=0)
+
+
 def test_sh_basis_known_values():
     y = sh_basis(torch.tensor([[0.0, 0.0, 1.0]]), 1)
     torch.testing.assert_close(y, torch.tensor([[0.28209479, 0.0, 0.48860251, 0.0]]))
@@ -26,7 +37,7 @@ def test_sh_basis_known_values():
 
 def test_output_range_and_shape():
     cfg = ColorDecoderConfig()
-    dec = ColorDecoder(cfg.dynamic_dim, cfg.intrinsic_dim, cfg.hidden, cfg.dir_sh_degree)
+    dec = ColorDecoder(32, 32, cfg.hidden, cfg.dir_sh_degree)
     n = 500
     rgb = dec(torch.randn(n, 32) * 10, torch.randn(n, 32) * 10, torch.randn(n, 3) * 5)
     assert rgb.shape == (n, 3)

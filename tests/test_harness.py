@@ -119,7 +119,7 @@ def test_short_schedule_is_the_same_for_every_method(method, tmp_path):
     assert cfg.steps_per_eval_image == 0 and cfg.steps_per_eval_all_images == 0  # train_s is training only
     assert m.log_images_every == 0
     if method == "willags-novae":
-        assert m.use_vae is False
+        assert m.latent.kind == "embedding"
 
 
 METHODS_USED = ("willags", "willags-auto", "willags-full", "willags-nomask")
@@ -131,7 +131,7 @@ def test_the_default_inspects_and_its_ablations_change_the_full_model(tmp_path):
     built = {m: build_config(m, 300, "cpu", None, None, "short", tmp_path).pipeline.model for m in METHODS_USED}
     assert built["willags"].auto_config is True and built["willags-auto"].auto_config is True
     assert built["willags-full"].auto_config is False
-    assert built["willags-nomask"].auto_config is False and built["willags-nomask"].use_mask is False
+    assert built["willags-nomask"].auto_config is False and built["willags-nomask"].mask.enabled is False
     assert vars(built["willags-full"]) == {**vars(built["willags"]), "auto_config": False}
 
 

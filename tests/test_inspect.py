@@ -11,7 +11,8 @@ import pytest
 from PIL import Image
 
 from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, project, write_ply_points, write_scene
-from willags_ns.inspect import (
+from willags_ns.scripts import inspect as cli
+from willags_ns.tools.inspect import (
     InspectConfig,
     InspectError,
     SceneViews,
@@ -29,7 +30,6 @@ from willags_ns.inspect import (
     surround_fraction,
     zbuffer_visible,
 )
-from willags_ns.scripts import inspect as cli
 
 SMALL = dict(num_train=20, num_test=2, width=96, height=72, num_points=3000, supersample=1)
 
@@ -102,7 +102,7 @@ def test_recommendation_follows_the_evidence(reports, scenes):
             assert rec[part]["reason"], part
         assert "threshold" in rec["appearance_latent"]["reason"] and "threshold" in rec["mask"]["reason"]
         assert str(scenes[key]) in rec["command"]
-    assert "--pipeline.model.use-mask False" in reports[(True, False)]["recommendation"]["preset"]["flags"]
+    assert "--pipeline.model.mask.enabled False" in reports[(True, False)]["recommendation"]["preset"]["flags"]
     assert reports[(False, True)]["recommendation"]["latent_dim"]["value"] == 8
     # the train split is analysed: 20 of the 22 images
     assert reports[(True, True)]["facts"]["analysed_images"] == 20 and reports[(True, True)]["facts"]["images"] == 22

@@ -80,7 +80,7 @@ def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_i
     import pytest
     import torch
 
-    import willags_ns.autoconfig as ac
+    import willags_ns.tools.autoconfig as ac
     from tests._scenes import small_scene
 
     data = small_scene(tmp_path / "appearance", appearance=1.0, transients=0.0)
@@ -93,7 +93,7 @@ def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_i
     monkeypatch.setattr(ac, "inspect_scene", lambda *a, **k: pytest.fail("a trained run must not be inspected again"))
     trainer = long_run._setup("willags", data, run, 4, 42, 1, "test")
     model = trainer.pipeline.model
-    assert not model.config.use_mask and model.teacher is None  # the inspector's choice (no transients here)
+    assert not model.config.mask.enabled and model.teacher is None  # the inspector's choice (no transients here)
     assert trainer._start_step == 2  # resumed from the checkpoint of step index 1 (the milestone "2")
     model.eval()
     with torch.no_grad():

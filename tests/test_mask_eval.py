@@ -83,28 +83,27 @@ def _camera(width, height):
 def _tiny_model(use_vae: bool, color_mode: str = "modulated", **overrides):
     from nerfstudio.data.scene_box import SceneBox
 
+    from tests._configs import all_components, latent, mask
     from willags_ns.appearance.triplane import TriplaneConfig
     from willags_ns.appearance.vae import VAEConfig
     from willags_ns.model import WillagsModelConfig
-    from willags_ns.transient import PerceptualMaskConfig
 
     g = torch.Generator().manual_seed(0)
     xyz = (torch.rand(800, 3, generator=g) - 0.5) * torch.tensor([2.4, 1.8, 0.4])
     rgb = (torch.rand(800, 3, generator=g) * 255).to(torch.uint8)
     torch.manual_seed(0)
     cfg = WillagsModelConfig(
-        vae=VAEConfig(latent_dim=8, image_size=16, channels=(8, 8)),
-        triplane=TriplaneConfig(
-            latent_dim=8, resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16
-        ),
-        intrinsic_dim=8,
-        use_vae=use_vae,
-        color_mode=color_mode,
-        mask=PerceptualMaskConfig(vgg_weights="seeded"),
-        backend="torch",
-        background_color="black",
-        num_downscales=0,
-        **overrides,
+        **all_components(
+            latent=latent(use_vae, dim=8, vae=VAEConfig(image_size=16, channels=(8, 8))),
+            triplane=TriplaneConfig(resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16),
+            intrinsic_dim=8,
+            color_mode=color_mode,
+            mask=mask(vgg_weights="seeded"),
+            backend="torch",
+            background_color="black",
+            num_downscales=0,
+            **overrides,
+        )
     )
     scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
     with warnings.catch_warnings():
@@ -219,11 +218,11 @@ def test_teacher_render_matches_the_training_path(use_vae):
         for p in model.teacher.parameters():
             p.add_(0.1 * torch.randn(p.shape, generator=g))
     ours = teacher_render(model, cam, image, 1)
-    model._step_cache = {"image_idx": torch.tensor(1), "vae_in": image.permute(2, 0, 1)}
     c2w = cam.camera_to_worlds
     K = cam.get_intrinsics_matrices()
     bg = model.background_color
-    ref = model._teacher_render(dict(model.gauss_params), c2w[0, :3, 3], viewmat_from_c2w(c2w), K, W, H, bg)
+    gp, vae_in = dict(model.gauss_params), image.permute(2, 0, 1)
+    ref, _ = model._teacher_render(gp, vae_in, 1, c2w[0, :3, 3], viewmat_from_c2w(c2w), K, W, H, None, bg)
     torch.testing.assert_close(ours, ref)
     # and it is the teacher, not the student
     student = model.get_outputs(cam)["rgb"] if not use_vae else None

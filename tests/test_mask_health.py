@@ -58,7 +58,7 @@ def test_observe_warns_once_naming_the_numbers_and_the_switches():
     warnings_ = _feed(health, range(0, 100), lambda s: 0.05 + 0.002 * s, lambda s: 22.0 - 0.05 * s)
     assert len(warnings_) == 1
     msg = warnings_[0]
-    assert "feeding on itself" in msg and "static-support.enabled True" in msg and "use-mask False" in msg
+    assert "feeding on itself" in msg and "mask.safeguard.enabled True" in msg and "mask.enabled False" in msg
     assert health.warned and _feed(health, range(100, 200), lambda s: 0.9, lambda s: 5.0) == []
 
 

@@ -26,7 +26,7 @@ def test_schedules_are_divided_by_the_devices():
     done = scale_schedules(four, 4)
     m = four.pipeline.model
     assert (m.refine_every, m.warmup_length, m.resolution_schedule, m.stop_split_at) == (25, 125, 750, 3750)
-    assert m.teacher.tau == pytest.approx(0.99**4) and done["means.max_steps"] == 7500
+    assert m.mask.teacher.tau == pytest.approx(0.99**4) and done["means.max_steps"] == 7500
     assert four.optimizers["camera_opt"]["scheduler"].warmup_steps == 250
 
 

@@ -1,4 +1,4 @@
-"""willags-process (willags_ns.data.process): SfM on views of the synthetic generator, resume after Ctrl-C, the
+"""willags-process (willags_ns.tools.process): SfM on views of the synthetic generator, resume after Ctrl-C, the
 output read by the project's dataparser, bad inputs, and the pure helpers (pairs, split, similarity alignment)."""
 
 import itertools
@@ -16,7 +16,6 @@ from PIL import Image
 pycolmap = pytest.importorskip("pycolmap")
 
 from willags_ns.data import process as proc  # noqa: E402
-from willags_ns.data.process import ProcessConfig, ProcessError, compare_poses, umeyama  # noqa: E402
 from willags_ns.data.synthetic import (  # noqa: E402
     SyntheticSceneConfig,
     camera_rays,
@@ -25,6 +24,7 @@ from willags_ns.data.synthetic import (  # noqa: E402
     to_uint8,
     trace,
 )
+from willags_ns.tools.process import ProcessConfig, ProcessError, compare_poses, umeyama  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])

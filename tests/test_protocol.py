@@ -72,9 +72,10 @@ def _camera(width=32, height=24):
     )
 
 
-def _tiny_model(**overrides):
+def _tiny_model(use_vae: bool = True, **overrides):
     from nerfstudio.data.scene_box import SceneBox
 
+    from tests._configs import all_components, latent, mask
     from willags_ns.appearance.triplane import TriplaneConfig
     from willags_ns.appearance.vae import VAEConfig
     from willags_ns.model import WillagsModelConfig
@@ -82,13 +83,11 @@ def _tiny_model(**overrides):
     g = torch.Generator().manual_seed(0)
     xyz = (torch.rand(300, 3, generator=g) - 0.5) * torch.tensor([2.0, 1.5, 0.5])
     rgb = (torch.rand(300, 3, generator=g) * 255).to(torch.uint8)
-    kw = dict(
-        vae=VAEConfig(latent_dim=8, image_size=16, channels=(8, 8)),
-        triplane=TriplaneConfig(
-            latent_dim=8, resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16
-        ),
+    kw = all_components(
+        latent=latent(use_vae, dim=8, vae=VAEConfig(image_size=16, channels=(8, 8))),
+        triplane=TriplaneConfig(resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16),
         intrinsic_dim=8,
-        use_mask=False,
+        mask=mask(enabled=False),
         backend="torch",
         background_color="black",
         num_downscales=0,

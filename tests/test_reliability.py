@@ -219,15 +219,14 @@ def small_networks() -> dict:
     of a step is then the rasteriser's and the VGG's on 32x24 images."""
     from willags_ns.appearance.triplane import TriplaneConfig
     from willags_ns.appearance.vae import VAEConfig
-    from willags_ns.transient import PerceptualMaskConfig
+    from willags_ns.config import LatentConfig
+    from willags_ns.transient import MaskConfig
 
     return {
-        "vae": VAEConfig(latent_dim=8, image_size=16, channels=(8, 8)),
-        "triplane": TriplaneConfig(
-            latent_dim=8, resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16
-        ),
+        "latent": LatentConfig(dim=8, vae=VAEConfig(image_size=16, channels=(8, 8))),
+        "triplane": TriplaneConfig(resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16),
         "intrinsic_dim": 8,
-        "mask": PerceptualMaskConfig(vgg_weights="seeded", warmup_steps=2),
+        "mask": MaskConfig(vgg_weights="seeded", warmup_steps=2, max_resolution=512),
     }
 
 
@@ -629,7 +628,8 @@ def test_row6_all_black_and_all_white_training_images_train_finite_through_nerfs
     for i, name in enumerate(meta["train_filenames"]):
         Image.new("RGB", (32, 24), (0, 0, 0) if i % 2 else (255, 255, 255)).save(scene / name)
     # with the VAE latent: its KL term must stay finite too (the default's embedding table has no KL)
-    _, _, losses = _train(tmp_path / "out", scene, steps=6, use_vae=True)  # mask (teacher + VGG) from step 2
+    # mask (teacher + VGG) from step 2
+    _, _, losses = _train(tmp_path / "out", scene, steps=6, **{"latent.kind": "vae"})
     assert len(losses) == 6 and all(math.isfinite(v) for v, _ in losses)
     masked = [m for _, m in losses if "masked_fraction" in m]
     assert masked and all(math.isfinite(m["vae_kl"]) and math.isfinite(m["masked_fraction"]) for m in masked)

@@ -294,7 +294,7 @@ def test_row18_bf16_autocast_keeps_the_appearance_mlps_finite_at_the_extremes(mo
     f_s = model.intrinsic_features.detach().clone().requires_grad_(True)
     z = torch.full((model.train_latents.shape[1],), scale, requires_grad=True)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        rgb = model.appearance_colors(z, means, f_s, torch.tensor([0.0, 0.0, 2.5]))
+        rgb = model.appearance_colors(z, means, f_s, torch.tensor([0.0, 0.0, 2.5])).rgb
         images = torch.stack([torch.zeros(3, H, W), torch.ones(3, H, W), torch.rand(3, H, W) * 20])
         mu, logvar = model.appearance_nets.vae.encode(images.clamp(0, 1))
     assert rgb.shape == (n, 3) and torch.isfinite(rgb).all()

@@ -82,7 +82,7 @@ def _sky_model():
     model = _tiny_model("modulated")
     from willags_ns.appearance.sky import SkyModel as _Sky
 
-    model.config.sky = SkyConfig(enabled=True, sh_degree=2, alpha_penalty=0.1)
+    model.config.sky = SkyConfig(enabled=True, sh_degree=2, alpha_penalty=0.1, region="everywhere")
     d = model.appearance_nets.latent_dim
     torch.manual_seed(5)
     for nets in (model.appearance_nets, model.teacher):
@@ -111,12 +111,12 @@ def test_model_composites_over_the_sky_of_the_latent_and_the_teacher_uses_its_ow
 
     # training: the fused teacher channels sit over the teacher's sky, the student's over its own
     model.train()
-    model.config.fuse_teacher_render = True
+    model.config.mask.teacher.fused = True
     image = (torch.rand(16, 24, 3, generator=torch.Generator().manual_seed(1)) * 255).to(torch.uint8)
     model.set_train_batch({"image": image, "image_idx": 0})
     out = model.get_outputs(_camera(24, 16))
     z_s = model.appearance_nets.latent_stats(model._image_chw(image), 0)[0]
-    z_t = model._step_cache["teacher_z"]
+    z_t = out["teacher_latent"]
     with torch.no_grad():
         torch.testing.assert_close(out["teacher_rgb"], model.teacher.sky(z_t, dirs), atol=1e-5, rtol=1e-5)
     assert not torch.allclose(out["rgb"].detach(), out["teacher_rgb"], atol=1e-3)
@@ -152,7 +152,7 @@ def test_open_region_sky_shows_above_the_skyline_and_the_random_colour_below():
     model.set_train_batch({"image": image, "image_idx": 0})
     out = model.get_outputs(_camera(W, H))
     bg, rgb = out["background"], out["rgb"].detach()
-    z = model._step_cache["z"]
+    z = out["latent"]
     dirs = pixel_directions(_camera(W, H).camera_to_worlds[0], _camera(W, H).get_intrinsics_matrices()[0], W, H)
     sky = model.appearance_nets.sky(z, dirs).detach()
     top, bottom = slice(0, 12), slice(18, 32)  # skyline at 0.5 less the one-cell dilation: rows < 15 are open
@@ -179,7 +179,8 @@ def test_open_region_sky_without_keypoints_is_off():
     from tests.test_mask_eval import _tiny_model as _bare_model
 
     model = _bare_model(use_vae=True, sky=SkyConfig(enabled=True, region="open"))
-    assert model.appearance_nets.sky is None and model.open_regions is None and not model.config.sky.enabled
+    assert model.appearance_nets.sky is None and model.open_regions is None
+    assert model.config.sky.enabled and model.config.sky.region == "open"  # the config is read, never written
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])

@@ -92,25 +92,23 @@ def test_the_model_keeps_supported_pixels_its_perceptual_mask_flags():
     from tests.test_model import _tiny_model
 
     model = _tiny_model()
-    model.config.static_support.enabled = True
+    model.config.mask.safeguard.enabled = True
     model.train()
     h, w = 32, 48
     model.sfm_observations = [_cluster(0.25, 0.3, 40, 9), np.zeros((0, 3), np.float32)]
     gt = torch.rand(h, w, 3)
     for idx in (0, 1):
-        model._step_cache["image_idx"] = torch.tensor(idx)
         model._mask_cache[idx] = torch.zeros(h, w, dtype=torch.bool)  # the perceptual mask: all transient
-        mask = model._static_mask({}, gt)
+        mask = model._static_mask({"image_idx": idx}, gt).mask
         assert mask is not None
         if idx == 0:
             assert mask[int(0.3 * h), int(0.25 * w)] == 1.0
             assert mask[int(0.8 * h), int(0.8 * w)] == 0.0
         else:  # no tracks in this image: the perceptual mask alone
             assert mask.sum() == 0
-    model.config.static_support.enabled = False
+    model.config.mask.safeguard.enabled = False
     model.mask_step.support_cache.clear()
-    model._step_cache["image_idx"] = torch.tensor(0)
-    assert model._static_mask({}, gt).sum() == 0
+    assert model._static_mask({"image_idx": 0}, gt).mask.sum() == 0
 
 
 def test_colmap_scenes_carry_their_training_observations(shared_data):

@@ -383,7 +383,7 @@ def test_apply_budget_switches_the_preset_in_the_config():
     config.pipeline.model.backend = "torch"
     choice, notes, replaced = apply_budget(config, 90.0)
     model = config.pipeline.model
-    assert choice.preset == "willags-lite" and model.use_vae and model.backend == "torch"
+    assert choice.preset == "willags-lite" and model.latent.kind == "vae" and model.backend == "torch"
     assert model.num_downscales == 0 and config.max_num_iterations == CAPS["willags-lite"]
     assert replaced == preset_defaults("willags-lite")[0].num_downscales > 0
     lite_step = STEP_TIMES[("willags-lite", "cpu")].seconds
@@ -403,7 +403,7 @@ def test_switching_preset_keeps_the_users_settings():
     copied = carry_overrides(user, willags, lite)
     assert sorted(copied) == ["backend", "mask.threshold"]
     assert lite.backend == "torch" and lite.mask.threshold == 0.9
-    assert lite.use_vae  # the lite preset's own switches are untouched
+    assert lite.latent.kind == "vae"  # the lite preset's own switches are untouched
 
 
 # ---------------------------------------------------------------------------------------------- a real run

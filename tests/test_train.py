@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 pytestmark = pytest.mark.slow
 
@@ -39,8 +40,12 @@ def _train(tmp_path: Path, method: str = "willags", steps: int = 20, data=None, 
     if hasattr(m, "mask"):
         m.mask.warmup_steps = 4
         m.log_images_every = 10
-    for k, v in model_overrides.items():
-        setattr(m, k, v)
+    for k, v in model_overrides.items():  # "a.b": the field b of the group a
+        *groups, leaf = k.split(".")
+        owner = m
+        for g in groups:
+            owner = getattr(owner, g)
+        setattr(owner, leaf, v)
     config.set_timestamp()
     config.save_config()
     trainer, losses = train_recording(config)
@@ -97,16 +102,18 @@ def test_willags_trains_saves_and_reloads(tmp_path):
     assert torch.isfinite(rgb).all() and rgb.std() > 0.01  # renders a scene, not a flat background
 
 
-@pytest.mark.parametrize("switch", ["use_vae", "use_field", "use_mask"])
+@pytest.mark.parametrize("switch", ["latent.kind", "use_field", "mask.enabled"])
 def test_each_ablation_switch_trains(tmp_path, switch):
-    _, trainer, losses = _train(tmp_path, "willags", steps=8, **{switch: False})
+    _, trainer, losses = _train(
+        tmp_path, "willags", steps=8, **{switch: "embedding" if switch == "latent.kind" else False}
+    )
     _check_finite(losses)
     model = trainer.pipeline.model
-    if switch == "use_vae":
+    if switch == "latent.kind":
         assert model.appearance_nets.vae is None and model.appearance_nets.embeddings is not None
     if switch == "use_field":
         assert model.appearance_nets.field is None
-    if switch == "use_mask":
+    if switch == "mask.enabled":
         assert model.teacher is None and not any("masked_fraction" in m for _, m in losses)
 
 
@@ -125,17 +132,14 @@ def test_default_without_sfm_keypoints_trains_exactly_as_the_previous_default(tm
     """The default's sky (above the SfM skyline) and the mask's safeguard both read COLMAP's keypoints; a scene
     without them (nerfstudio transforms.json, the fox scenes) must train bit for bit as the default without both:
     the fox scenes' records of the previous default stand for today's (issue 26)."""
-    from willags_ns.appearance.sky import SkyConfig
-    from willags_ns.static_support import StaticSupportConfig
-
     torch.manual_seed(0)
     _, new, new_losses = _train(tmp_path / "new", "willags", steps=8)
     torch.manual_seed(0)
     _, old, old_losses = _train(
-        tmp_path / "old", "willags", steps=8, sky=SkyConfig(), static_support=StaticSupportConfig()
+        tmp_path / "old", "willags", steps=8, **{"sky.enabled": False, "mask.safeguard.enabled": False}
     )
     model = new.pipeline.model
-    assert model.config.static_support.enabled and model.mask_step.observations is None
+    assert model.config.mask.safeguard.enabled and model.mask_step.observations is None
     assert model.appearance_nets.sky is None and model.open_regions is None  # the sky found no skyline: off
     assert [v for v, _ in new_losses] == [v for v, _ in old_losses]
     for k, p in model.gauss_params.items():
@@ -179,7 +183,7 @@ def test_ns_train_cli_help_lists_willags_and_documents_options():
     out = subprocess.run([str(exe), "willags", "--help"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     text = out.stdout
-    for opt in ("--pipeline.model.use-vae", "--pipeline.model.use-field", "--pipeline.model.use-mask"):
+    for opt in ("--pipeline.model.latent.kind", "--pipeline.model.use-field", "--pipeline.model.mask.enabled"):
         assert opt in text
     assert "beta-VAE" in text  # docstrings reach the CLI help
     listing = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=300).stdout
@@ -214,7 +218,8 @@ def test_ns_train_cli_runs_without_data_or_device_flags(tmp_path):
     # the default inspects the scene first; the embedded scene cannot be, so it trains the full model, says why, and
     # config.yml is resolved (reloading it does not try again)
     assert "not applied (no --data given: the embedded scene is not inspected)" in out.stdout
-    assert "auto_config: false" in cfg and "use_mask: true" in cfg
+    assert "auto_config: false" in cfg and "mask: !!python/object:willags_ns.transient.MaskConfig" in cfg
+    assert yaml.load(cfg, Loader=yaml.Loader).pipeline.model.mask.enabled is True
     assert json.loads(next(tmp_path.rglob("auto_config.json")).read_text())["applied"] is False
 
 

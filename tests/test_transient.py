@@ -7,8 +7,8 @@ from torch import nn
 
 from willags_ns import transient
 from willags_ns.transient import (
+    MaskConfig,
     PerceptualFeatures,
-    PerceptualMaskConfig,
     build_seeded_vgg16_features,
     load_vgg16_features,
     mask_active,
@@ -251,7 +251,7 @@ def test_schedule_boundaries():
 
 
 def test_config_defaults():
-    cfg = PerceptualMaskConfig()
+    cfg = MaskConfig()
     assert cfg.threshold == 0.85 and cfg.vgg_weights == "auto" and cfg.warmup_steps == 500
     assert cfg.threshold_rule == "robust" and cfg.robust_k == 2.0
 

@@ -67,9 +67,7 @@ def test_degenerate_bounds_no_nan():
 
 def test_shapes_and_defaults():
     cfg = TriplaneConfig()
-    field = TriplaneHyperField(
-        cfg.latent_dim, cfg.resolution, cfg.channels, cfg.hyper_hidden, cfg.feature_dim, cfg.mlp_hidden
-    )
+    field = TriplaneHyperField(64, cfg.resolution, cfg.channels, cfg.hyper_hidden, cfg.feature_dim, cfg.mlp_hidden)
     z = torch.randn(64)
     planes = field.planes(z)
     assert planes.shape == (3, 32, 64, 64)

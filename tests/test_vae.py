@@ -50,7 +50,7 @@ def test_reparameterize_is_reproducible_with_generator():
 
 def test_shapes_and_any_input_size():
     cfg = VAEConfig()
-    vae = AppearanceVAE(cfg.latent_dim, cfg.image_size, cfg.channels)
+    vae = AppearanceVAE(64, cfg.image_size, cfg.channels)
     images = torch.rand(2, 3, 90, 130)
     mu, logvar = vae.encode(images)
     assert mu.shape == (2, 64) and logvar.shape == (2, 64)

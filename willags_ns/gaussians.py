@@ -130,16 +130,30 @@ def rasterize_gaussians(
     )
 
 
+def composite(rgb: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
+    """What a photo shows: rendered colours `rgb` [..., 3] over `background` ([3], or per pixel) where the
+    accumulated `alpha` [..., 1] is below 1, clamped to [0, 1]."""
+    return torch.clamp(rgb + (1 - alpha) * background, 0.0, 1.0)
+
+
 def active_sh_degree(cfg, step: int) -> int:
     """SH degree in use at `step`: splatfacto's schedule, one more degree every cfg.sh_degree_interval steps up to
     cfg.sh_degree (the 3DGS colours of appearance='sh' and the base colour of color_mode='modulated' alike)."""
     return min(step // max(1, cfg.sh_degree_interval), cfg.sh_degree)
 
 
+def sh_coeffs(gp) -> Tensor | None:
+    """SH coefficients [N, K, 3] of the Gaussians in `gp` (gauss_params or a cropped view), None without them."""
+    if "features_dc" not in gp:
+        return None
+    return torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
+
+
 def sh_colors(cfg, gp, step: int) -> tuple[Tensor, int | None]:
     """appearance='sh' (plain 3DGS): (SH coefficients [N, K, 3], the active degree by splatfacto's schedule), or
     with sh_degree=0 (RGB [N, 3] through a sigmoid, None) as splatfacto renders them."""
-    colors = torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
+    colors = sh_coeffs(gp)
+    assert colors is not None
     if cfg.sh_degree > 0:
         return colors, active_sh_degree(cfg, step)
     return torch.sigmoid(colors).squeeze(1), None

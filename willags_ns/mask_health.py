@@ -21,7 +21,7 @@ from torch import Tensor
 
 @dataclass
 class MaskHealthConfig:
-    """When the mask's feedback loop is reported (``WillagsModelConfig.mask_health``)."""
+    """When the mask's feedback loop is reported (``WillagsModelConfig.mask.health``)."""
 
     enabled: bool = True
     """Watch the masked share and the training PSNR while the mask runs, and warn once on a feedback loop."""
@@ -66,8 +66,8 @@ def feedback_message(best: WindowMeans, latest: WindowMeans, cfg: MaskHealthConf
         f"{latest.start + cfg.window} the masked share of each photo rose to {latest.masked_fraction:.0%} while "
         f"the training PSNR fell from {best.psnr:.1f} to {latest.psnr:.1f} dB (means over {cfg.window} steps). What "
         "the mask drops gets no loss and renders worse, so it is dropped again. On COLMAP scenes "
-        "--pipeline.model.static-support.enabled True keeps pixels near long SfM tracks in the loss; on a capture "
-        "without transients --pipeline.model.use-mask False turns the mask off (`willags-inspect` tells which)."
+        "--pipeline.model.mask.safeguard.enabled True keeps pixels near long SfM tracks in the loss; on a capture "
+        "without transients --pipeline.model.mask.enabled False turns the mask off (`willags-inspect` tells which)."
     )
 
 

@@ -20,12 +20,13 @@ from nerfstudio.plugins.types import MethodSpecification
 from willags_ns.appearance.sky import SkyConfig
 from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
+from willags_ns.config import LatentConfig
 from willags_ns.data.dataparser import WillagsDataParserConfig
 from willags_ns.model import WillagsModelConfig
 from willags_ns.pipeline import WillagsPipelineConfig
 from willags_ns.static_support import StaticSupportConfig
 from willags_ns.trainer import PRESET_CONFIGS, WillagsTrainerConfig
-from willags_ns.transient import PerceptualMaskConfig
+from willags_ns.transient import MaskConfig
 
 
 def default_device_type() -> str:
@@ -67,7 +68,7 @@ def _optimizers(max_steps: int) -> dict[str, dict]:
             "optimizer": FusedAdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps, warmup_steps=100),
         },
-        # per-image embedding table (use_vae=False): each row sees one gradient per epoch
+        # per-image embedding table (latent.kind "embedding"): each row sees one gradient per epoch
         "appearance_embed": adam(0.02, ExponentialDecaySchedulerConfig(lr_final=2e-3, max_steps=max_steps)),
         "camera_opt": adam(
             1e-4, ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=max_steps, warmup_steps=1000)
@@ -98,11 +99,12 @@ def _trainer(name: str, model: WillagsModelConfig, steps: int) -> WillagsTrainer
 
 
 def willags_model_config() -> WillagsModelConfig:
-    """The default `willags` model (each choice and the measurement behind it: docs/design.md).
+    """The full `willags` model without inspecting the scene: WillagsModelConfig's defaults (each choice and the
+    measurement behind it: docs/design.md) with auto_config off.
 
     - appearance latent: a 64-d per-image embedding table (lr 0.02), not the paper's beta-VAE encoder. A new photo's
       appearance is fitted to it (`willags-render --appearance photo:P --refine-steps N`);
-      `--pipeline.model.use-vae True` brings the encoder back;
+      `--pipeline.model.latent.kind vae` brings the encoder back;
     - the EMA teacher and the perceptual mask of the paper, the mask refreshed on every 4th visit of an image with
       VGG at 256 px (the paper: every step at full size), for a fraction of the step time;
     - colour: each Gaussian's SH colour under a global colour transform of z plus a penalised per-Gaussian
@@ -110,31 +112,19 @@ def willags_model_config() -> WillagsModelConfig:
     - gsplat's antialiased rasterisation, which keeps renders consistent across the resolution schedule (a
       5000-step run trains at 1/4 and 1/2 resolution and is scored at full);
     - the appearance-conditioned sky, trained only above each photo's SfM skyline (sky.region "open"), and the
-      mask's SfM-track safeguard (static_support). Both need COLMAP's keypoints: on a scene without them (a
+      mask's SfM-track safeguard (mask.safeguard). Both need COLMAP's keypoints: on a scene without them (a
       transforms.json scene) the model trains as without both (tests/test_train.py)."""
-    return WillagsModelConfig(
-        color_mode="modulated",
-        use_vae=False,
-        use_field=False,
-        intrinsic_dim=16,
-        rasterize_mode="antialiased",
-        mask_every=4,
-        mask=PerceptualMaskConfig(max_resolution=256),
-        sky=SkyConfig(enabled=True, region="open"),
-        static_support=StaticSupportConfig(enabled=True),
-    )
+    return WillagsModelConfig(auto_config=False)
 
 
 def willags_config() -> WillagsTrainerConfig:
     """The default method: the full model (willags_model_config) with `auto_config`, 30k steps. Before the model is
     built, willags-inspect's evidence switches off what the scene does not need: the mask and its teacher where no
     transients are measured, the latent where no appearance change is, the sky where no photo has open background
-    (willags_ns/autoconfig.py, docs/inspect.md). Dropping what a scene does not need loses nothing measurable there
+    (willags_ns/tools/autoconfig.py, docs/inspect.md). Dropping what a scene does not need loses nothing measurable there
     and makes the step cheaper (docs/design.md). `willags-full` keeps every component without inspecting; a switch
     named on the command line wins."""
-    model = willags_model_config()
-    model.auto_config = True
-    return _trainer("willags", model, 30000)
+    return _trainer("willags", WillagsModelConfig(), 30000)
 
 
 def willags_full_config() -> WillagsTrainerConfig:
@@ -144,8 +134,18 @@ def willags_full_config() -> WillagsTrainerConfig:
 
 
 def willags_paper_model_config() -> WillagsModelConfig:
-    """The paper's exact model: colour decoder T_color(f_d, f_s, view dir), 64x64x32 tri-planes, 32-d f_s."""
-    return WillagsModelConfig(color_mode="decoder", use_field=True, intrinsic_dim=32)
+    """The paper's exact model: beta-VAE latent, colour decoder T_color(f_d, f_s, view dir), 64x64x32 tri-planes,
+    32-d f_s, the mask at every step with VGG at 512 px, classic rasterisation; no sky, no safeguard."""
+    return WillagsModelConfig(
+        color_mode="decoder",
+        latent=LatentConfig(kind="vae"),
+        use_field=True,
+        intrinsic_dim=32,
+        mask=MaskConfig(every=1, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
+        sky=SkyConfig(enabled=False, region="everywhere"),
+        rasterize_mode="classic",
+        auto_config=False,
+    )
 
 
 def willags_paper_config() -> WillagsTrainerConfig:
@@ -164,17 +164,14 @@ def willags_lite_config() -> WillagsTrainerConfig:
     encoder on every step's photo and VGG at 512 px (docs/design.md).
     """
     model = WillagsModelConfig(
-        color_mode="modulated",
-        use_field=False,
-        intrinsic_dim=16,
-        rasterize_mode="antialiased",
-        vae=VAEConfig(latent_dim=32, image_size=32),
-        triplane=TriplaneConfig(latent_dim=32, resolution=32, channels=16, hyper_hidden=(64, 16)),
-        mask=PerceptualMaskConfig(warmup_steps=300),
-        mask_every=4,
+        latent=LatentConfig(kind="vae", dim=32, vae=VAEConfig(image_size=32)),
+        triplane=TriplaneConfig(resolution=32, channels=16, hyper_hidden=(64, 16)),
+        mask=MaskConfig(warmup_steps=300, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
+        sky=SkyConfig(enabled=False, region="everywhere"),
         refine_every=100,
         warmup_length=300,
         stop_split_at=5000,
+        auto_config=False,
     )
     return _trainer("willags-lite", model, 7000)
 
@@ -182,13 +179,21 @@ def willags_lite_config() -> WillagsTrainerConfig:
 def willags_3dgs_config() -> WillagsTrainerConfig:
     """Plain 3DGS (splatfacto's colours, losses and densification) through our rasteriser: no appearance
     model, no mask. Use it as the splatfacto baseline where splatfacto's CUDA-only code cannot run."""
-    model = WillagsModelConfig(appearance="sh", use_mask=False, use_vae=False, use_field=False)
+    model = WillagsModelConfig(
+        appearance="sh",
+        latent=LatentConfig(dim=64),
+        intrinsic_dim=32,
+        mask=MaskConfig(enabled=False, every=1, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
+        sky=SkyConfig(enabled=False, region="everywhere"),
+        rasterize_mode="classic",
+        auto_config=False,
+    )
     return _trainer("willags-3dgs", model, 30000)
 
 
 def willags_auto_config() -> WillagsTrainerConfig:
     """The same configuration as `willags` (the full model with `auto_config`) under a second name, which commands
-    and benchmark records may use: the scene is inspected before the model is built (willags_ns/autoconfig.py,
+    and benchmark records may use: the scene is inspected before the model is built (willags_ns/tools/autoconfig.py,
     docs/inspect.md)."""
     config = willags_config()
     config.method_name = "willags-auto"

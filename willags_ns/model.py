@@ -3,23 +3,25 @@ perceptual transient mask (WilLaGS). Runs on any device; rasterises through `wil
 
 Per training step (the pipeline hands the model the training image first):
 
-    image --VAE encoder--> z [D]                                        appearance/latents.py
+    image --table row or VAE encoder--> z [D]                           appearance/latents.py
     z, Gaussians, camera --> colours [N, 3]                             appearance/color_path.py, networks.py
     colours (+ the EMA teacher's, fused) --rasterize--> render          gaussians.py, render/
     VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask_step.py
-    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + 0.01 (L1 recon + beta KL)   losses.py, regularizers.py
+    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + the terms of regularizers.py   losses.py, regularizers.py
 
-This file is the wiring (config, parameter groups, get_outputs, losses, callbacks); docs/architecture.md maps the
-rooms. Two public faces are mixins beside their rooms: the exporter's names (splat_export.py), the latent methods
-(appearance/latents.py). The class subclasses SplatfactoModel because nerfstudio's exporter and viewer check
-`isinstance(model, SplatfactoModel)`; it reuses splatfacto's densification (gsplat's DefaultStrategy), resolution
-schedule and metrics, and replaces what hard-codes CUDA (`populate_modules`, `get_outputs`) or downloads weights
-(LPIPS). `appearance="sh"` turns it into plain 3DGS (splatfacto's SH colours, no appearance model, no mask): the CPU
-stand-in for splatfacto in benchmarks (method `willags-3dgs`).
+The step's intermediates travel in `get_outputs`' dictionary (nerfstudio's habit) to `get_metrics_dict` and
+`get_loss_dict`: the image index, the latent (and the VAE's posterior and input), the modulation's residual, the
+teacher's latent and render, the ground truth at the render's resolution. This file is the wiring (parameter groups,
+get_outputs, losses, callbacks; the settings: config.py); docs/architecture.md maps the rooms. The class subclasses
+SplatfactoModel because nerfstudio's exporter and viewer check `isinstance(model, SplatfactoModel)`; it reuses
+splatfacto's densification (gsplat's DefaultStrategy), resolution schedule and metrics, and replaces what hard-codes
+CUDA (`populate_modules`, `get_outputs`) or downloads weights (LPIPS). `appearance="sh"` turns it into plain 3DGS
+(splatfacto's SH colours, no appearance model, no mask): the CPU stand-in for splatfacto in benchmarks
+(method `willags-3dgs`).
 """
 
 from dataclasses import dataclass, field
-from typing import Literal, Union
+from typing import Union
 
 import torch
 import torch.nn.functional as F
@@ -27,136 +29,67 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.lib_bilagrid import color_correct
-from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
+from nerfstudio.models.splatfacto import SplatfactoModel
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
-from willags_ns.appearance.color_path import ColorContext, ColorPath, sh_coeffs
-from willags_ns.appearance.decoder import ColorDecoderConfig
+from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.latents import image_as_float as image_as_float  # benchmarks/child.py imports it from here
-from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.appearance.sky import SkyConfig, background, open_regions_for, pixel_directions
-from willags_ns.appearance.triplane import TriplaneConfig, robust_bounds
-from willags_ns.appearance.vae import VAEConfig
+from willags_ns.appearance.sky import background, pixel_directions, sky_for_scene
+from willags_ns.appearance.triplane import robust_bounds
+from willags_ns.config import WillagsSettings, check_settings
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
 from willags_ns.eval.lpips import make_lpips
 from willags_ns.gaussians import (
     active_sh_degree,
+    composite,
     densification_strategy,
     initial_gauss_params,
     initial_points,
     rasterize_gaussians,
+    sh_coeffs,
     sh_colors,
     strategy_absgrad,
 )
 from willags_ns.losses import reconstruction_loss
-from willags_ns.mask_health import MaskHealth, MaskHealthConfig
+from willags_ns.mask_health import MaskHealth
 from willags_ns.mask_step import (
+    MaskFace,
     MaskStep,
+    StepMask,
     fused_teacher_rgb,
     log_step_images,
     mask_networks,
     teacher_colors,
-    teacher_render,
+    teacher_latent,
 )
 from willags_ns.regularizers import regularization_terms
 from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
 from willags_ns.splat_export import SplatExport
-from willags_ns.static_support import StaticSupportConfig
-from willags_ns.teacher import TeacherConfig, ema_update_
-from willags_ns.transient import PerceptualFeatures, PerceptualMaskConfig
+from willags_ns.transient import PerceptualFeatures
 
 __all__ = ["AppearanceNetworks", "WillagsModel", "WillagsModelConfig", "viewmat_from_c2w"]
 
 
 @dataclass
-class WillagsModelConfig(SplatfactoModelConfig):
-    """WilLaGS: splatfacto + beta-VAE latent + tri-plane hypernetwork colour field + EMA teacher + perceptual mask."""
+class WillagsModelConfig(WillagsSettings):
+    """WilLaGS: splatfacto + appearance latent + colour transform (or tri-plane field and decoder) + EMA teacher +
+    perceptual transient mask + sky. Every field and its group: willags_ns/config.py; the defaults are `willags`."""
 
     _target: type = field(default_factory=lambda: WillagsModel)
-    appearance: Literal["willags", "sh"] = "willags"
-    """'willags': the latent-conditioned appearance field (the method). 'sh': plain 3DGS colours (splatfacto's
-    spherical harmonics), no appearance model and no mask: the baseline configuration (method willags-3dgs)."""
-    color_mode: Literal["modulated", "decoder"] = "modulated"
-    """How the appearance makes a Gaussian's colour. 'modulated' (default, measured best: docs/benchmarks.md): the
-    Gaussian's own 3DGS SH colour transformed by the latent (a global colour transform of z plus an optional,
-    penalised per-Gaussian residual fed by f_s, z and the tri-plane feature; appearance/modulation.py). 'decoder':
-    the paper's T_color MLP regresses the colour from (f_d, f_s, view direction) (method willags-paper)."""
-    modulation: ColorModulationConfig = field(default_factory=ColorModulationConfig)
-    """The colour transform of color_mode='modulated' (global transform, local residual and its penalty)."""
-    sky: SkyConfig = field(default_factory=SkyConfig)
-    """Appearance-conditioned background bg(z, ray direction) behind the Gaussians (appearance/sky.py)."""
-    use_vae: bool = True
-    """Appearance latent from the beta-VAE encoder. Off: a per-image embedding table (NeRF-W / Splatfacto-W style)."""
-    use_field: bool = True
-    """Tri-plane hypernetwork field f_d(z, x). Off: the latent z is concatenated with f_s (no spatial field)."""
-    use_mask: bool = True
-    """Perceptual transient mask from the EMA teacher. Off: every pixel is supervised."""
-    intrinsic_dim: int = 32
-    """Size of the learnable per-Gaussian intrinsic feature f_s."""
-    vae: VAEConfig = field(default_factory=VAEConfig)
-    """beta-VAE appearance encoder/decoder (latent size, input size, beta)."""
-    triplane: TriplaneConfig = field(default_factory=TriplaneConfig)
-    """Tri-plane hypernetwork field (plane resolution/channels, MLP sizes). Its latent_dim follows vae.latent_dim."""
-    decoder: ColorDecoderConfig = field(default_factory=ColorDecoderConfig)
-    """Colour decoder T_color(f_d, f_s, view direction)."""
-    teacher: TeacherConfig = field(default_factory=TeacherConfig)
-    """EMA teacher (decay tau) that renders the pseudo ground truth for the mask."""
-    mask: PerceptualMaskConfig = field(default_factory=PerceptualMaskConfig)
-    """Perceptual transient mask (VGG16 weights source, threshold 0.85, warm-up)."""
-    static_support: StaticSupportConfig = field(default_factory=StaticSupportConfig)
-    """The mask's safeguard: pixels around observations of SfM points seen by many training images are static and
-    never masked (willags_ns/static_support.py; COLMAP scenes, where the tracks exist)."""
-    mask_health: MaskHealthConfig = field(default_factory=MaskHealthConfig)
-    """Warn once while training when the mask feeds on itself (its masked share rising while the training PSNR
-    falls; willags_ns/mask_health.py)."""
-    mask_every: int = 1
-    """Recompute an image's mask on every k-th step (teacher render + VGG); other steps reuse that image's last
-    mask. 1 = the paper (every step). Larger values trade mask freshness for speed."""
-    fuse_teacher_render: bool = True
-    """Render the teacher's colours as 3 extra channels of the student's rasterisation (same Gaussians, same
-    camera) instead of a second rasterisation. Identical pseudo-GT and identical student gradients (the teacher
-    channels are detached, so their share of every geometry gradient is zero); saves the teacher's projection,
-    sorting and compositing (measured in docs/gpu_notes.md)."""
-    max_masked_fraction: float = 0.5
-    """If the mask would drop more than this fraction of an image, the teacher is not trustworthy there (still
-    training, or an appearance it cannot explain): that image is supervised everywhere instead (logged as
-    mask_rejected). Occluders in photo collections cover far less than half an image."""
-    lambda_vae: float = 0.01
-    """Weight of L_VAE = L1 recon + beta * KL in the total loss."""
-    embedding_init_std: float = 0.01
-    """Init std of the per-image embedding table (use_vae=False only)."""
-    backend: Literal["auto", "gsplat", "torch"] = "auto"
-    """Rasteriser backend: gsplat (CUDA), our pure-torch rasteriser (any device), or auto (gsplat on CUDA)."""
-    log_images_every: int = 500
-    """Write training images (render, teacher render, D map, mask, VAE reconstruction) to tensorboard every N
-    steps (0 = never)."""
-    render_sh_degree: int = 3
-    """Rendering with a chosen appearance and no gradient (viewer, ns-render, eval images during training; not
-    training, not the NeRF-W protocol, whose latent arrives in the camera's metadata): once per appearance change the
-    colour decoder is projected by least squares onto real SH of this degree per Gaussian (over RENDER_SH_SAMPLES
-    view directions), and every frame the rasteriser evaluates SH like 3DGS: the decoder MLP no longer runs per
-    frame. The bake happens on the second frame with the same appearance and Gaussians (a viewer open during
-    training, where the Gaussians change every step, keeps the exact decoder). -1 = the decoder every frame."""
-    export_view_samples: int = 26
-    """Number of view directions averaged when baking the view-dependent colour into a PLY (ns-export)."""
-    auto_config: bool = False
-    """Before the model is built, inspect the scene (willags-inspect) and switch off what it does not need: the
-    appearance latent, the transient mask and its teacher, the tri-plane field; the latent size follows the image
-    count (willags_ns/autoconfig.py). The choice is printed, logged to tensorboard and written to auto_config.json;
-    config.yml is rewritten with the resolved switches. Method `willags-auto` turns it on."""
 
 
-class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
-    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Two mixins carry public
-    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splat_export.SplatExport) and the
+class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
+    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Three mixins carry public
+    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splat_export.SplatExport), the
     latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...:
-    appearance/latents.LatentFace)."""
+    appearance/latents.LatentFace) and the mask's (`update_teacher`, `static_support`, `sfm_observations`, the
+    teacher's second rasterisation, ...: mask_step.MaskFace)."""
 
     config: WillagsModelConfig
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
@@ -168,6 +101,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
     # ------------------------------------------------------------------ set-up
     def populate_modules(self):
         cfg = self.config
+        check_settings(cfg)
         means, seed_rgb = initial_points(cfg, self.seed_points)
         distances, _ = self.k_nearest_sklearn(means, 3)
         avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True).clamp_min(1e-7)
@@ -188,8 +122,6 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
             from nerfstudio.utils.colors import get_color
 
             self.background_color = get_color(cfg.background_color)
-        if cfg.use_bilateral_grid:
-            raise ValueError("willags: use_bilateral_grid is not supported (the appearance field models the ISP)")
         self.strategy = densification_strategy(cfg, self.num_train_data)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
 
@@ -198,16 +130,15 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         self.teacher: AppearanceNetworks | None = None
         self.perceptual: PerceptualFeatures | None = None
         observations = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
-        # where the sky shows while training (before the networks: region "open" without keypoints turns it off)
-        self.open_regions = open_regions_for(cfg.sky, observations)
+        # whether there is a sky and where it shows while training (region "open" without keypoints: no sky)
+        with_sky, self.open_regions = sky_for_scene(cfg.sky, observations)
         if cfg.appearance == "willags":
-            cfg.triplane.latent_dim = cfg.vae.latent_dim
-            self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data)
+            self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data, with_sky)
             self.teacher, self.perceptual = mask_networks(cfg, self.appearance_nets)
             lo, hi = robust_bounds(means)  # fixed at initialisation (see triplane.robust_bounds for the rule)
             self.register_buffer("bounds_lo", lo.float())
             self.register_buffer("bounds_hi", hi.float())
-            d = cfg.vae.latent_dim
+            d = cfg.latent.dim
             # mean latent of each training image, refreshed whenever it is visited: the appearances users pick
             self.register_buffer("train_latents", torch.zeros(max(self.num_train_data, 1), d))
             self.register_buffer("train_latent_seen", torch.zeros(max(self.num_train_data, 1), dtype=torch.bool))
@@ -215,9 +146,8 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         self.color_path = ColorPath(self.latents.key_of)  # the f_d and baked-SH caches
         # each image's last mask, visits and SfM support (the safeguard's observations: COLMAP scenes)
         self.mask_step = MaskStep(cfg, observations)
-        self.mask_health = MaskHealth(cfg.mask_health)
-        self._train_batch: dict | None = None
-        self._step_cache: dict[str, Tensor] = {}  # this training step's scratch, passed to the rooms as `record`
+        self.mask_health = MaskHealth(cfg.mask.health)
+        self._train_batch: dict | None = None  # this step's batch (set_train_batch), until the step ends
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
 
     # ------------------------------------------------------------------ the Gaussians, parameter groups, checkpoints
@@ -252,27 +182,20 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
     def _color_context(self) -> ColorContext:
         return ColorContext(self.bounds_lo, self.bounds_hi, self.step, active_sh_degree(self.config, self.step))
 
-    def _dynamic_features(self, nets: AppearanceNetworks, z: Tensor, means: Tensor, cacheable: bool):
-        return self.color_path.dynamic_features(nets, z, means, self._color_context(), cacheable)
-
     def appearance_colors(
         self, z: Tensor, means: Tensor, f_s, cam_center: Tensor, nets=None, cacheable=False, sh=None, base=None
-    ) -> Tensor:
-        """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D] (ColorPath.colors).
+    ) -> GaussianColors:
+        """Colours of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D] (ColorPath.colors),
+        with the modulation's residual and the SH colours they came from.
 
-        `nets`: the student's networks by default (the teacher's for the pseudo-GT). `sh` [N, K, 3]: the Gaussians'
-        SH coefficients (color_mode='modulated'); default: all the model's Gaussians. `base` [N, 3]: their SH colours
-        from cam_center, already evaluated (then sh is not used). The student's training step records its local
-        residual (for the penalty) and SH colours (for the teacher) in the step cache."""
+        `nets`: the student's networks by default. `sh` [N, K, 3]: the Gaussians' SH coefficients
+        (color_mode='modulated'); default: all the model's Gaussians. `base` [N, 3]: their SH colours from
+        cam_center, already evaluated (then sh is not used)."""
         nets = nets if nets is not None else self.appearance_nets
         assert nets is not None
-        student_step = self.training and nets is self.appearance_nets and torch.is_grad_enabled()
         if sh is None and base is None and nets.modulation is not None:
             sh = self.sh_coeffs()
-        record = self._step_cache if student_step else None
-        return self.color_path.colors(
-            nets, z, means, f_s, cam_center, self._color_context(), cacheable, sh, base, record
-        )
+        return self.color_path.colors(nets, z, means, f_s, cam_center, self._color_context(), cacheable, sh, base)
 
     # ------------------------------------------------------------------ rendering
     def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
@@ -294,9 +217,8 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         if self.crop_box is not None and not self.training:
             crop_ids = self.crop_box.within(self.means).squeeze()
             if crop_ids.sum() == 0:
-                return self.get_empty_outputs(
-                    int(camera.width.item()), int(camera.height.item()), self.background_color
-                )
+                w, h = int(camera.width.item()), int(camera.height.item())
+                return self.get_empty_outputs(w, h, self.background_color)
         gp = {k: (v[crop_ids] if crop_ids is not None else v) for k, v in self.gauss_params.items()}
 
         viewmat = viewmat_from_c2w(c2w)
@@ -305,28 +227,39 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         render_mode = "RGB+ED" if (cfg.output_depth_during_training or not self.training) else "RGB"
         cam_center = c2w[0, :3, 3]
 
-        # the Gaussians' colours: 3DGS SH, the baked SH of a fixed appearance, or the colour path for latent z
-        z: Tensor | None = None
+        # the Gaussians' colours: 3DGS SH, the training image's latent, or a chosen appearance
+        outputs: dict[str, Union[Tensor, list]] = {}
+        z = lat = student = None
         if cfg.appearance == "sh":
             colors, sh_degree = sh_colors(cfg, gp, self.step)
-        else:
+        elif self.training:
+            lat = self._training_latent(camera)
+            z = lat.z
+            student = self.appearance_colors(z, gp["means"], gp.get("features"), cam_center, sh=sh_coeffs(gp))
+            colors, sh_degree = student.rgb, None
+            step_data = {"image_idx": lat.image_idx, "latent": z, "latent_mu": lat.mu, "latent_logvar": lat.logvar}
+            step_data.update(vae_in=lat.vae_in, local_residual=student.residual)
+            outputs.update({k: v for k, v in step_data.items() if v is not None})  # type: ignore[misc]
+        else:  # a fixed appearance (no gradient) renders its baked SH (render_sh_degree) once it is cached
             z = self._latent_for_forward(camera)
-            fixed = not self.training and not torch.is_grad_enabled()
-            deg, sh_degree = cfg.render_sh_degree, None
-            colors = None
-            if fixed and deg >= 0 and "appearance_latent" not in (camera.metadata or {}):
-                ctx, nets = self._color_context(), self.appearance_nets
-                colors = self.color_path.frame_sh(nets, z, gp["means"], gp.get("features"), deg, ctx, gp)
-                sh_degree = deg if colors is not None else None
+            colors, fixed, sh_degree = None, not torch.is_grad_enabled(), cfg.render_sh_degree
+            if fixed and sh_degree >= 0 and "appearance_latent" not in (camera.metadata or {}):
+                ctx, f_s = self._color_context(), gp.get("features")
+                colors = self.color_path.frame_sh(self.appearance_nets, z, gp["means"], f_s, sh_degree, ctx, gp)
             if colors is None:
-                f_s = gp.get("features")
-                colors = self.appearance_colors(z, gp["means"], f_s, cam_center, cacheable=fixed, sh=self.sh_coeffs(gp))
+                args = (z, gp["means"], gp.get("features"), cam_center)
+                colors, sh_degree = self.appearance_colors(*args, cacheable=fixed, sh=sh_coeffs(gp)).rgb, None
 
-        teacher_needed = self.training and self.mask_step.teacher_needed(self.step, self._image_idx())
-        fused = teacher_needed and cfg.fuse_teacher_render and self.teacher is not None
+        idx = lat.image_idx if lat is not None else -1
+        teacher_needed = self.training and self.mask_step.teacher_needed(self.step, idx)
+        fused = teacher_needed and cfg.mask.teacher.fused and self.teacher is not None
+        sh_base = student.sh_base.detach() if student is not None and student.sh_base is not None else None
+        z_t = None
         if fused:  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
-            assert self.teacher is not None
-            t_colors = teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
+            assert self.teacher is not None and lat is not None
+            with torch.no_grad():
+                z_t = teacher_latent(self.teacher, lat.vae_in, idx)
+            t_colors = teacher_colors(self.teacher, z_t, gp, cam_center, self._color_context(), sh_base)
             colors = torch.cat([colors, t_colors], dim=-1)
         render, alpha, self.info = self._rasterize(
             gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, render_mode, sh_degree
@@ -339,17 +272,20 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         if z is not None and self.appearance_nets is not None and self.appearance_nets.sky is not None:
             dirs = pixel_directions(c2w[0], K[0], W, H)
         fallback = self._get_background_color()  # random while training: one colour for student and teacher
-        background = self._background(self.appearance_nets, z, dirs, fallback)
-        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        background = self._background(self.appearance_nets, z, dirs, fallback, idx)
+        rgb = composite(render[..., :3], alpha, background)
 
-        outputs: dict[str, Union[Tensor, list]] = {}
-        if fused:  # over the teacher's own sky, under the teacher's latent (set with its colours)
-            teacher_bg = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback)
+        if fused:  # over the teacher's own sky, under the teacher's latent
+            teacher_bg = self._background(self.teacher, z_t, dirs, fallback, idx)
             outputs["teacher_rgb"] = fused_teacher_rgb(render, alpha, teacher_bg)
         elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render
             outputs["teacher_rgb"] = rgb.detach().squeeze(0)
         elif teacher_needed:
-            outputs["teacher_rgb"] = self._teacher_render(gp, cam_center, viewmat, K, W, H, background, dirs, fallback)
+            assert lat is not None
+            view = (cam_center, viewmat, K, W, H)
+            outputs["teacher_rgb"], z_t = self._teacher_render(gp, lat.vae_in, idx, *view, dirs, fallback, sh_base)
+        if z_t is not None:
+            outputs["teacher_latent"] = z_t
 
         depth_im = None
         if render_mode == "RGB+ED":
@@ -361,67 +297,23 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
             background = background.squeeze(0)
         outputs.update({"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0)})  # type: ignore[dict-item]
         outputs["background"] = background
+        if self.training and self._train_batch is not None:  # the ground truth, once per step (metrics and loss)
+            outputs["gt_rgb"] = self.composite_with_background(self.get_gt_img(self._train_batch["image"]), background)
         return outputs
 
-    def _background(self, nets: AppearanceNetworks | None, z: Tensor | None, dirs: Tensor | None, fallback: Tensor):
+    def _background(self, nets, z: Tensor | None, dirs: Tensor | None, fallback: Tensor, idx: int = -1) -> Tensor:
         """What shows behind the Gaussians rendered with `nets` (appearance/sky.py's `background`): their sky under z,
-        only above the photo's skyline while training with sky.region "open"; `fallback` without a sky."""
+        only above training image `idx`'s skyline while training with sky.region "open"; `fallback` without a sky."""
         regions = self.open_regions if self.training else None
-        idx = self._image_idx() if regions is not None else -1
         return background(nets.sky if nets is not None else None, z, dirs, fallback, regions, idx)
-
-    # ------------------------------------------------------------------ the transient mask (mask_step.py)
-    def _image_idx(self) -> int:
-        return int(self._step_cache.get("image_idx", torch.tensor(-1)))
-
-    @torch.no_grad()
-    def _teacher_render(self, gp, cam_center, viewmat, K, W, H, background, dirs=None, fallback=None) -> Tensor:
-        """Pseudo-GT [H, W, 3] from the EMA teacher networks with the student's current Gaussians (no grad): a
-        second rasterisation (fuse_teacher_render=False; the fused path renders the same image). With a sky
-        (`dirs` given), the teacher's own sky replaces `background`."""
-        assert self.teacher is not None
-        colors = teacher_colors(self.teacher, gp, cam_center, self._step_cache, self.appearance_colors)
-        if dirs is not None:
-            fallback = self._get_background_color() if fallback is None else fallback
-            background = self._background(self.teacher, self._step_cache.get("teacher_z"), dirs, fallback)
-        return teacher_render(colors, gp, viewmat, K, W, H, background, self._rasterize)
-
-    def _static_mask(self, outputs, gt_img: Tensor) -> Tensor | None:
-        """[H, W] float mask of static pixels (1 = supervised), or None when masking is off / warming up."""
-        t_rgb, idx = outputs.get("teacher_rgb"), self._image_idx()
-        return self.mask_step.static_mask(self.step, idx, gt_img, t_rgb, self.perceptual, self._step_cache, self.device)
-
-    def static_support(self, idx: int, height: int, width: int) -> Tensor | None:
-        """Training image `idx`'s SfM support grid (True = vouched static), or None (MaskStep.support)."""
-        return self.mask_step.support(idx, height, width, self.device)
-
-    @property
-    def sfm_observations(self) -> list | None:
-        """SfM observations per training image (COLMAP scenes): the mask's safeguard (MaskStep.observations)."""
-        return self.mask_step.observations
-
-    @sfm_observations.setter
-    def sfm_observations(self, obs: list | None) -> None:
-        self.mask_step.observations = obs
-
-    @property
-    def _mask_cache(self) -> dict[int, Tensor]:
-        """Each image's last perceptual mask (MaskStep.masks; read by benchmarks/harness.py)."""
-        return self.mask_step.masks
 
     # ------------------------------------------------------------------ losses / metrics
     def _gt_image(self, outputs, batch) -> Tensor:
-        """This step's ground truth [H, W, 3] (float, at the render's resolution, composited on its background),
-        made once for the metrics and the loss: both need it, and each conversion of a cached uint8 photo is a
-        full-image pass."""
-        cached = self._step_cache.get("gt_img")
-        # keyed by the objects themselves (held, so never a recycled id): this step's render of this photo
-        if cached is not None and cached[0] is outputs and cached[1] is batch["image"]:
-            return cached[2]
-        gt = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
-        if self.training:  # the step cache is emptied after every training step (_end_step)
-            self._step_cache["gt_img"] = (outputs, batch["image"], gt)  # type: ignore[assignment]
-        return gt
+        """The ground truth [H, W, 3] of `batch` (float, at the render's resolution, composited on its background):
+        what get_outputs made of it when it is this step's training batch (set_train_batch), else made here."""
+        if "gt_rgb" in outputs and batch is self._train_batch:
+            return outputs["gt_rgb"]
+        return self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
 
     def get_metrics_dict(self, outputs, batch) -> dict[str, torch.Tensor]:
         """splatfacto's training metrics, with the PSNR as a function: torchmetrics' module updates and resets its
@@ -431,15 +323,16 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         if self.config.color_corrected_metrics:
             metrics["cc_psnr"] = self.psnr(color_correct(pred, gt), gt)
         self.camera_optimizer.get_metrics_dict(metrics)
-        if self.training and "z" in self._step_cache:
-            metrics["latent_norm"] = self._step_cache["z"].detach().norm()
+        if self.training and "latent" in outputs:
+            metrics["latent_norm"] = outputs["latent"].detach().norm()
         return metrics
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> dict[str, torch.Tensor]:
-        cfg, sc = self.config, self._step_cache
+        cfg = self.config
         gt_img = self._gt_image(outputs, batch)
         pred_img = outputs["rgb"]
-        mask = self._static_mask(outputs, gt_img) if self.training else None
+        step_mask = self._static_mask(outputs, gt_img) if self.training else StepMask(None, None, None)
+        mask = step_mask.mask
         if "mask" in batch:  # user-provided masks (nerfstudio convention) combine with ours
             user = self._downscale_if_required(batch["mask"]).to(self.device)[..., 0].float()
             mask = user if mask is None else mask * user
@@ -448,8 +341,8 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         loss_dict = {"main_loss": reconstruction_loss(pred_b, gt_b, mask_b, ssim_lambda=cfg.ssim_lambda)}
         if mask is not None and metrics_dict is not None:
             metrics_dict["masked_fraction"] = 1.0 - mask.mean().detach()
-            if "mask_rejected" in sc:
-                metrics_dict["mask_rejected"] = sc["mask_rejected"]
+            if step_mask.rejected is not None:
+                metrics_dict["mask_rejected"] = step_mask.rejected
             if self.training and "psnr" in metrics_dict:
                 # compared within one resolution and between opacity resets: both move the PSNR by themselves
                 regime = (self._get_downscale_factor(), self.step // self.strategy.reset_every)
@@ -461,15 +354,15 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
 
         # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (regularizers.py)
         vae = self.appearance_nets.vae if self.appearance_nets is not None else None
-        args = (cfg, sc, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
-        terms, term_metrics = regularization_terms(*args)
+        args = (cfg, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
+        terms, term_metrics, recon = regularization_terms(*args)
         loss_dict.update(terms)
         if metrics_dict is not None:
             metrics_dict.update(term_metrics)
         if self.training:
             self.camera_optimizer.get_loss_dict(loss_dict)
             if cfg.log_images_every > 0 and self.step % cfg.log_images_every == 0:
-                log_step_images(self.step, outputs, gt_img, mask, sc)
+                log_step_images(self.step, outputs, gt_img, mask, step_mask.distance, recon)
         return loss_dict
 
     def get_image_metrics_and_images(self, outputs, batch):
@@ -493,13 +386,7 @@ class WillagsModel(SplatExport, LatentFace, SplatfactoModel):
         cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._end_step))
         return cbs
 
-    def update_teacher(self, step: int) -> None:
-        """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
-        assert self.teacher is not None and self.appearance_nets is not None
-        ema_update_(self.teacher, self.appearance_nets, self.config.teacher.tau)
-
     def _end_step(self, step: int) -> None:
-        self._step_cache = {}
         self._train_batch = None
 
     # ------------------------------------------------------------------ checkpoints carry the mask provenance

@@ -1,7 +1,7 @@
 """The terms a training step adds to the reconstruction loss, each weighted by the model's config.
 
     loss = reconstruction (losses.py, masked by the transient mask)
-         + lambda_vae * L_VAE               the beta-VAE of the step's photo        appearance/latents.py, vae.py
+         + latent.vae.weight * L_VAE        the beta-VAE of the step's photo        appearance/latents.py, vae.py
          + sky.alpha_penalty * mean alpha   where the sky alone explains the photo  appearance/sky.py
          + modulation.local_penalty * mean(s^2 + o^2)   the per-Gaussian residual   appearance/modulation.py
          + splatfacto's scale penalty (every 10th step)                              losses.py
@@ -23,7 +23,6 @@ from willags_ns.losses import scale_regularization
 
 def regularization_terms(
     cfg,
-    record: dict,
     vae: AppearanceVAE | None,
     outputs: dict,
     gt_img: Float[Tensor, "H W 3"],
@@ -31,24 +30,28 @@ def regularization_terms(
     log_scales: Float[Tensor, "N 3"],
     step: int,
     training: bool,
-) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
-    """The weighted terms a step adds to the reconstruction loss, and their metrics: ``(terms, metrics)``.
+) -> tuple[dict[str, Tensor], dict[str, Tensor], Tensor | None]:
+    """The weighted terms a step adds to the reconstruction loss, their metrics, and the VAE's reconstruction of the
+    photo for the logs (or None): ``(terms, metrics, recon)``.
 
-    ``cfg``: the model's config (WillagsModelConfig); ``record``: the step's scratch (what
-    ``appearance.latents.training_latent`` and the colour path wrote); ``outputs``: the step's render. In the order
-    the trainer sums them (the order of a float sum sets its last bits):
+    ``cfg``: the model's config (WillagsModelConfig); ``outputs``: the step's render with its intermediates
+    (``latent``, ``latent_mu``, ``latent_logvar``, ``vae_in`` of a VAE latent, ``local_residual``: WillagsModel's
+    get_outputs). In the order the trainer sums them (the order of a float sum sets its last bits):
 
-    - ``vae_loss``: lambda_vae * L_VAE of the step's photo (training with the VAE; metrics ``vae_kl``, ``vae_recon``);
+    - ``vae_loss``: latent.vae.weight * L_VAE of the step's photo (training with the VAE; metrics ``vae_kl``, ``vae_recon``);
     - ``sky_alpha``: sky.alpha_penalty * the mean alpha over pixels the sky alone reproduces (training with a sky);
     - ``appearance_local``: modulation.local_penalty * mean(s^2 + o^2) of the student's local residual (training);
     - ``scale_reg``: splatfacto's needle penalty on every 10th step (use_scale_regularization, training or not).
     """
     terms: dict[str, Tensor] = {}
     metrics: dict[str, Tensor] = {}
-    if training and "logvar" in record:  # only the VAE records a log-variance
+    recon = None
+    if training and outputs.get("latent_logvar") is not None:  # only the VAE has a log-variance
         assert vae is not None
-        l_vae, parts = latent_loss(vae, record, cfg.vae.beta, cfg.vae.recon_reduction)
-        terms["vae_loss"] = cfg.lambda_vae * l_vae
+        vcfg, o = cfg.latent.vae, outputs
+        args = (o["latent"], o["latent_mu"], o["latent_logvar"], o["vae_in"], vcfg.beta, vcfg.recon_reduction)
+        l_vae, parts, recon = latent_loss(vae, *args)
+        terms["vae_loss"] = vcfg.weight * l_vae
         metrics["vae_kl"] = parts["vae_kl"].detach()
         metrics["vae_recon"] = parts["vae_recon"].detach()
     if training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:
@@ -56,9 +59,9 @@ def regularization_terms(
         pen_sky = background_alpha_penalty(acc, gt_img, bg, cfg.sky.alpha_tol, mask)
         if pen_sky is not None:
             terms["sky_alpha"] = cfg.sky.alpha_penalty * pen_sky
-    pen = local_penalty(record.get("local_residual")) if training else None
+    pen = local_penalty(outputs.get("local_residual")) if training else None
     if pen is not None and cfg.modulation.local_penalty > 0:
         terms["appearance_local"] = cfg.modulation.local_penalty * pen
     if cfg.use_scale_regularization and step % 10 == 0:
         terms["scale_reg"] = scale_regularization(log_scales, cfg.max_gauss_ratio)
-    return terms, metrics
+    return terms, metrics, recon

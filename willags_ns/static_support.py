@@ -34,9 +34,9 @@ from torch import Tensor
 class StaticSupportConfig:
     """SfM-track support that overrides the perceptual mask."""
 
-    enabled: bool = False
-    """Keep pixels supported by long SfM tracks in the loss whatever the perceptual mask says (COLMAP scenes). Off
-    in the paper's configuration; on in the default `willags` (willags_ns/method_configs.py)."""
+    enabled: bool = True
+    """Keep pixels supported by long SfM tracks in the loss whatever the perceptual mask says (COLMAP scenes; no
+    effect without tracks). Off in the paper's configuration."""
     min_track: int = 5
     """A 3D point vouches for static scene when at least this many training images observe it."""
     grid: int = 64

@@ -30,6 +30,11 @@ class TeacherConfig:
     transient overfitting."""
     enabled: bool = True
     """Build and update a teacher; when False the student's own render is used for the mask (ablation)."""
+    fused: bool = True
+    """Render the teacher's colours as 3 extra channels of the student's rasterisation (same Gaussians, same
+    camera) instead of a second rasterisation. Identical pseudo-GT and identical student gradients (the teacher
+    channels are detached, so their share of every geometry gradient is zero); saves the teacher's projection,
+    sorting and compositing (measured in docs/gpu_notes.md)."""
 
 
 def make_teacher(student: nn.Module) -> nn.Module:

@@ -55,7 +55,7 @@ import math
 import os
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -63,6 +63,10 @@ import torch
 import torch.nn.functional as F
 from jaxtyping import Bool, Float
 from torch import Tensor, nn
+
+from willags_ns.mask_health import MaskHealthConfig
+from willags_ns.static_support import StaticSupportConfig
+from willags_ns.teacher import TeacherConfig
 
 logger = logging.getLogger(__name__)
 
@@ -88,9 +92,13 @@ _FALLBACK_WARNED = False
 
 
 @dataclass
-class PerceptualMaskConfig:
-    """Settings of the perceptual transient mask."""
+class MaskConfig:
+    """The transient mask: the EMA teacher's render compared with the photo in VGG16 features, thresholded, with its
+    cadence, its safeguard and its health watch (the step: willags_ns/mask_step.py)."""
 
+    enabled: bool = True
+    """Mask transients with the perceptual mask of the EMA teacher. Off: every pixel is supervised, and neither the
+    teacher nor VGG16 is built."""
     threshold: float = 0.85
     """Pixels with perceptual error D >= threshold are transient (excluded from the loss)."""
     threshold_rule: Literal["fixed", "robust"] = "robust"
@@ -113,10 +121,29 @@ class PerceptualMaskConfig:
     ramp_steps: int = 0
     """After warmup, lower the threshold linearly from RAMP_START_FACTOR * threshold to threshold over this many
     steps (0: the full threshold at once). Eases the switch from no mask to the full mask."""
-    max_resolution: int = 512
+    max_masked_fraction: float = 0.5
+    """If the mask would drop more than this fraction of an image, the teacher is not trustworthy there (still
+    training, or an appearance it cannot explain): that image is supervised everywhere instead (logged as
+    mask_rejected). Occluders in photo collections cover far less than half an image."""
+    every: int = 4
+    """Recompute an image's mask on every k-th visit of that image (teacher render + VGG); the visits between reuse
+    its last mask. 1 = the paper (every step); 4 costs a fraction of the step time (docs/design.md)."""
+    max_resolution: int = 256
     """Longest image side at which VGG features are computed; larger images are downsampled (antialiased) first
     and D is upsampled back. The mask is coarse by nature (relu3_3 is at 1/4 resolution), so this mostly buys
-    speed."""
+    speed (the paper: 512)."""
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    """The EMA teacher that renders the pseudo ground truth (decay tau; fused into the student's rasterisation)."""
+    safeguard: StaticSupportConfig = field(default_factory=StaticSupportConfig)
+    """Pixels around observations of SfM points seen by many training images are static and never masked
+    (willags_ns/static_support.py; COLMAP scenes, where the tracks exist)."""
+    health: MaskHealthConfig = field(default_factory=MaskHealthConfig)
+    """Warn once while training when the mask feeds on itself (its masked share rising while the training PSNR
+    falls; willags_ns/mask_health.py)."""
+
+
+PerceptualMaskConfig = MaskConfig
+"""The name under which config.yml files of the flat layout store the mask's settings (their YAML tag)."""
 
 
 MIN_VGG_SIDE = 16

@@ -140,11 +140,11 @@ def training_view_panels(model: "WillagsModel", train_dataset, idx: int, max_wid
     if model.perceptual is not None:
         thr = mask_threshold(model.step, cfg.mask.threshold, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
         transient, rejected, _ = predicted_transient(
-            model.perceptual, gt, teacher, thr, cfg.max_masked_fraction, cfg.mask.threshold_rule, cfg.mask.robust_k
+            model.perceptual, gt, teacher, thr, cfg.mask.max_masked_fraction, cfg.mask.threshold_rule, cfg.mask.robust_k
         )
         if rejected:
             transient = torch.zeros_like(transient)
-    else:  # use_mask=False: no mask, every pixel is supervised
+    else:  # mask.enabled False: no mask, every pixel is supervised
         transient = torch.zeros(gt.shape[:2], dtype=torch.bool, device=gt.device)
     overlay = gt.clone()
     overlay[transient] = 0.5 * overlay[transient] + 0.5 * torch.tensor([1.0, 0.0, 0.0], device=gt.device)

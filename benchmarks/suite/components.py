@@ -30,13 +30,13 @@ def section_components(args, cuda: bool, dev, backend: str, ceilings: dict) -> d
     from willags_ns.transient import PerceptualFeatures
 
     n, size = args.n_gaussians, args.size
-    tp, dc = TriplaneConfig(), ColorDecoderConfig()
+    tp, dc, latent_dim = TriplaneConfig(), ColorDecoderConfig(), 64
     field = TriplaneHyperField(
-        tp.latent_dim, tp.resolution, tp.channels, tuple(tp.hyper_hidden), tp.feature_dim, tp.mlp_hidden
+        latent_dim, tp.resolution, tp.channels, tuple(tp.hyper_hidden), tp.feature_dim, tp.mlp_hidden
     ).to(dev)
     dec = ColorDecoder(tp.feature_dim, 32, dc.hidden, dc.dir_sh_degree).to(dev)
     g = torch.Generator().manual_seed(5)
-    z = torch.randn(tp.latent_dim, generator=g).to(dev).requires_grad_(True)
+    z = torch.randn(latent_dim, generator=g).to(dev).requires_grad_(True)
     xyz = (torch.rand(n, 3, generator=g) * 2 - 1).to(dev).requires_grad_(True)
     f_s = torch.randn(n, 32, generator=g).to(dev).requires_grad_(True)
     dirs = torch.randn(n, 3, generator=g).to(dev)
@@ -64,7 +64,7 @@ def section_components(args, cuda: bool, dev, backend: str, ceilings: dict) -> d
     q_macs = 3 * tp.channels * tp.mlp_hidden + tp.mlp_hidden * tp.feature_dim + 3 * tp.channels * 4  # + bilinear taps
     plane_out = 3 * tp.channels * tp.resolution**2
     hyper_macs = (
-        tp.latent_dim * tp.hyper_hidden[0] + tp.hyper_hidden[0] * tp.hyper_hidden[1] + tp.hyper_hidden[1] * plane_out
+        latent_dim * tp.hyper_hidden[0] + tp.hyper_hidden[0] * tp.hyper_hidden[1] + tp.hyper_hidden[1] * plane_out
     )
     # fewest bytes: inputs read once, outputs written once (fwd), + output grads read, input grads written (bwd)
     dec_bytes_fb = 4 * n * (2 * (tp.feature_dim + 32) + 3 + 3 + 3)

@@ -28,19 +28,19 @@ LRS = {  # method_configs._optimizers (splatfacto's per-group Adam learning rate
     "appearance": 1e-3,
     "camera_opt": 1e-4,
 }
-_FAST = {"mask_every": 4, "mask.max_resolution": 256}
+_FAST = {"mask.every": 4, "mask.max_resolution": 256}
 VARIANTS = {
     # name: (builder, config overrides ("a.b" sets a nested field), wrappers around model.appearance_colors)
     "splatfacto": ("stock", {}, ()),
-    "willags-3dgs": ("willags", dict(appearance="sh", use_mask=False, use_vae=False, use_field=False), ()),
+    "willags-3dgs": ("willags", {"appearance": "sh", "mask.enabled": False, "use_field": False}, ()),
     "willags": ("willags", {}, ()),  # the `willags` method's model (method_configs.willags_model_config)
-    "willags-vae": ("willags", {"use_vae": True}, ()),  # ... with the beta-VAE latent
-    "willags-everymask": ("willags", {"mask_every": 1, "mask.max_resolution": 512}, ()),  # the paper's mask cadence
+    "willags-vae": ("willags", {"latent.kind": "vae"}, ()),  # ... with the beta-VAE latent
+    "willags-everymask": ("willags", {"mask.every": 1, "mask.max_resolution": 512}, ()),  # the paper's mask cadence
     "willags-paper": ("paper", {}, ()),  # the paper preset (colour decoder + tri-plane field)
-    "willags-2raster": ("willags", dict(fuse_teacher_render=False), ()),  # the teacher as a second rasterisation
-    "willags-mask4": ("willags", dict(mask_every=4), ()),
+    "willags-2raster": ("willags", {"mask.teacher.fused": False}, ()),  # the teacher as a second rasterisation
+    "willags-mask4": ("willags", {"mask.every": 4}, ()),
     "willags-vgg256": ("willags", {"mask.max_resolution": 256}, ()),
-    "willags-nomask": ("willags", dict(use_mask=False), ()),
+    "willags-nomask": ("willags", {"mask.enabled": False}, ()),
     "willags-sky": ("willags", {"sky.enabled": True}, ()),  # + the appearance-conditioned sky
     # the local residual through plain autograd (keeps [N, hidden] activations; the default recomputes them)
     "willags-plainres": ("willags", {"modulation.residual_chunk": 0}, ()),
@@ -177,7 +177,7 @@ def _wrap_appearance(model, wrapper: str, dev: torch.device) -> None:
         def colors_bf16(*a, **k):
             with torch.autocast(device_type=dev.type, dtype=torch.bfloat16):
                 out = orig(*a, **k)
-            return out.float()  # the rasteriser takes float32
+            return out._replace(rgb=out.rgb.float())  # the rasteriser takes float32
 
         model.appearance_colors = colors_bf16
     elif wrapper == "ckpt":

@@ -75,7 +75,7 @@ def section_render(args, cuda: bool, dev, backend: str) -> dict:
             z = model.render_latent
             cam0 = cams[0]
             c2w0 = cam0.camera_to_worlds
-            colors = model.appearance_colors(z, model.means, model.intrinsic_features, c2w0[0, :3, 3]).contiguous()
+            colors = model.appearance_colors(z, model.means, model.intrinsic_features, c2w0[0, :3, 3]).rgb.contiguous()
             means, quats = model.means.contiguous(), model.quats.contiguous()
             scales = torch.exp(model.scales).contiguous()
             opac = torch.sigmoid(model.opacities).squeeze(-1).contiguous()

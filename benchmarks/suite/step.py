@@ -50,7 +50,7 @@ def install_profile(model, timer: RegionTimer, is_willags: bool) -> list:
                 wrap(nets.field.mlp, "forward", "field MLP")
             if nets.color is not None:
                 wrap(nets.color, "forward", "decoder MLP")
-            if nets.modulation is not None:  # SH evaluation + local residual + colour transform, student and teacher
+            if nets.modulation is not None:  # SH evaluation + local residual + colour transform of the student
                 wrap(model, "appearance_colors", "appearance colours (SH + modulation)")
         if model.teacher is not None:
 
@@ -212,7 +212,7 @@ def section_step(args, cuda: bool, dev, backend: str, variants: list[str], memor
                 gc.collect()
                 torch.cuda.reset_peak_memory_stats()
                 r["static_gb"] = (torch.cuda.memory_allocated() - base) / 2**30  # params, Adam, caches
-            # The mean, not the median, is the headline: with mask_every=k one step in k also renders the teacher
+            # The mean, not the median, is the headline: with mask.every=k one step in k also renders the teacher
             # and runs VGG (iters is a multiple of 4), and the mean is what a training run pays per step. The peak
             # VRAM is taken over the same steps, so it includes a teacher step.
             spans = []
@@ -269,7 +269,7 @@ def section_step(args, cuda: bool, dev, backend: str, variants: list[str], memor
                     train_step(m, o, camera, batch, at[0], w)
                     at[0] += 1
 
-                r["kernels"] = kernel_profile(one_step, 8)  # two mask steps of four at mask_every=4
+                r["kernels"] = kernel_profile(one_step, 8)  # two mask steps of four at mask.every=4
                 step = at[0]
             msg = f"{v}: " + ", ".join(
                 f"{k}={r[k]:.2f}"

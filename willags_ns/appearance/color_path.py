@@ -14,15 +14,16 @@ tensors and the model's step arrive as arguments (:class:`ColorContext` for what
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from willags_ns.appearance.decoder import sh_basis
 from willags_ns.appearance.modulation import ColorModulation
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.triplane import normalize_points
-from willags_ns.render.sh import spherical_harmonics
+from willags_ns.gaussians import sh_coeffs
+from willags_ns.render.sh import sh_basis, sh_color
 
 RENDER_SH_SAMPLES = 64
 """View directions over which the decoder is fitted by SH when rendering with a fixed appearance."""
@@ -34,13 +35,6 @@ def fibonacci_directions(k: int, device=None) -> Tensor:
     phi, cos_t = math.pi * (1 + 5**0.5) * i, 1 - 2 * i / k
     sin_t = (1 - cos_t**2).clamp_min(0).sqrt()
     return torch.stack([sin_t * phi.cos(), sin_t * phi.sin(), cos_t], -1)
-
-
-def sh_coeffs(gp) -> Tensor | None:
-    """SH coefficients [N, K, 3] of the Gaussians in `gp` (gauss_params or a cropped view), None without them."""
-    if "features_dc" not in gp:
-        return None
-    return torch.cat((gp["features_dc"][:, None, :], gp["features_rest"]), dim=1)
 
 
 @dataclass(frozen=True)
@@ -55,6 +49,52 @@ class ColorContext:
     """Training step: the Gaussians change with it, so it is part of every cache key."""
     sh_degree: int
     """SH degree in use now (splatfacto's schedule): how much of the Gaussians' SH the base colour evaluates."""
+
+
+def field_features(nets: AppearanceNetworks, z: Tensor, means: Tensor, ctx: ColorContext) -> Tensor | None:
+    """The tri-plane field's f_d [N, F] under z at `means` (normalised into the model's box), None without it."""
+    if nets.field is None:
+        return None
+    return nets.dynamic_features(z, normalize_points(means, ctx.bounds_lo, ctx.bounds_hi))
+
+
+class GaussianColors(NamedTuple):
+    """The appearance's colours of some Gaussians from one camera, and what the step's losses and teacher reuse."""
+
+    rgb: Tensor
+    """[N, 3] colours."""
+    residual: Tensor | None
+    """[N, 6] the modulation's per-Gaussian residual (its penalty), None without one."""
+    sh_base: Tensor | None
+    """[N, 3] the Gaussians' own SH colours from the camera (color_mode='modulated'; the teacher colours the same
+    Gaussians from the same camera), None for the decoder."""
+
+
+def gaussian_colors(
+    nets: AppearanceNetworks,
+    z: Tensor,
+    means: Tensor,
+    f_s: Tensor | None,
+    f_d: Tensor | None,
+    cam_center: Tensor,
+    sh_degree: int,
+    sh: Tensor | None = None,
+    base: Tensor | None = None,
+) -> GaussianColors:
+    """The colours of `nets` (the student's or the EMA teacher's) under latent z [D] for Gaussians at `means`
+    [N, 3] seen from `cam_center` [3], with their f_s [N, Fs] and the field's f_d [N, F] (or None). Modulated:
+    from the Gaussians' SH `sh` [N, K, 3] evaluated up to `sh_degree`, unless `base` [N, 3], those colours already
+    evaluated, is given."""
+    dirs = means - cam_center[None, :]
+    if nets.modulation is None:
+        assert f_s is not None
+        return GaussianColors(nets.colors(z, f_d, f_s, dirs), None, None)
+    residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0])
+    if base is None:
+        if sh is None:
+            raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
+        base = sh_color(sh_degree, dirs, sh)
+    return GaussianColors(nets.colors(z, f_d, f_s, dirs, residual=residual, base=base), residual, base)
 
 
 def modulated_sh(
@@ -114,15 +154,16 @@ class ColorPath:
     def dynamic_features(
         self, nets: AppearanceNetworks, z: Tensor, means: Tensor, ctx: ColorContext, cacheable: bool
     ) -> Tensor | None:
-        """f_d [N, F], recomputed only when z or the Gaussians change while rendering (viewer / eval)."""
+        """f_d [N, F] (:func:`field_features`), recomputed only when z or the Gaussians change while rendering
+        (viewer / eval)."""
         if nets.field is None:
             return None
         if not cacheable:
-            return nets.dynamic_features(z, normalize_points(means, ctx.bounds_lo, ctx.bounds_hi))
+            return field_features(nets, z, means, ctx)
         key = (self.key_of(z), means.data_ptr(), means.shape[0], ctx.step)
         if self.fd_cache is not None and self.fd_cache[0] == key:
             return self.fd_cache[1]
-        f_d = nets.dynamic_features(z, normalize_points(means, ctx.bounds_lo, ctx.bounds_hi))
+        f_d = field_features(nets, z, means, ctx)
         if f_d is not None:
             self.fd_cache = (key, f_d)
         return f_d
@@ -138,28 +179,10 @@ class ColorPath:
         cacheable: bool = False,
         sh: Tensor | None = None,
         base: Tensor | None = None,
-        record: dict | None = None,
-    ) -> Tensor:
-        """RGB [N, 3] of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D].
-
-        `sh` [N, K, 3]: their SH coefficients (color_mode='modulated', unless `base` [N, 3], their SH colours from
-        cam_center, is given). `record` (the student's training step): keeps the local residual (for its penalty)
-        and the SH colours (the teacher colours the same Gaussians from the same camera)."""
+    ) -> GaussianColors:
+        """:func:`gaussian_colors`, with the field's f_d cached while rendering (`cacheable`)."""
         f_d = self.dynamic_features(nets, z, means, ctx, cacheable)
-        dirs = means - cam_center[None, :]
-        if nets.modulation is None:
-            assert f_s is not None
-            return nets.colors(z, f_d, f_s, dirs)
-        residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0])
-        if record is not None:
-            record["local_residual"] = residual
-        if base is None:
-            if sh is None:
-                raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
-            base = (spherical_harmonics(ctx.sh_degree, dirs, sh) + 0.5).clamp_min(0.0)
-            if record is not None:
-                record["sh_base"] = base.detach()
-        return nets.colors(z, f_d, f_s, dirs, residual=residual, base=base)
+        return gaussian_colors(nets, z, means, f_s, f_d, cam_center, ctx.sh_degree, sh, base)
 
     def sh_key(self, z: Tensor, means: Tensor, ctx: ColorContext, degree: int) -> tuple:
         return (self.key_of(z), means.data_ptr(), means.shape[0], ctx.step, degree)

@@ -21,7 +21,7 @@ mixin of WillagsModel whose methods hand the model's networks and buffers to the
 
 import os
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -63,18 +63,31 @@ def stored_latents(nets: AppearanceNetworks, train_latents: Tensor, train_latent
     return train_latents, train_latent_seen
 
 
+class TrainingLatent(NamedTuple):
+    """The latent of a training step's image, and what its loss and the EMA teacher read."""
+
+    z: Tensor
+    """[D] the posterior sample (VAE) or the table's row (embedding)."""
+    mu: Tensor
+    """[D] the posterior mean (VAE) or the row."""
+    logvar: Tensor | None
+    """[D] the posterior log-variance (VAE), None for the table."""
+    vae_in: Tensor | None
+    """[3, H, W] the encoder's input (VAE), None for the table."""
+    image_idx: int
+    """The training image's index."""
+
+
 def training_latent(
     nets: AppearanceNetworks,
     batch: dict | None,
     metadata: dict,
     device,
-    record: dict,
     train_latents: Tensor,
     train_latent_seen: Tensor,
-) -> Tensor:
-    """z [D] of this training step's image: the VAE posterior sample (or the embedding row). Writes what the losses
-    and the teacher need into `record` (mu, logvar, z, vae_in, image_idx) and the image's mean latent into
-    `train_latents` / `train_latent_seen` (in place: they are the model's buffers)."""
+) -> TrainingLatent:
+    """The latent of this training step's image: the VAE posterior sample (or the embedding row). Writes the image's
+    mean latent into `train_latents` / `train_latent_seen` (in place: they are the model's buffers)."""
     if batch is None:
         raise RuntimeError(
             "willags: the model got no training image; train it through WillagsPipeline (method configs "
@@ -83,19 +96,13 @@ def training_latent(
     idx = int(batch["image_idx"]) if "image_idx" in batch else int(metadata.get("cam_idx", 0))
     img = image_chw(batch["image"], device)
     mu, logvar = nets.latent_stats(img, idx)
-    if logvar is not None:
-        z = reparameterize(mu[None], logvar[None])[0]
-        record.update({"mu": mu, "logvar": logvar, "z": z, "vae_in": img})
-    else:
-        z = mu
-        record.update({"z": z})
-    record["image_idx"] = torch.tensor(idx)
+    z = reparameterize(mu[None], logvar[None])[0] if logvar is not None else mu
     # the VAE's latents are remembered per image; an embedding table is its own record (stored_latents reads it), and
     # writing a flag into a device tensor from the host every step would cost a synchronisation
     if nets.embeddings is None and idx < train_latents.shape[0]:
         train_latents[idx] = mu.detach()
         train_latent_seen[idx] = True
-    return z
+    return TrainingLatent(z, mu, logvar, img if logvar is not None else None, idx)
 
 
 class AppearancePanel(Protocol):
@@ -190,16 +197,15 @@ class AppearanceLatents:
         return z if z is not None else chosen()
 
 
-def latent_loss(vae: AppearanceVAE, record: dict, beta: float, recon_reduction: str) -> tuple[Tensor, dict]:
-    """L_VAE of this training step (L1 reconstruction of the encoder's input from z + beta KL; appearance/vae.py)
-    from what :func:`training_latent` recorded; keeps the reconstruction in record["vae_recon_img"] for the logs."""
-    recon = vae.decode(record["z"][None])
-    target = vae.prepare(record["vae_in"][None])
-    l_vae, parts = vae_loss(
-        recon, target, record["mu"][None], record["logvar"][None], beta=beta, recon_reduction=recon_reduction
-    )
-    record["vae_recon_img"] = recon.detach()
-    return l_vae, parts
+def latent_loss(
+    vae: AppearanceVAE, z: Tensor, mu: Tensor, logvar: Tensor, vae_in: Tensor, beta: float, recon_reduction: str
+) -> tuple[Tensor, dict, Tensor]:
+    """L_VAE of this training step (L1 reconstruction of the encoder's input `vae_in` [3, H, W] from z + beta KL of
+    the posterior (mu, logvar); appearance/vae.py): (loss, its parts, the reconstruction [1, 3, S, S] detached)."""
+    recon = vae.decode(z[None])
+    target = vae.prepare(vae_in[None])
+    l_vae, parts = vae_loss(recon, target, mu[None], logvar[None], beta=beta, recon_reduction=recon_reduction)
+    return l_vae, parts, recon.detach()
 
 
 class LatentFace:
@@ -215,10 +221,10 @@ class LatentFace:
         latents: AppearanceLatents
         image_names: list[str]
         _train_batch: dict | None
-        _step_cache: dict
 
     def set_train_batch(self, batch: dict) -> None:
-        """Called by WillagsPipeline before each training forward: the image feeds the VAE encoder."""
+        """Called by WillagsPipeline before each training forward (nerfstudio's forward takes only the camera): the
+        step's image, which feeds the latent (the VAE encoder, or the table's row) and the ground truth."""
         self._train_batch = batch
 
     def set_train_image_names(self, names: list[str]) -> None:
@@ -252,7 +258,7 @@ class LatentFace:
     @torch.no_grad()
     def encode_image(self, image: Tensor) -> Tensor:
         """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
-        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs use_vae=True"
+        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs latent.kind='vae'"
         mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
         return mu[0]
 
@@ -260,10 +266,12 @@ class LatentFace:
         return image_chw(image, self.device)  # [3, H, W]
 
     def _latent_for_forward(self, camera: "Cameras") -> Tensor:
-        """Training: encode this step's image (reparameterised). Otherwise: camera metadata / chosen / default."""
+        """z [D] of a forward pass outside training: the camera's metadata, its training image, the chosen or the
+        default appearance (AppearanceLatents.for_render)."""
+        return self.latents.for_render(camera.metadata or {}, self.device, self.image_latents, self.current_latent)
+
+    def _training_latent(self, camera: "Cameras") -> TrainingLatent:
+        """This training step's image's latent (the VAE's reparameterised sample, or the table's row)."""
         assert self.appearance_nets is not None
-        md = camera.metadata or {}
-        if not self.training:
-            return self.latents.for_render(md, self.device, self.image_latents, self.current_latent)
         nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
-        return training_latent(nets, self._train_batch, md, self.device, self._step_cache, lat, seen)
+        return training_latent(nets, self._train_batch, camera.metadata or {}, self.device, lat, seen)

@@ -1,14 +1,14 @@
 """The appearance networks of one model: what the EMA teacher copies and the optimiser's "appearance" groups hold.
 
-latent source (beta-VAE encoder, or a per-image embedding table) -> z [D]
+latent source (per-image embedding table, or beta-VAE encoder: latent.kind) -> z [D]
 z, normalised means -> tri-plane field -> f_d [N, F]                  (absent with use_field=False)
 colour: the SH colour modulated by z (color_mode='modulated'), or the paper's T_color(f_d, f_s, dirs) ('decoder')
-z, pixel directions -> sky                                            (absent unless sky.enabled)
+z, pixel directions -> sky                                            (absent without a sky)
 
 Per-Gaussian tensors (means, SH, f_s) live in the model's gauss_params, so densification never touches this module.
 """
 
-from typing import Protocol
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor, nn
@@ -17,20 +17,27 @@ from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig
 from willags_ns.appearance.modulation import ColorModulation, ColorModulationConfig
 from willags_ns.appearance.sky import SkyConfig, SkyModel
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField
-from willags_ns.appearance.vae import AppearanceVAE, VAEConfig
-from willags_ns.render.sh import spherical_harmonics
+from willags_ns.appearance.vae import AppearanceVAE
+from willags_ns.render.sh import sh_color
+
+
+class LatentSettings(Protocol):
+    """The latent group of the model's config (config.LatentConfig)."""
+
+    kind: str
+    dim: int
+    embedding_init_std: float
+    vae: Any
 
 
 class NetworksConfig(Protocol):
     """The fields of WillagsModelConfig the networks are built from (the model's config satisfies it; declared
-    here so this module does not import the model)."""
+    here so this module does not import the model's config)."""
 
     color_mode: str
-    use_vae: bool
+    latent: LatentSettings
     use_field: bool
     intrinsic_dim: int
-    embedding_init_std: float
-    vae: VAEConfig
     triplane: TriplaneConfig
     decoder: ColorDecoderConfig
     modulation: ColorModulationConfig
@@ -43,9 +50,12 @@ class AppearanceNetworks(nn.Module):
     Per-Gaussian tensors (means, f_s) live in the model's gauss_params, so densification never touches this.
     """
 
-    def __init__(self, cfg: "NetworksConfig", num_train: int):
+    def __init__(self, cfg: "NetworksConfig", num_train: int, with_sky: bool | None = None):
+        """`with_sky`: build the sky (default: cfg.sky.enabled; the model passes what the scene allows,
+        appearance/sky.sky_for_scene)."""
         super().__init__()
-        d = cfg.vae.latent_dim
+        lat = cfg.latent
+        d = lat.dim
         self.latent_dim = d
         self.color_mode = cfg.color_mode
         if cfg.color_mode == "modulated" and cfg.use_field and not cfg.modulation.local:
@@ -54,15 +64,17 @@ class AppearanceNetworks(nn.Module):
                 "feature feeds the per-Gaussian residual); set --pipeline.model.use-field False or "
                 "--pipeline.model.modulation.local True"
             )
+        if lat.kind not in ("embedding", "vae"):
+            raise ValueError(f"willags: latent.kind must be 'embedding' or 'vae', got {lat.kind!r}")
         self.vae = (
-            AppearanceVAE(latent_dim=d, image_size=cfg.vae.image_size, channels=tuple(cfg.vae.channels))
-            if cfg.use_vae
+            AppearanceVAE(latent_dim=d, image_size=lat.vae.image_size, channels=tuple(lat.vae.channels))
+            if lat.kind == "vae"
             else None
         )
         self.embeddings = None
-        if not cfg.use_vae:
+        if lat.kind == "embedding":
             self.embeddings = nn.Embedding(max(num_train, 1), d)
-            nn.init.normal_(self.embeddings.weight, std=cfg.embedding_init_std)
+            nn.init.normal_(self.embeddings.weight, std=lat.embedding_init_std)
         tp = cfg.triplane
         self.field = (
             TriplaneHyperField(
@@ -76,7 +88,7 @@ class AppearanceNetworks(nn.Module):
             if cfg.use_field
             else None
         )
-        self.sky = SkyModel(d, cfg.sky) if cfg.sky.enabled else None
+        self.sky = SkyModel(d, cfg.sky) if (cfg.sky.enabled if with_sky is None else with_sky) else None
         self.color: ColorDecoder | None = None
         self.modulation: ColorModulation | None = None
         if cfg.color_mode == "decoder":
@@ -144,7 +156,7 @@ class AppearanceNetworks(nn.Module):
             if base is None:
                 if sh is None:
                     raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
-                base = (spherical_harmonics(sh_degree, dirs, sh) + 0.5).clamp_min(0.0)  # gsplat's SH colour
+                base = sh_color(sh_degree, dirs, sh)  # gsplat's SH colour
             # clamped like gsplat clamps SH colours, so the exact render and the SH bake agree
             return self.modulation(z, base, f_s, f_d, residual=residual).clamp_min(0.0)
         assert self.color is not None and f_s is not None

@@ -38,16 +38,17 @@ from willags_ns.static_support import open_background_map, support_at
 class SkyConfig:
     """The appearance-conditioned background."""
 
-    enabled: bool = False
+    enabled: bool = True
     """Composite the Gaussians over bg(z, ray direction) instead of splatfacto's constant (random while training)
-    colour."""
+    colour. With region "open" on a scene without SfM keypoints there is no skyline to train it above, and no sky
+    is built (`sky_for_scene`)."""
     sh_degree: int = 3
     """Degree of the real SH basis of the ray direction (0..4; (degree + 1)**2 coefficients per colour channel)."""
     hidden: int = 64
     """Width of the hidden layer of z -> SH coefficients."""
     alpha_penalty: float = 0.0
     """Weight of the mean accumulated alpha over pixels that the background alone reproduces (0 = off)."""
-    region: Literal["everywhere", "open"] = "everywhere"
+    region: Literal["everywhere", "open"] = "open"
     """Where the sky is composited while training. "everywhere": behind every pixel. "open": only above the scene's
     skyline in each training photo (cells above the first SfM keypoint of each column, static_support
     .open_background_map; COLMAP scenes), splatfacto's random background elsewhere, so the Gaussians of the scene
@@ -141,14 +142,19 @@ class OpenRegions:
         return support_at(self.cache[idx], height, width)
 
 
-def open_regions_for(cfg: SkyConfig, observations: list | None) -> OpenRegions | None:
-    """Where the sky shows while training (None: behind every pixel): :class:`OpenRegions` of the scene's SfM
-    keypoints with region "open". A scene without keypoints has no skyline, and a sky trained nowhere would show
-    everywhere: then the sky is switched off (``cfg.enabled = False``, before the networks are built)."""
-    if cfg.enabled and cfg.region == "open" and observations is None:
-        CONSOLE.log("willags: sky.region 'open' needs SfM keypoints (a COLMAP scene); the sky is off here")
-        cfg.enabled = False
-    return OpenRegions(observations) if cfg.enabled and cfg.region == "open" else None
+def sky_for_scene(cfg: SkyConfig, observations: list | None) -> tuple[bool, OpenRegions | None]:
+    """(whether the model builds a sky, where it shows while training: :class:`OpenRegions` of the scene's SfM
+    keypoints with region "open", None for behind every pixel). A scene without keypoints has no skyline, and a sky
+    trained nowhere would show everywhere: with region "open" there it builds none (said once). The config is
+    read, never written: the same config.yml rebuilds the same model on the same scene."""
+    if not cfg.enabled:
+        return False, None
+    if cfg.region != "open":
+        return True, None
+    if observations is None:
+        CONSOLE.log("willags: sky.region 'open' needs SfM keypoints (a COLMAP scene); no sky is built here")
+        return False, None
+    return True, OpenRegions(observations)
 
 
 def composite_background(

@@ -49,10 +49,8 @@ PLANE_AXES = ((0, 1), (0, 2), (1, 2))  # XY, XZ, YZ
 
 @dataclass
 class TriplaneConfig:
-    """Hyper-parameters of the tri-plane hypernetwork field."""
+    """Hyper-parameters of the tri-plane hypernetwork field (its input is the latent z of size latent.dim)."""
 
-    latent_dim: int = 64
-    """Size of the appearance latent z (must match the VAE)."""
     resolution: int = 64
     """Side R of each feature plane (texels)."""
     channels: int = 32

@@ -38,10 +38,8 @@ LOGVAR_MAX = 10.0
 
 @dataclass
 class VAEConfig:
-    """Hyper-parameters of the appearance beta-VAE."""
+    """Hyper-parameters of the appearance beta-VAE (latent.kind="vae"; its code size is latent.dim)."""
 
-    latent_dim: int = 64
-    """Size D of the appearance latent z (the paper's 64)."""
     image_size: int = 64
     """Side S of the square image the encoder sees and the decoder reconstructs. Must be divisible by
     2 ** len(channels). 64 keeps global appearance (exposure, white balance, low-frequency shading) and drops
@@ -56,6 +54,8 @@ class VAEConfig:
     channels: tuple[int, ...] = (32, 64, 128, 128)
     """Output channels of the encoder's stride-2 convolutions (the decoder mirrors them). Four stages take
     64x64 down to 4x4."""
+    weight: float = 0.01
+    """Weight of L_VAE = L1 recon + beta * KL in the total loss."""
 
 
 def _resize(images: Tensor, size: int) -> Tensor:

@@ -3,7 +3,7 @@
 For every training image with a ground-truth mask (``masks_gt/<stem>.png``, 255 = transient) the mask is computed
 exactly as a training step at the end of training computes it (``MaskStep.static_mask``, willags_ns/mask_step.py):
 
-    z   = teacher VAE encoder mean of the training image      (use_vae=False: the teacher's embedding row)
+    z   = teacher VAE encoder mean of the training image      (latent.kind embedding: the teacher's table row)
     R   = teacher render of the view (teacher networks, the student's current Gaussians, full resolution)
     D   = perceptual_error(VGG(I), VGG(R))                     [H, W]
     static = D < threshold(step)     (an image with more than max_masked_fraction flagged is rejected:
@@ -175,36 +175,28 @@ def training_view(train_dataset, idx: int, extra: np.ndarray | None = None):
 def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     """The EMA teacher's render [H, W, 3] of `camera` for the training image `image` [H, W, 3] in [0, 1].
 
-    As in training (willags_ns/mask_step.py, teacher_render): the teacher's latent (VAE mean of the image, or its embedding
-    row), the student's current Gaussians, the camera after the camera optimiser. Background: the teacher's sky
-    when the model has one, else the model's fixed colour (training draws a random one per step, which only shows
-    where alpha < 1). Without a teacher (teacher disabled) the student's networks are used.
+    Through training's functions (willags_ns/mask_step.py): the teacher's latent (VAE mean of the image, or its
+    embedding row), its colours on the student's current Gaussians, the camera after the camera optimiser, the
+    second rasterisation. Background: the teacher's sky behind every pixel when the model has one, else the model's
+    fixed colour (training draws a random one per step, which only shows where alpha < 1). Without a teacher
+    (teacher disabled) the student's networks are used.
     """
+    from willags_ns.appearance.sky import background, pixel_directions
+    from willags_ns.mask_step import teacher_colors, teacher_latent, teacher_render
+
     nets = model.teacher if model.teacher is not None else model.appearance_nets
-    if nets.vae is not None:
-        z = nets.vae.encode(image.permute(2, 0, 1)[None].float().to(model.device))[0][0]
-    else:
-        z = nets.embeddings.weight[image_idx]
+    z = teacher_latent(nets, image.permute(2, 0, 1).float().to(model.device), image_idx)
     cam = camera.to(model.device)
     cam.metadata = dict(cam.metadata or {})
     cam.metadata["cam_idx"] = image_idx
     c2w = model.camera_optimizer.apply_to_camera(cam)
-    viewmat = viewmat_from_c2w(c2w)
     K = cam.get_intrinsics_matrices().to(model.device)
     W, H = int(cam.width.item()), int(cam.height.item())
     gp = model.gauss_params
-    colors = model.appearance_colors(
-        z, gp["means"], gp.get("features"), c2w[0, :3, 3], nets=nets, sh=model.sh_coeffs(gp)
-    )
-    render, alpha, _ = model._rasterize(
-        gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, "RGB"
-    )
-    background = model.background_color.to(model.device)
-    if nets.sky is not None:  # the appearance-conditioned background, as in training
-        from willags_ns.appearance.sky import pixel_directions
-
-        background = nets.sky(z, pixel_directions(c2w[0], K[0], W, H))[None]
-    return torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0).squeeze(0)
+    colors = teacher_colors(nets, z, gp, c2w[0, :3, 3], model._color_context(), None)
+    dirs = pixel_directions(c2w[0], K[0], W, H) if nets.sky is not None else None
+    bg = background(nets.sky, z, dirs, model.background_color.to(model.device))
+    return teacher_render(model.config, colors, gp, viewmat_from_c2w(c2w), K, W, H, bg)
 
 
 def mask_scores(
@@ -222,7 +214,7 @@ def mask_scores(
     ``d_median_clean``, ``status`` ("ok" or why nothing was measured) and, with keep_per_image, ``per_image``.
     """
     cfg = model.config
-    if getattr(cfg, "appearance", "sh") != "willags" or not cfg.use_mask or model.perceptual is None:
+    if getattr(cfg, "appearance", "sh") != "willags" or not cfg.mask.enabled or model.perceptual is None:
         return {"status": "no perceptual mask in this model"}
     masks_gt_dir = Path(masks_gt_dir)
     thr = threshold
@@ -250,13 +242,13 @@ def mask_scores(
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
             render = teacher_render(model, cam, img, i)
             pred, rejected, d = predicted_transient(
-                model.perceptual, img, render, thr, cfg.max_masked_fraction, rule, k
+                model.perceptual, img, render, thr, cfg.mask.max_masked_fraction, rule, k
             )
             gt_t = torch.from_numpy(gt_mask).to(pred.device)
             c = count_pixels(pred, gt_t, rejected)
             counts.append(c)
             # the paper's fixed rule on the same D, for comparison
-            fixed, fixed_rej = transient_mask(d, thr, "fixed", max_masked_fraction=cfg.max_masked_fraction)
+            fixed, fixed_rej = transient_mask(d, thr, "fixed", max_masked_fraction=cfg.mask.max_masked_fraction)
             counts_fixed.append(count_pixels(fixed, gt_t, bool(fixed_rej)))
             d_cpu = d.float().cpu()
             gt_cpu = gt_t.cpu()

@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from willags_ns.render.sh import spherical_harmonics
+from willags_ns.render.sh import sh_color
 
 ALPHA_MIN = 1.0 / 255.0  # gsplat skips pairs below this alpha: they change neither colour nor transmittance
 ALPHA_MAX = 0.999  # gsplat clamps alpha here (and stops gradients through the clamp)
@@ -500,7 +500,7 @@ def rasterize_torch(
             campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C, 3], as gsplat
             dirs = means.index_select(0, gs_s) - campos.index_select(0, cam_s)
             shs = colors.index_select(0, gs_s) if colors.dim() == 3 else colors[cam_s, gs_s]
-            col = torch.clamp_min(spherical_harmonics(sh_degree, dirs, shs) + 0.5, 0.0)  # gsplat's offset
+            col = sh_color(sh_degree, dirs, shs)  # gsplat's offset and clamp
         feats.append(col)
     if render_mode != "RGB":
         feats.append(depths_f.index_select(0, src)[:, None])

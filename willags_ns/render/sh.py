@@ -6,6 +6,7 @@ Harmonic Evaluation", JCGT 2013), so SH colours from the torch backend match the
 """
 
 import torch
+from jaxtyping import Float
 from torch import Tensor
 
 MAX_SH_DEGREE = 4
@@ -74,6 +75,57 @@ def eval_sh_bases(degree: int, dirs: Tensor) -> Tensor:
                     tb * c2,
                     ta * c3,
                 ]
+    return torch.stack(out, dim=-1)
+
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def sh_basis(dirs: Float[Tensor, "N 3"], degree: int) -> Float[Tensor, "N K"]:
+    """Real spherical-harmonics basis of unit directions up to ``degree`` (0..3): ``K = (degree + 1)**2``, as 3DGS
+    writes it (the colour decoder's view encoding, the SH bake's least-squares fit).
+
+    The same functions, order and signs as `eval_sh_bases` (equal to float rounding: tests/test_decoder.py), in
+    another evaluation order: the colour decoder's outputs, and so the paper configuration's training, depend on
+    its last bits. ``dirs`` must be unit length.
+    At d = (0, 0, 1), degree 1: [C0, 0, C1, 0] (the basis is -C1*y, C1*z, -C1*x after the constant).
+    """
+    if not 0 <= degree <= 3:
+        raise ValueError(f"sh degree must be in 0..3, got {degree}")
+    x, y, z = dirs.unbind(-1)
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z  # [N] each (unused for degree < 2)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        out += [
+            SH_C2[0] * xy,
+            SH_C2[1] * yz,
+            SH_C2[2] * (2.0 * zz - xx - yy),
+            SH_C2[3] * xz,
+            SH_C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            SH_C3[0] * y * (3.0 * xx - yy),
+            SH_C3[1] * xy * z,
+            SH_C3[2] * y * (4.0 * zz - xx - yy),
+            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            SH_C3[4] * x * (4.0 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3.0 * yy),
+        ]
     return torch.stack(out, dim=-1)
 
 
@@ -186,3 +238,9 @@ def spherical_harmonics(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     bases = eval_sh_bases(degree, dirs)  # [..., nb]
     return (bases[..., None] * coeffs[..., :nb, :]).sum(dim=-2)
+
+
+def sh_color(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
+    """The colour 3DGS gives SH coefficients [..., K, 3] seen along `dirs` [..., 3]: `spherical_harmonics` + 0.5,
+    clamped at 0 (gsplat's rasterisation does the same). [..., 3]"""
+    return (spherical_harmonics(degree, dirs, coeffs) + 0.5).clamp_min(0.0)

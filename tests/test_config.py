@@ -1,0 +1,77 @@
+"""The model's settings (willags_ns/config.py): the defaults are the method `willags`, fields that moved into a group
+say where, config.yml files of the flat layout load into the groups, splatfacto's knobs that do nothing here are
+refused, and building the model leaves its config as it was."""
+
+import copy
+import dataclasses
+from pathlib import Path
+
+import pytest
+import yaml
+
+from willags_ns import method_configs as mc
+from willags_ns.config import INERT_KNOBS, RENAMED, check_settings
+from willags_ns.model import WillagsModelConfig
+
+FLAT_LAYOUT = Path(__file__).parent / "data" / "model_config_flat_layout.yml"
+"""`willags` and `willags-paper` model configs as config.yml stored them with use_vae, use_mask, mask_every,
+max_masked_fraction, fuse_teacher_render, teacher, static_support, mask_health, vae.latent_dim and lambda_vae at the
+top level."""
+
+
+def test_the_dataclass_defaults_are_the_method_willags():
+    assert WillagsModelConfig() == mc.willags_config().pipeline.model
+    assert mc.willags_model_config() == dataclasses.replace(WillagsModelConfig(), auto_config=False)
+
+
+def test_a_config_yml_of_the_flat_layout_loads_into_the_groups():
+    old = yaml.load(FLAT_LAYOUT.read_text(), Loader=yaml.Loader)
+    assert old["willags"] == mc.willags_config().pipeline.model
+    assert old["willags-paper"] == mc.willags_paper_config().pipeline.model
+    paper = old["willags-paper"]
+    assert paper.latent.kind == "vae" and paper.latent.dim == 64 and paper.mask.every == 1
+    assert paper.mask.teacher.fused and not paper.mask.safeguard.enabled
+    for cfg in old.values():  # no stray attribute of the flat layout survives
+        assert not {"use_vae", "use_mask", "teacher", "static_support"} & set(vars(cfg))
+        assert "latent_dim" not in vars(cfg.triplane) and "dynamic_dim" not in vars(cfg.decoder)
+    # and what today's config.yml stores loads as itself
+    again = yaml.load(yaml.dump(old["willags-paper"]), Loader=yaml.Loader)
+    assert again == old["willags-paper"]
+
+
+@pytest.mark.parametrize("old,new", [(o, n) for o, n in RENAMED if "." not in o])
+def test_a_moved_field_names_its_new_place(old, new):
+    cfg = WillagsModelConfig()
+    flag = "--pipeline.model." + new.replace("_", "-")
+    if old != "max_masked_fraction":  # still read under that name (the pipeline's warning)
+        with pytest.raises(AttributeError, match=flag.replace(".", r"\.")):
+            getattr(cfg, old)
+    with pytest.raises(AttributeError, match=new.replace(".", r"\.")):
+        setattr(cfg, old, getattr(cfg, old, None))
+    assert cfg.max_masked_fraction == cfg.mask.max_masked_fraction
+
+
+@pytest.mark.parametrize("knob,value", [("n_split_samples", 3), ("use_bilateral_grid", True), ("prompt", "a fox")])
+def test_splatfacto_knobs_that_do_nothing_here_are_refused(knob, value):
+    assert knob in INERT_KNOBS
+    flag = "--pipeline.model." + knob.replace("_", "-")
+    with pytest.raises(ValueError, match=flag):
+        WillagsModelConfig(**{knob: value})
+    cfg = WillagsModelConfig()
+    setattr(cfg, knob, value)  # a later edit is refused when the model is built (populate_modules runs this)
+    with pytest.raises(ValueError, match=flag):
+        check_settings(cfg)
+
+
+def test_building_the_model_leaves_its_config_as_it_was():
+    """A sky above the skyline on a scene without keypoints is not built, and the config still says what was asked
+    (config.yml is what trains)."""
+    from tests._configs import all_components
+    from tests.test_mask_eval import _tiny_model
+    from willags_ns.appearance.sky import SkyConfig
+
+    sky = SkyConfig(enabled=True, region="open")
+    before = WillagsModelConfig(**all_components(sky=sky))
+    model = _tiny_model(use_vae=True, sky=copy.deepcopy(sky))
+    assert model.appearance_nets.sky is None
+    assert model.config.sky == before.sky and model.config.latent.dim == 8  # read, never written

@@ -1,0 +1,766 @@
+"""`willags-process`: a folder of photos -> a COLMAP scene that nerfstudio (and `willags-data`) reads directly.
+
+Structure-from-motion with pycolmap on CPU (a pip wheel: no COLMAP binary, no GPU), in four resumable stages:
+
+1. features: SIFT per image into `colmap/database.db`, one camera per image by default (tourist photos come from
+   many cameras), camera model SIMPLE_RADIAL (focal length, principal point, one radial term) or SIMPLE_PINHOLE;
+2. matching: exhaustive up to `exhaustive_max_images` images (all n(n-1)/2 pairs); above that, image retrieval with
+   a vocabulary tree built from the collection's own SIFT descriptors (no download) and each image matched with its
+   `retrieval_neighbors` best-scoring images; every pair is verified geometrically;
+3. mapping: COLMAP's incremental mapper with a fixed seed; the largest model is kept;
+4. writing: SIMPLE_RADIAL models are undistorted to PINHOLE (images re-sampled, so the training images match a
+   pinhole camera); SIMPLE_PINHOLE models are written as they are with the registered photos copied.
+
+Output (nerfstudio's colmap dataparser defaults, so `ns-train willags --data OUT colmap` works as is)::
+
+    OUT/images/                 registered images (undistorted for SIMPLE_RADIAL)
+    OUT/images_2/, images_4/    with --num-downscales: 1/2, 1/4, ... size (floor), what --downscale-factor reads
+    OUT/colmap/sparse/0/        the model (cameras.bin, images.bin, points3D.bin)
+    OUT/colmap/distorted/0/     SIMPLE_RADIAL only: the SfM model before undistortion
+    OUT/colmap/database.db      features and matches: kept, so an interrupted run resumes where it stopped
+    OUT/<name>.tsv              NeRF-W split (filename, id, split, dataset): every test_every-th registered image
+                                (COLMAP id order, nerfstudio's interval rule) is "test"
+    OUT/process_summary.json    the summary printed at the end, plus options and timings
+
+Interrupting (Ctrl-C) stops the current stage at the next image or block of pairs: the database keeps every image
+already extracted and every pair already matched, and the same command resumes from there. The model and images are
+written last, each into a temporary directory renamed into place, so they are either the previous run's or complete.
+"""
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from PIL import Image
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
+"""Files (case-insensitive suffix) taken as photos; everything else in the folder is ignored."""
+
+DATABASE = Path("colmap/database.db")
+MODEL_DIR = Path("colmap/sparse/0")
+DISTORTED_DIR = Path("colmap/distorted/0")
+VOCAB_TREE = Path("colmap/vocab_tree.bin")
+OPTIONS_STAMP = Path("colmap/database_options.json")
+SUMMARY = Path("process_summary.json")
+
+
+class ProcessError(RuntimeError):
+    """The input or the SfM result cannot give a usable scene; the message says why and what to do."""
+
+
+@dataclass
+class ProcessConfig:
+    """willags-process: structure-from-motion on a folder of photos with pycolmap (CPU), written for nerfstudio.
+
+    Resumable: features and matches are kept in OUTPUT/colmap/database.db, so after Ctrl-C the same command goes on
+    where it stopped (only mapping restarts). The model and images are replaced only when a run completes.
+    """
+
+    images: Path
+    """Folder of photos (.jpg, .jpeg, .png, .bmp, .tif; subfolders are ignored). Never written."""
+    output: Path
+    """Scene folder to write (images/, colmap/sparse/0, <name>.tsv); created if missing."""
+    camera_model: Literal["SIMPLE_RADIAL", "SIMPLE_PINHOLE"] = "SIMPLE_RADIAL"
+    """SIMPLE_RADIAL: f, cx, cy and one radial distortion term per camera, then undistortion to PINHOLE for training.
+    SIMPLE_PINHOLE: no distortion; the photos are copied as they are."""
+    single_camera: bool = False
+    """Share one camera (intrinsics) between all images, for photos taken with one camera and zoom. Default: one
+    camera per image (tourist photos come from many cameras)."""
+    max_num_features: int = 8192
+    """SIFT features kept per image."""
+    max_feature_image_size: int = 1600
+    """Photos are resized to at most this long side for SIFT (features are scaled back to full resolution)."""
+    matching: Literal["auto", "exhaustive", "vocab-tree"] = "auto"
+    """Pair selection. auto: exhaustive up to exhaustive_max_images images, else vocab-tree (retrieval with a
+    vocabulary tree built from the collection's own SIFT descriptors)."""
+    exhaustive_max_images: int = 150
+    """auto matching: the largest collection matched exhaustively (n(n-1)/2 pairs; 150 images = 11,175 pairs)."""
+    retrieval_neighbors: int = 40
+    """vocab-tree matching: each image is matched with its this many most similar images."""
+    seed: int = 0
+    """Random seed of the mapper (RANSAC, image selection)."""
+    num_threads: int = -1
+    """CPU threads for extraction, matching and mapping; -1: all cores."""
+    min_registered: int = 3
+    """Fail unless at least this many images are registered (fewer cannot define a scene)."""
+    num_downscales: int = 0
+    """Also write images_2, images_4, ... images_(2**num_downscales) (floor size), for nerfstudio's
+    --downscale-factor."""
+    test_every: int = 8
+    """Split: every test_every-th registered image (COLMAP id order) is a test image, as nerfstudio's
+    eval_interval rule; 0 puts every image in train."""
+    scene_name: str | None = None
+    """Name of the split file (<scene_name>.tsv) and its dataset column; default: the output folder's name."""
+    verbose: bool = False
+    """Show COLMAP's own log (otherwise only its errors)."""
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# inputs
+
+
+def list_images(images_dir: Path) -> list[str]:
+    """Sorted file names of the photos in `images_dir` (top level only)."""
+    if not images_dir.is_dir():
+        raise ProcessError(f"--images {images_dir} is not a folder")
+    names = sorted(p.name for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not names:
+        raise ProcessError(f"--images {images_dir} holds no photos ({', '.join(IMAGE_SUFFIXES)})")
+    return names
+
+
+def find_unreadable(images_dir: Path, names: Sequence[str]) -> dict[str, str]:
+    """{name: reason} for every photo that PIL cannot decode completely (empty, corrupt or truncated files)."""
+    bad = {}
+    for name in names:
+        try:
+            with Image.open(images_dir / name) as im:
+                im.load()  # decodes every pixel: catches truncated files that open() alone accepts
+                if im.width < 16 or im.height < 16:
+                    bad[name] = f"too small ({im.width}x{im.height})"
+        except Exception as e:  # PIL raises OSError, SyntaxError, ValueError... depending on the codec
+            bad[name] = f"{type(e).__name__}: {e}"
+    return bad
+
+
+def split_table(image_ids: dict[int, str], test_every: int) -> list[tuple[str, int, str]]:
+    """(filename, id, split) per registered image, in COLMAP id order: index % test_every == 0 -> "test".
+
+    The same images nerfstudio's colmap parser holds out with eval_mode=interval, eval_interval=test_every (it also
+    sorts by id), so a tsv-aware parser and the stock one agree."""
+    rows = []
+    for k, image_id in enumerate(sorted(image_ids)):
+        test = test_every > 0 and k % test_every == 0
+        rows.append((image_ids[image_id], image_id, "test" if test else "train"))
+    return rows
+
+
+def write_split_tsv(path: Path, rows: Sequence[tuple[str, int, str]], dataset: str) -> None:
+    """NeRF-W / PhotoTourism split file: tab-separated `filename id split dataset` with a header."""
+    lines = ["filename\tid\tsplit\tdataset"] + [f"{name}\t{i}\t{split}\t{dataset}" for name, i, split in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def exhaustive_pair_blocks(names: Sequence[str], block: int = 12) -> list[list[tuple[str, str]]]:
+    """All n(n-1)/2 pairs, grouped by blocks of `block` images (pairs between block a and block b >= a), so that one
+    matching call reads the descriptors of at most 2 * block images."""
+    starts = range(0, len(names), block)
+    out = []
+    for a in starts:
+        for b in starts:
+            if b < a:
+                continue
+            pairs = [
+                (names[i], names[j])
+                for i in range(a, min(a + block, len(names)))
+                for j in range(max(b, i + 1), min(b + block, len(names)))
+            ]
+            if pairs:
+                out.append(pairs)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# pose comparison (tests, docs/process.md)
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity dst ~ s * R @ src + t (Umeyama 1991). src, dst [N, 3], N >= 3. Returns s, R, t."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    u, d, vt = np.linalg.svd(cov)
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:  # a reflection fits better: take the best rotation instead
+        sign[2, 2] = -1
+    rot = u @ sign @ vt
+    var_s = (xs**2).sum() / len(src)
+    scale = float(np.trace(np.diag(d) @ sign) / var_s)
+    return scale, rot, mu_d - scale * rot @ mu_s
+
+
+def rotation_mean(rotations: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations [N, 3, 3]: the rotation nearest (Frobenius) to their average."""
+    u, _, vt = np.linalg.svd(rotations.sum(0))
+    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    return u @ sign @ vt
+
+
+def compare_poses(
+    est_w2c: dict[str, np.ndarray],
+    ref_w2c: dict[str, np.ndarray],
+    align: str = "poses",
+    trim: float = 3.0,
+) -> dict[str, Any]:
+    """Errors of estimated camera poses against reference poses after a similarity alignment.
+
+    Poses are world-to-camera [4, 4] (COLMAP convention; any convention works if both sides use it) keyed by image
+    name. The similarity ref ~ s * R @ est + t:
+
+    - align="centres": Umeyama on the camera centres, refitted on those within `trim` x the median residual (a few
+      badly placed cameras do not drag the others). Ill-conditioned in rotation when the centres are nearly
+      collinear or clustered (tourists on one square): an error of the alignment, not of the poses;
+    - align="poses" (default): R = the chordal mean of R_ref_i R_est_i^T (camera-to-world rotations), which every
+      camera constrains fully; s and t are then the least-squares fit of the centres (with the same trimming).
+
+    Rotation error: angle of R_ref^T R R_est (camera-to-world rotations). Centre errors are also given relative to
+    the reference extent: the largest distance between two reference camera centres.
+    """
+    if align not in ("poses", "centres"):
+        raise ValueError(f"align must be 'poses' or 'centres', got {align!r}")
+    common = sorted(set(est_w2c) & set(ref_w2c))
+    if len(common) < 3:
+        raise ValueError(f"need >= 3 images in both models to align them, got {len(common)}")
+    est_c2w = np.stack([np.linalg.inv(est_w2c[n]) for n in common])
+    ref_c2w = np.stack([np.linalg.inv(ref_w2c[n]) for n in common])
+    src, dst = est_c2w[:, :3, 3], ref_c2w[:, :3, 3]
+    fixed_rot = None
+    if align == "poses":
+        fixed_rot = rotation_mean(np.einsum("nij,nkj->nik", ref_c2w[:, :3, :3], est_c2w[:, :3, :3]))
+
+    def fit(sel: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        if fixed_rot is None:
+            return umeyama(src[sel], dst[sel])
+        xs, xd = src[sel] - src[sel].mean(0), dst[sel] - dst[sel].mean(0)
+        scale = float((xd * (xs @ fixed_rot.T)).sum() / (xs**2).sum())
+        return scale, fixed_rot, dst[sel].mean(0) - scale * fixed_rot @ src[sel].mean(0)
+
+    s, rot, t = fit(np.ones(len(common), dtype=bool))
+    res = np.linalg.norm(s * src @ rot.T + t - dst, axis=1)
+    keep = res <= trim * max(np.median(res), 1e-12)
+    if keep.sum() >= 3:
+        s, rot, t = fit(keep)
+    centre_err = np.linalg.norm(s * src @ rot.T + t - dst, axis=1)
+    r_est = rot @ est_c2w[:, :3, :3]
+    rel = np.einsum("nji,njk->nik", ref_c2w[:, :3, :3], r_est)
+    # angle from both the trace (cos) and the skew part (sin): arccos alone loses precision near 0
+    skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
+    rot_err = np.degrees(np.arctan2(np.linalg.norm(skew, axis=-1) / 2, (np.trace(rel, axis1=1, axis2=2) - 1) / 2))
+    extent = float(np.max(np.linalg.norm(dst[:, None] - dst[None], axis=-1)))
+    return {
+        "align": align,
+        "num_common": len(common),
+        "scale": s,
+        "rotation_error_deg": dict(zip(common, rot_err.tolist(), strict=True)),
+        "centre_error": dict(zip(common, centre_err.tolist(), strict=True)),
+        "median_rotation_error_deg": float(np.median(rot_err)),
+        "max_rotation_error_deg": float(rot_err.max()),
+        "median_centre_error": float(np.median(centre_err)),
+        "reference_extent": extent,
+        "median_centre_error_pct": float(100 * np.median(centre_err) / extent),
+        "max_centre_error_pct": float(100 * centre_err.max() / extent),
+    }
+
+
+def model_w2c(model_dir: Path) -> dict[str, np.ndarray]:
+    """{image name: world-to-camera [4, 4]} of the registered images of a COLMAP model."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(model_dir))
+    out = {}
+    for image_id in rec.reg_image_ids():
+        im = rec.images[image_id]
+        w2c = np.eye(4)
+        w2c[:3, :4] = im.cam_from_world().matrix()
+        out[im.name] = w2c
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# interruption
+
+
+@contextmanager
+def _cancellable() -> Iterator[Any]:
+    """A pycolmap CancellationToken cancelled by Ctrl-C; KeyboardInterrupt is raised once the C++ call returns.
+
+    Why: while pycolmap runs C++ code, Python's own SIGINT handler only runs when the call returns (minutes for
+    matching or mapping). The token makes COLMAP stop at its next check (next image, pair block or registration),
+    with every database write before it committed. A second Ctrl-C falls back to the default handler.
+    """
+    import pycolmap
+
+    token = pycolmap.CancellationToken()
+    if threading.current_thread() is not threading.main_thread():
+        yield token
+        return
+    previous = signal.getsignal(signal.SIGINT)
+
+    def handler(signum, frame):
+        token.cancel()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield token
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if token.is_cancelled:
+        raise KeyboardInterrupt
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the stages
+
+
+def _progress():
+    """A bar per stage on a terminal; in a log, a line per stage every half minute (willags_ns.progress)."""
+    from nerfstudio.utils.rich_utils import CONSOLE
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
+
+    from willags_ns.progress import Progress
+
+    return Progress(
+        TextColumn("[bold blue]{task.description:<22}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=CONSOLE,
+        transient=False,
+        label="willags-process",
+    )
+
+
+def _options_stamp(cfg: ProcessConfig) -> dict[str, Any]:
+    """The options that decide what the database holds: a rerun with other values cannot reuse it."""
+    return {
+        "camera_model": cfg.camera_model,
+        "single_camera": cfg.single_camera,
+        "max_num_features": cfg.max_num_features,
+        "max_feature_image_size": cfg.max_feature_image_size,
+        "images": str(cfg.images.resolve()),
+    }
+
+
+def _check_database_options(cfg: ProcessConfig) -> None:
+    stamp = cfg.output / OPTIONS_STAMP
+    db = cfg.output / DATABASE
+    want = _options_stamp(cfg)
+    if db.exists() and stamp.is_file():
+        have = json.loads(stamp.read_text())
+        diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
+        if diff:
+            raise ProcessError(
+                f"{db} was made with other options {diff} (old, new): delete it (or use another --output) to start over"
+            )
+    stamp.parent.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(json.dumps(want, indent=1) + "\n")
+
+
+def extract_features(cfg: ProcessConfig, names: Sequence[str], progress, chunk: int = 8) -> list[str]:
+    """SIFT for every image of `names` not yet in the database, `chunk` images per call (progress and Ctrl-C between
+    calls; one image per call would cost ~0.4 s of set-up each). Returns the names with features in the database."""
+    import pycolmap
+
+    db_path = cfg.output / DATABASE
+    with pycolmap.Database.open(str(db_path)) as db:
+        done = set()
+        for name in names:
+            im = db.read_image_with_name(name)
+            if im is not None and db.exists_keypoints(im.image_id) and db.exists_descriptors(im.image_id):
+                done.add(name)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = cfg.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = cfg.num_threads
+    extraction.max_image_size = cfg.max_feature_image_size
+    extraction.sift.max_num_features = cfg.max_num_features
+    mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.PER_IMAGE
+    task = progress.add_task("feature extraction", total=len(names), completed=len(done))
+    todo = [n for n in names if n not in done]
+    for k in range(0, len(todo), chunk):
+        with _cancellable() as token:
+            pycolmap.extract_features(
+                str(db_path),
+                str(cfg.images),
+                image_names=todo[k : k + chunk],
+                camera_mode=mode,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+                cancellation_token=token,
+            )
+        progress.advance(task, len(todo[k : k + chunk]))
+    with pycolmap.Database.open(str(db_path)) as db:
+        ok = []
+        for name in names:
+            im = db.read_image_with_name(name)
+            if im is not None and db.exists_keypoints(im.image_id) and db.num_keypoints_for_image(im.image_id) > 0:
+                ok.append(name)
+    return ok
+
+
+def _matched_pairs(db_path: Path) -> set[tuple[str, str]]:
+    """Name pairs (sorted) that already have matches in the database (matched in an earlier, interrupted run)."""
+    import pycolmap
+
+    with pycolmap.Database.open(str(db_path)) as db:
+        id_to_name = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, _ = db.read_num_matches()
+    out = set()
+    for pid in pair_ids:
+        a, b = pycolmap.pair_id_to_image_pair(pid)
+        if a in id_to_name and b in id_to_name:
+            out.add(tuple(sorted((id_to_name[a], id_to_name[b]))))
+    return out
+
+
+def _matching_options(cfg: ProcessConfig):
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = cfg.num_threads
+    return matching
+
+
+def match_exhaustive(cfg: ProcessConfig, names: Sequence[str], progress) -> int:
+    """Match and verify all pairs, a block of pairs per call (progress, Ctrl-C between blocks). Returns #pairs."""
+    import pycolmap
+
+    db_path = cfg.output / DATABASE
+    blocks = exhaustive_pair_blocks(names)
+    total = sum(len(b) for b in blocks)
+    if any(any(c.isspace() for c in n) for n in names):
+        # COLMAP's pair lists are space-separated: names with spaces can only go through its own exhaustive matcher
+        task = progress.add_task("matching (exhaustive)", total=None)
+        with _cancellable() as token:
+            pycolmap.match_exhaustive(
+                str(db_path),
+                matching_options=_matching_options(cfg),
+                device=pycolmap.Device.cpu,
+                cancellation_token=token,
+            )
+        progress.update(task, total=total, completed=total)
+        return total
+    done = _matched_pairs(db_path)
+    task = progress.add_task("matching (exhaustive)", total=total)
+    pairs_file = cfg.output / "colmap" / "pairs_block.txt"
+    for block in blocks:
+        todo = [p for p in block if tuple(sorted(p)) not in done]
+        if todo:
+            pairs_file.write_text("".join(f"{a} {b}\n" for a, b in todo))
+            with _cancellable() as token:
+                pycolmap.match_image_pairs(
+                    str(db_path),
+                    matching_options=_matching_options(cfg),
+                    pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs_file)),
+                    device=pycolmap.Device.cpu,
+                    cancellation_token=token,
+                )
+        progress.advance(task, len(block))
+    pairs_file.unlink(missing_ok=True)
+    return total
+
+
+def build_vocab_tree(db_path: Path, out: Path, per_image: int = 500, seed: int = 0) -> int:
+    """A vocabulary tree (pycolmap VisualIndex) trained on up to `per_image` SIFT descriptors of each image of the
+    database, written to `out`. Returns its number of visual words (about 40 training descriptors per word, 256 to
+    65,536). Why our own: COLMAP's published trees are a download, and this machine may have no internet."""
+    import pycolmap
+
+    rng = np.random.default_rng(seed)
+    samples = []
+    with pycolmap.Database.open(str(db_path)) as db:
+        for im in db.read_all_images():
+            if not db.exists_descriptors(im.image_id):
+                continue
+            d = db.read_descriptors(im.image_id).to_float().data
+            if len(d) > per_image:
+                d = d[rng.choice(len(d), per_image, replace=False)]
+            samples.append(d)
+    train = np.ascontiguousarray(np.concatenate(samples).astype(np.float32))
+    words = int(2 ** np.clip(np.floor(np.log2(max(len(train) // 40, 1))), 8, 16))
+    options = pycolmap.VisualIndex.BuildOptions()
+    options.num_visual_words = words
+    # k-means: COLMAP's 100 iterations x 3 rounds take minutes on 2 cores for a large collection; retrieval only
+    # needs a rough quantiser (the pairs it proposes are verified geometrically anyway)
+    options.num_iterations = 25
+    options.num_rounds = 1
+    index = pycolmap.VisualIndex.create(128, 64)  # SIFT descriptors, the only embedding size pycolmap implements
+    index.build(options, pycolmap.FeatureDescriptorsFloat(data=train, type=pycolmap.FeatureExtractorType.SIFT))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    index.write(str(out))
+    return words
+
+
+def match_vocab_tree(cfg: ProcessConfig, names: Sequence[str], progress, chunk: int = 8) -> int:
+    """Retrieval matching: each image with its `retrieval_neighbors` most similar images by vocabulary tree, a chunk of
+    query images per call (progress, Ctrl-C between chunks). Returns the number of pairs in the database."""
+    import pycolmap
+
+    db_path = cfg.output / DATABASE
+    tree = cfg.output / VOCAB_TREE
+    if not tree.is_file():
+        build_vocab_tree(db_path, tree, seed=cfg.seed)
+    queried_file = cfg.output / "colmap" / "vocab_tree_queried.txt"  # resume: query images already done
+    queried = set(queried_file.read_text().splitlines()) if queried_file.is_file() else set()
+    if not _matched_pairs(db_path):
+        queried = set()  # a new database (the old one deleted): the list belongs to the old one
+    task = progress.add_task("matching (vocab tree)", total=len(names))
+    list_file = cfg.output / "colmap" / "vocab_tree_queries.txt"
+    for k in range(0, len(names), chunk):
+        todo = [n for n in names[k : k + chunk] if n not in queried]
+        if todo:
+            list_file.write_text("".join(n + "\n" for n in todo))
+            pairing = pycolmap.VocabTreePairingOptions()
+            pairing.vocab_tree_path = str(tree)
+            pairing.num_images = cfg.retrieval_neighbors + 1  # the query itself is its own best match
+            pairing.match_list_path = str(list_file)
+            pairing.num_threads = cfg.num_threads
+            with _cancellable() as token:
+                pycolmap.match_vocabtree(
+                    str(db_path),
+                    matching_options=_matching_options(cfg),
+                    pairing_options=pairing,
+                    device=pycolmap.Device.cpu,
+                    cancellation_token=token,
+                )
+            with queried_file.open("a") as f:
+                f.write("".join(n + "\n" for n in todo))
+        progress.advance(task, len(names[k : k + chunk]))
+    list_file.unlink(missing_ok=True)
+    return len(_matched_pairs(db_path))
+
+
+def incremental_mapping(cfg: ProcessConfig, num_images: int, progress, work: Path):
+    """COLMAP's incremental mapper (fixed seed); returns the reconstruction with the most registered images, or
+    None when no model could be made."""
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = cfg.num_threads
+    options.random_seed = cfg.seed
+    options.mapper.random_seed = cfg.seed
+    options.triangulation.random_seed = cfg.seed
+    # COLMAP drops models under 10 images; a small collection's only model may be smaller and still usable
+    options.min_model_size = max(3, min(10, cfg.min_registered))
+    pycolmap.set_random_seed(cfg.seed)
+    task = progress.add_task("incremental mapping", total=num_images)
+    registered = [0]
+
+    def on_init_pair() -> None:
+        registered[0] = 2
+        progress.update(task, completed=min(registered[0], num_images))
+
+    def on_next_image() -> None:
+        registered[0] += 1
+        progress.update(task, completed=min(registered[0], num_images))
+
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    with _cancellable() as token:
+        models = pycolmap.incremental_mapping(
+            str(cfg.output / DATABASE),
+            str(cfg.images),
+            str(work),
+            options,
+            initial_image_pair_callback=on_init_pair,
+            next_image_callback=on_next_image,
+            cancellation_token=token,
+        )
+    if not models:
+        return None
+    best = max(models.values(), key=lambda r: r.num_reg_images())
+    progress.update(task, completed=best.num_reg_images())
+    return best
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# writing
+
+
+def _replace_dir(tmp: Path, dst: Path) -> None:
+    """Move the complete directory `tmp` onto `dst` (the old `dst`, if any, is removed first)."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        shutil.rmtree(dst)
+    os.rename(tmp, dst)
+
+
+def write_downscaled(images: Path, factor: int, dst: Path) -> None:
+    """Every image of `images` resized to floor(w / factor) x floor(h / factor) (nerfstudio's 'floor' rounding of the
+    camera) with PIL's box (area) filter, into `dst` (written to a temporary sibling, then renamed)."""
+    tmp = dst.parent / f".{dst.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for f in sorted(images.iterdir()):
+        with Image.open(f) as im:
+            small = im.resize((im.width // factor, im.height // factor), resample=Image.Resampling.BOX)
+            if f.suffix.lower() in (".jpg", ".jpeg"):
+                small.convert("RGB").save(tmp / f.name, quality=95, subsampling=0)
+            else:
+                small.save(tmp / f.name)
+    _replace_dir(tmp, dst)
+
+
+def write_scene(cfg: ProcessConfig, rec, work: Path) -> None:
+    """The registered images and the model where nerfstudio reads them (undistorted for SIMPLE_RADIAL)."""
+    import pycolmap
+
+    out = cfg.output
+    raw = work / "chosen"
+    raw.mkdir(parents=True)
+    rec.write(str(raw))
+    names = [rec.images[i].name for i in rec.reg_image_ids()]
+    if cfg.camera_model == "SIMPLE_PINHOLE":
+        images_tmp = work / "images"
+        images_tmp.mkdir()
+        for name in names:
+            shutil.copy2(cfg.images / name, images_tmp / name)
+        model_tmp = raw
+    else:
+        und = work / "undistorted"
+        with _cancellable() as token:
+            pycolmap.undistort_images(
+                str(und),
+                str(raw),
+                str(cfg.images),
+                output_type="COLMAP",
+                num_threads=cfg.num_threads,
+                cancellation_token=token,
+            )
+        images_tmp, model_tmp = und / "images", und / "sparse"
+        distorted_tmp = work / "distorted"
+        shutil.copytree(raw, distorted_tmp)
+        _replace_dir(distorted_tmp, out / DISTORTED_DIR)
+    _replace_dir(images_tmp, out / "images")
+    _replace_dir(model_tmp, out / MODEL_DIR)
+    for k in range(1, cfg.num_downscales + 1):
+        write_downscaled(out / "images", 2**k, out / f"images_{2**k}")
+
+
+def reconstruction_stats(rec, all_names: Sequence[str]) -> dict[str, Any]:
+    """Summary of a model: registered / total, 3D points, mean reprojection error, mean track length, unregistered."""
+    reg = {rec.images[i].name for i in rec.reg_image_ids()}
+    return {
+        "registered": len(reg),
+        "total": len(all_names),
+        "points3D": int(rec.num_points3D()),
+        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        "mean_track_length": float(rec.compute_mean_track_length()),
+        "unregistered": [n for n in all_names if n not in reg],
+    }
+
+
+def print_summary(summary: dict[str, Any]) -> None:
+    from nerfstudio.utils.rich_utils import CONSOLE
+    from rich.table import Table
+
+    table = Table(title="willags-process", show_header=False)
+    table.add_row("images registered / total", f"{summary['registered']} / {summary['total']}")
+    table.add_row("3D points", f"{summary['points3D']:,}")
+    table.add_row("mean reprojection error", f"{summary['mean_reprojection_error_px']:.3f} px")
+    table.add_row("mean track length", f"{summary['mean_track_length']:.2f}")
+    table.add_row("camera model", summary["camera_model"])
+    table.add_row("matching", f"{summary['matching']} ({summary['num_pairs']:,} pairs)")
+    table.add_row("split", f"{summary['num_train']} train / {summary['num_test']} test ({summary['split_file']})")
+    table.add_row(
+        "wall time", f"{summary['wall_s']:.0f} s " + str({k: round(v) for k, v in summary["stage_s"].items()})
+    )
+    unreg = summary["unregistered"]
+    table.add_row("unregistered", ", ".join(unreg) if unreg else "none")
+    CONSOLE.print(table)
+    CONSOLE.print(f"Scene written to {summary['output']}: ns-train willags --data {summary['output']}")
+
+
+def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """The whole pipeline (see the module docstring). Returns the summary (also written to process_summary.json).
+    Raises ProcessError on unusable input or too few registered images, KeyboardInterrupt on Ctrl-C."""
+    import pycolmap
+    from nerfstudio.utils.rich_utils import CONSOLE
+
+    log = log or (lambda msg: CONSOLE.print(msg))
+    t0 = time.time()
+    cfg = dataclasses.replace(cfg, images=Path(cfg.images).expanduser(), output=Path(cfg.output).expanduser())
+    if cfg.min_registered < 3:
+        raise ProcessError(f"--min-registered must be >= 3, got {cfg.min_registered}")
+    if cfg.test_every == 1 or cfg.test_every < 0:
+        raise ProcessError(f"--test-every must be 0 (no test images) or >= 2, got {cfg.test_every}")
+    names = list_images(cfg.images)
+    if cfg.images.resolve() == (cfg.output / "images").resolve():
+        raise ProcessError(f"--images {cfg.images} is the output's images/ folder, which this command replaces")
+    bad = find_unreadable(cfg.images, names)
+    for name, why in bad.items():
+        log(f"[yellow]warning: skipping unreadable image {cfg.images / name}: {why}")
+    readable = [n for n in names if n not in bad]
+    if len(readable) < cfg.min_registered:
+        raise ProcessError(
+            f"{len(readable)} readable photo(s) in {cfg.images} ({len(bad)} unreadable: {', '.join(bad) or '-'}); "
+            f"SfM needs at least {cfg.min_registered}"
+        )
+    cfg.output.mkdir(parents=True, exist_ok=True)
+    _check_database_options(cfg)
+    if not cfg.verbose:
+        pycolmap.logging.minloglevel = 2  # errors only: COLMAP's INFO/WARNING lines would break the progress bars
+    stage_s: dict[str, float] = {}
+    work = cfg.output / "colmap" / ".work"
+    with _progress() as progress:
+        t = time.time()
+        extracted = extract_features(cfg, readable, progress)
+        stage_s["extraction"] = time.time() - t
+        for name in readable:
+            if name not in extracted:
+                log(
+                    f"[yellow]warning: no SIFT features in {cfg.images / name} (COLMAP could not read it or it is blank)"
+                )
+        if len(extracted) < cfg.min_registered:
+            raise ProcessError(f"only {len(extracted)} photo(s) gave SIFT features; SfM needs {cfg.min_registered}")
+        t = time.time()
+        method = cfg.matching
+        if method == "auto":
+            method = "exhaustive" if len(extracted) <= cfg.exhaustive_max_images else "vocab-tree"
+        if method == "exhaustive":
+            num_pairs = match_exhaustive(cfg, extracted, progress)
+        else:
+            num_pairs = match_vocab_tree(cfg, extracted, progress)
+        stage_s["matching"] = time.time() - t
+        t = time.time()
+        rec = incremental_mapping(cfg, len(extracted), progress, work / "mapping")
+        stage_s["mapping"] = time.time() - t
+    registered = 0 if rec is None else rec.num_reg_images()
+    if rec is None or registered < cfg.min_registered:
+        shutil.rmtree(work, ignore_errors=True)
+        raise ProcessError(
+            f"SfM registered {registered} of {len(names)} images, fewer than {cfg.min_registered}: the photos share "
+            "too few matching features (too little overlap or texture). Add overlapping photos of the same scene."
+        )
+    t = time.time()
+    stats = reconstruction_stats(rec, names)
+    write_scene(cfg, rec, work)
+    final = pycolmap.Reconstruction(str(cfg.output / MODEL_DIR))
+    ids = {i: final.images[i].name for i in final.reg_image_ids()}
+    rows = split_table(ids, cfg.test_every)
+    scene_name = cfg.scene_name or cfg.output.resolve().name
+    tsv = cfg.output / f"{scene_name}.tsv"
+    write_split_tsv(tsv, rows, scene_name)
+    stage_s["writing"] = time.time() - t
+    shutil.rmtree(work, ignore_errors=True)
+    summary = {
+        **stats,
+        "unreadable": sorted(bad),
+        "camera_model": cfg.camera_model
+        + (" -> undistorted to PINHOLE" if cfg.camera_model == "SIMPLE_RADIAL" else "")
+        + (", one shared camera" if cfg.single_camera else ", one camera per image"),
+        "matching": method,
+        "num_pairs": num_pairs,
+        "num_train": sum(r[2] == "train" for r in rows),
+        "num_test": sum(r[2] == "test" for r in rows),
+        "split_file": tsv.name,
+        "output": str(cfg.output),
+        "wall_s": time.time() - t0,
+        "stage_s": stage_s,
+        "pycolmap": pycolmap.__version__,
+        "options": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
+    }
+    (cfg.output / SUMMARY).write_text(json.dumps(summary, indent=1) + "\n")
+    return summary
