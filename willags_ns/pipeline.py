@@ -391,7 +391,11 @@ class WillagsPipeline(VanillaPipeline):
         """Average the gradients over the ranks and share this step's training-image latents."""
         params = optimizer_parameters(optimizers.optimizers)
         model, profile = self.model, self.step_profile
-        latents = getattr(model, "train_latents", None)
+        # the VAE's per-image latents are written by the rank that drew the image; an embedding table is a parameter
+        # (its gradients are averaged with the others), so its buffers stay unused and nothing is shared for them
+        nets = getattr(model, "appearance_nets", None)
+        vae_memo = nets is not None and getattr(nets, "embeddings", None) is None
+        latents = getattr(model, "train_latents", None) if vae_memo else None
         seen = getattr(model, "train_latent_seen", None)
         if averager is None:  # the reference implementation
             if profile is not None:

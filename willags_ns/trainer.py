@@ -50,11 +50,9 @@ from willags_ns.checkpoints import (
 from willags_ns.checks import install_cli_excepthook
 from willags_ns.time_budget import (
     DEFAULT_PRESET,
-    OPTION,
     PRESETS,
     BudgetChoice,
     TimeBudget,
-    TimeBudgetError,
     choose,
     device_class,
     end_schedules_at,
@@ -186,15 +184,10 @@ class WillagsTrainer(Trainer):
         minutes = validate_minutes(getattr(self.config.pipeline, "time_budget_minutes", None))
         choice = None
         if minutes is not None and test_mode == "val":
-            if self.world_size > 1:
-                raise TimeBudgetError(
-                    f"{OPTION} with --machine.num-devices {self.world_size}: not supported (the ranks would have to "
-                    "agree on when to stop); train on one device or set --max-num-iterations"
-                )
             self._warmups = schedule_warmups(self.config.optimizers)
             choice, notes, replaced = apply_budget(self.config, minutes * 60.0, self._warmups)
             device = device_class(self.config.machine.device_type)
-            CONSOLE.print(format_choice(choice, minutes, device, notes))
+            CONSOLE.print(format_choice(choice, minutes, device, notes, num_devices=self.world_size))
             self._budget_record = {
                 "budget_minutes": minutes,
                 "device_class": device,
@@ -212,7 +205,9 @@ class WillagsTrainer(Trainer):
             self._attach_budget(minutes * 60.0, choice)
         for line in quiet_local_writer(writer.EVENT_WRITERS, sys.stdout.isatty()):
             CONSOLE.print(line)
-        # last: after the model's own callbacks (densification) the step's state is complete
+        # last: after the model's own callbacks (densification) the step's state is complete; train() restarts the
+        # timer, so that the first timed save comes save_every_minutes after training starts
+        self._save_timer = SaveTimer(self.config.save_every_minutes * 60.0, clock=self.clock)
         self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._save_if_due))
 
     # ---- checkpoints
