@@ -89,8 +89,8 @@ def test_willags_auto_method_is_registered():
 
 
 def test_the_default_inspects_first_and_willags_full_does_not():
-    """`willags` is the full model with auto_config (docs/fidelity.md, eleventh session); `willags-full` is the same
-    model without inspection; `willags-auto` is the default under its earlier name."""
+    """`willags` is the full model with auto_config (docs/fidelity.md); `willags-full` is the same model without
+    inspection; `willags-auto` is another name of the default."""
     from nerfstudio.plugins.registry import discover_methods
 
     from willags_ns.method_configs import willags_config, willags_full_config

@@ -29,25 +29,9 @@ they keep the paper's multi-scale mechanism and code path, and the calibration g
 not depend on the random draw. The real VGG's raw-feature D range could not be measured here (no weights can be
 downloaded), so "comparable range" means this calibration, not a match to ImageNet numbers.
 
-Measured with the fallback (threshold 0.85; "recall" = transient pixels with D >= 0.85, "FP" = static pixels
-with D >= 0.85, IoU of the flagged set with the true transient set):
-
-  - Synthetic scene of ``tests/test_transient.py`` (96x128 1/f colour texture with flat patches; teacher = the
-    clean scene blurred by a 3x3 binomial filter, 2% colour shift, noise 0.01; a flat 32x40 occluder pasted into
-    the GT): D on occluder pixels median 2.82 (min 1.94), on clean pixels median 0.27 (p95 1.10); recall 1.000,
-    FP 0.073, all of it within 8 px of the occluder (FP farther away: 0.000), IoU 0.61. The ring is the
-    receptive field of relu3_3 (~40 px) spread by the upsampling; an identical teacher gives D = 0.
-  - fox-transient-only, all 58 train views at 270x480, ``masks_gt`` as truth, teacher proxy = the fox-clean
-    image of the same view (perfect geometry, independent JPEG noise), optionally degraded like a render:
-        teacher                     recall  FP     IoU    D occluded med / p10   D clean med / p95
-        fox-clean as is             0.993   0.030  0.848  2.27 / 1.37            0.03 / 0.55
-        Gaussian blur s=1, 2% shift 0.993   0.046  0.786  2.26 / 1.36            0.24 / 0.82
-        Gaussian blur s=2, 2% shift 0.993   0.093  0.647  2.25 / 1.36            0.33 / 1.05
-    Choice of FALLBACK_UNRELATED_D on every 3rd view (blur s=1 row): 1.5 -> recall 0.970 / FP 0.020;
-    2.0 -> 0.996 / 0.043; 2.5 -> 1.000 / 0.077; 3.0 -> 1.000 / 0.121. 2.0 is the smallest FP with recall >= 0.99.
-  - Limitation: random features are not blur-invariant. On raw 1/f noise (about 5x the fine-scale energy of the
-    fox photos) a 3x3 blur of the teacher flags ~70% of the clean pixels. The fallback assumes the teacher render
-    is about as sharp as the GT (up to ~1-2 px of blur), which holds once the warmup is over on photo-like data.
+What the fallback flags (recall, false positives, IoU on a synthetic occluder and on fox-transient-only, and the
+choice of FALLBACK_UNRELATED_D) and where it fails (it is not blur-invariant: it assumes the teacher's render is
+about as sharp as the photo) is in docs/design.md, "The perceptual mask without ImageNet weights".
 """
 
 import logging

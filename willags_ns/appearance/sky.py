@@ -52,8 +52,9 @@ class SkyConfig:
     """Where the sky is composited while training. "everywhere": behind every pixel. "open": only above the scene's
     skyline in each training photo (cells above the first SfM keypoint of each column, static_support
     .open_background_map; COLMAP scenes), splatfacto's random background elsewhere, so the Gaussians of the scene
-    stay opaque (measured: with the sky everywhere the Gaussian count halves and the fox scenes, whose "sky" is a
-    wall a metre away, lose 0.4-1.8 dB). Rendering and the NeRF-W protocol use the sky behind every pixel."""
+    stay opaque: with the sky everywhere and no alpha penalty, Gaussians of a near background (the fox scenes' wall)
+    turn transparent and the sky paints it (docs/inspect.md). Rendering and the NeRF-W protocol use the sky behind
+    every pixel."""
     alpha_tol: float = 0.03
     """A pixel counts as reproduced by the background when |photo - bg|, averaged over the colour channels and a
     5x5 window, is below this."""

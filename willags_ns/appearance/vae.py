@@ -49,8 +49,8 @@ class VAEConfig:
     recon_reduction: Literal["mean", "sum"] = "sum"
     """Scale of the L1 reconstruction term: "sum" over pixels and channels per image (the textbook beta-VAE
     likelihood scale, against which beta=2 on a KL summed over latent dims is meaningful) or "mean". With
-    "mean" the KL dominates and the posterior collapses to the prior (z carries no appearance; measured: KL ~1e-4
-    on the default scene and in tests/test_vae.py), so the model uses "sum"."""
+    "mean" the KL dominates and the posterior collapses to the prior (z carries no appearance: docs/design.md,
+    "The VAE's reconstruction scale"), so the model uses "sum"."""
     channels: tuple[int, ...] = (32, 64, 128, 128)
     """Output channels of the encoder's stride-2 convolutions (the decoder mirrors them). Four stages take
     64x64 down to 4x4."""
@@ -173,11 +173,9 @@ def vae_loss(
     The KL is a per-image sum over the D latent dims (batch mean). ``recon_reduction`` sets the L1 scale:
     "mean" (default) = mean over pixels and channels, so L_VAE is on the scale of the rendering loss and the
     paper's 0.01 weight stays meaningful; "sum" = sum over pixels and channels per image (batch mean), the
-    textbook VAE likelihood scale. Measured on 4 tiny images (tests/test_vae.py setting): with "mean" and
-    beta = 2 the VAE *alone* collapses to the prior (recon L1 0.243 -> 0.231 in 30 Adam steps, KL ~ 1e-4; with
-    beta = 0 it reaches 0.08), because one nat of KL costs as much as 0.5 of mean L1. In WilLaGS the rendering
-    loss also reaches the encoder through z (weight 1 against 0.01 * beta = 0.02 per nat), which is what makes z
-    informative; "sum" makes the VAE informative on its own.
+    textbook VAE likelihood scale. With "mean" and beta = 2 the VAE alone collapses to the prior (one nat of KL costs
+    as much as 0.5 of mean L1); in WilLaGS the rendering loss also reaches the encoder through z, and "sum" makes
+    the VAE informative on its own (docs/design.md, "The VAE's reconstruction scale").
     """
     if recon.shape != target.shape:
         raise ValueError(f"recon {tuple(recon.shape)} and target {tuple(target.shape)} differ")

@@ -137,9 +137,8 @@ class InspectConfig:
     """An image counts as occluded when at least this fraction of its observations are transient."""
     appearance_threshold: float = 4.0
     """appearance_score (8-bit levels) at or above which the appearance latent is recommended (SfM evidence). Low on
-    purpose: the per-image latent costs little, and on fox-clean (8.3 levels: a phone video's exposure drift) the
-    latent model scored 31.12 dB against 30.19 for plain antialiased 3DGS (docs/benchmarks.md); scenes rendered
-    without any appearance change measure 0.4-1.3 (docs/inspect.md)."""
+    purpose: the per-image latent costs little, and it helps even on a phone video's exposure drift (fox-clean);
+    scenes rendered without any appearance change score well below it (docs/inspect.md)."""
     fallback_appearance_threshold: float = 12.0
     """The same threshold for the no-points fallback evidence (spread of per-image mean colours, 8-bit levels)."""
     transient_threshold: float = 0.12
@@ -836,8 +835,8 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
         "teacher": {"on": mask, "reason": "the EMA teacher only renders the mask's pseudo ground truth"},
         "triplane_field": {
             "on": False,
-            "reason": "measured, it did not help (docs/benchmarks.md: reichstag willags-vae-field 18.63 dB vs "
-            "willags-vae 18.50 +-0.31; fox-wild willags-paper 20.40 vs willags 22.41)",
+            "reason": "measured, it did not help (docs/benchmarks.md: willags-vae-field vs willags-vae on reichstag, "
+            "willags-paper vs willags on fox-wild)",
         },
         "sky": sky,
         "latent_dim": {"value": latent, "reason": latent_reason},
