@@ -75,8 +75,8 @@ def describe_protocol(cfg: EvalProtocolConfig, cameras, model) -> str:
     else:
         shown = ", ".join(f"{w}x{h} -> {w // k}x{h // k}" for w, h, k in fits[:3]) + (" ..." if len(fits) > 3 else "")
         where = (
-            f"downscaled to at most {max_side} px ({shown}; --pipeline.eval-protocol.fit-max-side 0 fits at full "
-            "resolution)"
+            f"downscaled to at most {max_side} px ({shown}; `fit_max_side: 0` under `eval_protocol` in config.yml, "
+            "or --pipeline.eval-protocol.fit-max-side 0 when training, fits at full resolution)"
         )
     oracle = " plus the oracle fit on the whole image," if cfg.oracle else ""
     return (
