@@ -391,12 +391,10 @@ class WillagsPipeline(VanillaPipeline):
         """Average the gradients over the ranks and share this step's training-image latents."""
         params = optimizer_parameters(optimizers.optimizers)
         model, profile = self.model, self.step_profile
-        # the VAE's per-image latents are written by the rank that drew the image; an embedding table is a parameter
-        # (its gradients are averaged with the others), so its buffers stay unused and nothing is shared for them
-        nets = getattr(model, "appearance_nets", None)
-        vae_memo = nets is not None and getattr(nets, "embeddings", None) is None
-        latents = getattr(model, "train_latents", None) if vae_memo else None
-        seen = getattr(model, "train_latent_seen", None)
+        # the memo is written by the rank that drew the image, so each step's row is shared; an embedding table is a
+        # parameter (its gradients are averaged with the others) and has no memo
+        memo = model.latent_memo() if hasattr(model, "latent_memo") else None
+        latents, seen = memo if memo is not None else (None, None)
         if averager is None:  # the reference implementation
             if profile is not None:
                 profile.mark("collective_start")

@@ -50,15 +50,21 @@ def versions(tensors: list[Tensor]) -> tuple:
     return tuple((t.data_ptr(), t._version) for t in tensors)
 
 
+def keeps_latent_memo(nets: AppearanceNetworks) -> bool:
+    """Whether the training images' latents are remembered in the model's buffers (`train_latents`,
+    `train_latent_seen`): with the VAE, the encoder's mean at each image's last visit; an embedding table is its own
+    record, and writing a flag into a device tensor from the host every step would cost a synchronisation."""
+    return nets.embeddings is None
+
+
 def stored_latents(nets: AppearanceNetworks, train_latents: Tensor, train_latent_seen: Tensor) -> tuple[Tensor, Tensor]:
     """(latents [num_train, D], known [num_train] bool) of the training images, detached.
 
     An embedding table's rows are the latents (current values; every row exists from the start). With the VAE,
     the encoder's mean recorded at each image's last training visit (`train_latents`), known once the image was
     drawn (`train_latent_seen`)."""
-    emb = nets.embeddings
-    if emb is not None:
-        lat = emb.weight.detach()
+    if not keeps_latent_memo(nets):
+        lat = nets.embeddings.weight.detach()
         return lat, torch.ones(lat.shape[0], dtype=torch.bool, device=lat.device)
     return train_latents, train_latent_seen
 
@@ -97,9 +103,7 @@ def training_latent(
     img = image_chw(batch["image"], device)
     mu, logvar = nets.latent_stats(img, idx)
     z = reparameterize(mu[None], logvar[None])[0] if logvar is not None else mu
-    # the VAE's latents are remembered per image; an embedding table is its own record (stored_latents reads it), and
-    # writing a flag into a device tensor from the host every step would cost a synchronisation
-    if nets.embeddings is None and idx < train_latents.shape[0]:
+    if keeps_latent_memo(nets) and idx < train_latents.shape[0]:
         train_latents[idx] = mu.detach()
         train_latent_seen[idx] = True
     return TrainingLatent(z, mu, logvar, img if logvar is not None else None, idx)
@@ -148,7 +152,7 @@ class AppearanceLatents:
     ) -> Tensor:
         """The appearance used when none is chosen: `mean()` (the mean of the training images' latents), recomputed
         only when the latents it is computed from change."""
-        src = [nets.embeddings.weight] if nets.embeddings is not None else [train_latents, train_latent_seen]
+        src = [train_latents, train_latent_seen] if keeps_latent_memo(nets) else [nets.embeddings.weight]
         return self.memo("default", versions(src), mean)
 
     def chosen(self, device, from_env: Callable[[str], Tensor | None], default: Callable[[], Tensor]) -> Tensor:
@@ -244,6 +248,14 @@ class LatentFace:
         """(latents [num_train, D], known [num_train] bool) of the training images, detached (stored_latents)."""
         assert self.appearance_nets is not None
         return stored_latents(self.appearance_nets, self.train_latents, self.train_latent_seen)
+
+    def latent_memo(self) -> tuple[Tensor, Tensor] | None:
+        """The buffers (train_latents, train_latent_seen) that remember the training images' latents, written in
+        place by the rank that trains an image (keeps_latent_memo); None when the model keeps no such memo."""
+        nets = self.appearance_nets
+        if nets is None or not keeps_latent_memo(nets):
+            return None
+        return self.train_latents, self.train_latent_seen
 
     def default_latent(self) -> Tensor:
         """The appearance used when none is chosen: the mean of the training images' latents."""
