@@ -36,7 +36,7 @@ come from). Its limits, stated where the choice is printed:
 
 - the PSNR of a point is the NeRF-W protocol's right-half PSNR on one reference scene per device class;
 - points of an earlier configuration are in the table (cited) but do not decide (``choose(current_only=True)``):
-  their configuration says nothing about today's preset, neither its PSNR nor its step cost;
+  their configuration says nothing about the current preset, neither its PSNR nor its step cost;
 - GPU step times are of runs alone on one GPU (runs sharing a GPU measure the sharing, not the step);
 - ``one_scene``: only one scene has a record of this (configuration, steps, device); the others were measured on
   several (PSNR still from the reference scene).
@@ -60,8 +60,8 @@ PRESETS = ("willags-lite", "willags")
 """The presets the budget chooses between, for `ns-train willags`; every other method (willags-lite named explicitly
 too) keeps its model and only its step count follows the budget."""
 DEFAULT_PRESET = "willags"
-"""The method whose preset the budget chooses, and the preset when no point of today's presets was measured on the
-device (the best measured configuration)."""
+"""The method whose preset the budget chooses, and the preset when no point of the current presets was measured on
+the device (the best measured configuration)."""
 
 WARMUP_STEPS = 20
 """Steps before the step time is measured (the first steps allocate memory and fill kernel caches)."""
@@ -229,10 +229,11 @@ def choose(
     preset; without one (a budget below every measured point), the preset with the cheapest measured point. Steps: as
     many as the budget affords at that preset's step time, at most ``max_steps[preset]``.
 
-    ``current_only``: only points (and step times) measured with today's configuration of their preset take part;
-    those of an earlier configuration (``measured_as`` another method: willags-lite-v0, the paper configuration) say
-    nothing about today's preset, neither its PSNR nor its step cost. With no point left, the default preset, its own
-    resolution schedule, and no step plan before the run has measured its own step time (``step_s`` NaN).
+    ``current_only``: only points (and step times) measured with the current configuration of their preset take
+    part; those of an earlier configuration (``measured_as`` another method: willags-lite-v0, the paper
+    configuration) say nothing about the current preset, neither its PSNR nor its step cost. With no point left, the
+    default preset, its own resolution schedule, and no step plan before the run has measured its own step time
+    (``step_s`` NaN).
     """
     if not budget_s > 0:
         raise ValueError(f"budget must be > 0 s (got {budget_s})")
@@ -249,7 +250,9 @@ def choose(
         preset = DEFAULT_PRESET
         own = step_s.get(preset, math.nan)
         steps = max_steps[preset] if math.isnan(own) else plan_steps(budget_s, 0.0, 0, own, max_steps[preset])
-        why = f"no point of today's presets measured on {device}{not_used}: the default, its own resolution schedule"
+        why = (
+            f"no point of the current presets measured on {device}{not_used}: the default, its own resolution schedule"
+        )
         return BudgetChoice(preset, steps, own, True, None, why, max_steps[preset])
 
     def cost(p: MeasuredPoint) -> float:
@@ -317,7 +320,7 @@ def format_choice(
     if p is not None:
         caveats = [f"runs {', '.join(t or '(untagged)' for t in p.records)}"]
         if p.measured_as != p.preset:
-            caveats.append(f"measured as {p.measured_as}, not today's {p.preset}")
+            caveats.append(f"measured as {p.measured_as}, not the current {p.preset}")
         if p.one_scene:
             caveats.append("only one scene measured")
         lines.append(f"  entry:    {p.device} table, {p.scene}: {'; '.join(caveats)}")

@@ -153,7 +153,7 @@ def training_view(train_dataset, idx: int, extra: np.ndarray | None = None):
         raise ValueError("nerfstudio only undistorts k1, k2, k3, p1, p2 (the 4th radial term must be 0)")
     K = cam.get_intrinsics_matrices()[0].numpy()  # float32 like nerfstudio's: bit-identical undistortion
     cv_dist = np.array([dist[0], dist[1], dist[4], dist[5], dist[2], dist[3], 0, 0])  # OpenCV order
-    K[0, 2] -= 0.5  # OpenCV's pixel centres (nerfstudio issue 3048)
+    K[0, 2] -= 0.5  # nerfstudio's principal point counts pixel centres at +0.5, OpenCV's at integer coordinates
     K[1, 2] -= 0.5
     newK, roi = cv2.getOptimalNewCameraMatrix(K, cv_dist, (image.shape[1], image.shape[0]), 0)
     x, y, w, h = roi
