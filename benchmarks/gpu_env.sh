@@ -17,4 +17,17 @@ if [ -f .gpu-cache/gsplat_cuda.so.gz ]; then
   cp benchmarks/gsplat_csrc_shim.py /tmp/site/gsplat/csrc.py
   export WILLAGS_GSPLAT_SO=/tmp/gsplat_cuda.so
 fi
+# willags' entry points as `pip install` writes them (the tree itself is on PYTHONPATH): `ns-train willags` and
+# `ns-eval` find the methods, and nerfstudio loads them before it lists its installable methods, which
+# willags_ns/_compat.py makes quick (seconds of every process's start-up, each rank of a multi-GPU run included)
+python3 - <<'PY'
+import pathlib, tomllib
+project = tomllib.load(open("pyproject.toml", "rb"))["project"]
+info = pathlib.Path(f"/tmp/site/willags_ns-{project['version']}.dist-info")
+info.mkdir(parents=True, exist_ok=True)
+(info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: willags-ns\nVersion: {project['version']}\n")
+groups = project["entry-points"]
+text = "".join(f"[{g}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) + "\n" for g, eps in groups.items())
+(info / "entry_points.txt").write_text(text)
+PY
 python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA module:', _C)"

@@ -1,5 +1,7 @@
 """Small compatibility shims between nerfstudio 1.1.5 and current torch. Each says why it exists."""
 
+import sys
+
 import numpy as np
 import torch
 
@@ -24,3 +26,34 @@ def register_checkpoint_safe_globals() -> None:
     if dtypes is not None:  # numpy >= 1.25 pickles dtypes as np.dtypes.<X>DType classes
         safe.extend(getattr(dtypes, n) for n in dir(dtypes) if n.endswith("DType"))
     add(safe)
+
+
+def quick_external_method_check() -> None:
+    """Make nerfstudio's list of installable external methods cheap to build.
+
+    Why: importing nerfstudio 1.1.5's method registry builds one `ExternalMethodDummyTrainerConfig` per installable
+    method (26 of them), and each one's `__post_init__` calls `inspect.stack()` only to see whether
+    `get_external_methods` is the caller. `inspect.stack()` reads the source of every frame on the stack and scans
+    `sys.modules` for each one; with torch imported that is several seconds of every `ns-train`, `ns-eval`,
+    `ns-render` and `ns-viewer` start, and again in every process of a multi-GPU run (each one imports the registry).
+    The same test on the caller's code name (`sys._getframe`) replaces it; a dummy built anywhere else (the user asked
+    `ns-train` for an external method that is not installed) goes through nerfstudio's own `__post_init__` unchanged:
+    its install offer. Applied when willags' method configs are loaded, which nerfstudio does before it builds the
+    list."""
+    try:
+        from nerfstudio.configs import external_methods
+    except ImportError:  # another nerfstudio layout: nothing to speed up
+        return
+    cls = getattr(external_methods, "ExternalMethodDummyTrainerConfig", None)
+    original = getattr(cls, "__post_init__", None)
+    if cls is None or original is None or getattr(original, "quick_caller_check", False):
+        return
+
+    def __post_init__(self) -> None:
+        # frame 0: here; 1: the dataclass __init__; 2: whoever built the dummy
+        if sys._getframe(2).f_code.co_name == "get_external_methods":
+            return
+        original(self)
+
+    __post_init__.quick_caller_check = True  # type: ignore[attr-defined]
+    cls.__post_init__ = __post_init__
