@@ -8,11 +8,17 @@
 # - exports PYTHONPATH, MAX_JOBS, TORCH_EXTENSIONS_DIR=/tmp/tex (where a JIT build lands).
 # The machine's copy of the tree does not carry this checkout's git HEAD: start the command with
 # `export WILLAGS_COMMIT=<git rev-parse --short HEAD, run here>` so the records name the right commit.
-python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .whl-gpu/*.whl >/dev/null 2>&1 \
-  || { echo "gpu_env: wheel install failed (carry .whl-gpu)"; return 1; }
+# GPU_ENV_REUSE=1 on a machine where an earlier call set up and whose runs still go on: only the exports (writing
+# the wheels or gsplat's build again under running processes would break them)
+reuse=0
+[ "${GPU_ENV_REUSE:-0}" = 1 ] && [ -f /tmp/gsplat_cuda.so ] && [ -d /tmp/site/gsplat ] && reuse=1
+[ $reuse = 1 ] || python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site \
+  .whl-gpu/*.whl >/dev/null 2>&1 || { echo "gpu_env: wheel install failed (carry .whl-gpu)"; return 1; }
 export PYTHONPATH=/tmp/site:$PWD/.whl-gpu/stub:$PWD MAX_JOBS=16 PYTHONUNBUFFERED=1 TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 \
   TORCH_EXTENSIONS_DIR=/tmp/tex
-if [ -f .gpu-cache/gsplat_cuda.so.gz ]; then
+if [ $reuse = 1 ]; then
+  export WILLAGS_GSPLAT_SO=/tmp/gsplat_cuda.so
+elif [ -f .gpu-cache/gsplat_cuda.so.gz ]; then
   gunzip -c .gpu-cache/gsplat_cuda.so.gz > /tmp/gsplat_cuda.so
   cp benchmarks/gsplat_csrc_shim.py /tmp/site/gsplat/csrc.py
   export WILLAGS_GSPLAT_SO=/tmp/gsplat_cuda.so
@@ -20,7 +26,7 @@ fi
 # willags' entry points as `pip install` writes them (the tree itself is on PYTHONPATH): `ns-train willags` and
 # `ns-eval` find the methods, and nerfstudio loads them before it lists its installable methods, which
 # willags_ns/_compat.py makes quick (seconds of every process's start-up, each rank of a multi-GPU run included)
-python3 - <<'PY'
+[ $reuse = 1 ] || python3 - <<'PY'
 import pathlib, tomllib
 project = tomllib.load(open("pyproject.toml", "rb"))["project"]
 info = pathlib.Path(f"/tmp/site/willags_ns-{project['version']}.dist-info")

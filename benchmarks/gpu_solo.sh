@@ -37,9 +37,9 @@ copy_data() {
   done
 }
 
-milestones_for() {  # steps -> the milestones up to it
+milestones_for() {  # steps -> the milestones up to it (SOLO_MILESTONES: another list, e.g. "15000 30000")
   local out="" m
-  for m in 1000 2000 5000 10000 15000 30000; do [ "$m" -le "$1" ] && out="$out,$m"; done
+  for m in ${SOLO_MILESTONES:-1000 2000 5000 10000 15000 30000}; do [ "$m" -le "$1" ] && out="$out,$m"; done
   echo "${out#,}"
 }
 

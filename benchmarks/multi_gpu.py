@@ -503,14 +503,17 @@ def cmd_run(args: argparse.Namespace) -> None:
         write_results(out, work, results, args)
     # every trained run scored by ns-eval, one per GPU at a time
     todo = [r for r in results if r["status"] == "ok"]
+    # the GPUs this script was given (CUDA_VISIBLE_DEVICES: another job may train on the others), else 0..eval_gpus-1
+    visible = [g for g in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if g.strip()]
+    gpus = (visible or [str(i) for i in range(args.eval_gpus)])[: args.eval_gpus]
     while todo and time.time() < deadline - 15:
-        batch, todo = todo[: args.eval_gpus], todo[args.eval_gpus :]
+        batch, todo = todo[: len(gpus)], todo[len(gpus) :]
         procs = []
-        for gpu, r in enumerate(batch):
+        for gpu, r in zip(gpus, batch):
             cmd = [python, "-m", "nerfstudio.scripts.eval", "--load-config", str(Path(r["run_dir"]) / "config.yml")]
             cmd += ["--output-path", str(work / f"{r['name']}.eval.json")]
             # ns-eval looks the method up by name: name ours where no entry points are installed (the lent machine)
-            env = _env({"CUDA_VISIBLE_DEVICES": str(gpu), "NERFSTUDIO_METHOD_CONFIGS": METHOD_CONFIGS})
+            env = _env({"CUDA_VISIBLE_DEVICES": gpu, "NERFSTUDIO_METHOD_CONFIGS": METHOD_CONFIGS})
             procs.append(_start(cmd, work / f"{r['name']}.eval.log", env))
         for r, p in zip(batch, procs, strict=True):
             status = _wait([p], deadline - 10)

@@ -9,7 +9,7 @@
 #   RUNS=4@30000,2x2@2000 bash benchmarks/multi_gpu.sh .gpu-r/reichstag $OUT    # 30k images on 4 GPUs; 2 machines x 2
 #
 # Environment: IMAGES (images seen per run, default 8000), RUNS, METHOD (willags), SEED (42), TAG (multi-gpu),
-# DEADLINE_S (555: everything, the set-up included, ends before then and the results are under $OUT), SETUP=0 (the
+# WORK (its scratch folder, /tmp/willags-multi-gpu), DEADLINE_S (555: everything, the set-up included, ends before then and the results are under $OUT), SETUP=0 (the
 # wheels are already installed), DRY_RUN=1 (print the runs, their steps, schedules and estimated times only),
 # DEVICE=cpu (a smoke test of the script on a CPU: RUNS=1 only, nerfstudio's launcher needs CUDA for more).
 # $OUT receives multi_gpu.tgz, multi_gpu_records.json, multi_gpu_summary.txt and multi_gpu.log.
@@ -25,7 +25,7 @@ if [ "${SETUP:-1}" = 1 ] && [ "${DEVICE:-cuda}" = cuda ] && [ "${DRY_RUN:-0}" !=
 fi
 args=(--data "$DATA" --out "$OUT" --images "${IMAGES:-8000}" --runs "${RUNS:-4,1,2,4:reference}"
   --method "${METHOD:-willags}" --seed "${SEED:-42}" --tag "${TAG:-multi-gpu}" --device-type "${DEVICE:-cuda}"
-  --deadline-s "${DEADLINE_S:-555}")
+  --deadline-s "${DEADLINE_S:-555}" --work "${WORK:-/tmp/willags-multi-gpu}")
 [ "${DRY_RUN:-0}" = 1 ] && args+=(--dry-run)
 [ "${DEVICE:-cuda}" = cpu ] && args+=(--eval-gpus 1)
 python3 -m benchmarks.multi_gpu run "${args[@]}" 2>&1 | tee -a "$OUT/multi_gpu.log"
