@@ -61,6 +61,8 @@ run_one() {
     "$d/state.json" 2>/dev/null)
   echo "gpu_solo: score $name at ${timed:-nothing} ($(date +%T))"
   for k in $timed; do
+    # SOLO_SCORE: the milestones to score ("none", or a list; default: every timed one)
+    [ -n "${SOLO_SCORE:-}" ] && [[ " $SOLO_SCORE " != *" $k "* ]] && continue
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$k" >> "$d.eval-$k.log" 2>&1 &
   done
   wait
