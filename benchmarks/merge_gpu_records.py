@@ -45,7 +45,9 @@ def main() -> None:
         if p.name.endswith("_details.json"):
             continue
         data = json.loads(p.read_text())
-        new.extend(normalise(r, p.name) for r in (data if isinstance(data, list) else [data]) if "error" not in r)
+        rows = data if isinstance(data, list) else [data]
+        # diagnoses and profiles live beside the records (a "what" and their own fields): not benchmark records
+        new.extend(normalise(r, p.name) for r in rows if "error" not in r and "scene" in r)
     records = merge_records(load_records(RECORDS), new)
     js, md = write_outputs(records, RECORDS.with_suffix(""))
     print(f"merged {len(new)} GPU records from {len(runs)} files -> {js}, {md}")
