@@ -287,6 +287,13 @@ def _stop(procs: list[subprocess.Popen]) -> None:
             os.killpg(p.pid, signal.SIGKILL)
 
 
+def eval_gpus(visible: str | None, most: int) -> list[str]:
+    """The GPUs the evaluations run on, one each: the ones this script was given (CUDA_VISIBLE_DEVICES, as the
+    environment says them: another job may train on the host's others), else 0..most-1; at most `most`."""
+    given = [g.strip() for g in (visible or "").split(",") if g.strip()]
+    return (given or [str(i) for i in range(most)])[:most]
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -503,13 +510,11 @@ def cmd_run(args: argparse.Namespace) -> None:
         write_results(out, work, results, args)
     # every trained run scored by ns-eval, one per GPU at a time
     todo = [r for r in results if r["status"] == "ok"]
-    # the GPUs this script was given (CUDA_VISIBLE_DEVICES: another job may train on the others), else 0..eval_gpus-1
-    visible = [g for g in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if g.strip()]
-    gpus = (visible or [str(i) for i in range(args.eval_gpus)])[: args.eval_gpus]
+    gpus = eval_gpus(os.environ.get("CUDA_VISIBLE_DEVICES"), args.eval_gpus)
     while todo and time.time() < deadline - 15:
         batch, todo = todo[: len(gpus)], todo[len(gpus) :]
         procs = []
-        for gpu, r in zip(gpus, batch):
+        for gpu, r in zip(gpus, batch, strict=False):  # the last batch may be shorter
             cmd = [python, "-m", "nerfstudio.scripts.eval", "--load-config", str(Path(r["run_dir"]) / "config.yml")]
             cmd += ["--output-path", str(work / f"{r['name']}.eval.json")]
             # ns-eval looks the method up by name: name ours where no entry points are installed (the lent machine)

@@ -3,7 +3,7 @@ ranks' step profiles into a breakdown (transfer, wait) and the goals."""
 
 import pytest
 
-from benchmarks.multi_gpu import Run, breakdown, parse_runs, scale_schedules, startup, steps_of, tables
+from benchmarks.multi_gpu import Run, breakdown, eval_gpus, parse_runs, scale_schedules, startup, steps_of, tables
 
 
 def test_runs_name_devices_machines_reduction_and_images():
@@ -82,3 +82,11 @@ def test_records_of_several_gpus_have_their_own_section():
     text = "\n".join(devices_section([four, one]))
     assert "### reichstag (t)" in text
     assert "| 4 | 1 | buffer | 2000 | 8000 | ok | n/a | 13.75 | 3.20 | 19.40 | n/a |" in text
+
+
+def test_evaluations_stay_on_the_gpus_the_script_was_given():
+    assert eval_gpus(None, 4) == ["0", "1", "2", "3"]
+    assert eval_gpus("", 2) == ["0", "1"]
+    assert eval_gpus("2,3", 4) == ["2", "3"]  # another job trains on GPUs 0-1 of the host
+    assert eval_gpus("1", 4) == ["1"]
+    assert eval_gpus("0, 1,2,3", 2) == ["0", "1"]
