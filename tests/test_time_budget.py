@@ -373,7 +373,7 @@ def test_presets_differ_only_in_model_steps_and_schedules():
 
 
 def test_apply_budget_switches_the_preset_in_the_config():
-    """With today's CPU points, a 90 s budget picks lite (its 600 steps fit, willags' do not): the model config is
+    """With the current CPU points, a 90 s budget picks lite (its 600 steps fit, willags' do not): the model config is
     swapped for the lite preset's, the user's settings kept, the steps capped at lite's default, full resolution."""
     from willags_ns import method_configs
     from willags_ns.trainer import apply_budget, preset_defaults

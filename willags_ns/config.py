@@ -88,8 +88,8 @@ class WillagsSettings(SplatfactoModelConfig):
     """Rendering with a chosen appearance and no gradient (viewer, ns-render, eval images during training; not
     training, not the NeRF-W protocol, whose latent arrives in the camera's metadata): once per appearance change the
     colour decoder is projected by least squares onto real SH of this degree per Gaussian (over RENDER_SH_SAMPLES
-    view directions), and every frame the rasteriser evaluates SH like 3DGS: the decoder MLP no longer runs per
-    frame. The bake happens on the second frame with the same appearance and Gaussians (a viewer open during
+    view directions), and every frame the rasteriser evaluates SH like 3DGS instead of running the decoder MLP
+    per frame. The bake happens on the second frame with the same appearance and Gaussians (a viewer open during
     training, where the Gaussians change every step, keeps the exact decoder). -1 = the decoder every frame."""
     export_view_samples: int = 26
     """Number of view directions averaged when baking the view-dependent colour into a PLY (ns-export)."""

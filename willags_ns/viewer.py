@@ -207,7 +207,7 @@ class AppearanceControls(nn.Module):
         """The SPEC now rendered."""
         self.set_image_names(image_names or list(model.image_names))
         # while the viewer shows this panel, its choice (the mean included) is what the model renders: a camera's
-        # cam_idx (the viewer's cameras carry one) no longer picks a training image's appearance
+        # cam_idx (the viewer's cameras carry one) does not pick a training image's appearance
         model.latents.panel = self
 
     def is_open(self) -> bool:
