@@ -201,6 +201,33 @@ class SceneViews:
 # reading scenes
 
 
+def _posed_views(
+    kind: str,
+    root: Path,
+    paths: list[Path],
+    cameras: tuple[list, list, list, list],
+    points: np.ndarray | None,
+    split: list[str],
+    tracks: list[np.ndarray] | None = None,
+) -> SceneViews:
+    """SceneViews of every image in `paths`, from per-image lists `cameras` = (w2c [3, 4], K [3, 3], distortion [4],
+    (width, height))."""
+    w2c, Ks, dists, sizes = cameras
+    return SceneViews(
+        kind=kind,
+        root=root,
+        image_paths=paths,
+        w2c=np.asarray(w2c),
+        K=np.asarray(Ks, dtype=np.float64),
+        dist=np.asarray(dists, dtype=np.float64),
+        cam_size=np.asarray(sizes, dtype=np.float64),
+        points=points,
+        tracks=tracks,
+        split=split,
+        total_images=len(paths),
+    )
+
+
 def _tsv_split(root: Path, names: list[str]) -> list[str]:
     from willags_ns.data.dataparser import WillagsDataError, read_split_tsv
 
@@ -259,18 +286,7 @@ def read_transforms_scene(root: Path, tf_path: Path) -> SceneViews:
             points = read_ply_points(root / meta["ply_file_path"])[0].astype(np.float64)
         except WillagsDataError as e:
             raise InspectError(str(e)) from None
-    return SceneViews(
-        kind="transforms",
-        root=root,
-        image_paths=paths,
-        w2c=np.asarray(w2c),
-        K=np.asarray(Ks, dtype=np.float64),
-        dist=np.asarray(dists, dtype=np.float64),
-        cam_size=np.asarray(sizes, dtype=np.float64),
-        points=points,
-        split=split,
-        total_images=len(paths),
-    )
+    return _posed_views("transforms", root, paths, (w2c, Ks, dists, sizes), points, split)
 
 
 def read_colmap_scene(root: Path, model: Path) -> SceneViews:
@@ -316,19 +332,7 @@ def read_colmap_scene(root: Path, model: Path) -> SceneViews:
         points = np.asarray([pts[k].xyz for k in keys], dtype=np.float64)
         tracks = [np.asarray([index[i] for i in pts[k].image_ids if i in index], dtype=np.int64) for k in keys]
     names = [ims[i].name for i in ids]
-    return SceneViews(
-        kind="colmap",
-        root=root,
-        image_paths=paths,
-        w2c=np.asarray(w2c),
-        K=np.asarray(Ks, dtype=np.float64),
-        dist=np.asarray(dists, dtype=np.float64),
-        cam_size=np.asarray(sizes, dtype=np.float64),
-        points=points,
-        tracks=tracks,
-        split=_tsv_split(root, names),
-        total_images=len(paths),
-    )
+    return _posed_views("colmap", root, paths, (w2c, Ks, dists, sizes), points, _tsv_split(root, names), tracks)
 
 
 def read_scene(data: Path) -> SceneViews:
