@@ -49,11 +49,6 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 STEADY_FRACTION = 0.25
 """The steady state of a run: its last quarter of steps (full resolution, SH degree 3, densification mostly done)."""
-METHOD_CONFIGS = ",".join(
-    f"{n}=willags_ns.method_configs:{n.replace('-', '_')}_method"
-    for n in ("willags", "willags-lite", "willags-3dgs", "willags-paper", "willags-auto", "willags-full")
-)
-"""nerfstudio's NERFSTUDIO_METHOD_CONFIGS for processes that look a method up by name (pyproject's entry points)."""
 SAFE_ENV = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
 """NVLink multicast stays off on the lent machines (KINDS.md): set for every process started here."""
 
@@ -517,8 +512,8 @@ def cmd_run(args: argparse.Namespace) -> None:
         for gpu, r in zip(gpus, batch, strict=False):  # the last batch may be shorter
             cmd = [python, "-m", "nerfstudio.scripts.eval", "--load-config", str(Path(r["run_dir"]) / "config.yml")]
             cmd += ["--output-path", str(work / f"{r['name']}.eval.json")]
-            # ns-eval looks the method up by name: name ours where no entry points are installed (the lent machine)
-            env = _env({"CUDA_VISIBLE_DEVICES": gpu, "NERFSTUDIO_METHOD_CONFIGS": METHOD_CONFIGS})
+            # ns-eval looks the method up by name in the entry points: pip's, or those gpu_env.sh writes on a lent GPU
+            env = _env({"CUDA_VISIBLE_DEVICES": gpu})
             procs.append(_start(cmd, work / f"{r['name']}.eval.log", env))
         for r, p in zip(batch, procs, strict=True):
             status = _wait([p], deadline - 10)
