@@ -30,8 +30,13 @@ solo() {  # GPU QUEUE: a detached solo queue on that GPU (its scenes from $L/dat
   CUDA_VISIBLE_DEVICES=$1 SOLO_DIR=$L/solo$1 SOLO_DATA="$L/data" \
     bash benchmarks/gpu_solo.sh start "$2" > "$L/solo$1.start.log" 2>&1
 }
+sync_solo() {  # each queue takes the scenes now in $L/data and tars its records so far into $L/w<GPU>
+  for g in 0 1; do
+    [ -d "$L/solo$g" ] && SOLO_DIR=$L/solo$g SOLO_DATA="$L/data" bash benchmarks/gpu_solo.sh wait "$L/w$g" 0 > /dev/null 2>&1
+  done
+}
 pack() {
-  for g in 0 1; do [ -d "$L/solo$g/rec" ] && tar czf "$L/solo$g-records.tgz" -C "$L/solo$g" rec queue.log; done
+  sync_solo
   tar czf "$OUT/lease.tgz" -C "$L" --exclude=data --exclude='work*' --exclude='solo?' --exclude=multi_gpu.tgz . \
     2>/dev/null
   [ -f "$L/mg/multi_gpu.tgz" ] && cp "$L/mg/multi_gpu.tgz" "$OUT/mg.tgz"
@@ -60,9 +65,7 @@ liberty:willags:15000 south-building:splatfacto:15000"
     ;;
   two)
     mkdir -p "$L/data" && cp -r .gpu-sb/south-building "$L/data/"
-    for g in 0 1; do  # the running queues take the scene that came with this call
-      SOLO_DIR=$L/solo$g SOLO_DATA="$L/data" bash benchmarks/gpu_solo.sh wait "$L/w$g" 0 > /dev/null 2>&1
-    done
+    sync_solo  # the running queues take the scene that came with this call
     until_done "$L/all.done" "${WAIT_S:-565}"
     ;;
   three)
