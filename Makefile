@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.willags-installed
 DEMO_DIR ?= demo_outputs
 
-.PHONY: demo test install sysdeps lint bench clean-venv
+.PHONY: demo test test-timing install sysdeps lint bench clean-venv
 
 # open3d (imported by `ns-export` and nerfstudio's .ply loading) needs Debian's libusb-1.0-0; the viewer's browser
 # test (tests/test_viewer_browser.py) needs Debian's chromium (it speaks the DevTools protocol itself, so no
@@ -42,6 +42,18 @@ demo: $(STAMP) sysdeps
 
 test: $(STAMP) sysdeps
 	$(BIN)/python -m pytest -q -ra
+
+# The tests that race another process or a clock (marker `timing`), RUNS times in a row; BUSY=N keeps N other
+# processes spinning on the cores meanwhile (a loaded machine). Stops at the first failing run.
+RUNS ?= 5
+BUSY ?= 0
+test-timing: $(STAMP) sysdeps
+	@pids=""; for i in $$(seq 1 $(BUSY)); do (while :; do :; done) & pids="$$pids $$!"; done; \
+	trap 'kill $$pids 2>/dev/null' EXIT; \
+	for i in $$(seq 1 $(RUNS)); do \
+	  echo "timing tests, run $$i of $(RUNS) ($(BUSY) busy processes)"; \
+	  $(BIN)/python -m pytest -q -m timing -p no:cacheprovider || { echo "run $$i of $(RUNS) failed"; exit 1; }; \
+	done; echo "timing tests: $(RUNS) of $(RUNS) runs passed ($(BUSY) busy processes)"
 
 lint: $(STAMP)
 	$(BIN)/ruff check willags_ns tests benchmarks

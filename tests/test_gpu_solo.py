@@ -54,7 +54,7 @@ def tree(tmp_path):
         "PATH": f"{bin_dir}:{os.environ['PATH']}",
         "SOLO_DIR": str(tmp_path / "solo"),
         "SOLO_POLL_S": "1",
-        "SOLO_WAIT_S": "30",  # a failing test leaves no queue waiting for long
+        "SOLO_WAIT_S": "300",  # longer than any pause between two of the test's calls; a failing test leaves no queue for long
     }
     return root, env, tmp_path / "solo"
 
@@ -66,20 +66,31 @@ def _sh(root, env, *args, **extra):
         env={**env, **extra},
         capture_output=True,
         text=True,
-        timeout=60,
+        timeout=900,
     )
 
 
+def _until_in_queue_log(solo: Path, line: str) -> None:
+    """Until the detached queue has logged ``line`` (the deadline only guards against a hang)."""
+    deadline = time.monotonic() + 600
+    log = solo / "queue.log"
+    while not (log.exists() and line in log.read_text()):
+        assert time.monotonic() < deadline, log.read_text() if log.exists() else "no queue.log"
+        time.sleep(0.1)
+
+
+@pytest.mark.timing
 def test_the_queue_trains_each_run_alone_in_order_and_a_scene_carried_later_waits_at_the_back(tree, tmp_path):
     root, env, solo = tree
     queue = "south-building:willags:15000 reichstag:peer:2000:43 reichstag:willags:30000:42:5"
     started = _sh(root, env, "start", queue, SOLO_DATA=".data-a")
     assert started.returncode == 0, started.stderr
     assert "scene reichstag ready" in started.stdout
-    # a later device call carries the scene that did not fit in the first one
-    time.sleep(2)
+    # a later device call carries the scene that did not fit in the first one, once both runs whose scene was
+    # there have trained (the queue waits for the missing scene meanwhile)
+    _until_in_queue_log(solo, "gpu_solo: done reichstag-willags-30000-s42-knob5")
     (root / ".data-b" / "south-building").mkdir(parents=True)
-    waited = _sh(root, env, "wait", str(tmp_path / "out"), "40", SOLO_DATA=".data-b")
+    waited = _sh(root, env, "wait", str(tmp_path / "out"), "600", SOLO_DATA=".data-b")
     assert waited.returncode == 0, waited.stderr
     assert "gpu_solo: all done" in waited.stdout
     trains = [ln.split() for ln in (solo / "calls.log").read_text().splitlines() if ln.startswith("train ")]
@@ -110,9 +121,10 @@ def test_the_queue_trains_each_run_alone_in_order_and_a_scene_carried_later_wait
     } <= names
 
 
+@pytest.mark.timing
 def test_no_run_starts_after_the_deadline(tree, tmp_path):
     root, env, solo = tree
     assert _sh(root, env, "start", "reichstag:peer:2000", SOLO_DATA=".data-a", SOLO_DEADLINE_S="-1").returncode == 0
-    waited = _sh(root, env, "wait", str(tmp_path / "out"), "20")
+    waited = _sh(root, env, "wait", str(tmp_path / "out"), "600")
     assert "deadline passed; not started: reichstag:peer:2000" in waited.stdout
     assert not (solo / "calls.log").exists()

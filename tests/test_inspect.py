@@ -190,7 +190,7 @@ def test_bad_input_cli_one_line_no_traceback(tmp_path, scenes, capsys):
         [sys.executable, "-m", "willags_ns.scripts.inspect", "--data", str(tmp_path / "nope")],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,
     )
     assert proc.returncode == 1
     assert "Traceback" not in proc.stderr and str(tmp_path / "nope") in proc.stderr

@@ -174,7 +174,7 @@ class WillagsTrainer(Trainer):
 
     config: WillagsTrainerConfig
     clock: Callable[[], float] = staticmethod(time.monotonic)  # type: ignore[assignment]
-    """Wall clock of the timed saves (tests replace it)."""
+    """Wall clock of the timed saves and the time budget (tests replace it)."""
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         install_cli_excepthook()  # a bad budget prints one line, as bad inputs do
@@ -370,6 +370,7 @@ class WillagsTrainer(Trainer):
             on_plan=on_plan,
             log=CONSOLE.print,
             sync=torch.cuda.synchronize if cuda else None,
+            clock=self.clock,
             warmup_steps=tb.WARMUP_STEPS,  # read now, so a test can shorten them
             window_steps=tb.WINDOW_STEPS,
             replan_every=tb.REPLAN_EVERY,
