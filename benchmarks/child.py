@@ -13,8 +13,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.methods import METHODS, build_config
+from benchmarks.methods import METHODS, build_config, is_peer
 from benchmarks.records import _json_default
+from benchmarks.regions import REFERENCE, REGIONS_ENV, RegionDump
 
 
 def _sync(device: str) -> None:
@@ -89,7 +90,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
 
     dm = trainer.pipeline.datamanager
     model = trainer.pipeline.model
-    if METHODS[spec["method"]].base == "peer":
+    if is_peer(METHODS[spec["method"]].base):
         from benchmarks.peer import PeerForProtocol
 
         model = PeerForProtocol(model)
@@ -111,11 +112,31 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         w = pred.shape[1]
         shown.append((gt[:, w // 2 :].cpu(), pred[:, w // 2 :].cpu()))
 
+    regions_dir = os.environ.get(REGIONS_ENV)
+    dump = RegionDump() if regions_dir else None
+
+    def seen(i, pred, gt):
+        if renders_dir:
+            keep(i, pred, gt)
+        if dump is not None:
+            dump.on_prediction(i, pred, gt)
+
     agg, per_image = evaluate_model(
-        model, dm.eval_dataset.cameras, images, proto, names, on_prediction=keep if renders_dir else None
+        model, dm.eval_dataset.cameras, images, proto, names, on_prediction=seen if renders_dir or dump else None
     )
     if renders_dir and shown:
         save_right_halves(Path(renders_dir) / f"{_run_name(spec)}.png", shown, [r["psnr"] for r in per_image])
+    if dump is not None:
+        # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
+        geometry = spec["method"] == REFERENCE
+        raw = trainer.pipeline.model
+        dump.save(
+            Path(regions_dir) / f"{_run_name(spec)}.npz",
+            names,
+            raw if geometry else None,
+            dm.train_dataset.cameras if geometry else None,
+            dm.eval_dataset.cameras if geometry else None,
+        )
     rec: dict[str, Any] = dict(agg)
     rec["per_image"] = per_image
     rec["eval_s"] = time.perf_counter() - t2
@@ -257,8 +278,8 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     device = spec["device"]
     rec: dict[str, Any] = {}
     base = METHODS[spec["method"]].base
-    patches = _patch_stock_splatfacto() if base in ("splatfacto", "peer") else []
-    if base == "peer":
+    patches = _patch_stock_splatfacto() if base == "splatfacto" or is_peer(base) else []
+    if is_peer(base):
         from benchmarks.peer import patch_peer
 
         patches += patch_peer()

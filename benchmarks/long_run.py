@@ -112,14 +112,14 @@ def _setup(
     import torch
 
     from benchmarks.child import _patch_stock_splatfacto
-    from benchmarks.methods import METHODS, build_config
+    from benchmarks.methods import METHODS, build_config, is_peer
 
     base = METHODS[method].base
-    if base in ("splatfacto", "peer"):
+    if base == "splatfacto" or is_peer(base):
         _patch_stock_splatfacto()  # as the grid runs do (offline LPIPS)
     if base == "splatfacto":
         _patch_splatfacto_resume()
-    elif base == "peer":
+    elif is_peer(base):
         _patch_peer_resume()
     config = build_config(
         method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
@@ -286,6 +286,8 @@ def evaluate(args) -> int:
         # (no budget at evaluation: the checkpoint holds the model the knob chose, its config.yml the preset)
         spec = {
             "method": state["method"],  # protocol_scores picks the peer's adapter by method
+            "scene_name": Path(state["data"]).name,  # names the run's pictures and region maps
+            "tag": f"s{state['seed']}-{m}",
             "protocol_steps": args.protocol_steps,
             "protocol_lr": 0.01,
             "max_test_images": -1,

@@ -17,12 +17,20 @@ class MethodSpec:
 
     base: str
     """"willags" (the full model, no inspection), "willags-paper", "willags-lite", "willags-3dgs" (our method configs),
-    "peer" or "splatfacto" (stock nerfstudio)."""
+    "peer" (Splatfacto-W light), "peer-full" (Splatfacto-W) or "splatfacto" (stock nerfstudio)."""
     overrides: tuple[tuple[str, Any], ...] = ()
     """(model field, value) pairs applied after the base config."""
     note: str = ""
     """Shown next to the method in the tables."""
     needs_cuda: bool = False
+
+
+PEER_BASES = ("peer", "peer-full")
+"""The bases that are the peer's own model (its package on the path, its protocol adapter)."""
+
+
+def is_peer(base: str) -> bool:
+    return base in PEER_BASES
 
 
 METHODS: dict[str, MethodSpec] = {
@@ -119,6 +127,11 @@ METHODS: dict[str, MethodSpec] = {
     "peer": MethodSpec(
         "peer",
         note="the peer Splatfacto-W, light preset (KevinXu02/splatfacto-w, fetched and run beside ours)",
+        needs_cuda=True,
+    ),
+    "peer-full": MethodSpec(
+        "peer-full",
+        note="the peer Splatfacto-W, its full method: background model, alpha loss, robust mask from step 6000",
         needs_cuda=True,
     ),
     # rasterize_mode "antialiased" (gsplat's opacity compensation for the 2D dilation): consistent renders across
@@ -331,10 +344,10 @@ def base_trainer_config(base: str):
     from willags_ns import method_configs as mc
     from willags_ns.data.dataparser import WillagsDataParserConfig
 
-    if base == "peer":
+    if is_peer(base):
         from benchmarks.peer import peer_trainer_config
 
-        return peer_trainer_config()
+        return peer_trainer_config(full=base == "peer-full")
     if base == "splatfacto":
         from nerfstudio.configs.method_configs import method_configs as ns_methods
 

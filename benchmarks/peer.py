@@ -1,4 +1,5 @@
-"""The peer plugin Splatfacto-W (light preset), trained and scored beside ours under the same NeRF-W protocol.
+"""The peer plugin Splatfacto-W (its light preset and its full method), trained and scored beside ours under the same
+NeRF-W protocol.
 
 Its source is not part of this project (measured, never copied): fetch the public repository KevinXu02/splatfacto-w
 and put its `splatfactow` package in a folder named by $WILLAGS_PEER_SRC (default `.gpu-peer/` at the repository
@@ -6,8 +7,8 @@ root, ignored by git), e.g.
 
     git -C <mirror of KevinXu02/splatfacto-w> archive HEAD splatfactow | tar x -C .gpu-peer
 
-The run uses the peer's own `splatfacto-w-light` TrainerConfig unchanged except for what every benchmark run
-shares: our data parser (COLMAP + NeRF-W tsv split, the same test views), the step budget, no evaluation while
+The run uses the peer's own `splatfacto-w-light` or `splatfacto-w` TrainerConfig unchanged except for what every
+benchmark run shares: our data parser (COLMAP + NeRF-W tsv split, the same test views), the step budget, no evaluation while
 training. Its appearance embedding is fitted by the protocol exactly like our latent (:class:`PeerForProtocol`).
 """
 
@@ -42,11 +43,26 @@ def _peer_on_path() -> None:
         sys.path.insert(0, src)
 
 
-def peer_trainer_config():
-    """The peer's `splatfacto-w-light` TrainerConfig with our data parser (the same splits as every other run)."""
+def peer_trainer_config(full: bool = False):
+    """The peer's TrainerConfig with our data parser (the same splits as every other run): `splatfacto-w-light`, or
+    with ``full`` its `splatfacto-w` (background model, alpha loss, robust mask). The full method's own data manager
+    reads its NeRF-W parser's split and, with `eval_right_half`, trains on the left halves of the test photos, which
+    the protocol forbids: it gets nerfstudio's FullImageDatamanager over our parser (as the light preset has) and
+    `eval_right_half` off; nothing else of its config changes."""
+    from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
+
     from willags_ns.data.dataparser import WillagsDataParserConfig
 
     _peer_on_path()
+    if full:
+        from splatfactow.splatfactow_config import splatfactow_config  # type: ignore[import-not-found]
+
+        config = copy.deepcopy(splatfactow_config.config)
+        config.pipeline.datamanager = FullImageDatamanagerConfig(
+            dataparser=WillagsDataParserConfig(), cache_images_type="uint8"
+        )
+        config.pipeline.model.eval_right_half = False
+        return config
     from splatfactow.splatfactow_config import splatfactow_light_config  # type: ignore[import-not-found]
 
     config = copy.deepcopy(splatfactow_light_config.config)
