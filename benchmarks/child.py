@@ -113,7 +113,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         shown.append((gt[:, w // 2 :].cpu(), pred[:, w // 2 :].cpu()))
 
     regions_dir = os.environ.get(REGIONS_ENV)
-    dump = RegionDump() if regions_dir else None
+    dump = RegionDump() if regions_dir and spec.get("regions", True) else None
 
     def seen(i, pred, gt):
         if renders_dir:

@@ -288,6 +288,7 @@ def evaluate(args) -> int:
             "method": state["method"],  # protocol_scores picks the peer's adapter by method
             "scene_name": Path(state["data"]).name,  # names the run's pictures and region maps
             "tag": f"s{state['seed']}-{m}",
+            "regions": m == state["steps"],  # region maps ($WILLAGS_BENCH_REGIONS) of the run's last milestone
             "protocol_steps": args.protocol_steps,
             "protocol_lr": 0.01,
             "max_test_images": -1,

@@ -223,11 +223,14 @@ class RegionDump:
         self.thumbs.append((block_mean(right_half(np.clip(g, 0, 1))) * 255).astype(np.uint8))
 
     def save(self, path: Path, names: Sequence[str], model=None, train_cameras=None, test_cameras=None) -> Path:
+        """Writes the error maps (as root mean squares in float16: :func:`read_errors` squares them back); with a
+        ``model`` and its cameras also the geometry and the photos' right halves (the picture's)."""
         arrays: dict[str, Any] = {"names": np.array(list(names)[: len(self.errors)])}
-        for i, (e, t) in enumerate(zip(self.errors, self.thumbs, strict=True)):
-            arrays[f"err_{i}"] = e
-            arrays[f"gt_{i}"] = t
+        for i, e in enumerate(self.errors):
+            arrays[f"rms_{i}"] = np.sqrt(e).astype(np.float16)
         if model is not None and train_cameras is not None and test_cameras is not None:
+            for i, t in enumerate(self.thumbs):
+                arrays[f"gt_{i}"] = t
             views = training_views(model, train_cameras)
             for i in range(len(self.errors)):
                 p = _camera_params(test_cameras, i)
@@ -262,7 +265,15 @@ def load_dumps(folder: Path) -> dict[str, dict[str, list[dict[str, np.ndarray]]]
 
 
 def _images(run: dict[str, np.ndarray], key: str) -> list[np.ndarray]:
+    if key == "err":
+        return read_errors(run)
     return [run[f"{key}_{i}"] for i in range(len(run["names"])) if f"{key}_{i}" in run]
+
+
+def read_errors(run: dict[str, np.ndarray]) -> list[np.ndarray]:
+    """The squared-error maps of a dump (stored as their square roots)."""
+    n = len(run["names"])
+    return [run[f"rms_{i}"].astype(np.float64) ** 2 for i in range(n) if f"rms_{i}" in run]
 
 
 def scene_regions(runs: dict[str, list[dict[str, np.ndarray]]]) -> tuple[list[np.ndarray], dict[str, Any]] | None:

@@ -91,7 +91,7 @@ def test_a_scored_run_writes_its_maps_and_the_report_reads_them(tmp_path, monkey
     rec = protocol_scores(trainer, spec)
     with np.load(dumps / "s-willags.npz") as z:
         assert len(z["names"]) == 2
-        err, covis, acc = z["err_0"], z["covis_0"], z["acc_0"]
+        err, covis, acc = z["rms_0"], z["covis_0"], z["acc_0"]
     assert err.shape == covis.shape == acc.shape and np.isfinite(err).all() and (covis >= 0).all()
     # the pooled right halves' PSNR is the protocol's right-half PSNR over those images (same pixels)
     text = rg.report(dumps, tmp_path / "regions.md", tmp_path / "pictures")
