@@ -224,6 +224,10 @@ def train(args) -> int:
                 torch.cuda.synchronize()  # the step's work done, then the clock: the milestone's own train time
             milestone_s[str(step + 1)] = before_s + time.perf_counter() - t0[0]
             trainer.save_checkpoint(step)
+            # the state as if the segment ended here: a run killed later is scored at its milestones and resumes
+            # from this checkpoint with the right train time
+            done_seg = {**seg, "train_s": milestone_s[str(step + 1)] - before_s, "end_step": step}
+            _save_state(run_dir, {**state, "segments": [*state["segments"], done_seg]})
         # nerfstudio's loop runs max_num_iterations steps from wherever it resumed: stop at the run's last step
         if step >= args.steps - 1 or time.perf_counter() - t0[0] > args.budget_s:
             raise Stop

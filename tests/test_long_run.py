@@ -100,3 +100,32 @@ def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_i
         assert torch.isfinite(
             model.get_outputs_for_camera(trainer.pipeline.datamanager.eval_dataset.cameras[0:1])["rgb"]
         ).all()
+
+
+def test_a_run_killed_after_a_milestone_keeps_its_time_and_is_scored_there(tmp_path, monkeypatch):
+    """A training process that dies after its first milestone (killed, out of time) leaves a state that says where
+    it got: the milestone's train time (what gpu_solo scores) and a segment ending at its checkpoint."""
+    import pytest
+
+    from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
+    from willags_ns.trainer import WillagsTrainer
+
+    cfg = SyntheticSceneConfig(num_train=8, num_test=2, width=32, height=24, num_points=400, supersample=1)
+    scene = write_scene(make_scene(cfg), tmp_path / "scene")
+    train_iteration = WillagsTrainer.train_iteration
+
+    def dies_at_step_4(self, step):
+        if step == 4:
+            raise RuntimeError("killed")
+        return train_iteration(self, step)
+
+    monkeypatch.setattr(WillagsTrainer, "train_iteration", dies_at_step_4)
+    run = tmp_path / "run"
+    argv = ["train", "--run-dir", str(run), "--method", "willags-3dgs", "--data", str(scene), "--steps", "8"]
+    with pytest.raises(RuntimeError, match="killed"):
+        long_run.main([*argv, "--milestones", "3,8", "--budget-s", "1e9"])
+    state = json.loads((run / long_run.STATE).read_text())
+    assert list(state["milestone_train_s"]) == ["3"] and state["data"] == str(scene)
+    (seg,) = state["segments"]
+    assert seg["end_step"] == 2 and seg["train_s"] == state["milestone_train_s"]["3"]
+    assert long_run._ckpt_steps(run) == [2]
