@@ -130,12 +130,14 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
         geometry = spec["method"] == REFERENCE
         raw = trainer.pipeline.model
+        points = dm.train_dataparser_outputs.metadata.get("points3D_xyz") if geometry else None
         dump.save(
             Path(regions_dir) / f"{_run_name(spec)}.npz",
             names,
             raw if geometry else None,
             dm.train_dataset.cameras if geometry else None,
             dm.eval_dataset.cameras if geometry else None,
+            points.cpu().numpy() if points is not None else None,
         )
     rec: dict[str, Any] = dict(agg)
     rec["per_image"] = per_image

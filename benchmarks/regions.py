@@ -8,8 +8,9 @@ same for every appearance), and every method of the scene is scored on the same 
   image, in front of it, and no nearer than that camera's own rendered depth there (an occlusion test, ``tol``
   relative). What a static model can learn best.
 - ``few``: seen by 1 or 2 training photos; ``unseen``: by none (the model can only guess there).
-- ``sky``: the Gaussians cover less than half of the pixel (accumulation < 0.5): open sky and far background, drawn
-  by whatever a method has behind its Gaussians.
+- ``sky``: open sky and far background: the Gaussians cover less than half of the pixel (accumulation < 0.5), or
+  the rendered surface lies beyond every photographed one (deeper than the 99th percentile of the depths of the SfM
+  points in front of the test camera: Gaussians a model placed in the sky).
 - ``outlier``: every method's squared error above ``OUTLIER_MSE`` over a 3x3 neighbourhood: content no static model
   of the scene explains (people and other transients of the test photo, found without a detector; also any static
   content that every method misses). It takes precedence over the regions above.
@@ -135,11 +136,26 @@ def _dilate_min(errs: np.ndarray) -> np.ndarray:
     return np.min([p[i : i + h, j : j + w] for i in range(3) for j in range(3)], axis=0)
 
 
-def region_labels(covis: np.ndarray, acc: np.ndarray, errors: Sequence[np.ndarray] = ()) -> np.ndarray:
+def far_depth(points: np.ndarray, c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, w: int, h: int):
+    """The 99th percentile of the depths of the SfM ``points`` [N, 3] that project into a camera (inf: none do)."""
+    u, v, z = project(points, c2w, fx, fy, cx, cy)
+    z = z[(z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)]
+    return float(np.percentile(z, 99)) if len(z) else float("inf")
+
+
+def region_labels(
+    covis: np.ndarray,
+    acc: np.ndarray,
+    errors: Sequence[np.ndarray] = (),
+    depth: np.ndarray | None = None,
+    far: float = float("inf"),
+) -> np.ndarray:
     """Each block's region index (into :data:`REGIONS`) from the reference geometry (``covis`` counts, ``acc``
-    accumulation) and, for ``outlier``, the error maps of every method of the scene."""
+    accumulation, ``depth`` beyond ``far``) and, for ``outlier``, the error maps of every method of the scene."""
     lab = np.where(covis >= COVISIBLE_VIEWS, 0, np.where(covis >= 1, 1, 2)).astype(np.int8)
     lab[acc < 0.5] = 3
+    if depth is not None:
+        lab[depth > far] = 3
     if len(errors):
         every = np.min(np.stack(errors), axis=0)
         lab[_dilate_min(every) > OUTLIER_MSE] = 4
@@ -222,9 +238,12 @@ class RegionDump:
         self.errors.append(error_map(p, g))
         self.thumbs.append((block_mean(right_half(np.clip(g, 0, 1))) * 255).astype(np.uint8))
 
-    def save(self, path: Path, names: Sequence[str], model=None, train_cameras=None, test_cameras=None) -> Path:
+    def save(
+        self, path: Path, names: Sequence[str], model=None, train_cameras=None, test_cameras=None, points=None
+    ) -> Path:
         """Writes the error maps (as root mean squares in float16: :func:`read_errors` squares them back); with a
-        ``model`` and its cameras also the geometry and the photos' right halves (the picture's)."""
+        ``model`` and its cameras also the geometry and the photos' right halves (the picture's); with the SfM
+        ``points`` [N, 3] (the model's world) each test view's far depth."""
         arrays: dict[str, Any] = {"names": np.array(list(names)[: len(self.errors)])}
         for i, e in enumerate(self.errors):
             arrays[f"rms_{i}"] = np.sqrt(e).astype(np.float16)
@@ -237,6 +256,20 @@ class RegionDump:
                 depth, acc = _render_geometry(model, test_cameras, i)
                 arrays[f"covis_{i}"] = covisibility(depth, p["c2w"], p["fx"], p["fy"], p["cx"], p["cy"], views)
                 arrays[f"acc_{i}"] = block_mean(right_half(acc)).astype(np.float32)
+                arrays[f"depth_{i}"] = block_mean(right_half(depth)).astype(np.float32)
+                if points is not None:
+                    arrays[f"far_{i}"] = np.float64(
+                        far_depth(
+                            np.asarray(points, dtype=np.float64),
+                            p["c2w"],
+                            p["fx"],
+                            p["fy"],
+                            p["cx"],
+                            p["cy"],
+                            p["w"],
+                            p["h"],
+                        )
+                    )
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(path, **arrays)
         return path
@@ -285,7 +318,16 @@ def scene_regions(runs: dict[str, list[dict[str, np.ndarray]]]) -> tuple[list[np
     covis, acc = _images(ref, "covis"), _images(ref, "acc")
     n = len(covis)
     firsts = [rs[0] for rs in runs.values() if rs and len(_images(rs[0], "err")) >= n]
-    labels = [region_labels(covis[i], acc[i], [_images(r, "err")[i] for r in firsts]) for i in range(n)]
+    labels = [
+        region_labels(
+            covis[i],
+            acc[i],
+            [_images(r, "err")[i] for r in firsts],
+            ref.get(f"depth_{i}"),
+            float(ref.get(f"far_{i}", np.inf)),
+        )
+        for i in range(n)
+    ]
     scores: dict[str, Any] = {}
     for method, rs in runs.items():
         per_run = [region_scores(_images(r, "err")[:n], labels) for r in rs if len(_images(r, "err")) >= n]
@@ -329,17 +371,20 @@ def region_picture(path: Path, thumbs: Sequence[np.ndarray], labels: Sequence[np
     return path
 
 
-def report(folder: Path, out: Path, pictures: Path | None) -> str:
-    """The markdown table of every scene's regions (and a picture per scene when ``pictures`` is given)."""
+def report(folder: Path, out: Path | None, pictures: Path | None, json_out: Path | None = None) -> str:
+    """The markdown table of every scene's regions (a picture per scene when ``pictures`` is given; the scores as
+    JSON, scene -> method -> region -> share / psnr / runs, when ``json_out`` is)."""
     lines = [
         "| scene | method | runs | " + " | ".join(f"{r} PSNR (share)" for r in ("all", *REGIONS)) + " |",
         "|---|---|---|" + "---|" * (1 + len(REGIONS)),
     ]
+    every: dict[str, Any] = {}
     for scene, runs in sorted(load_dumps(folder).items()):
         got = scene_regions(runs)
         if got is None:
             continue
         labels, scores = got
+        every[scene] = scores
         for method in ("willags", "peer-full", "peer", "splatfacto"):
             if method not in scores:
                 continue
@@ -350,6 +395,11 @@ def report(folder: Path, out: Path, pictures: Path | None) -> str:
             ref = next(r for r in runs[REFERENCE] if "covis_0" in r)
             region_picture(pictures / f"{scene}.png", _images(ref, "gt"), labels)
     text = "\n".join(lines) + "\n"
+    if json_out is not None:
+        import json
+
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(every, indent=1))
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(text)
@@ -363,8 +413,9 @@ def main(argv=None) -> int:
     r.add_argument("dumps", type=Path)
     r.add_argument("--out", type=Path, default=None)
     r.add_argument("--pictures", type=Path, default=None)
+    r.add_argument("--json", type=Path, default=None, help="the scores as JSON (a record of the table)")
     args = ap.parse_args(argv)
-    print(report(args.dumps, args.out, args.pictures), end="")
+    print(report(args.dumps, args.out, args.pictures, args.json), end="")
     return 0
 
 

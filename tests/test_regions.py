@@ -1,6 +1,7 @@
 """benchmarks/regions.py: co-visibility by reprojected depth, the regions of a test view, PSNR per region, and the
 maps a scored run writes (a tiny CPU run)."""
 
+import json
 import math
 
 import numpy as np
@@ -56,6 +57,15 @@ def test_covisibility_of_a_test_view_counts_its_right_half_per_block():
     assert shifted.max() < 3 and shifted.min() == 0  # moved away: its far side is seen by none
 
 
+def test_far_background_is_beyond_every_photographed_surface():
+    pts = np.stack([np.linspace(-1, 1, 200), np.zeros(200), -np.linspace(0, 5, 200)], axis=-1)  # depths 5 to 10
+    far = rg.far_depth(pts, _look_at_plane(0.0), 40.0, 40.0, 20.0, 20.0, 40, 40)
+    assert 9.9 < far <= 10.0
+    assert rg.far_depth(pts + [100.0, 0, 0], _look_at_plane(0.0), 40.0, 40.0, 20.0, 20.0, 40, 40) == float("inf")
+    lab = rg.region_labels(np.full((1, 3), 3), np.ones((1, 3)), depth=np.array([[6.0, 9.0, 40.0]]), far=far)
+    assert [rg.REGIONS[k] for k in lab[0]] == ["covisible", "covisible", "sky"]
+
+
 def test_regions_and_their_psnr():
     covis = np.array([[3, 3, 1, 0]])
     acc = np.array([[1.0, 1.0, 1.0, 0.1]])
@@ -94,6 +104,9 @@ def test_a_scored_run_writes_its_maps_and_the_report_reads_them(tmp_path, monkey
         err, covis, acc = z["rms_0"], z["covis_0"], z["acc_0"]
     assert err.shape == covis.shape == acc.shape and np.isfinite(err).all() and (covis >= 0).all()
     # the pooled right halves' PSNR is the protocol's right-half PSNR over those images (same pixels)
-    text = rg.report(dumps, tmp_path / "regions.md", tmp_path / "pictures")
+    with np.load(dumps / "s-willags.npz") as z:
+        assert z["depth_0"].shape == err.shape and float(z["far_0"]) > 0  # the synthetic scene's points
+    text = rg.report(dumps, tmp_path / "regions.md", tmp_path / "pictures", tmp_path / "regions.json")
     assert "| s | willags | 1 |" in text and (tmp_path / "pictures" / "s.png").exists()
+    assert set(json.loads((tmp_path / "regions.json").read_text())["s"]["willags"]) == {"all", *rg.REGIONS}
     assert np.isfinite(rec["psnr"])
