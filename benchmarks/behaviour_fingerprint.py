@@ -1,4 +1,4 @@
-"""A training run's fingerprint on CPU, to show that a refactor left behaviour unchanged (issue 28).
+"""A training run's fingerprint on CPU, to show that a refactor left behaviour unchanged.
 
 On CPU training is deterministic, so two commits that behave the same print the same numbers to the last digit
 (on the GPU, gsplat's backward accumulates with atomics: two runs of one commit with one seed differ by up to 0.8 dB

@@ -44,16 +44,16 @@ CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "pe
 """The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
 benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`)."""
 CROSSING_METHODS = ("willags-lite", "willags", "willags-paper", "peer", "splatfacto")
-"""The methods issue 27 asks curves of (willags-full, the earlier default, is drawn but not one of them): where two of
-these cross, the issue asks a second seed."""
+"""The methods compared by the curves (willags-full, every component without inspection, is drawn but not one of
+them): where two of these cross, a second seed is wanted."""
 REAL_SCENES = ("reichstag", "sacre-coeur-mini", "south-building")
 SCENES = (*REAL_SCENES, "fox-wild")
-"""The curves' scenes: the real ones and fox-wild (issue 27), in this order."""
+"""The curves' scenes: the real ones and fox-wild, in this order."""
 """Scenes of real photo collections (the fox scenes are rendered); the default scenes of the curves."""
 TARGET_METHOD, TARGET_STEPS = "peer", 15000
 """The quality bar of the time-to-quality table: the peer's mean right-half PSNR at 15000 steps."""
 REACHING = ("willags", "willags-full", "willags-lite", "splatfacto", "willags-paper")
-"""Methods whose time to that bar the table reports (willags first: the issue's question)."""
+"""Methods whose time to that bar the table reports (willags first: the question the table answers)."""
 COLORS = {
     "willags": "C0",
     "willags-full": "C9",
@@ -359,7 +359,7 @@ class Crossing:
 
     @property
     def needs_seed(self) -> bool:
-        """Issue 27 asks two seeds where curves cross: True while a side has one."""
+        """Two seeds are wanted where curves cross: True while a side has one."""
         return min(self.seeds.values()) < 2
 
 

@@ -50,7 +50,7 @@ MEASURE = (
 )
 """How the missing points get measured (printed in the markdown)."""
 SPEED_GOAL = 0.5
-"""The issue's goal: willags reaches the peer's 15000-step PSNR in at most this fraction of the peer's time."""
+"""The goal: willags reaches the peer's 15000-step PSNR in at most this fraction of the peer's time."""
 KNOB_GOAL_DB = 0.5
 """The knob's goal: its PSNR within this many dB of the best run timed alone within its budget."""
 BUDGETS_MIN = (2.0, 5.0, 10.0, 20.0)
@@ -141,8 +141,8 @@ def time_to_target_rows(by_scene: dict[str, list[Point]]) -> list[str]:
 
 
 def crossing_rows(by_scene: dict[str, list[Point]]) -> list[str]:
-    """Markdown: every place two methods' mean curves change order, with the seeds each side has there (issue 27
-    asks two seeds where curves cross; a crossing on one seed may be one run's noise)."""
+    """Markdown: every place two methods' mean curves change order, with the seeds each side has there (two seeds
+    are wanted where curves cross: a crossing on one seed may be one run's noise)."""
     rows = [
         "| scene | methods | between | ahead before -> after | seeds there | a second seed |",
         "|---|---|---|---|---|---|",
@@ -314,8 +314,8 @@ def render_markdown(
         "",
         "## Where the curves cross",
         "",
-        f"Consecutive step counts at which two of the issue's methods ({', '.join(CROSSING_METHODS)}) were both "
-        "scored, with the other one ahead (mean PSNR of the runs at each step count). The issue asks two seeds "
+        f"Consecutive step counts at which two of the compared methods ({', '.join(CROSSING_METHODS)}) were both "
+        "scored, with the other one ahead (mean PSNR of the runs at each step count). Two seeds are wanted "
         "there; `seeds there`: the fewest distinct seeds the method has at either of the two step counts.",
         "",
         *crossing_rows(by_scene),

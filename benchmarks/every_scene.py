@@ -7,8 +7,8 @@ decision for a scene did not change with the surround sky and the colour-twin te
 south-building: tests/test_inspect.py checks the decisions), its records are generalisation.auto_records'. On
 liberty the inspector now picks no mask and the sky behind every pixel with its alpha penalty: exactly the model of
 `willags-skyalpha-nomask` (tests/test_autoconfig.py checks), whose records count, with `willags` records from
-INSPECTOR_SINCE on; liberty's earlier `willags` records are of the previous inspector's choice (the mask, the sky
-above the skyline).
+INSPECTOR_SINCE on; liberty's earlier `willags` records are of the inspector without those two rules (the mask, the
+sky above the skyline).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from benchmarks.generalisation import _cell, _diff, _grid, _mean, auto_records
 REAL_SCENES = ("liberty", "reichstag", "sacre-coeur-mini", "south-building")
 INSPECTOR_SINCE = "2026-11-26T10:25:13"
 """`willags` records dated from here on (commit ceadd55; a record is dated when its run starts) ran the inspector with the surround
-sky and the colour-twin transient test; liberty's earlier ones ran the previous inspector."""
+sky and the colour-twin transient test; liberty's earlier ones ran the inspector without them."""
 RESOLVED_AS = {"liberty": ("willags-skyalpha-nomask",)}
 """Per scene, methods named in full whose model is exactly what today's default resolves to there."""
 SKY_CANDIDATES = ("willags-skyalpha", "willags-skyalpha-support", "willags-skyalpha-nomask")
@@ -73,12 +73,12 @@ def goal_cell(today: list[dict[str, Any]], peer: list[dict[str, Any]]) -> str:
 
 def sky_rows(records: list[dict[str, Any]]) -> list[str]:
     """One row per real scene: splatfacto, the peer, today's default and its margin over the peer against the goal,
-    the previous default, the sky candidates."""
+    the inspector's choice without the surround sky and the twin test (mask + skyline sky), the sky candidates."""
     by = _grid(records)
     cands = [c for c in SKY_CANDIDATES if any(k[1] == c for k in by)]
     head = (
-        "| scene | splatfacto | peer | **willags** | willags − peer | goal (peer + 1 dB) | previous default | "
-        "willags − previous | " + " | ".join(cands) + " |"
+        "| scene | splatfacto | peer | **willags** | willags − peer | goal (peer + 1 dB) | mask + skyline sky | "
+        "willags − it | " + " | ".join(cands) + " |"
     )
     out = [head, "|" + "---|" * (8 + len(cands))]
     for sc in REAL_SCENES:
@@ -112,7 +112,7 @@ def mask_rows(records: list[dict[str, Any]]) -> list[str]:
     for sc in REAL_SCENES:
         groups = [("willags (today)", today_records(by, sc))]
         if sc in RESOLVED_AS:
-            groups.append(("previous default", previous_records(by, sc)))
+            groups.append(("mask + skyline sky", previous_records(by, sc)))
         groups += [(c, by.get((sc, c), [])) for c in ("willags-skyalpha", "willags-skyalpha-support")]
         for name, recs in groups:
             if not recs:
@@ -139,13 +139,13 @@ def every_scene_section(records: list[dict[str, Any]]) -> list[str]:
         "## Every real scene, liberty included: the default, the peer, the sky candidates (5000 steps)",
         "",
         "Right-half PSNR (NeRF-W protocol), splatfacto's stock schedule (1/4 resolution to step 3000, 1/2 to 5000, "
-        "scored at full), mean ±half the range over seeds (n runs), fidelity-grid records of every session (runs "
+        "scored at full), mean ±half the range over seeds (n runs), fidelity-grid records (runs "
         "shared one GPU). **willags**: what the default trains after inspecting the scene (liberty: no mask, the sky "
         "behind every pixel with the alpha penalty, i.e. `willags-skyalpha-nomask`'s model; the other scenes: as "
-        "before, their inspector decisions did not move). **previous default**: liberty's `willags` runs before the "
+        "before, their inspector decisions did not move). **mask + skyline sky**: liberty's `willags` runs before the "
         f"surround sky and the colour-twin transient test ({INSPECTOR_SINCE}). Decisions: docs/inspect.md. Command: "
         "`GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_shared.sh start "
-        '"liberty:willags:<tag>:42 ..."` (docs/gpu_notes.md).',
+        '"liberty:willags:<tag>:42 ..."`.',
         "",
         *rows,
         "",

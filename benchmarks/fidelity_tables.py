@@ -1,4 +1,4 @@
-"""Markdown sections of the fidelity grid (issue 10, configs/benchmark_gpu_fidelity.json): the 5000-step scene
+"""Markdown sections of the fidelity grid (configs/benchmark_gpu_fidelity.json): the 5000-step scene
 table beside the quoted peer, the diagnosis, the per-scene ablations, the per-view tables of the real scenes, the
 15000-step table and the full-length runs (benchmarks/long_run.py)."""
 
@@ -59,7 +59,7 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
         return _values(by, scene, method, key)
 
     out = [
-        "## Fidelity grid (issue 10): 5000 steps, stock schedule, NeRF-W protocol",
+        "## Fidelity grid: 5000 steps, stock schedule, NeRF-W protocol",
         "",
         "`python benchmarks/run_benchmark.py --grid configs/benchmark_gpu_fidelity.json` (on the lent H100 through "
         "`GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_scenes.sh OUT scene:method:tag:seed ...`, "
@@ -149,7 +149,7 @@ def ablation_rows(by: dict[tuple[str, str], list[dict[str, Any]]], scenes: list[
         "Right-half PSNR of the default, and for each variant its difference to the default's mean (positive: the "
         "variant scores higher) in bold, then its own mean ± half the range (n). A positive `willags-nomask` means "
         "the mask costs on that scene; a negative one, that it pays. These are the H100 fidelity grid's records: the "
-        "default before issue 26 added the sky above the SfM skyline and the mask's safeguard (today's default and "
+        "model without the sky above the SfM skyline and the mask's safeguard (today's default and "
         'its candidates: "Every scene at once" below).',
         "",
         "| scene | willags | " + " | ".join(ABLATIONS) + " |",
@@ -259,7 +259,7 @@ def fifteen_k_section(records: list[dict[str, Any]]) -> list[str]:
         return _mean_spread(v)
 
     out = [
-        "## 15000 steps (issue 10, budget honesty): full resolution from step 6000",
+        "## 15000 steps: full resolution from step 6000",
         "",
         "`GRID=configs/benchmark_gpu_15k.json bash benchmarks/gpu_scenes.sh OUT scene:method:h100-15k:42 ...` "
         "(reichstag: `benchmarks/long_run.py`, below). Stock schedule with the learning-rate schedules of each "
@@ -287,7 +287,7 @@ def long_run_section(records: list[dict[str, Any]]) -> list[str]:
     if not recs:
         return []
     out = [
-        "## Full-length runs (issue 11): `benchmarks/long_run.py`, stock schedule",
+        "## Full-length runs: `benchmarks/long_run.py`, stock schedule",
         "",
         "Trained in checkpointed segments across device calls (`benchmarks/gpu_long.sh`, or one run after another "
         "alone on the GPU: `benchmarks/gpu_solo.sh`; each call resumes from the "

@@ -1,8 +1,8 @@
-"""docs/benchmarks.md, section "Every scene at once" (issue 26): the default, willags-auto and each candidate default
+"""docs/benchmarks.md, section "Every scene at once": the default, willags-auto and each candidate default
 beside splatfacto and the peer on every shared scene, 5000 steps, and the mask's "static observations masked".
 
 A default is decided on every real scene and the fox scenes at once, with 2 seeds: this table is where that decision
-is read. It pools the fidelity grid's 5000-step records of every session (tags h100-r*, h200-r*).
+is read. It pools the fidelity grid's 5000-step records of every GPU (tags h100-r*, h200-r*).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from benchmarks.fidelity_tables import _signed
 from benchmarks.methods import AUTO_DEFAULT_SINCE, AUTO_SAME_SINCE
 
 TAGS = ("h100-r", "h200-r")
-"""Tag prefixes of the fidelity grid's repeats (configs/benchmark_gpu_fidelity.json), H100 and H200 sessions."""
+"""Tag prefixes of the fidelity grid's repeats (configs/benchmark_gpu_fidelity.json), on H100s and H200s."""
 SCENES = (
     "reichstag",
     "sacre-coeur-mini",
@@ -32,19 +32,19 @@ CANDIDATES = (
     "willags-skyalpha",
     "willags-auto-support",
 )
-"""Candidate defaults of issue 26, in the order they are shown (those with no record are left out)."""
+"""Candidate defaults (the sky and the safeguard, alone and together), in the order they are shown (those with no record are left out)."""
 NO_KEYPOINTS = ("fox-clean", "fox-appearance-only", "fox-transient-only", "fox-wild")
 """Scenes without COLMAP keypoints (nerfstudio transforms.json): the default's sky (above the SfM skyline) and the
-mask's safeguard are off there, so the default trains exactly as the previous one (tests/test_train.py) and the
-previous default's records stand for it."""
+mask's safeguard are off there, so the default trains exactly as the model without both (tests/test_train.py) and
+that model's records stand for it."""
 DEFAULT_SINCE = AUTO_SAME_SINCE
 """Records of `willags` and `willags-auto` dated from here on (the time of commit 7bf8eff; a record is dated when its run starts) are of today's default: the sky above
-the skyline and the mask's safeguard, and willags-inspect's transient threshold 0.12. Earlier ones are of the previous
-default (no sky, no safeguard; threshold 0.2)."""
+the skyline and the mask's safeguard, and willags-inspect's transient threshold 0.12. Earlier ones are of the model
+without both (no sky, no safeguard; threshold 0.2)."""
 SAME_AS_DEFAULT = ("willags-skyopen-support",)
 """Methods whose settings are today's default, named in full (benchmarks/methods.py)."""
 SAME_AS_PREVIOUS = ("willags-prev",)
-"""Methods whose settings are the previous default, named in full."""
+"""Methods whose settings are the default without the sky and the safeguard, named in full."""
 AUTO_UNCHANGED = {
     "reichstag": ("willags-auto-skyopen-support",),  # transient score 0.09: mask off under 0.2 and 0.12
     "south-building": ("willags-auto",),  # score 0.02, open background 0.04: mask and sky off, before and now
@@ -107,7 +107,7 @@ def default_records(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str)
 
 
 def previous_records(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str) -> list[dict[str, Any]]:
-    """Records of the previous default (no sky, no safeguard) on `scene`."""
+    """Records of the default without the sky and the safeguard on `scene`."""
     recs = [r for r in by.get((scene, "willags"), []) if not _today(r)]
     return recs + [r for m in SAME_AS_PREVIOUS for r in by.get((scene, m), [])]
 
@@ -122,12 +122,12 @@ def auto_records(by: dict[tuple[str, str], list[dict[str, Any]]], scene: str) ->
 
 
 def scene_rows(records: list[dict[str, Any]]) -> list[str]:
-    """The table: per scene, splatfacto / peer / today's default / the previous default / willags-auto / candidates,
+    """The table: per scene, splatfacto / peer / today's default / the default without sky and safeguard / willags-auto / candidates,
     with the differences that decide."""
     by = _grid(records)
     cands = [c for c in CANDIDATES if any(k[1] == c for k in by)]
     head = (
-        "| scene | splatfacto | peer | **willags** | willags − peer | previous default | willags − previous | "
+        "| scene | splatfacto | peer | **willags** | willags − peer | no sky, no safeguard | sky + safeguard gain | "
         "willags-auto | auto − willags | " + " | ".join(f"{c} | − willags" for c in cands)
     )
     out = [head.rstrip(" |") + " |", "|" + "---|" * (9 + 2 * len(cands))]
@@ -192,24 +192,24 @@ def generalisation_section(records: list[dict[str, Any]]) -> list[str]:
     if not _grid(records):
         return []
     return [
-        "## Every scene at once (issue 26): the default, willags-auto and candidate defaults, 5000 steps",
+        "## Every scene at once: the default, willags-auto and candidate defaults, 5000 steps",
         "",
         "**willags** here is the full model (`willags-full` since the default inspects the scene first: its `willags` "
         f"records from {AUTO_DEFAULT_SINCE} on count as willags-auto): the sky above each photo's SfM skyline and "
         "the mask's safeguard (since "
         f"commit 7bf8eff: `willags` records from {DEFAULT_SINCE}, and `willags-skyopen-support`); on the fox scenes, "
-        "which have no COLMAP keypoints, it is exactly the previous default (tests/test_train.py), whose records count. "
-        "**previous default**: no sky, no safeguard (`willags` before the change, `willags-prev`). **willags-auto**: "
+        "which have no COLMAP keypoints, it is exactly the model without them (tests/test_train.py), whose records count. "
+        "**no sky, no safeguard**: `willags` records before the change, and `willags-prev`. **willags-auto**: "
         "today's (transient threshold 0.12), with the earlier records whose settings it repeats (reichstag: "
         "`willags-auto-skyopen-support`; south-building and the fox scenes: `willags-auto`, whose inspector decision "
-        "did not move): the default `willags` since it was decided here (docs/fidelity.md, eleventh session).",
+        "did not move): the default `willags` since it was decided here (docs/design.md, the model).",
         "",
         "Right-half PSNR (NeRF-W protocol), splatfacto's stock schedule, mean ±half the range over seeds (n runs, "
-        "seeds 42-47), every fidelity-grid record of every session (H100 tags h100-r*, H200 tags h200-r*; runs shared "
+        "seeds 42-47), every fidelity-grid record (H100 tags h100-r*, H200 tags h200-r*; runs shared "
         "one GPU). splatfacto and the peer are run by this harness (`benchmarks/peer.py`). A candidate becomes the "
         "default only when it is not worse on any scene beyond the seed spread; † marks records whose tree was not "
         "exactly their commit (`tree_note` in benchmarks/records/benchmarks.json). Decisions and their reasons: "
-        "docs/fidelity.md, section of the eighth session.",
+        "docs/design.md.",
         "",
         *scene_rows(records),
         *static_obs_rows(records),

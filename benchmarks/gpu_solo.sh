@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs ALONE on the GPU, one after another (their train times are the methods' own), each scored at its milestones
 # right after it trained (one evaluation process per milestone, nothing training meanwhile), as a queue that goes on
-# across back-to-back device calls. The curves of issue 27 (benchmarks/curves.py) and the knob's check come from it.
+# across back-to-back device calls. The curves (benchmarks/curves.py) and the knob's check come from it.
 #
 #   export WILLAGS_COMMIT=<sha>; source benchmarks/gpu_env.sh
 #   SOLO_DATA=".gpu-data" bash benchmarks/gpu_solo.sh start "reichstag:peer:15000 reichstag:willags:30000 ..."

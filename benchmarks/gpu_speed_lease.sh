@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The speed and several-GPU records of one lease of two GPUs (nvidia-h100-x2 or its H200 twin), in back-to-back
-# device calls (docs/gpu_notes.md, docs/distributed.md). Every training run is alone on its GPU(s): the host's
+# device calls (docs/distributed.md). Every training run is alone on its GPU(s): the host's
 # other GPU runs other jobs meanwhile. willags and splatfacto of a ratio are on the same machine.
 #
 #   export WILLAGS_COMMIT=<sha>

@@ -1,6 +1,6 @@
 """GPU measurement suite for willags: rasteriser parity, train-step time and profile, render FPS, peak VRAM.
 
-One call does everything a lent GPU session needs (see docs/gpu_notes.md):
+One process measures all of it on one GPU:
 
     python benchmarks/gpu_suite.py --all --n-gaussians 1000000 --size 800 --json-out $OUT/gpu_suite.json
     python benchmarks/gpu_suite.py --quick --all            # CPU smoke test (< 60 s): torch backend only
@@ -140,7 +140,7 @@ def summary(res: dict, env: dict, args, t_start: float) -> None:
             (
                 f"step ratio willags / {s.get('baseline')}",
                 f"{w['step_ratio_vs_baseline']:.2f} ({w['step_ms']:.1f} ms)",
-                "<= 1.5 (issue 11)",
+                "<= 1.5 (goal)",
             )
         )
         for name, x in v.items():

@@ -92,7 +92,7 @@ METHODS: dict[str, MethodSpec] = {
         note="the full model with auto_config (today's default, its earlier name): willags-inspect switches latent / "
         "mask / sky",
     ),
-    # issue 26: willags-auto on top of the candidate defaults (auto's sky switch keeps the method's sky.region)
+    # willags-auto on top of the candidate defaults (auto's sky switch keeps the method's sky.region)
     "willags-auto-support": MethodSpec(
         "willags",
         (("auto_config", True), ("sky.region", "everywhere"), ("mask.safeguard.enabled", True)),
@@ -113,7 +113,7 @@ METHODS: dict[str, MethodSpec] = {
     ),
     "willags-paper-novae": MethodSpec("willags-paper", (("latent.kind", "embedding"),), note="paper ablation: no VAE"),
     # the paper preset's south-building runs lose PSNR on their own training views from 1k to 5k steps
-    # (docs/fidelity.md, thirteenth session): which of its differences from the default does it
+    # (records h200-curve15, h200-curve15-s43): which of its differences from the default does it
     "willags-paper-nomask": MethodSpec("willags-paper", (("mask.enabled", False),), note="paper ablation: no mask"),
     "willags-paper-support": MethodSpec(
         "willags-paper",
@@ -198,7 +198,7 @@ for _name, _over, _note in (
         (("sky.enabled", True), ("sky.region", "everywhere"), ("mask.safeguard.enabled", False), ("sh_degree", 1)),
         "sky everywhere and SH degree 1, no safeguard",
     ),
-    # issue 26 (sky and safeguard settings named in full, so each keeps its meaning now that the default has both):
+    # the sky and the safeguard (settings named in full, so each keeps its meaning whatever the default has):
     # the mask's SfM-track safeguard, and the first candidate default (sky with its alpha penalty and the safeguard),
     # measured with 2 seeds on the six shared scenes (h200-r2) and rejected: -0.5 to -1.8 dB
     (
@@ -214,10 +214,10 @@ for _name, _over, _note in (
             ("sky.alpha_penalty", 0.1),
             ("mask.safeguard.enabled", True),
         ),
-        "sky with the alpha penalty and the mask's safeguard (issue 26's first candidate default)",
+        "sky with the alpha penalty and the mask's safeguard (a candidate default, rejected)",
     ),
     # the sky only above each training photo's SfM skyline, random background elsewhere (sky.region "open"), so the
-    # scene's Gaussians stay opaque; alone and with the safeguard. The pair is the default since this session
+    # scene's Gaussians stay opaque; alone and with the safeguard. The pair is the default's setting
     # (h200-r3: better on all three real scenes, 2 seeds each; willags-skyopen-support = willags)
     (
         "skyopen",
@@ -227,17 +227,17 @@ for _name, _over, _note in (
     (
         "skyopen-support",
         (("sky.enabled", True), ("sky.region", "open"), ("mask.safeguard.enabled", True)),
-        "sky above the skyline only, and the mask's safeguard (= the default since issue 26)",
+        "sky above the skyline only, and the mask's safeguard (= the default)",
     ),
     (
         "prev",
         (("sky.enabled", False), ("mask.safeguard.enabled", False)),
-        "the default before issue 26: no sky, no safeguard",
+        "the default without the sky and the safeguard",
     ),
     ("gamma", (("modulation.gamma", True),), "per-channel gamma g(z) in the global colour transform"),
     # the local residual's price and width (modulation.local_penalty 0.01, local_hidden 64): tried because the
     # peer's oracle beats the default's by 1.7 dB on reichstag's one test view with a dark, cloudy sky (06373813),
-    # a loss of capacity, not inference; measured, none of the three moves it (docs/fidelity.md)
+    # a loss of capacity, not inference; measured, none of the three moves it (records h100-r10, h100-r10b)
     ("lowpen", (("modulation.local_penalty", 0.001),), "local residual penalised at a tenth (0.001)"),
     ("nopen", (("modulation.local_penalty", 0.0),), "local residual unpenalised"),
     (
@@ -318,7 +318,7 @@ def stock_adam(config) -> None:
 AUTO_DEFAULT_SINCE = "2026-11-25T20:05:00"
 """From here on (a record is dated when its run starts) the method `willags` inspects the scene first
 (auto_config); its earlier records are of the full model without inspection, the configuration now named
-`willags-full` (at its version of the time: the default changed before, see docs/fidelity.md)."""
+`willags-full` (at its version of the time: the default changed before, see docs/design.md)."""
 
 
 AUTO_SAME_SINCE = "2026-11-25T15:26:40"

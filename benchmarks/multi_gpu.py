@@ -271,7 +271,7 @@ def _stop(procs: list[subprocess.Popen]) -> None:
     for p in procs:
         if p.poll() is None:
             try:
-                os.killpg(p.pid, signal.SIGTERM)  # the launcher and the ranks it spawned: its own session
+                os.killpg(p.pid, signal.SIGTERM)  # the launcher and the ranks it spawned: one process group
             except ProcessLookupError:
                 pass
     deadline = time.time() + 10

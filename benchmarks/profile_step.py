@@ -1,7 +1,7 @@
 """Where a training step's time goes: one method on one scene, a window of steps under torch.profiler.
 
-Alone on an H200 a 15k run of the default took 1.4x (south-building) to 1.8x (reichstag) splatfacto's time, with a
-third fewer Gaussians on reichstag (docs/gpu_notes.md, twelfth session): the difference is outside the rasteriser.
+A whole run of the default takes longer than splatfacto's even where it has fewer Gaussians (docs/design.md, Speed):
+the difference is outside the rasteriser.
 This splits a step into what the profiler sees, for willags and splatfacto alike, so the next change is chosen from
 a measurement:
 
@@ -16,8 +16,8 @@ a measurement:
   of a step that both methods share by name (the model's get_outputs, get_metrics_dict, get_loss_dict; the
   densification strategy; the optimisers; the next photo) and willags' own (its colours, rasterisation, background), each timed
   under a ``torch.profiler.record_function`` label. Inclusive and nested (a step's colours are inside its
-  get_outputs); the backward pass is what the labels leave out. Measured at 1000 steps: the default's step had
-  ~100 more launches than splatfacto's (docs/gpu_notes.md); this says which part owns them.
+  get_outputs); the backward pass is what the labels leave out. The default's step launches more kernels than
+  splatfacto's (docs/design.md, Speed); this says which part owns them.
 
     python -m benchmarks.profile_step --method willags --data .gpu-r/reichstag --warmup 3000 --steps 50 \\
         --out $OUT/profile-reichstag-willags.json

@@ -1,6 +1,6 @@
 """A real scene's picture sheet: the right halves of up to 4 test views as ground truth | one row per run (default:
 splatfacto, peer, willags), and the transient mask of 4 training images, from the sheets that runs with
-WILLAGS_BENCH_RENDERS write (docs/real_scene_comparison.png: reichstag; docs/pictures_<scene>.png: issue 26).
+WILLAGS_BENCH_RENDERS write (docs/real_scene_comparison.png: reichstag; docs/pictures_<scene>.png: every real scene).
 
     WILLAGS_BENCH_RENDERS=OUT/renders GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_scenes.sh OUT \\
         reichstag:splatfacto:h100-r3:42 reichstag:peer:h100-r3:42 reichstag:willags:h100-r4:43

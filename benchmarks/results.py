@@ -34,7 +34,7 @@ STEP_METHODS = ("willags", "willags-full", "peer", "splatfacto")
 STEP_COUNTS = (1000, 2000, 5000, 10000, 15000, 30000)
 
 COMMANDS = [
-    "# on a lent GPU (docs/gpu_notes.md): 5000-step runs, seeds 42 and 43, several sharing the GPU",
+    "# on a GPU machine: 5000-step runs, seeds 42 and 43, several sharing the GPU",
     "export WILLAGS_COMMIT=<sha>; source benchmarks/gpu_env.sh",
     'GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_shared.sh start "reichstag:willags:<tag>:42 ..."',
     "bash benchmarks/gpu_shared.sh wait $OUT 540          # each later call too: brings back what finished",
@@ -165,7 +165,7 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "## Longer training: PSNR at each step count",
         "",
         "Mean PSNR over the runs at each step count and the median training time of the runs alone on one GPU "
-        "(set-up and evaluation excluded; different GPU models and sessions differ in speed). Every run of the "
+        "(set-up and evaluation excluded; different GPU models and machines differ in speed). Every run of the "
         "method at that step count counts, from the grids above and from longer runs scored at milestones, so a "
         "5k cell can differ from the tables above. Plots, crossings and every run: [curves.md](curves.md).",
         "",
@@ -183,9 +183,9 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "per-view score, the speed suite, the CPU runs).",
         "- [curves.md](curves.md): PSNR against training time per scene.",
         "- [design.md](design.md): why the default is what it is, each choice with the measurement behind it.",
-        "- [fidelity.md](fidelity.md): the lab notebook of those measurements, session by session.",
-        "- [gpu_notes.md](gpu_notes.md): running on a lent GPU, the speed of a training step.",
         "- [inspect.md](inspect.md): what `willags-inspect` measures and how it decides.",
+        "- [notebook/](../notebook/README.md): the lab log in which each was measured, with its commands (kept "
+        "outside the docs).",
         "",
     ]
     return "\n".join(out)

@@ -279,9 +279,9 @@ def machine_description(device: str) -> str:
 
 
 def _git_commit(repo: Path = REPO) -> str | None:
-    """Short HEAD (+dirty) of the checkout, or $WILLAGS_COMMIT when set: the lent GPU machine runs a copy of the
-    working tree whose git metadata is not the source's (it reported the session's first commit), so GPU commands
-    pass the commit they were written at."""
+    """Short HEAD (+dirty) of the checkout, or $WILLAGS_COMMIT when set: a remote GPU machine may run a copy of the
+    working tree whose git metadata is not the source's (it can report another commit), so GPU commands pass the
+    commit they were written at."""
     if os.environ.get("WILLAGS_COMMIT"):
         return os.environ["WILLAGS_COMMIT"]
     try:

@@ -285,7 +285,7 @@ def _speed_label(r: dict[str, Any]) -> str:
 def _speed_table(recs: list[dict[str, Any]]) -> list[str]:
     """Records of benchmarks/gpu_suite.py (train step, render, memory, parity at a fixed N): one row per variant."""
     out = [
-        f"### Train step / render / memory: {recs[0]['scene']} (benchmarks/gpu_suite.py; details in docs/gpu_notes.md)",
+        f"### Train step / render / memory: {recs[0]['scene']} (benchmarks/gpu_suite.py)",
         "",
         "| variant | step ms | ratio vs splatfacto | extra peak VRAM GB | host syncs/step | render FPS ratio vs "
         "splatfacto | render FPS ratio vs gsplat | parity fwd / grad rel. err |",

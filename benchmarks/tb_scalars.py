@@ -4,7 +4,7 @@
 
 Why: the training PSNR and the mask's share are logged every few steps and are noisy (each step is one photo);
 means over windows of steps show a trend, e.g. whether a run keeps fitting its own training views or loses them
-(the paper preset on south-building, docs/fidelity.md). Reads every events file under RUN_DIR, in step order.
+(the paper preset on south-building: docs/design.md, the mask's feedback loop). Reads every events file under RUN_DIR, in step order.
 """
 
 import argparse

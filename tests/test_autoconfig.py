@@ -89,7 +89,7 @@ def test_willags_auto_method_is_registered():
 
 
 def test_the_default_inspects_first_and_willags_full_does_not():
-    """`willags` is the full model with auto_config (docs/fidelity.md); `willags-full` is the same model without
+    """`willags` is the full model with auto_config (docs/design.md); `willags-full` is the same model without
     inspection; `willags-auto` is another name of the default."""
     from nerfstudio.plugins.registry import discover_methods
 

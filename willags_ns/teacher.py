@@ -34,7 +34,7 @@ class TeacherConfig:
     """Render the teacher's colours as 3 extra channels of the student's rasterisation (same Gaussians, same
     camera) instead of a second rasterisation. Identical pseudo-GT and identical student gradients (the teacher
     channels are detached, so their share of every geometry gradient is zero); saves the teacher's projection,
-    sorting and compositing (measured in docs/gpu_notes.md)."""
+    sorting and compositing (measured: docs/design.md, the model)."""
 
 
 def make_teacher(student: nn.Module) -> nn.Module:

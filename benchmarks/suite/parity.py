@@ -69,7 +69,7 @@ def section_parity(args, cuda: bool) -> dict:
                 row["f64_error"] = short_exc(e)
             if cuda:
                 gs = _run_case(case, "gsplat", dev, torch.float32, weights)
-                a, b = t32, gs  # the metric: torch backend vs gsplat
+                a, b = t32, gs  # the parity metric: torch backend vs gsplat
                 if ref is not None:
                     row["fwd_gsplat_vs_f64"] = max(_rel(gs[0], ref[0]), _rel(gs[1], ref[1]))
                     row["grad_gsplat_vs_f64"] = max(_rel(gs[2][k], ref[2][k]) for k in names)

@@ -1,0 +1,53 @@
+"""README.md, docs/ and notebook/: every relative link points at a file of the repository, and every `#anchor` into a
+markdown page at one of its headings (GitHub's slugs)."""
+
+import re
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PAGES = sorted([REPO / "README.md", *(REPO / "docs").glob("*.md"), *(REPO / "notebook").glob("*.md")])
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
+FENCE = re.compile(r"^```.*?^```", re.S | re.M)
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def anchors(page: Path) -> set[str]:
+    text = FENCE.sub("", page.read_text())
+    return {slug(m.group(1)) for m in re.finditer(r"^#+\s+(.*)$", text, re.M)}
+
+
+def links(page: Path) -> list[str]:
+    return LINK.findall(FENCE.sub("", page.read_text()))
+
+
+def test_slug_follows_github():
+    assert slug("Choosing an appearance: the SPEC") == "choosing-an-appearance-the-spec"
+    assert slug("A camera's path through `get_outputs`") == "a-cameras-path-through-get_outputs"
+
+
+def test_a_dead_link_is_found(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("# Title\n\n[here](missing.md) [there](page.md#title) [nowhere](page.md#nope)\n")
+    assert links(page) == ["missing.md", "page.md#title", "page.md#nope"]
+    assert not (tmp_path / "missing.md").exists() and "title" in anchors(page) and "nope" not in anchors(page)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(REPO)))
+def test_every_relative_link_resolves(page: Path):
+    dead = []
+    for target in links(page):
+        if re.match(r"[a-z]+:", target):  # http:, https:, mailto:
+            continue
+        path, _, anchor = target.partition("#")
+        file = (page.parent / path).resolve() if path else page
+        if not file.exists():
+            dead.append(target)
+        elif anchor and file.suffix == ".md" and anchor not in anchors(file):
+            dead.append(target)
+    assert not dead, f"{page.relative_to(REPO)}: dead links {dead}"
