@@ -183,7 +183,7 @@ def save_masks(path: Path, pairs: list[tuple[Any, Any]], height: int = 200) -> P
 def training_mask(model, idx: int):
     """Training image `idx`'s last mask as training used it (True = supervised): the perceptual mask with the SfM
     safeguard applied."""
-    from willags_ns.static_support import apply_support
+    from willags_ns.mask.static_support import apply_support
 
     raw = model._mask_cache[idx]
     return apply_support(raw, model.static_support(idx, *raw.shape))
@@ -193,7 +193,7 @@ def static_observation_scores(model) -> dict[str, Any]:
     """ "Static observations masked": the share of the training images' observations of SfM points with a track of
     >= 5 training images that the last mask of each image flags as transient (each of them shows static scene, so
     0 is right), for the mask as training used it and for the perceptual mask alone (before the safeguard)."""
-    from willags_ns.static_support import masked_share, observations_masked
+    from willags_ns.mask.static_support import masked_share, observations_masked
 
     used, raw = [], []
     for idx, mask in model._mask_cache.items():

@@ -135,7 +135,7 @@ def scale_schedules(config: Any, n: int) -> dict[str, Any]:
 def build_config(spec: dict[str, Any]) -> Any:
     """The TrainerConfig of a run spec (written by `run`, read by `train`)."""
     import willags_ns.method_configs  # noqa: F401  (registers every method's factory)
-    from willags_ns.trainer import PRESET_CONFIGS
+    from willags_ns.engine.trainer import PRESET_CONFIGS
 
     config = PRESET_CONFIGS[spec["method"]]()
     n = spec["devices"] * spec["machines"]
@@ -478,7 +478,7 @@ def cmd_run(args: argparse.Namespace) -> None:
         spec_path.write_text(json.dumps(spec, indent=1))
         if args.dry_run:
             import willags_ns.method_configs  # noqa: F401  (registers every method's factory)
-            from willags_ns.trainer import PRESET_CONFIGS
+            from willags_ns.engine.trainer import PRESET_CONFIGS
 
             schedule = scale_schedules(PRESET_CONFIGS[args.method](), run.total)
             print(f"{run.name}: {run.total} GPUs, {res['steps']} steps, ~{estimate_s(run, images):.0f} s; {schedule}")

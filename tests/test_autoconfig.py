@@ -93,8 +93,8 @@ def test_the_default_inspects_first_and_willags_full_does_not():
     inspection; `willags-auto` is another name of the default."""
     from nerfstudio.plugins.registry import discover_methods
 
+    from willags_ns.engine.trainer import preset_defaults
     from willags_ns.method_configs import willags_config, willags_full_config
-    from willags_ns.trainer import preset_defaults
 
     methods, _ = discover_methods()
     default, full, auto = methods["willags"], methods["willags-full"], methods["willags-auto"]

@@ -8,7 +8,7 @@ pytest.importorskip("nerfstudio")
 
 from nerfstudio.configs import external_methods  # noqa: E402
 
-from willags_ns._compat import quick_external_method_check  # noqa: E402
+from willags_ns.engine.compat import quick_external_method_check  # noqa: E402
 
 
 def test_external_methods_listed_without_reading_the_stack(monkeypatch):

@@ -18,7 +18,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from willags_ns.distributed import (
+from willags_ns.engine.distributed import (
     DataParallelError,
     GradientAverager,
     RankSyncedStrategy,
@@ -104,7 +104,7 @@ def _collectives(rank: int) -> None:
     # them), so the broadcast here refuses them as NCCL does
     net.register_buffer("cols", torch.arange(6.0).reshape(2, 3).t() * (rank + 1))
     assert not net.cols.is_contiguous()
-    import willags_ns.distributed as wd
+    import willags_ns.engine.distributed as wd
 
     gloo_broadcast = wd.dist.broadcast
 

@@ -8,7 +8,7 @@ import torch
 
 from benchmarks.generalisation import generalisation_section, scene_rows, static_obs_rows
 from benchmarks.harness import static_observation_scores, training_mask
-from willags_ns.static_support import StaticSupportConfig, support_map
+from willags_ns.mask.static_support import StaticSupportConfig, support_map
 
 
 def _rec(scene, method, psnr, tag="h200-r1", **kw):

@@ -2,7 +2,7 @@ import pytest
 import torch
 from torchmetrics.functional.image import structural_similarity_index_measure
 
-from willags_ns.losses import masked_dssim, masked_l1, reconstruction_loss, total_loss
+from willags_ns.objective.losses import masked_dssim, masked_l1, reconstruction_loss, total_loss
 
 
 def _pair(seed=0, b=2, h=24, w=32):
@@ -109,7 +109,7 @@ def test_cuda_matches_cpu():
 def test_separable_ssim_map_equals_torchmetrics_map_and_gradients(h, w):
     """ssim_map (two 1D window passes) is torchmetrics' full SSIM map (one 2D window), values and gradients, at
     3DGS's window and at the smaller windows of tiny images (ssim_window)."""
-    from willags_ns.losses import ssim_map, ssim_window
+    from willags_ns.objective.losses import ssim_map, ssim_window
 
     g = torch.Generator().manual_seed(h * 100 + w)
     x = torch.rand(2, 3, h, w, generator=g, dtype=torch.float64, requires_grad=True)

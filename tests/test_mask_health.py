@@ -5,7 +5,7 @@ import warnings
 import pytest
 import torch
 
-from willags_ns.mask_health import MaskHealth, MaskHealthConfig, WindowMeans, feedback_loop
+from willags_ns.mask.health import MaskHealth, MaskHealthConfig, WindowMeans, feedback_loop
 
 # the paper preset on south-building, seed 42, one H200 (benchmarks/records/gpu_runs/h200_paper_mask_diag_session15.json):
 # means over 250 steps from the mask's start (step 500) to step 2000, where its test PSNR fell 18.45 -> 15.57

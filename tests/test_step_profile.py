@@ -5,7 +5,7 @@ import json
 
 import torch
 
-from willags_ns.step_profile import SPANS, StepProfile, spans_ms
+from willags_ns.engine.step_profile import SPANS, StepProfile, spans_ms
 
 
 def test_spans_are_differences_of_their_marks():

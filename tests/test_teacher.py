@@ -2,7 +2,7 @@ import pytest
 import torch
 from torch import nn
 
-from willags_ns.teacher import TeacherConfig, ema_update_, make_teacher
+from willags_ns.mask.teacher import TeacherConfig, ema_update_, make_teacher
 
 
 class _Net(nn.Module):

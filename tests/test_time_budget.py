@@ -14,8 +14,8 @@ import pytest
 import torch
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
-from willags_ns import time_budget as tb
-from willags_ns.time_budget import (
+from willags_ns.engine import time_budget as tb
+from willags_ns.engine.time_budget import (
     OPTION,
     STEP_TIMES,
     TABLE,
@@ -346,7 +346,7 @@ def test_step_times_are_their_records(key, runs):
 
 def test_preset_defaults_are_the_method_configs():
     import willags_ns.method_configs  # noqa: F401  (registers the presets)
-    from willags_ns.trainer import preset_defaults
+    from willags_ns.engine.trainer import preset_defaults
 
     assert (
         preset_defaults("willags")[1] == CAPS["willags"] and preset_defaults("willags-lite")[1] == CAPS["willags-lite"]
@@ -376,7 +376,7 @@ def test_apply_budget_switches_the_preset_in_the_config():
     """With the current CPU points, a 90 s budget picks lite (its 600 steps fit, willags' do not): the model config is
     swapped for the lite preset's, the user's settings kept, the steps capped at lite's default, full resolution."""
     from willags_ns import method_configs
-    from willags_ns.trainer import apply_budget, preset_defaults
+    from willags_ns.engine.trainer import apply_budget, preset_defaults
 
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"
@@ -393,7 +393,7 @@ def test_apply_budget_switches_the_preset_in_the_config():
 
 def test_switching_preset_keeps_the_users_settings():
     import willags_ns.method_configs  # noqa: F401  (registers the presets)
-    from willags_ns.trainer import carry_overrides, preset_defaults
+    from willags_ns.engine.trainer import carry_overrides, preset_defaults
 
     willags, _ = preset_defaults("willags")
     lite, _ = preset_defaults("willags-lite")
@@ -457,7 +457,7 @@ def test_a_cpu_choice_keeps_the_resolution_schedule_for_images_larger_than_the_m
     import torch
 
     from willags_ns import method_configs
-    from willags_ns.trainer import WillagsTrainer, apply_budget, preset_defaults
+    from willags_ns.engine.trainer import WillagsTrainer, apply_budget, preset_defaults
 
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"
@@ -486,7 +486,7 @@ def test_the_users_own_resolution_schedule_is_kept_and_not_restored():
     """--pipeline.model.num-downscales set by the user: the budget leaves it (and says so), and reports nothing for the
     trainer to put back for large images."""
     from willags_ns import method_configs
-    from willags_ns.trainer import apply_budget
+    from willags_ns.engine.trainer import apply_budget
 
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"
@@ -500,7 +500,7 @@ def test_trainer_takes_a_budget_on_several_devices(tmp_path: Path):
     """With a budget and world_size 2 willags' trainer goes on to build the pipeline (it then stops there: no process
     group in this test) rather than refusing the budget first."""
     from willags_ns import method_configs
-    from willags_ns.distributed import DataParallelError
+    from willags_ns.engine.distributed import DataParallelError
 
     config = method_configs.willags_config()
     config.output_dir, config.machine.device_type = tmp_path, "cpu"

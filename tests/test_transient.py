@@ -5,8 +5,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from willags_ns import transient
-from willags_ns.transient import (
+from willags_ns.mask import transient
+from willags_ns.mask.transient import (
     MaskConfig,
     PerceptualFeatures,
     build_seeded_vgg16_features,
@@ -261,7 +261,7 @@ def test_modules_do_not_import_torchvision_eagerly():
     import sys
 
     code = (
-        "import sys, willags_ns.transient, willags_ns.losses, willags_ns.teacher, willags_ns.appearance.vae, "
+        "import sys, willags_ns.mask.transient, willags_ns.objective.losses, willags_ns.mask.teacher, willags_ns.appearance.vae, "
         "willags_ns.appearance.triplane, willags_ns.appearance.decoder; print('torchvision' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -315,7 +315,7 @@ def test_image_distance_is_one_batched_pass_equal_to_two_single_passes(seeded_fe
     """Training and the mask evaluation take D from one VGG pass over the photo and the teacher's render together;
     it equals the two separate passes (per-image network, no batch statistics), with the normalisation constants
     kept per device and dtype."""
-    from willags_ns.transient import image_distance
+    from willags_ns.mask.transient import image_distance
 
     g = torch.Generator().manual_seed(5)
     photo = torch.rand(40, 56, 3, generator=g)

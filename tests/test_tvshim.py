@@ -5,7 +5,7 @@ import sys
 
 import torch
 
-from willags_ns import tvshim
+from willags_ns.engine import tvshim
 
 
 def test_torchvision_imports_in_a_fresh_interpreter():

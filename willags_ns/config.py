@@ -26,8 +26,8 @@ from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.sky import SkyConfig
 from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
-from willags_ns.teacher import TeacherConfig
-from willags_ns.transient import MaskConfig
+from willags_ns.mask.teacher import TeacherConfig
+from willags_ns.mask.transient import MaskConfig
 
 
 @dataclass

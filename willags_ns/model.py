@@ -45,7 +45,23 @@ from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
 from willags_ns.eval.lpips import make_lpips
-from willags_ns.gaussians import (
+from willags_ns.mask.health import MaskHealth
+from willags_ns.mask.step import (
+    MaskFace,
+    MaskStep,
+    StepMask,
+    fused_teacher_rgb,
+    log_step_images,
+    mask_networks,
+    teacher_colors,
+    teacher_latent,
+)
+from willags_ns.mask.transient import PerceptualFeatures
+from willags_ns.objective.losses import reconstruction_loss
+from willags_ns.objective.regularizers import regularization_terms
+from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
+from willags_ns.splats.export import SplatExport
+from willags_ns.splats.gaussians import (
     active_sh_degree,
     composite,
     densification_strategy,
@@ -56,22 +72,6 @@ from willags_ns.gaussians import (
     sh_colors,
     strategy_absgrad,
 )
-from willags_ns.losses import reconstruction_loss
-from willags_ns.mask_health import MaskHealth
-from willags_ns.mask_step import (
-    MaskFace,
-    MaskStep,
-    StepMask,
-    fused_teacher_rgb,
-    log_step_images,
-    mask_networks,
-    teacher_colors,
-    teacher_latent,
-)
-from willags_ns.regularizers import regularization_terms
-from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
-from willags_ns.splat_export import SplatExport
-from willags_ns.transient import PerceptualFeatures
 
 __all__ = ["AppearanceNetworks", "WillagsModel", "WillagsModelConfig", "viewmat_from_c2w"]
 

@@ -22,8 +22,8 @@ from torch import Tensor
 from willags_ns.appearance.modulation import ColorModulation
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.triplane import normalize_points
-from willags_ns.gaussians import sh_coeffs
 from willags_ns.render.sh import sh_basis, sh_color
+from willags_ns.splats.gaussians import sh_coeffs
 
 RENDER_SH_SAMPLES = 64
 """View directions over which the decoder is fitted by SH when rendering with a fixed appearance."""

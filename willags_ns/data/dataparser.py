@@ -524,7 +524,7 @@ def _check_transforms(json_path: Path, downscale_factor: int | None = None) -> d
 
 
 ROTATION_TOL = 1e-3
-"""Largest |R^T R - I| entry and |det R - 1| accepted for a pose's rotation block (see willags_ns.checks)."""
+"""Largest |R^T R - I| entry and |det R - 1| accepted for a pose's rotation block (see willags_ns.engine.checks)."""
 
 
 def _check_rotation(R: np.ndarray, where: str) -> None:

@@ -36,8 +36,8 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
+from willags_ns.mask.transient import image_distance, mask_threshold, transient_mask
 from willags_ns.render.camera import viewmat_from_c2w
-from willags_ns.transient import image_distance, mask_threshold, transient_mask
 
 
 @dataclass
@@ -106,7 +106,7 @@ def predicted_transient(
     """(transient [H, W] bool, rejected, D [H, W]) from GT and teacher render [H, W, 3] in [0, 1].
 
     Same rule as training: static = D < threshold (per image for rule "robust", see
-    willags_ns.transient.robust_threshold); if more than `max_masked_fraction` of the image would be dropped, the
+    willags_ns.mask.transient.robust_threshold); if more than `max_masked_fraction` of the image would be dropped, the
     mask is rejected (nothing is transient)."""
     d = image_distance(perceptual, gt.float(), teacher.float())
     transient, rejected = transient_mask(d, threshold, rule, robust_k, max_masked_fraction)
@@ -182,7 +182,7 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     (teacher disabled) the student's networks are used.
     """
     from willags_ns.appearance.sky import background, pixel_directions
-    from willags_ns.mask_step import teacher_colors, teacher_latent, teacher_render
+    from willags_ns.mask.step import teacher_colors, teacher_latent, teacher_render
 
     nets = model.teacher if model.teacher is not None else model.appearance_nets
     z = teacher_latent(nets, image.permute(2, 0, 1).float().to(model.device), image_idx)

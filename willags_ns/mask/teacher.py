@@ -4,7 +4,7 @@ After each optimiser step ``W_T <- tau * W_T + (1 - tau) * W_S`` for every param
 teacher renders the training view with the *current* per-Gaussian tensors of the student (means, scales,
 opacities, intrinsic features f_s, detached), so it follows densification and pruning for free: only the
 fixed-shape appearance networks live in the teacher. Its render is what the perceptual transient mask compares
-the ground truth against (``willags_ns.transient``): a slowly moving average does not chase an occluder the
+the ground truth against (``willags_ns.mask.transient``): a slowly moving average does not chase an occluder the
 student has just started to fit, so the occluder keeps standing out.
 
 State is explicit: the teacher is a plain ``nn.Module`` returned by :func:`make_teacher`, updated in place by

@@ -33,8 +33,8 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from willags_ns import time_budget as tb
-from willags_ns.checkpoints import (
+from willags_ns.engine import time_budget as tb
+from willags_ns.engine.checkpoints import (
     RESUME_FILE,
     CheckpointError,
     SaveTimer,
@@ -47,8 +47,8 @@ from willags_ns.checkpoints import (
     save_atomic,
     write_text_atomic,
 )
-from willags_ns.checks import install_cli_excepthook
-from willags_ns.time_budget import (
+from willags_ns.engine.checks import install_cli_excepthook
+from willags_ns.engine.time_budget import (
     DEFAULT_PRESET,
     PRESETS,
     BudgetChoice,

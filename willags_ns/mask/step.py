@@ -23,10 +23,10 @@ from torch import Tensor
 
 from willags_ns.appearance.color_path import ColorContext, field_features, gaussian_colors
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.gaussians import composite, rasterize_gaussians, sh_coeffs
-from willags_ns.static_support import apply_support, support_map
-from willags_ns.teacher import ema_update_, make_teacher
-from willags_ns.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
+from willags_ns.mask.static_support import apply_support, support_map
+from willags_ns.mask.teacher import ema_update_, make_teacher
+from willags_ns.mask.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
+from willags_ns.splats.gaussians import composite, rasterize_gaussians, sh_coeffs
 
 
 def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | None, PerceptualFeatures | None]:

@@ -12,12 +12,12 @@ schemas before torchvision's module body runs (``nms`` also gets a pure-torch CP
 ``torch.ops.torchvision.nms``; ``torchvision.ops.*`` still refuse, since torchvision checks its extension
 first). Everything nerfstudio uses of torchvision (models, transforms, utils) is pure Python.
 
-How it is activated: ``python -m willags_ns.tvshim install`` (run by ``make``) writes two files into the
+How it is activated: ``python -m willags_ns.engine.tvshim install`` (run by ``make``) writes two files into the
 environment's site-packages: ``_willags_tvshim.py`` (a copy of this file: it must not import willags_ns, whose
 import may happen later or not at all) and ``willags-tvshim.pth``. The ``.pth`` only registers a tiny
 ``sys.meta_path`` finder, so interpreter start-up stays fast; the finder acts the first time ``torchvision``
 is imported, and only when ``torch.version.cuda is None`` (a CPU torch) and torchvision's extension did not
-load. With a CUDA torch (a GPU user's install) it does nothing. ``python -m willags_ns.tvshim uninstall``
+load. With a CUDA torch (a GPU user's install) it does nothing. ``python -m willags_ns.engine.tvshim uninstall``
 removes the two files.
 """
 
@@ -142,4 +142,4 @@ if __name__ == "__main__":
         uninstall()
         print("willags tvshim removed")
     else:
-        raise SystemExit(f"usage: python -m willags_ns.tvshim [install|uninstall], got {cmd!r}")
+        raise SystemExit(f"usage: python -m willags_ns.engine.tvshim [install|uninstall], got {cmd!r}")

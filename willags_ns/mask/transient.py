@@ -48,9 +48,9 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Float
 from torch import Tensor, nn
 
-from willags_ns.mask_health import MaskHealthConfig
-from willags_ns.static_support import StaticSupportConfig
-from willags_ns.teacher import TeacherConfig
+from willags_ns.mask.health import MaskHealthConfig
+from willags_ns.mask.static_support import StaticSupportConfig
+from willags_ns.mask.teacher import TeacherConfig
 
 logger = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class MaskConfig:
     vgg_weights: VggWeights = "auto"
     """Where the VGG16 weights come from: "auto" (vgg_weights_path if set, else the torch hub cache file, else
     the seeded fallback), "torchvision" (torchvision's loader; downloads when online), "path" (a state-dict file
-    at vgg_weights_path), "seeded" (the calibrated random fallback, see willags_ns.transient)."""
+    at vgg_weights_path), "seeded" (the calibrated random fallback, see willags_ns.mask.transient)."""
     vgg_weights_path: Path | None = None
     """A state-dict file in torchvision's vgg16 layout (keys features.N.weight / features.N.bias, or N.weight)."""
     warmup_steps: int = 500

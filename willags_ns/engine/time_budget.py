@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from willags_ns.checks import WillagsTrainingError
+from willags_ns.engine.checks import WillagsTrainingError
 
 OPTION = "--pipeline.time-budget-minutes"
 PRESETS = ("willags-lite", "willags")
@@ -122,7 +122,7 @@ class StepTime:
     """The method name of the records (as MeasuredPoint.measured_as)."""
 
 
-POINTS_FILE = Path(__file__).parent / "data" / "time_budget_points.json"
+POINTS_FILE = Path(__file__).parents[1] / "data" / "time_budget_points.json"
 """The measured points and step times, with the records that measured them and where those runs come from."""
 
 
@@ -390,7 +390,7 @@ def agreed_max(values: list[float]) -> list[float]:
 
     if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() <= 1:
         return [float(v) for v in values]
-    from willags_ns.distributed import comm_device
+    from willags_ns.engine.distributed import comm_device
 
     t = torch.tensor([float(v) for v in values], dtype=torch.float64, device=comm_device())
     dist.all_reduce(t, op=dist.ReduceOp.MAX)

@@ -44,15 +44,15 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.autoconfig import AUTO_CONFIG_FILE, apply_auto_config, format_summary, scene_dir, tensorboard_entries
-from willags_ns.checkpoints import install_eval_loader
-from willags_ns.checks import (
+from willags_ns.data.consistency import foreign_photo_warnings
+from willags_ns.engine.checkpoints import install_eval_loader
+from willags_ns.engine.checks import (
     check_gaussians_alive,
     install_cli_excepthook,
     validate_dataparser_outputs,
     warn_all,
 )
-from willags_ns.data.consistency import foreign_photo_warnings
-from willags_ns.distributed import (
+from willags_ns.engine.distributed import (
     DataParallelConfig,
     DataParallelError,
     GradientAverager,
@@ -72,9 +72,9 @@ from willags_ns.distributed import (
     validate_data_parallel,
     validate_train_images,
 )
+from willags_ns.engine.progress import Progress
+from willags_ns.engine.step_profile import StepProfile
 from willags_ns.eval.protocol import EvalProtocolConfig, describe_protocol, eval_split_images, evaluate_model
-from willags_ns.progress import Progress
-from willags_ns.step_profile import StepProfile
 from willags_ns.viewer import appearance_controls, guard_viewer_host
 
 MASK_REJECTED_WARN_EVERY_S = 60.0
@@ -192,7 +192,7 @@ class InterruptCheckpoint:
         if hasattr(self.trainer, "resume_command"):  # willags' trainer: the exact command
             command = self.trainer.resume_command(step)
         else:
-            from willags_ns.checkpoints import resume_command
+            from willags_ns.engine.checkpoints import resume_command
 
             end = self.trainer._start_step + self.trainer.config.max_num_iterations
             command = resume_command([], str(self.trainer.config.method_name), path, end - step - 1)
@@ -329,10 +329,10 @@ class WillagsPipeline(VanillaPipeline):
         cbs = super().get_training_callbacks(training_callback_attributes)
         trainer = training_callback_attributes.trainer
         if self.config.time_budget_minutes and trainer is not None and not hasattr(trainer, "time_budget"):
-            from willags_ns.time_budget import OPTION, TimeBudgetError
+            from willags_ns.engine.time_budget import OPTION, TimeBudgetError
 
             raise TimeBudgetError(
-                f"{OPTION} needs willags' trainer (willags_ns.trainer.WillagsTrainerConfig, which every willags method "
+                f"{OPTION} needs willags' trainer (willags_ns.engine.trainer.WillagsTrainerConfig, which every willags method "
                 f"uses); this run's trainer is {type(trainer).__name__}"
             )
         if self.auto_config_summary is not None and trainer is not None:

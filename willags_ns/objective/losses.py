@@ -3,7 +3,7 @@
     L = (1 - lambda_ssim) * L1_masked + lambda_ssim * DSSIM_masked + lambda_vae * L_VAE,
         lambda_ssim = 0.2, lambda_vae = 0.01
 
-where "masked" means restricted to the static pixels of the perceptual transient mask (``willags_ns.transient``).
+where "masked" means restricted to the static pixels of the perceptual transient mask (``willags_ns.mask.transient``).
 The regularisers that join it during training are weighted in ``willags_ns/regularizers.py``.
 
 Layout: every image here is ``[B, 3, H, W]`` in [0, 1] (torch / torchmetrics convention) and every mask is

@@ -40,7 +40,7 @@ from typing import Any
 
 import torch
 
-from willags_ns.checks import WillagsIOError
+from willags_ns.engine.checks import WillagsIOError
 
 CKPT_RE = re.compile(r"^step-(\d+)\.ckpt$")
 """nerfstudio's checkpoint file names (``step-000000100.ckpt``)."""
@@ -287,7 +287,7 @@ def read_checkpoint(path: Path, map_location: str = "cpu") -> dict:
 
 
 def _default_warn(message: str) -> None:
-    from willags_ns.checks import warn_all
+    from willags_ns.engine.checks import warn_all
 
     warn_all([message])
 

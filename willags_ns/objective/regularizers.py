@@ -18,7 +18,7 @@ from willags_ns.appearance.latents import latent_loss
 from willags_ns.appearance.modulation import local_penalty
 from willags_ns.appearance.sky import background_alpha_penalty
 from willags_ns.appearance.vae import AppearanceVAE
-from willags_ns.losses import scale_regularization
+from willags_ns.objective.losses import scale_regularization
 
 
 def regularization_terms(
