@@ -15,7 +15,6 @@ from PIL import Image
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from willags_ns.data import process as proc  # noqa: E402
 from willags_ns.data.synthetic import (  # noqa: E402
     SyntheticSceneConfig,
     camera_rays,
@@ -24,6 +23,7 @@ from willags_ns.data.synthetic import (  # noqa: E402
     to_uint8,
     trace,
 )
+from willags_ns.tools import process as proc  # noqa: E402
 from willags_ns.tools.process import ProcessConfig, ProcessError, compare_poses, umeyama  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

@@ -43,7 +43,6 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from willags_ns.autoconfig import AUTO_CONFIG_FILE, apply_auto_config, format_summary, scene_dir, tensorboard_entries
 from willags_ns.data.consistency import foreign_photo_warnings
 from willags_ns.engine.checkpoints import install_eval_loader
 from willags_ns.engine.checks import (
@@ -75,6 +74,13 @@ from willags_ns.engine.distributed import (
 from willags_ns.engine.progress import Progress
 from willags_ns.engine.step_profile import StepProfile
 from willags_ns.eval.protocol import EvalProtocolConfig, describe_protocol, eval_split_images, evaluate_model
+from willags_ns.tools.autoconfig import (
+    AUTO_CONFIG_FILE,
+    apply_auto_config,
+    format_summary,
+    scene_dir,
+    tensorboard_entries,
+)
 from willags_ns.viewer import appearance_controls, guard_viewer_host
 
 MASK_REJECTED_WARN_EVERY_S = 60.0

@@ -346,7 +346,7 @@ class WillagsTrainer(Trainer):
         model = self.config.pipeline.model
         if not getattr(model, "auto_config", False) or not hasattr(self.config.pipeline, "auto_config_keep"):
             return
-        from willags_ns.autoconfig import user_switches
+        from willags_ns.tools.autoconfig import user_switches
 
         method = str(self.config.method_name)
         preset = preset_defaults(method)[0] if method in PRESET_CONFIGS else None
