@@ -35,3 +35,28 @@ def test_external_method_built_elsewhere_still_offers_its_install(monkeypatch):
         external_methods.ExternalMethodDummyTrainerConfig(method_name="x", method=method)
     assert stop.value.code == 0
     assert asked or not method.pip_package
+
+
+def test_a_config_yml_naming_the_modules_before_the_rooms_loads_as_today():
+    import yaml
+
+    from willags_ns import method_configs as mc
+    from willags_ns.engine.compat import CONFIG_YML_CLASSES
+
+    config = mc.willags_config()
+    text = yaml.dump(config)
+    older = text
+    for old, new in CONFIG_YML_CLASSES.items():
+        if old.rpartition(".")[2] == new.rpartition(".")[2]:
+            older = older.replace(f":{new}", f":{old}")
+    assert "willags_ns.trainer.WillagsTrainerConfig" in older and "willags_ns.pipeline.WillagsPipeline ''" in older
+    assert "willags_ns.transient.MaskConfig" in older and "willags_ns.engine." not in older
+    loaded = yaml.load(older, Loader=yaml.Loader)
+    assert type(loaded) is type(config) and loaded == config
+
+
+def test_an_unknown_module_in_a_config_yml_still_fails():
+    import yaml
+
+    with pytest.raises(yaml.constructor.ConstructorError, match="willags_ns.nowhere"):
+        yaml.load("!!python/object:willags_ns.nowhere.Config {}", Loader=yaml.Loader)

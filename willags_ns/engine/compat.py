@@ -57,3 +57,36 @@ def quick_external_method_check() -> None:
 
     __post_init__.quick_caller_check = True  # type: ignore[attr-defined]
     cls.__post_init__ = __post_init__
+
+
+CONFIG_YML_CLASSES: dict[str, str] = {
+    "willags_ns.trainer.WillagsTrainerConfig": "willags_ns.engine.trainer.WillagsTrainerConfig",
+    "willags_ns.trainer.WillagsTrainer": "willags_ns.engine.trainer.WillagsTrainer",
+    "willags_ns.pipeline.WillagsPipelineConfig": "willags_ns.engine.pipeline.WillagsPipelineConfig",
+    "willags_ns.pipeline.WillagsPipeline": "willags_ns.engine.pipeline.WillagsPipeline",
+    "willags_ns.distributed.DataParallelConfig": "willags_ns.engine.distributed.DataParallelConfig",
+    "willags_ns.teacher.TeacherConfig": "willags_ns.mask.teacher.TeacherConfig",
+    "willags_ns.transient.MaskConfig": "willags_ns.mask.transient.MaskConfig",
+    "willags_ns.transient.PerceptualMaskConfig": "willags_ns.mask.transient.MaskConfig",
+    "willags_ns.mask_health.MaskHealthConfig": "willags_ns.mask.health.MaskHealthConfig",
+    "willags_ns.static_support.StaticSupportConfig": "willags_ns.mask.static_support.StaticSupportConfig",
+}
+"""The classes a config.yml names by the module that held them when it was written (its YAML tags
+`!!python/object:M.C` and `!!python/name:M.C`), and where each class is: runs trained before the package had its
+rooms load, evaluate and render. PerceptualMaskConfig is the mask's settings under the flat layout's name."""
+
+
+def register_config_yml_classes(loader: type) -> None:
+    """Teach YAML `loader` (nerfstudio's ns-eval, ns-render, ns-viewer and `--load-config` read config.yml with
+    yaml.Loader) the CONFIG_YML_CLASSES: an exact tag takes precedence over PyYAML's import of the named module. The
+    package's import registers them; nerfstudio imports the package (its method configs) before it reads a file."""
+    for old, new in CONFIG_YML_CLASSES.items():
+
+        def construct_object(ldr, node, new=new):
+            return ldr.construct_python_object(new, node)
+
+        def construct_name(ldr, node, new=new):
+            return ldr.construct_python_name(new, node)
+
+        loader.add_constructor(f"tag:yaml.org,2002:python/object:{old}", construct_object)
+        loader.add_constructor(f"tag:yaml.org,2002:python/name:{old}", construct_name)

@@ -126,10 +126,6 @@ class MaskConfig:
     falls; willags_ns/mask_health.py)."""
 
 
-PerceptualMaskConfig = MaskConfig
-"""The name under which config.yml files of the flat layout store the mask's settings (their YAML tag)."""
-
-
 MIN_VGG_SIDE = 16
 """Images with a side below this are upsampled (bilinear) before the VGG features (relu3_3 is at 1/4 resolution);
 D is resampled to the image size anyway. Splatfacto's resolution schedule trains an 8x8 image at 2x2."""
