@@ -1,5 +1,5 @@
 # Two commands for users: `make demo` and `make test`. Both create .venv (python3 3.10-3.12) when missing and
-# install everything pinned for CPU (constraints-cpu.txt), then the torchvision shim (willags_ns/tvshim.py).
+# install everything pinned for CPU (constraints-cpu.txt), then the torchvision shim (willags_ns/engine/tvshim.py).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin

@@ -14,7 +14,7 @@ benchmarks/multi_gpu.sh always did. Configs are built here in Python and handed 
 ``nerfstudio.scripts.train.main`` (its launcher: one process per GPU, NCCL), so no method registry and no parsing of
 anyone's stdout is involved.
 
-Every run trains with ``--pipeline.data-parallel.step-profile True`` (willags_ns/step_profile.py): each rank writes
+Every run trains with ``--pipeline.data-parallel.step-profile True`` (willags_ns/engine/step_profile.py): each rank writes
 its per-step spans (CUDA events) and start-up phases; this script reads them back and prints, per run, the steady
 state (the last quarter of the steps): the step time, images per second and the ratio to the 1-GPU run, and the
 step's breakdown: forward, backward, packing, the all-reduce's transfer (the quickest rank's time in it) and each

@@ -1,4 +1,4 @@
-"""willags_ns/_compat.py: the shims between nerfstudio 1.1.5 and current torch keep nerfstudio's behaviour."""
+"""willags_ns/engine/compat.py: the shims between nerfstudio 1.1.5 and current torch keep nerfstudio's behaviour."""
 
 import inspect
 

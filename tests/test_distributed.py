@@ -1,4 +1,4 @@
-"""Data-parallel training (willags_ns/distributed.py, `--machine.num-devices N`) on CPU with gloo and 2 processes.
+"""Data-parallel training (willags_ns/engine/distributed.py, `--machine.num-devices N`) on CPU with gloo and 2 processes.
 
 - the collectives (gradient averaging, densification statistics, latents, broadcast, agreement check, shared RNG) in
   a bare 2-process gloo group;

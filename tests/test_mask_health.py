@@ -1,4 +1,4 @@
-"""willags_ns/mask_health.py: the warning when the transient mask feeds on itself."""
+"""willags_ns/mask/health.py: the warning when the transient mask feeds on itself."""
 
 import warnings
 

@@ -1,4 +1,4 @@
-"""The mask's safeguard (willags_ns/static_support.py), the SfM observations it reads (willags_ns/data/sfm_tracks.py)
+"""The mask's safeguard (willags_ns/mask/static_support.py), the SfM observations it reads (willags_ns/data/sfm_tracks.py)
 and the model's use of it: what long SfM tracks vouch for is never masked."""
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""willags_ns/step_profile.py on the CPU (host clock): the spans between marks, a step's row written when the next
+"""willags_ns/engine/step_profile.py on the CPU (host clock): the spans between marks, a step's row written when the next
 one starts, the files and the start-up phases."""
 
 import json

@@ -1,4 +1,4 @@
-"""The time budget (willags_ns/time_budget.py, willags_ns/trainer.py): the choice before training (pure, fake step
+"""The time budget (willags_ns/engine/time_budget.py, willags_ns/engine/trainer.py): the choice before training (pure, fake step
 times), the adaptation while training (fake clock), bad values, the table against its records, one real CPU run."""
 
 import dataclasses

@@ -163,7 +163,7 @@ def willags_lite_config() -> WillagsTrainerConfig:
     most teacher renders and VGG passes. Ships the same components, so every switch still applies.
 
     Cheaper than `willags` per step on a small CPU, which is where the time budget picks it
-    (willags_ns/time_budget.py). On the GPU it is neither better nor faster than `willags`: it runs the beta-VAE
+    (willags_ns/engine/time_budget.py). On the GPU it is neither better nor faster than `willags`: it runs the beta-VAE
     encoder on every step's photo and VGG at 512 px (docs/design.md).
     """
     model = WillagsModelConfig(
@@ -203,7 +203,7 @@ def willags_auto_config() -> WillagsTrainerConfig:
     return config
 
 
-# every method's factory (willags_ns/trainer.py): the presets the time budget chooses between, and the method's own
+# every method's factory (willags_ns/engine/trainer.py): the presets the time budget chooses between, and the method's own
 # preset that tells a user's auto_config switches from its defaults
 PRESET_CONFIGS.update(
     {

@@ -5,9 +5,9 @@ Per training step (the pipeline hands the model the training image first):
 
     image --table row or VAE encoder--> z [D]                           appearance/latents.py
     z, Gaussians, camera --> colours [N, 3]                             appearance/color_path.py, networks.py
-    colours (+ the EMA teacher's, fused) --rasterize--> render          gaussians.py, render/
-    VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask_step.py
-    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + the terms of regularizers.py   losses.py, regularizers.py
+    colours (+ the EMA teacher's, fused) --rasterize--> render          splats/gaussians.py, render/
+    VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask/step.py
+    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + the regularisers      objective/losses.py, objective/regularizers.py
 
 The step's intermediates travel in `get_outputs`' dictionary (nerfstudio's habit) to `get_metrics_dict` and
 `get_loss_dict`: the image index, the latent (and the VAE's posterior and input), the modulation's residual, the
@@ -86,10 +86,10 @@ class WillagsModelConfig(WillagsSettings):
 
 class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
     """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Three mixins carry public
-    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splat_export.SplatExport), the
+    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splats.export.SplatExport), the
     latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...:
     appearance/latents.LatentFace) and the mask's (`update_teacher`, `static_support`, `sfm_observations`, the
-    teacher's second rasterisation, ...: mask_step.MaskFace)."""
+    teacher's second rasterisation, ...: mask.step.MaskFace)."""
 
     config: WillagsModelConfig
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
@@ -352,7 +352,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
                 if warning is not None:
                     CONSOLE.log(warning)
 
-        # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (regularizers.py)
+        # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (objective/regularizers.py)
         vae = self.appearance_nets.vae if self.appearance_nets is not None else None
         args = (cfg, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
         terms, term_metrics, recon = regularization_terms(*args)

@@ -71,7 +71,7 @@ class DataParallelConfig:
     step_profile: bool = False
     """Write each rank's per-step timings (forward, backward, gradient reduction and its bytes, the wait in the
     collective, optimiser, callbacks, the whole loop iteration; host clock, and CUDA events on a GPU) and its start-up
-    phases to <run>/step_profile/ (willags_ns/step_profile.py). Also on one device, to compare against."""
+    phases to <run>/step_profile/ (willags_ns/engine/step_profile.py). Also on one device, to compare against."""
 
 
 def rank_and_world_size() -> tuple[int, int]:

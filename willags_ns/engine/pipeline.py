@@ -16,17 +16,17 @@ It is also where every willags method checks its inputs and guards training, wha
 - before training, a warning for a photo whose colours do not follow the SfM points it should show (a photo of
   another place under a registered frame: `check_photo_content`);
 - with `--pipeline.model.auto-config True` (method willags-auto), the scene is inspected and the model's switches
-  set before the model is built (willags_ns/autoconfig.py);
+  set before the model is built (willags_ns/tools/autoconfig.py);
 - Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
   at the next step with the same parameters and optimiser state (`InterruptCheckpoint`); the printed command
   resumes it and ends at the planned step;
 - every willags command that loads a checkpoint (ns-eval, ns-render, ns-viewer, willags-render, willags-export)
-  reads it through willags_ns/checkpoints.py: the newest readable one, a damaged one named
+  reads it through willags_ns/engine/checkpoints.py: the newest readable one, a damaged one named
   (`checkpoints.install_eval_loader`, installed when the pipeline is built).
 
 With `--machine.num-devices N` (N > 1) it trains data-parallel without nerfstudio's DDP wrapper: each rank renders
 its own image, gradients are averaged before the optimiser step and densification agrees over the ranks
-(willags_ns/distributed.py, docs/distributed.md).
+(willags_ns/engine/distributed.py, docs/distributed.md).
 """
 
 import json
@@ -111,11 +111,11 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     so a user's flag wins over the inspector's recommendation."""
     data_parallel: DataParallelConfig = field(default_factory=DataParallelConfig)
     """With --machine.num-devices N > 1: how the ranks average gradients and cache images; the step profile (one
-    device too). willags_ns/distributed.py, docs/distributed.md."""
+    device too). willags_ns/engine/distributed.py, docs/distributed.md."""
     time_budget_minutes: float | None = None
     """Train within this many minutes of training steps (None or 0: off; set-up not counted). Before training
     `ns-train willags` chooses the preset (willags-lite or willags), the step count and the resolution schedule from
-    measured points (willags_ns/time_budget.py); after steps 20-70 the run's own step time sets the last step (never
+    measured points (willags_ns/engine/time_budget.py); after steps 20-70 the run's own step time sets the last step (never
     past the preset's default), the learning-rate schedules end there, and the choice is printed and kept in
     time_budget.json. Other methods (willags-lite named explicitly too) keep their model; only their step count
     follows the budget."""
@@ -238,7 +238,7 @@ class WillagsPipeline(VanillaPipeline):
             if device.type == "cuda" and device.index is not None:
                 torch.cuda.set_device(device)  # NCCL and gsplat's launches follow the current device
             # no DistributedDataParallel wrapper: its fixed buckets break when densification replaces the
-            # Gaussians; gradients are averaged by hand before each optimiser step (willags_ns/distributed.py)
+            # Gaussians; gradients are averaged by hand before each optimiser step (willags_ns/engine/distributed.py)
             setup_kwargs["world_size"] = 1
         checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
         if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default

@@ -4,9 +4,9 @@ that survive faults.
 Why a Trainer of our own: the budget decides things only the trainer owns. Before the pipeline is built it picks the
 preset (its model config), the step cap and where the learning-rate schedules end; during training it stops the loop
 at the step the run's own clock allows (nerfstudio's loop runs a fixed ``max_num_iterations``). The decisions
-themselves are pure functions in willags_ns/time_budget.py.
+themselves are pure functions in willags_ns/engine/time_budget.py.
 
-Checkpoints (willags_ns/checkpoints.py, docs/reliability.md): every save is atomic, and one that fails (a full disk)
+Checkpoints (willags_ns/engine/checkpoints.py, docs/reliability.md): every save is atomic, and one that fails (a full disk)
 stops training with one line naming the directory, the size needed, the last good checkpoint and the command that
 resumes from it; saves come every ``steps_per_save`` steps and also every ``save_every_minutes`` of wall time (a
 killed run loses at most that much work); after each save, ``resume_command.txt`` beside config.yml holds the exact
@@ -68,7 +68,7 @@ BUDGET_FILE = "time_budget.json"
 
 @dataclass
 class WillagsTrainerConfig(TrainerConfig):
-    """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/time_budget.py)."""
+    """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py)."""
 
     _target: type = field(default_factory=lambda: WillagsTrainer)
     save_every_minutes: float = 5.0
@@ -299,7 +299,7 @@ class WillagsTrainer(Trainer):
 
     def _load_checkpoint(self) -> None:
         """nerfstudio's resume (--load-dir / --load-step / --load-checkpoint), reading through
-        willags_ns/checkpoints.py: the newest readable checkpoint of --load-dir, a damaged one named."""
+        willags_ns/engine/checkpoints.py: the newest readable checkpoint of --load-dir, a damaged one named."""
         cfg = self.config
         if cfg.load_dir is not None:
             path, state = load_latest(cfg.load_dir, cfg.load_step)

@@ -1,7 +1,7 @@
 """How well the perceptual transient mask finds the occluders: IoU / recall / clean false positives vs masks_gt.
 
 For every training image with a ground-truth mask (``masks_gt/<stem>.png``, 255 = transient) the mask is computed
-exactly as a training step at the end of training computes it (``MaskStep.static_mask``, willags_ns/mask_step.py):
+exactly as a training step at the end of training computes it (``MaskStep.static_mask``, willags_ns/mask/step.py):
 
     z   = teacher VAE encoder mean of the training image      (latent.kind embedding: the teacher's table row)
     R   = teacher render of the view (teacher networks, the student's current Gaussians, full resolution)
@@ -175,7 +175,7 @@ def training_view(train_dataset, idx: int, extra: np.ndarray | None = None):
 def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     """The EMA teacher's render [H, W, 3] of `camera` for the training image `image` [H, W, 3] in [0, 1].
 
-    Through training's functions (willags_ns/mask_step.py): the teacher's latent (VAE mean of the image, or its
+    Through training's functions (willags_ns/mask/step.py): the teacher's latent (VAE mean of the image, or its
     embedding row), its colours on the student's current Gaussians, the camera after the camera optimiser, the
     second rasterisation. Background: the teacher's sky behind every pixel when the model has one, else the model's
     fixed colour (training draws a random one per step, which only shows where alpha < 1). Without a teacher

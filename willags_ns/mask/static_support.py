@@ -1,6 +1,6 @@
 """The transient mask's safeguard: what SfM tracks vouch for is static and is never masked.
 
-The perceptual mask (willags_ns/transient.py) flags pixels where the photo and the EMA teacher's render differ in
+The perceptual mask (willags_ns/mask/transient.py) flags pixels where the photo and the EMA teacher's render differ in
 VGG features. That is right for an occluder, and wrong wherever the model has not (yet) reconstructed the static
 scene: a subject seen against the sky that the Gaussians lose, a tree whose fine texture the teacher blurs, window
 panes that reflect a different sky in every photo. Masked, such a region is never supervised and never gets better:
@@ -16,7 +16,7 @@ lie on a person's edge, a mismatched track) from unmasking an occluder; the wind
 at the scale of the mask itself (relu3_3's receptive field is ~40 px).
 
 Where there are no tracks (a transforms.json scene, the synthetic scene) there is no support and the mask is the
-perceptual mask alone. Pure functions and one config; MaskStep holds the maps (willags_ns/mask_step.py).
+perceptual mask alone. Pure functions and one config; MaskStep holds the maps (willags_ns/mask/step.py).
 """
 
 from __future__ import annotations

@@ -5,9 +5,9 @@ threshold, and the static-scene safeguard.
     teacher colours (the student's Gaussians and SH colours, detached)                teacher_colors
     teacher render (fused into the student's rasterisation as 3 extra channels, or a second one: teacher_render),
         both composited like the student's render (gaussians.composite)
-    D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/transient.py)
+    D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/mask/transient.py)
     transient = D > threshold(step)   (rejected when it would drop more than mask.max_masked_fraction of the image)
-    static = ~transient | SfM support (pixels near points many photos saw; willags_ns/static_support.py)
+    static = ~transient | SfM support (pixels near points many photos saw; willags_ns/mask/static_support.py)
 
 :func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
 image's last mask, its visit count, its support grid and the scene's SfM observations) and reads the model's config;
@@ -112,7 +112,7 @@ class MaskStep:
         return StepMask(apply_support(mask, self.support(idx, H, W, device)).float(), d, rejected)
 
     def support(self, idx: int, height: int, width: int, device) -> Tensor | None:
-        """Training image `idx`'s SfM support grid (True = vouched static; willags_ns/static_support.py), or None
+        """Training image `idx`'s SfM support grid (True = vouched static; willags_ns/mask/static_support.py), or None
         (safeguard off, no tracks in the scene). Built once per image on the device; the grid's aspect follows the
         image's, so any resolution of the schedule maps onto it."""
         cfg = self.cfg.mask.safeguard

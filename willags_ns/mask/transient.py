@@ -78,7 +78,7 @@ _FALLBACK_WARNED = False
 @dataclass
 class MaskConfig:
     """The transient mask: the EMA teacher's render compared with the photo in VGG16 features, thresholded, with its
-    cadence, its safeguard and its health watch (the step: willags_ns/mask_step.py)."""
+    cadence, its safeguard and its health watch (the step: willags_ns/mask/step.py)."""
 
     enabled: bool = True
     """Mask transients with the perceptual mask of the EMA teacher. Off: every pixel is supervised, and neither the
@@ -120,10 +120,10 @@ class MaskConfig:
     """The EMA teacher that renders the pseudo ground truth (decay tau; fused into the student's rasterisation)."""
     safeguard: StaticSupportConfig = field(default_factory=StaticSupportConfig)
     """Pixels around observations of SfM points seen by many training images are static and never masked
-    (willags_ns/static_support.py; COLMAP scenes, where the tracks exist)."""
+    (willags_ns/mask/static_support.py; COLMAP scenes, where the tracks exist)."""
     health: MaskHealthConfig = field(default_factory=MaskHealthConfig)
     """Warn once while training when the mask feeds on itself (its masked share rising while the training PSNR
-    falls; willags_ns/mask_health.py)."""
+    falls; willags_ns/mask/health.py)."""
 
 
 MIN_VGG_SIDE = 16

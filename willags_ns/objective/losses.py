@@ -4,7 +4,7 @@
         lambda_ssim = 0.2, lambda_vae = 0.01
 
 where "masked" means restricted to the static pixels of the perceptual transient mask (``willags_ns.mask.transient``).
-The regularisers that join it during training are weighted in ``willags_ns/regularizers.py``.
+The regularisers that join it during training are weighted in ``willags_ns/objective/regularizers.py``.
 
 Layout: every image here is ``[B, 3, H, W]`` in [0, 1] (torch / torchmetrics convention) and every mask is
 ``[B, H, W]`` (``[B, 1, H, W]`` accepted), bool or float in [0, 1], with True / 1 = static = kept in the loss.
