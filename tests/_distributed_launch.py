@@ -1,4 +1,4 @@
-"""Test harness only (tests/test_distributed.py): run nerfstudio's own multi-process launcher on a CPU-only machine
+"""Test harness only (tests/engine/test_distributed.py): run nerfstudio's own multi-process launcher on a CPU-only machine
 and record what each rank did.
 
 nerfstudio 1.1.5's `_distributed_worker` asserts `torch.cuda.is_available()` and `num_devices <=

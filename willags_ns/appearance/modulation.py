@@ -172,7 +172,7 @@ class LocalResidualMLP(torch.autograd.Function):
     [N, hidden] gradients: the largest transient buffers of a willags step (~0.77 GB at 1M Gaussians, hidden 64),
     which splatfacto does not have. Here only the inputs are saved; the backward rebuilds each chunk's hidden layer
     (an [chunk, Fs] x [Fs, hidden] product, cheaper than reading it back from memory at this width) and accumulates
-    the weight gradients chunk by chunk. Same numbers as the plain MLP (``tests/test_modulation.py``)."""
+    the weight gradients chunk by chunk. Same numbers as the plain MLP (``tests/appearance/test_modulation.py``)."""
 
     @staticmethod
     def forward(ctx, f, w1, h0, w2, b2, chunk: int):  # type: ignore[override]

@@ -41,7 +41,7 @@ come from). Its limits, stated where the choice is printed:
 - ``one_scene``: only one scene has a record of this (configuration, steps, device); the others were measured on
   several (PSNR still from the reference scene).
 
-The records are in benchmarks/records/benchmarks.json (keys: scene, method, device, steps, tag); tests/test_time_budget.py checks
+The records are in benchmarks/records/benchmarks.json (keys: scene, method, device, steps, tag); tests/engine/test_time_budget.py checks
 every number of the data file against them.
 """
 

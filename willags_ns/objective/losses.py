@@ -84,7 +84,7 @@ def ssim_map(
 
     Why not torchmetrics itself: its window is one depthwise 11x11 convolution (121 taps per pixel, forward and
     backward, over 5 x C planes); a Gaussian is separable, so a row pass and a column pass give the same sums with
-    22 taps (float rounding apart: ``tests/test_losses.py`` compares maps and gradients)."""
+    22 taps (float rounding apart: ``tests/objective/test_losses.py`` compares maps and gradients)."""
     g = _gaussian_1d(sigma, x.dtype, x.device)
     pad = (g.numel() - 1) // 2
     c = x.shape[1]

@@ -724,7 +724,7 @@ where the sky alone explains the photo, so no Gaussian floats in the sky around 
 
 WILLAGS_SKY: dict[str, Any] = SKY_MODES["skyline"]
 """The sky of the default `willags` preset: the command line names only what differs from it. Kept in step with
-method_configs.willags_model_config (tests/test_autoconfig.py checks)."""
+method_configs.willags_model_config (tests/tools/test_autoconfig.py checks)."""
 
 
 def sky_settings(mode: str) -> dict[str, Any]:

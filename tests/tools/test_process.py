@@ -26,7 +26,7 @@ from willags_ns.data.synthetic import (  # noqa: E402
 from willags_ns.tools import process as proc  # noqa: E402
 from willags_ns.tools.process import ProcessConfig, ProcessError, compare_poses, umeyama  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 """OpenGL camera axes (x right, y up, looking down -z) -> COLMAP's (x right, y down, looking down +z)."""
 NUM_VIEWS = 16

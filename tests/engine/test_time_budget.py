@@ -28,7 +28,7 @@ from willags_ns.engine.time_budget import (
     validate_minutes,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CAPS = {"willags": 30000, "willags-lite": 7000}
 
 
@@ -204,7 +204,7 @@ def _budget_on_two_ranks(rank: int) -> None:
 
 
 def test_ranks_plan_from_the_slowest_and_stop_together():
-    from tests.test_distributed import _run_gloo
+    from tests.engine.test_distributed import _run_gloo
 
     _run_gloo(_budget_on_two_ranks)
 
@@ -516,7 +516,7 @@ def test_budget_on_two_ranks_stops_both_after_the_same_step(tmp_path, monkeypatc
     from nerfstudio.scripts.train import launch
 
     from tests._distributed_launch import record_path, train_and_record
-    from tests.test_distributed import _tiny_config
+    from tests.engine.test_distributed import _tiny_config
     from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
 
     scene_cfg = SyntheticSceneConfig(num_train=6, num_test=1, width=32, height=24, num_points=400, supersample=1)

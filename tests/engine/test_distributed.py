@@ -467,7 +467,7 @@ def test_two_machines_of_one_device_train_together(tmp_path):
     config.set_timestamp()
     config.save_config()
     yml = Path(config.get_base_dir()) / "config.yml"
-    repo = Path(__file__).resolve().parents[1]
+    repo = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")])}
     code = "import sys; from tests._distributed_launch import launch_machine; launch_machine(sys.argv[1], int(sys.argv[2]))"
     machines = [

@@ -185,7 +185,7 @@ def test_overrides_map_the_sky():
 
 @pytest.fixture(scope="module")
 def plane_scenes(tmp_path_factory):
-    from tests.test_inspect import write_plane_scene
+    from tests.tools.test_inspect import write_plane_scene
 
     root = tmp_path_factory.mktemp("auto_plane")
     return {"lower": write_plane_scene(root / "lower", True), "full": write_plane_scene(root / "full", False)}
@@ -234,7 +234,7 @@ def test_the_inspectors_default_sky_is_the_willags_presets():
 
 
 def test_a_subject_against_the_sky_sets_the_surround_sky_unless_the_user_named_the_region(tmp_path):
-    from tests.test_inspect import write_plane_scene
+    from tests.tools.test_inspect import write_plane_scene
 
     scene = write_plane_scene(tmp_path / "column", lower_only=False, column=True)
     cfg = willags_model_config()
