@@ -53,7 +53,7 @@ def train_step(model, image_u8: torch.Tensor, cam=None, idx: int = 0):
     for name, p in model.named_parameters():
         if p.grad is not None:
             assert torch.isfinite(p.grad).all(), f"gradient of {name}"
-    model._end_step(0)
+    model.end_step(0)
     return {k: float(v) for k, v in losses.items()}, {k: float(v) for k, v in metrics.items() if torch.is_tensor(v)}
 
 
@@ -193,14 +193,14 @@ def test_row11_a_rejected_mask_is_reported_in_training(model):
     old = (mask_cfg.threshold, mask_cfg.threshold_rule)
     mask_cfg.threshold, mask_cfg.threshold_rule = 0.0, "fixed"  # D >= 0 everywhere: every pixel flagged
     try:
-        model._mask_cache.clear()
+        model.last_masks.clear()
         model.mask_step.visits.clear()
         losses, metrics = train_step(model, _image(seed=4))
         assert metrics.get("mask_rejected") == 1.0 and metrics["masked_fraction"] == 0.0
         assert losses["main_loss"] > 0  # supervised everywhere, not a 0/0
     finally:
         mask_cfg.threshold, mask_cfg.threshold_rule = old
-        model._mask_cache.clear()
+        model.last_masks.clear()
 
 
 def test_row11_pipeline_warns_when_the_mask_is_rejected():

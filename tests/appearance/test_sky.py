@@ -130,7 +130,7 @@ def test_model_composites_over_the_sky_of_the_latent_and_the_teacher_uses_its_ow
     grads = [p.grad for p in model.appearance_nets.sky.parameters()]
     assert all(g is not None and torch.isfinite(g).all() for g in grads)
     assert any(g.abs().sum() > 0 for g in grads)
-    model._end_step(0)
+    model.end_step(0)
 
 
 def test_open_region_sky_shows_above_the_skyline_and_the_random_colour_below():
@@ -161,12 +161,12 @@ def test_open_region_sky_shows_above_the_skyline_and_the_random_colour_below():
     assert torch.allclose(flat, flat[:1].expand_as(flat))  # one (random) colour under the skyline
     assert not torch.allclose(rgb[bottom], sky[bottom], atol=1e-3)
     assert bg.shape == (H, W, 3)
-    model._end_step(0)
+    model.end_step(0)
     # an image without keypoints: no open cells, the random colour everywhere; evaluation: the sky everywhere
     model.set_train_batch({"image": image, "image_idx": 1})
     flat = model.get_outputs(_camera(W, H))["rgb"].detach().reshape(-1, 3)
     assert torch.allclose(flat, flat[:1].expand_as(flat))
-    model._end_step(1)
+    model.end_step(1)
     model.eval()
     cam = _camera(W, H)
     cam.metadata = {"appearance_latent": z.detach()}

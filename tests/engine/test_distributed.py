@@ -528,7 +528,7 @@ def _reference(config, records):
             _, loss_dict, _ = pipeline.get_train_loss_dict(step)
             sum(loss_dict.values()).backward()
             update_state(model.gauss_params, model.strategy_state, model.info, packed=False)
-            model._end_step(step)
+            model.end_step(step)
         for opt in optimizers.optimizers.values():
             for group in opt.param_groups:
                 for p in group["params"]:

@@ -98,8 +98,8 @@ def test_the_model_keeps_supported_pixels_its_perceptual_mask_flags():
     model.sfm_observations = [_cluster(0.25, 0.3, 40, 9), np.zeros((0, 3), np.float32)]
     gt = torch.rand(h, w, 3)
     for idx in (0, 1):
-        model._mask_cache[idx] = torch.zeros(h, w, dtype=torch.bool)  # the perceptual mask: all transient
-        mask = model._static_mask({"image_idx": idx}, gt).mask
+        model.last_masks[idx] = torch.zeros(h, w, dtype=torch.bool)  # the perceptual mask: all transient
+        mask = model.step_static_mask({"image_idx": idx}, gt).mask
         assert mask is not None
         if idx == 0:
             assert mask[int(0.3 * h), int(0.25 * w)] == 1.0
@@ -108,7 +108,7 @@ def test_the_model_keeps_supported_pixels_its_perceptual_mask_flags():
             assert mask.sum() == 0
     model.config.mask.safeguard.enabled = False
     model.mask_step.support_cache.clear()
-    assert model._static_mask({"image_idx": 0}, gt).mask.sum() == 0
+    assert model.step_static_mask({"image_idx": 0}, gt).mask.sum() == 0
 
 
 def test_colmap_scenes_carry_their_training_observations(shared_data):

@@ -127,7 +127,7 @@ def precheck_dataparser_config(datamanager_config) -> None:
     from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-    from willags_ns.data.dataparser import WillagsDataParserConfig, _check_colmap, _check_transforms
+    from willags_ns.data.dataparser import WillagsDataParserConfig, check_colmap, check_transforms
 
     dp = datamanager_config.dataparser
     data = datamanager_config.data if datamanager_config.data is not None else getattr(dp, "data", None)
@@ -137,11 +137,11 @@ def precheck_dataparser_config(datamanager_config) -> None:
     if isinstance(dp, NerfstudioDataParserConfig):
         json_path = data if data.suffix == ".json" else data / "transforms.json"
         if json_path.is_file():
-            _check_transforms(json_path, dp.downscale_factor)
+            check_transforms(json_path, dp.downscale_factor)
     elif isinstance(dp, ColmapDataParserConfig):
         model = data / dp.colmap_path
         if model.is_dir():
-            _check_colmap(data, model, data / dp.images_path, need_points=False)
+            check_colmap(data, model, data / dp.images_path, need_points=False)
 
 
 class InterruptCheckpoint:

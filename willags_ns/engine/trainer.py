@@ -33,7 +33,7 @@ from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.misc import step_check
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from willags_ns.engine import time_budget as tb
+from willags_ns.engine import time_budget
 from willags_ns.engine.checkpoints import (
     RESUME_FILE,
     CheckpointError,
@@ -325,13 +325,13 @@ class WillagsTrainer(Trainer):
         if cams is None:
             return
         side = int(max(cams.width.max().item(), cams.height.max().item()))
-        if tb.full_resolution_suits(side):
+        if time_budget.full_resolution_suits(side):
             return
         self.pipeline.model.config.num_downscales = downscales  # what the model reads
         self.config.pipeline.model.num_downscales = downscales  # what config.yml says (the same object in nerfstudio)
         note = (
             f"training images up to {side} px (the {device_class(self.config.machine.device_type)} points: "
-            f"{tb.CPU_SCENE_SIDE} px): splatfacto's resolution schedule kept (num_downscales {downscales}) instead of "
+            f"{time_budget.CPU_SCENE_SIDE} px): splatfacto's resolution schedule kept (num_downscales {downscales}) instead of "
             "full resolution from the first step"
         )
         CONSOLE.print(f"  note:     {note}")
@@ -370,9 +370,9 @@ class WillagsTrainer(Trainer):
             on_plan=on_plan,
             log=CONSOLE.print,
             sync=torch.cuda.synchronize if cuda else None,
-            warmup_steps=tb.WARMUP_STEPS,  # read now, so a test can shorten them
-            window_steps=tb.WINDOW_STEPS,
-            replan_every=tb.REPLAN_EVERY,
+            warmup_steps=time_budget.WARMUP_STEPS,  # read now, so a test can shorten them
+            window_steps=time_budget.WINDOW_STEPS,
+            replan_every=time_budget.REPLAN_EVERY,
         )
 
         def after_step(step: int) -> None:

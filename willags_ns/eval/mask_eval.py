@@ -193,7 +193,7 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     K = cam.get_intrinsics_matrices().to(model.device)
     W, H = int(cam.width.item()), int(cam.height.item())
     gp = model.gauss_params
-    colors = teacher_colors(nets, z, gp, c2w[0, :3, 3], model._color_context(), None)
+    colors = teacher_colors(nets, z, gp, c2w[0, :3, 3], model.color_context(), None)
     dirs = pixel_directions(c2w[0], K[0], W, H) if nets.sky is not None else None
     bg = background(nets.sky, z, dirs, model.background_color.to(model.device))
     return teacher_render(model.config, colors, gp, viewmat_from_c2w(c2w), K, W, H, bg)

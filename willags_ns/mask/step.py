@@ -200,8 +200,7 @@ class MaskFace:
         perceptual: PerceptualFeatures | None
         mask_step: MaskStep
 
-        def _color_context(self) -> ColorContext: ...
-        def _background(self, nets, z, dirs, fallback, idx: int = -1) -> Tensor: ...
+        def color_context(self) -> ColorContext: ...
 
     def update_teacher(self, step: int) -> None:
         """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
@@ -209,19 +208,15 @@ class MaskFace:
         ema_update_(self.teacher, self.appearance_nets, self.config.mask.teacher.tau)
 
     @torch.no_grad()
-    def _teacher_render(
-        self, gp, vae_in, idx: int, cam_center, viewmat, K, W, H, dirs, fallback, sh_base=None
-    ) -> tuple[Tensor, Tensor]:
-        """(pseudo-GT [H, W, 3], the teacher's latent) for training image `idx` (`vae_in`: the VAE's input) from the
-        EMA teacher networks with the student's current Gaussians: a second rasterisation (without
-        mask.teacher.fused; the fused path renders the same image), over the teacher's own sky when there is one."""
+    def render_teacher(self, gp, z_t: Tensor, cam_center, viewmat, K, W, H, bg: Tensor, sh_base=None) -> Tensor:
+        """The pseudo-GT [H, W, 3] under the teacher's latent `z_t` from the EMA teacher networks with the student's
+        current Gaussians, over `bg` (the teacher's own sky when there is one): a second rasterisation (without
+        mask.teacher.fused; the fused path renders the same image)."""
         assert self.teacher is not None
-        z_t = teacher_latent(self.teacher, vae_in, idx)
-        colors = teacher_colors(self.teacher, z_t, gp, cam_center, self._color_context(), sh_base)
-        bg = self._background(self.teacher, z_t, dirs, fallback, idx)
-        return teacher_render(self.config, colors, gp, viewmat, K, W, H, bg), z_t
+        colors = teacher_colors(self.teacher, z_t, gp, cam_center, self.color_context(), sh_base)
+        return teacher_render(self.config, colors, gp, viewmat, K, W, H, bg)
 
-    def _static_mask(self, outputs, gt_img: Tensor) -> StepMask:
+    def step_static_mask(self, outputs, gt_img: Tensor) -> StepMask:
         """This step's static mask (MaskStep.static_mask) of the image get_outputs rendered (`outputs`)."""
         idx = int(outputs.get("image_idx", -1))
         teacher_rgb = outputs.get("teacher_rgb")
@@ -241,6 +236,6 @@ class MaskFace:
         self.mask_step.observations = obs
 
     @property
-    def _mask_cache(self) -> dict[int, Tensor]:
+    def last_masks(self) -> dict[int, Tensor]:
         """Each image's last perceptual mask (MaskStep.masks; read by benchmarks/harness.py)."""
         return self.mask_step.masks

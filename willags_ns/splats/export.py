@@ -39,7 +39,7 @@ class SplatExport:
 
         def current_latent(self) -> Tensor: ...
         def sh_coeffs(self, gp: dict | None = None) -> Tensor | None: ...
-        def _color_context(self) -> ColorContext: ...
+        def color_context(self) -> ColorContext: ...
 
     @property
     def features_dc(self):
@@ -79,12 +79,12 @@ class SplatExport:
         """SH coefficients [N, (degree + 1)**2, 3] reproducing the appearance's colour (ColorPath.baked_sh)."""
         assert self.appearance_nets is not None
         sh = self.sh_coeffs() if sh is None else sh
-        return self.color_path.baked_sh(self.appearance_nets, z, means, f_s, degree, self._color_context(), sh, key)
+        return self.color_path.baked_sh(self.appearance_nets, z, means, f_s, degree, self.color_context(), sh, key)
 
     @torch.no_grad()
     def baked_colors(self, z: Tensor | None = None) -> Tensor:
         """View-independent colours [N, 3] for export: the appearance averaged over a Fibonacci sphere of views."""
         assert self.appearance_nets is not None
         z = self.current_latent() if z is None else z.to(self.device)
-        nets, k, ctx = self.appearance_nets, max(1, self.config.export_view_samples), self._color_context()
+        nets, k, ctx = self.appearance_nets, max(1, self.config.export_view_samples), self.color_context()
         return self.color_path.baked_colors(nets, z, self.means, self.intrinsic_features, k, ctx, self.sh_coeffs())
