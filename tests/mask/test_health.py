@@ -7,7 +7,7 @@ import torch
 
 from willags_ns.mask.health import MaskHealth, MaskHealthConfig, WindowMeans, feedback_loop
 
-# the paper preset on south-building, seed 42, one H200 (benchmarks/records/gpu_runs/h200_paper_mask_diag_session15.json):
+# the paper preset on south-building, seed 42, one H200 (the mask diagnosis record in benchmarks/records/gpu_runs/):
 # means over 250 steps from the mask's start (step 500) to step 2000, where its test PSNR fell 18.45 -> 15.57
 MEASURED_LOOP = [
     (500, 0.0768, 21.0),

@@ -259,8 +259,7 @@ def check_gaussians_alive(num_points: int, step: int) -> None:
 
 BYTES_PER_PIXEL = 3000
 """Host memory of one CPU training step per image pixel (forward + backward: render, teacher channels, VGG features
-of the mask, SSIM maps, VAE input, autograd buffers). Measured with tests/test_model's tiny model: 480x270 -> 0.95 GB
-peak, 960x540 -> 2.0 GB, i.e. 2.9 kB per added pixel."""
+of the mask, SSIM maps, VAE input, autograd buffers), rounded up from a measurement (docs/design.md)."""
 BYTES_PER_GAUSSIAN = 2000
 """Per-Gaussian parameters, Adam moments, projections and per-Gaussian colours (generous)."""
 

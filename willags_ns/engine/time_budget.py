@@ -151,9 +151,9 @@ measured; larger images keep splatfacto's resolution schedule (:func:`full_resol
 
 def full_resolution_suits(image_side: int) -> bool:
     """Whether full resolution from the first step (how the CPU points were measured, on 128 px images) suits training
-    images whose longest side is ``image_side`` px: up to twice the measured scene's side. Measured on the 2-core CPU,
-    sacre-coeur-mini (800 px), a 4-minute budget: at full resolution a step took 12.9 s (19 steps trained); with
-    splatfacto's resolution schedule (a quarter of the resolution for the first 3000 steps) 0.20 s (1180 steps)."""
+    images whose longest side is ``image_side`` px: up to twice the measured scene's side. Larger images keep
+    splatfacto's resolution schedule, whose first steps at a quarter of the resolution train far more steps in the
+    same minutes (the measurement: docs/design.md, "Measured numbers behind the code")."""
     return image_side <= FULL_RESOLUTION_MAX_SIDE
 
 

@@ -404,7 +404,7 @@ MAD_TO_STD = 1.4826
 
 def _lower_median(x: Tensor) -> Tensor:
     """``x.median(dim=1).values`` (the lower median of each row) through a sort: the same value, but CUDA's median
-    kernel selects within one block per row, 1.6 ms for an 800 x 800 image on an H100, the sort a small fraction."""
+    kernel selects within one block per row, several times slower than the sort (docs/design.md)."""
     return x.sort(dim=1).values[:, (x.shape[1] - 1) // 2]
 
 
