@@ -128,8 +128,11 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         self.teacher: AppearanceNetworks | None = None
         self.perceptual: PerceptualFeatures | None = None
         observations = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
-        # whether there is a sky and where it shows while training (region "open" without keypoints: no sky)
-        with_sky, self.open_regions = sky_for_scene(cfg.sky, observations)
+        # whether there is a sky and where it shows while training (region "open" without keypoints: no sky); plain
+        # 3DGS colours (appearance "sh") have no appearance model, so no sky
+        with_sky, self.open_regions = (
+            sky_for_scene(cfg.sky, observations) if cfg.appearance == "willags" else (False, None)
+        )
         if cfg.appearance == "willags":
             self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data, with_sky)
             self.teacher, self.perceptual = mask_networks(cfg, self.appearance_nets)

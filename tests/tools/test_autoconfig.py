@@ -1,4 +1,4 @@
-"""willags-auto / --pipeline.model.auto-config: the inspector's recommendation sets the model's switches before the
+"""willags / --pipeline.model.auto-config: the inspector's recommendation sets the model's switches before the
 model is built, is logged (console, tensorboard, auto_config.json) and is what config.yml reloads."""
 
 import json
@@ -8,7 +8,7 @@ import torch
 import yaml
 
 from tests._scenes import small_scene
-from willags_ns.method_configs import willags_auto_config, willags_model_config
+from willags_ns.method_configs import willags_config, willags_model_config
 from willags_ns.tools.autoconfig import (
     AUTO_CONFIG_FILE,
     apply_auto_config,
@@ -80,31 +80,31 @@ def test_uninspectable_scene_keeps_the_method(tmp_path):
     assert "not applied" in format_summary(s)
 
 
-def test_willags_auto_method_is_registered():
+def test_the_inspecting_method_is_willags_under_one_name():
     from nerfstudio.plugins.registry import discover_methods
 
     methods, _ = discover_methods()
-    assert "willags-auto" in methods and methods["willags-auto"].pipeline.model.auto_config is True
-    assert willags_auto_config().pipeline.model.mask.enabled is True  # before inspection: the full model
+    assert methods["willags"].pipeline.model.auto_config is True
+    assert [m for m in methods if m.startswith("willags") and methods[m].pipeline.model.auto_config] == ["willags"]
+    assert willags_config().pipeline.model.mask.enabled is True  # before inspection: the full model
 
 
 def test_the_default_inspects_first_and_willags_full_does_not():
     """`willags` is the full model with auto_config (docs/fidelity.md); `willags-full` is the same model without
-    inspection; `willags-auto` is another name of the default."""
+    inspection."""
     from nerfstudio.plugins.registry import discover_methods
 
     from willags_ns.engine.trainer import preset_defaults
     from willags_ns.method_configs import willags_config, willags_full_config
 
     methods, _ = discover_methods()
-    default, full, auto = methods["willags"], methods["willags-full"], methods["willags-auto"]
+    default, full = methods["willags"], methods["willags-full"]
     assert default.pipeline.model.auto_config is True and full.pipeline.model.auto_config is False
-    assert (default.method_name, full.method_name, auto.method_name) == ("willags", "willags-full", "willags-auto")
+    assert (default.method_name, full.method_name) == ("willags", "willags-full")
     # the same model apart from the inspection: every field but auto_config equal, the schedule equal
     d, f = vars(willags_config().pipeline.model), vars(willags_full_config().pipeline.model)
     assert {k for k in d if d[k] != f[k]} == {"auto_config"}
     assert f == vars(willags_model_config())
-    assert vars(auto.pipeline.model) == vars(default.pipeline.model)
     assert willags_config().max_num_iterations == willags_full_config().max_num_iterations == 30000
     # the preset a user's switches are told from (trainer.preset_defaults) is the method's own
     assert preset_defaults("willags")[0].auto_config is True
@@ -113,7 +113,7 @@ def test_the_default_inspects_first_and_willags_full_does_not():
 
 @pytest.mark.slow
 def test_training_applies_logs_and_reloads(tmp_path, scenes, monkeypatch):
-    """ns-train willags-auto on a scene with appearance change and no transients: no mask, no teacher; the choice
+    """ns-train willags on a scene with appearance change and no transients: no mask, no teacher; the choice
     goes to tensorboard and auto_config.json; config.yml reloads the trained model without inspecting again."""
     from nerfstudio.utils import writer
 

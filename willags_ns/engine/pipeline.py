@@ -15,7 +15,7 @@ It is also where every willags method checks its inputs and guards training, wha
   was rejected because it flagged most of an image;
 - before training, a warning for a photo whose colours do not follow the SfM points it should show (a photo of
   another place under a registered frame: `check_photo_content`);
-- with `--pipeline.model.auto-config True` (method willags-auto), the scene is inspected and the model's switches
+- with `--pipeline.model.auto-config True` (the method willags), the scene is inspected and the model's switches
   set before the model is built (willags_ns/tools/autoconfig.py);
 - Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
   at the next step with the same parameters and optimiser state (`InterruptCheckpoint`); the printed command
