@@ -1,5 +1,5 @@
 # Two commands for users: `make demo` and `make test`. Both create .venv (python3 3.10-3.12) when missing and
-# install everything pinned for CPU (constraints-cpu.txt), then the torchvision shim (willags_ns/tvshim.py).
+# install everything pinned for CPU (constraints-cpu.txt), then the torchvision shim (willags_ns/engine/tvshim.py).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -32,7 +32,7 @@ $(STAMP): pyproject.toml constraints-cpu.txt Makefile
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -c constraints-cpu.txt torch==2.13.0 torchvision==0.28.0
 	$(BIN)/python -m pip install -c constraints-cpu.txt -e '.[dev]'
-	$(BIN)/python -m willags_ns.tvshim install
+	$(BIN)/python -m willags_ns.engine.tvshim install
 	@touch $(STAMP)
 
 install: $(STAMP) sysdeps

@@ -66,10 +66,11 @@ def _patch_stock_splatfacto() -> list[str]:
     import torchmetrics.image.lpip as tm_lpip
     from nerfstudio.models import splatfacto as sf
 
-    from willags_ns.model import _lpips_weights_cached, viewmat_from_c2w
+    from willags_ns.eval.lpips import lpips_weights_cached
+    from willags_ns.render.camera import viewmat_from_c2w
 
     patches = []
-    if not _lpips_weights_cached():
+    if not lpips_weights_cached():
 
         class _NoLPIPS(torch.nn.Module):
             def __init__(self, *a, **k):
@@ -85,8 +86,8 @@ def _patch_stock_splatfacto() -> list[str]:
 def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     """The NeRF-W protocol on the test split of a set-up trainer (spec: protocol_steps, protocol_lr,
     max_test_images, oracle, train_views): aggregate scores, per_image, eval_s and the train-view scores."""
+    from willags_ns.appearance.latents import image_as_float
     from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
-    from willags_ns.model import image_as_float
 
     dm = trainer.pipeline.datamanager
     model = trainer.pipeline.model
@@ -206,9 +207,9 @@ def save_masks(path: Path, pairs: list[tuple[Any, Any]], height: int = 200) -> P
 def training_mask(model, idx: int):
     """Training image `idx`'s last mask as training used it (True = supervised): the perceptual mask with the SfM
     safeguard applied."""
-    from willags_ns.static_support import apply_support
+    from willags_ns.mask.static_support import apply_support
 
-    raw = model._mask_cache[idx]
+    raw = model.last_masks[idx]
     return apply_support(raw, model.static_support(idx, *raw.shape))
 
 
@@ -216,10 +217,10 @@ def static_observation_scores(model) -> dict[str, Any]:
     """ "Static observations masked": the share of the training images' observations of SfM points with a track of
     >= 5 training images that the last mask of each image flags as transient (each of them shows static scene, so
     0 is right), for the mask as training used it and for the perceptual mask alone (before the safeguard)."""
-    from willags_ns.static_support import masked_share, observations_masked
+    from willags_ns.mask.static_support import masked_share, observations_masked
 
     used, raw = [], []
-    for idx, mask in model._mask_cache.items():
+    for idx, mask in model.last_masks.items():
         obs = model.sfm_observations[idx]
         raw.append(observations_masked(mask, obs, 5))
         used.append(observations_masked(training_mask(model, idx), obs, 5))
@@ -246,7 +247,7 @@ def subject_masked_scores(model, train_dataset, masks_dir: Path) -> dict[str, An
     from willags_ns.eval.mask_eval import resize_mask
 
     flagged_used = flagged_raw = total = images = 0
-    for idx, raw in model._mask_cache.items():
+    for idx, raw in model.last_masks.items():
         path = masks_dir / f"{Path(train_dataset.image_filenames[idx]).stem}.png"
         if not path.is_file():
             continue
@@ -329,14 +330,14 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     model = trainer.pipeline.model
     rec.update(protocol_scores(trainer, spec))
     rec.update(render_fps(model, dm.eval_dataset.cameras, spec["fps_views"]))
-    masks = getattr(model, "_mask_cache", None)
+    masks = getattr(model, "last_masks", None)
     if masks and getattr(model, "sfm_observations", None) is not None:
         rec.update(static_observation_scores(model))
     subject_dir = Path(spec["data"]) / SUBJECT_MASKS_DIR if spec.get("data") else None
     if masks and subject_dir is not None and subject_dir.is_dir():
         rec.update(subject_masked_scores(model, dm.train_dataset, subject_dir))
     if os.environ.get(RENDERS_ENV) and masks:
-        from willags_ns.model import image_as_float
+        from willags_ns.appearance.latents import image_as_float
 
         picks = sorted(masks)[:: max(1, len(masks) // 4)][:4]
         imgs = [image_as_float(dm.cached_train[i]["image"]) for i in picks]

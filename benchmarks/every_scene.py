@@ -4,9 +4,9 @@ eats there ("subject masked" on liberty's statue, "static observations masked" o
 
 Today's default is what `willags` trains after inspecting each scene (willags_ns/tools/inspect.py). Where the inspector's
 decision for a scene did not change with the surround sky and the colour-twin test (reichstag, sacre-coeur-mini,
-south-building: tests/test_inspect.py checks the decisions), its records are generalisation.auto_records'. On
+south-building: tests/tools/test_inspect.py checks the decisions), its records are generalisation.auto_records'. On
 liberty the inspector now picks no mask and the sky behind every pixel with its alpha penalty: exactly the model of
-`willags-skyalpha-nomask` (tests/test_autoconfig.py checks), whose records count, with `willags` records from
+`willags-skyalpha-nomask` (tests/tools/test_autoconfig.py checks), whose records count, with `willags` records from
 INSPECTOR_SINCE on; liberty's earlier `willags` records are of the inspector without those two rules (the mask, the
 sky above the skyline).
 """

@@ -25,7 +25,7 @@ elif [ -f .gpu-cache/gsplat_cuda.so.gz ]; then
 fi
 # willags' entry points as `pip install` writes them (the tree itself is on PYTHONPATH): `ns-train willags` and
 # `ns-eval` find the methods, and nerfstudio loads them before it lists its installable methods, which
-# willags_ns/_compat.py makes quick (seconds of every process's start-up, each rank of a multi-GPU run included)
+# willags_ns/engine/compat.py makes quick (seconds of every process's start-up, each rank of a multi-GPU run included)
 [ $reuse = 1 ] || python3 - <<'PY'
 import pathlib, tomllib
 project = tomllib.load(open("pyproject.toml", "rb"))["project"]

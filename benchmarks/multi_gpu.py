@@ -14,7 +14,7 @@ benchmarks/multi_gpu.sh always did. Configs are built here in Python and handed 
 ``nerfstudio.scripts.train.main`` (its launcher: one process per GPU, NCCL), so no method registry and no parsing of
 anyone's stdout is involved.
 
-Every run trains with ``--pipeline.data-parallel.step-profile True`` (willags_ns/step_profile.py): each rank writes
+Every run trains with ``--pipeline.data-parallel.step-profile True`` (willags_ns/engine/step_profile.py): each rank writes
 its per-step spans (CUDA events) and start-up phases; this script reads them back and prints, per run, the steady
 state (the last quarter of the steps): the step time, images per second and the ratio to the 1-GPU run, and the
 step's breakdown: forward, backward, packing, the all-reduce's transfer (the quickest rank's time in it) and each
@@ -135,7 +135,7 @@ def scale_schedules(config: Any, n: int) -> dict[str, Any]:
 def build_config(spec: dict[str, Any]) -> Any:
     """The TrainerConfig of a run spec (written by `run`, read by `train`)."""
     import willags_ns.method_configs  # noqa: F401  (registers every method's factory)
-    from willags_ns.trainer import PRESET_CONFIGS
+    from willags_ns.engine.trainer import PRESET_CONFIGS
 
     config = PRESET_CONFIGS[spec["method"]]()
     n = spec["devices"] * spec["machines"]
@@ -478,7 +478,7 @@ def cmd_run(args: argparse.Namespace) -> None:
         spec_path.write_text(json.dumps(spec, indent=1))
         if args.dry_run:
             import willags_ns.method_configs  # noqa: F401  (registers every method's factory)
-            from willags_ns.trainer import PRESET_CONFIGS
+            from willags_ns.engine.trainer import PRESET_CONFIGS
 
             schedule = scale_schedules(PRESET_CONFIGS[args.method](), run.total)
             print(f"{run.name}: {run.total} GPUs, {res['steps']} steps, ~{estimate_s(run, images):.0f} s; {schedule}")

@@ -1,4 +1,4 @@
-"""Test harness only (tests/test_distributed.py): run nerfstudio's own multi-process launcher on a CPU-only machine
+"""Test harness only (tests/engine/test_distributed.py): run nerfstudio's own multi-process launcher on a CPU-only machine
 and record what each rank did.
 
 nerfstudio 1.1.5's `_distributed_worker` asserts `torch.cuda.is_available()` and `num_devices <=
@@ -59,7 +59,7 @@ def train_and_record(local_rank: int, world_size: int, config, global_rank: int 
     torch.set_num_threads(1)  # 2 ranks on a 2-core machine; also makes the CPU reductions reproducible
     windows = os.environ.get("WILLAGS_TEST_BUDGET_STEPS")  # "warm-up,window,replan": a time budget's, shortened
     if windows:
-        from willags_ns import time_budget
+        from willags_ns.engine import time_budget
 
         time_budget.WARMUP_STEPS, time_budget.WINDOW_STEPS, time_budget.REPLAN_EVERY = map(int, windows.split(","))
     _set_random_seed(config.machine.seed + global_rank)
@@ -90,7 +90,7 @@ def train_and_record(local_rank: int, world_size: int, config, global_rank: int 
     )
     trainer.train()
     record["final"] = tensors(model)
-    from willags_ns.distributed import is_placeholder
+    from willags_ns.engine.distributed import is_placeholder
 
     record["decoded"] = [i for i, c in enumerate(pipeline.datamanager.cached_train) if not is_placeholder(c["image"])]
     torch.save(record, record_path(config, global_rank))

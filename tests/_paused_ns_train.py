@@ -57,7 +57,7 @@ def _pause(marker: Path) -> None:
 
 
 def _stop_in_step(marker: Path, step: int) -> None:
-    from willags_ns.trainer import WillagsTrainer
+    from willags_ns.engine.trainer import WillagsTrainer
 
     train_iteration = WillagsTrainer.train_iteration
 
@@ -71,8 +71,8 @@ def _stop_in_step(marker: Path, step: int) -> None:
 
 
 def _stop_in_save(marker: Path, step: int) -> None:
-    from willags_ns import checkpoints
-    from willags_ns.checkpoints import checkpoint_path
+    from willags_ns.engine import checkpoints
+    from willags_ns.engine.checkpoints import checkpoint_path
 
     opener = checkpoints._open_partial  # the module's seam for the partial file (tests replace it)
 

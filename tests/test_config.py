@@ -27,7 +27,11 @@ def test_the_dataclass_defaults_are_the_method_willags():
 def test_a_config_yml_of_the_flat_layout_loads_into_the_groups():
     old = yaml.load(FLAT_LAYOUT.read_text(), Loader=yaml.Loader)
     assert old["willags"] == mc.willags_config().pipeline.model
-    assert old["willags-paper"] == mc.willags_paper_config().pipeline.model
+    paper_now = mc.willags_paper_config().pipeline.model
+    assert not paper_now.sky.enabled  # the file's sky region ("everywhere", its default then) does nothing here
+    assert old["willags-paper"] == dataclasses.replace(
+        paper_now, sky=dataclasses.replace(paper_now.sky, region="everywhere")
+    )
     paper = old["willags-paper"]
     assert paper.latent.kind == "vae" and paper.latent.dim == 64 and paper.mask.every == 1
     assert paper.mask.teacher.fused and not paper.mask.safeguard.enabled
@@ -75,3 +79,16 @@ def test_building_the_model_leaves_its_config_as_it_was():
     model = _tiny_model(use_vae=True, sky=copy.deepcopy(sky))
     assert model.appearance_nets.sky is None
     assert model.config.sky == before.sky and model.config.latent.dim == 8  # read, never written
+
+
+def test_presets_set_only_fields_that_act():
+    """willags-3dgs (appearance "sh": no latent, mask, sky or f_s) differs from the defaults only where it acts;
+    willags-lite builds no tri-plane field, so it sets none of the field's settings."""
+    from willags_ns.appearance.sky import SkyConfig
+    from willags_ns.appearance.triplane import TriplaneConfig
+
+    default = vars(WillagsModelConfig())
+    plain = vars(mc.willags_3dgs_config().pipeline.model)
+    assert {k for k in default if default[k] != plain[k]} == {"appearance", "rasterize_mode", "auto_config"}
+    lite = mc.willags_lite_config().pipeline.model
+    assert not lite.use_field and lite.triplane == TriplaneConfig() and lite.sky == SkyConfig(enabled=False)

@@ -8,7 +8,7 @@ import torch
 
 from benchmarks.generalisation import generalisation_section, scene_rows, static_obs_rows
 from benchmarks.harness import static_observation_scores, training_mask
-from willags_ns.static_support import StaticSupportConfig, support_map
+from willags_ns.mask.static_support import StaticSupportConfig, support_map
 
 
 def _rec(scene, method, psnr, tag="h200-r1", **kw):
@@ -90,7 +90,7 @@ def _fake_model(enabled: bool):
     rng = np.random.default_rng(0)
     uv = np.stack([0.2 + 0.02 * rng.standard_normal(30), 0.5 + 0.02 * rng.standard_normal(30)], 1)
     obs = [np.concatenate([uv, np.full((30, 1), 6.0)], 1).astype(np.float32)]
-    model = SimpleNamespace(sfm_observations=obs, _mask_cache={0: torch.zeros(40, 80, dtype=torch.bool)})
+    model = SimpleNamespace(sfm_observations=obs, last_masks={0: torch.zeros(40, 80, dtype=torch.bool)})
     model.static_support = lambda idx, h, w: support_map(obs[idx], w, h, cfg) if enabled else None
     return model
 
@@ -133,8 +133,8 @@ def test_subject_masked_scores_count_the_subject_pixels_the_mask_flags(tmp_path)
     model = _fake_model(True)
     raw = torch.ones(40, 80, dtype=torch.bool)
     raw[:, :40] = False  # the perceptual mask flags the left half
-    model._mask_cache[0] = raw
-    model._mask_cache[1] = torch.zeros(40, 80, dtype=torch.bool)  # an image without an outline
+    model.last_masks[0] = raw
+    model.last_masks[1] = torch.zeros(40, 80, dtype=torch.bool)  # an image without an outline
     model.sfm_observations.append(model.sfm_observations[0])
     subject = np.zeros((80, 160), dtype=np.uint8)  # outlines at twice the mask's resolution: resized
     subject[:, 20:100] = 255  # columns 10..50 at the mask's size: half in the flagged half

@@ -101,3 +101,51 @@ def test_benchmarks_have_no_import_cycles():
     graph = import_graph(BENCHMARKS)
     assert "benchmarks.curves" in graph["benchmarks.curves_report"]  # the graph was read
     assert cycles(graph) == []
+
+
+METHOD_ROOMS = ("appearance", "mask", "splats", "objective", "render")
+
+
+def test_the_package_root_holds_at_most_ten_modules():
+    root = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert "model.py" in root and len(root) <= 10, root
+
+
+def test_the_method_rooms_import_neither_the_model_nor_the_engine():
+    graph = import_graph()
+    outside = ("willags_ns.model", "willags_ns.method_configs", "willags_ns.engine")
+    for mod, deps in graph.items():
+        if mod.split(".")[1:2] and mod.split(".")[1] in METHOD_ROOMS:
+            assert not [d for d in deps if d.startswith(outside)], mod
+        if mod.startswith("willags_ns.engine"):
+            assert not [d for d in deps if d == "willags_ns.model" or d.split(".")[1] in METHOD_ROOMS], mod
+
+
+def private_imports(package: Path = PACKAGE, target: str = "willags_ns") -> list[str]:
+    """`from <target>.x import _name` in a module other than x itself, and imports of a `_private` module of
+    `target` from outside its own package (a module's _private names are its own; a package's _private modules are
+    its package's)."""
+    found = []
+    for path in package.rglob("*.py"):
+        own = ".".join(path.relative_to(package.parent).with_suffix("").parts[:-1])
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == target:
+                names = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+                private_module = any(part.startswith("_") for part in node.module.split("."))
+                if names or (private_module and node.module.rpartition(".")[0] != own):
+                    found.append(f"{path.relative_to(package.parent)}:{node.lineno} {node.module} {names}")
+    return found
+
+
+def test_private_imports_are_found(tmp_path):
+    fake = tmp_path / "pkg"
+    fake.mkdir()
+    (fake / "a.py").write_text("from willags_ns.b import _hidden\nfrom willags_ns.b import shown\n")
+    (fake / "c.py").write_text("from willags_ns.render._torch import rasterize\n")
+    found = sorted(f.split(" ", 1)[1] for f in private_imports(fake))
+    assert found == ["willags_ns.b ['_hidden']", "willags_ns.render._torch []"]
+
+
+def test_no_module_imports_another_modules_private_names():
+    assert private_imports() == []
+    assert private_imports(BENCHMARKS) == []  # benchmarks/ reach willags_ns only through public names

@@ -108,7 +108,7 @@ def test_a_run_killed_after_a_milestone_keeps_its_time_and_is_scored_there(tmp_p
     import pytest
 
     from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
-    from willags_ns.trainer import WillagsTrainer
+    from willags_ns.engine.trainer import WillagsTrainer
 
     cfg = SyntheticSceneConfig(num_train=8, num_test=2, width=32, height=24, num_points=400, supersample=1)
     scene = write_scene(make_scene(cfg), tmp_path / "scene")

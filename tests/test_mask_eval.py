@@ -205,7 +205,8 @@ def test_max_images_and_missing_masks(tmp_path):
 
 @pytest.mark.parametrize("use_vae", [False, True])
 def test_teacher_render_matches_the_training_path(use_vae):
-    """mask_eval renders the teacher the way WillagsModel._teacher_render does during training."""
+    """mask_eval renders the teacher the way WillagsModel.render_teacher does during training."""
+    from willags_ns.mask.step import teacher_latent
     from willags_ns.render.camera import viewmat_from_c2w
 
     model = _tiny_model(use_vae)
@@ -222,7 +223,8 @@ def test_teacher_render_matches_the_training_path(use_vae):
     K = cam.get_intrinsics_matrices()
     bg = model.background_color
     gp, vae_in = dict(model.gauss_params), image.permute(2, 0, 1)
-    ref, _ = model._teacher_render(gp, vae_in, 1, c2w[0, :3, 3], viewmat_from_c2w(c2w), K, W, H, None, bg)
+    z_t = teacher_latent(model.teacher, vae_in, 1)
+    ref = model.render_teacher(gp, z_t, c2w[0, :3, 3], viewmat_from_c2w(c2w), K, W, H, bg)
     torch.testing.assert_close(ours, ref)
     # and it is the teacher, not the student
     student = model.get_outputs(cam)["rgb"] if not use_vae else None

@@ -49,7 +49,7 @@ def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_g
     results = {}
     for fused in (True, False):
         model.config.mask.teacher.fused = fused
-        model._mask_cache.clear()
+        model.last_masks.clear()
         model.mask_step.visits.clear()
         torch.manual_seed(3)  # same reparameterisation noise in both runs
         model.set_train_batch({"image": image, "image_idx": 0})
@@ -58,7 +58,7 @@ def test_fused_teacher_render_equals_a_second_rasterisation_and_leaves_student_g
         loss = (out["rgb"] - 0.5).square().mean()
         grads = torch.autograd.grad(loss, [model.gauss_params[k] for k in names])
         results[fused] = (out["teacher_rgb"], out["rgb"].detach(), grads)
-        model._end_step(0)
+        model.end_step(0)
     (t_f, rgb_f, g_f), (t_s, rgb_s, g_s) = results[True], results[False]
     assert t_f.shape == (h, w, 3) and not torch.allclose(t_f, rgb_f, atol=1e-3)  # really the teacher's colours
     torch.testing.assert_close(t_f, t_s, atol=1e-5, rtol=1e-5)
@@ -178,7 +178,7 @@ def test_modulated_starts_as_plain_3dgs_and_the_latent_transforms_colour_globall
             ref = (spherical_harmonics(0, means - cam_center, sh) + 0.5).clamp_min(0)
             torch.testing.assert_close(rgb, ref)
         mod = model.appearance_nets.modulation
-        f_d = model.color_path.dynamic_features(model.appearance_nets, z, means, model._color_context(), False)
+        f_d = model.color_path.dynamic_features(model.appearance_nets, z, means, model.color_context(), False)
         assert local_penalty(mod.local_residual(z, f_s, f_d, means.shape[0])) == 0
         mod.global_mlp[-1].bias.copy_(torch.tensor([1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0, 0.1, 0.0, -0.1]))  # 2x + b
         rgb = model.appearance_colors(z, means, f_s, cam_center).rgb
@@ -282,7 +282,7 @@ def test_training_metrics_match_splatfactos_and_the_photo_is_converted_once_per_
     gt = model.composite_with_background(orig(model, image), out["background"])
     torch.testing.assert_close(metrics["psnr"], model.psnr(out["rgb"].detach(), gt), rtol=1e-5, atol=1e-5)
     assert metrics["gaussian_count"] == model.num_points
-    model._end_step(0)
+    model.end_step(0)
     # the next step converts afresh, also for the same photo object (the resolution schedule may have moved on)
     for n_calls, photo in ((2, image), (3, torch.zeros_like(image))):
         batch2 = {"image": photo, "image_idx": 1}
@@ -292,7 +292,7 @@ def test_training_metrics_match_splatfactos_and_the_photo_is_converted_once_per_
         assert len(calls) == n_calls
         want = model.composite_with_background(orig(model, photo), out2["background"])
         torch.testing.assert_close(model._gt_image(out2, batch2), want)
-        model._end_step(0)
+        model.end_step(0)
     model.eval()  # outside training nothing is kept
     with torch.no_grad():
         out3 = model.get_outputs(cam)

@@ -19,7 +19,7 @@ def test_runs_name_devices_machines_reduction_and_images():
 
 def test_schedules_are_divided_by_the_devices():
     import willags_ns.method_configs  # noqa: F401
-    from willags_ns.trainer import PRESET_CONFIGS
+    from willags_ns.engine.trainer import PRESET_CONFIGS
 
     one, four = PRESET_CONFIGS["willags"](), PRESET_CONFIGS["willags"]()
     assert scale_schedules(one, 1)["refine_every"] == one.pipeline.model.refine_every == 100

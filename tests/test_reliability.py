@@ -17,7 +17,8 @@ import pytest
 import torch
 from PIL import Image
 
-from willags_ns.checks import (
+from willags_ns.data.dataparser import WillagsDataError, WillagsDataParserConfig
+from willags_ns.engine.checks import (
     WillagsInputError,
     WillagsTrainingError,
     check_image_file,
@@ -26,7 +27,6 @@ from willags_ns.checks import (
     check_poses,
     validate_dataparser_outputs,
 )
-from willags_ns.data.dataparser import WillagsDataError, WillagsDataParserConfig
 
 # ---------------------------------------------------------------------------------------------------------------------
 # a tiny writable scene (8 train + 2 test images of 32x24) for the corruption tests
@@ -220,7 +220,7 @@ def small_networks() -> dict:
     from willags_ns.appearance.triplane import TriplaneConfig
     from willags_ns.appearance.vae import VAEConfig
     from willags_ns.config import LatentConfig
-    from willags_ns.transient import MaskConfig
+    from willags_ns.mask.transient import MaskConfig
 
     return {
         "latent": LatentConfig(dim=8, vae=VAEConfig(image_size=16, channels=(8, 8))),
@@ -414,7 +414,7 @@ def test_row16_checkpoints_load_weights_only_and_pickled_objects_are_refused(tin
         torch.load(bad, map_location="cpu")  # nerfstudio's call in Trainer._load_checkpoint / eval_setup
     assert not marker.exists()
     # through the trainer's resume path: refused with one line naming the file, never skipped for an older one
-    from willags_ns.checkpoints import CheckpointRefusedError
+    from willags_ns.engine.checkpoints import CheckpointRefusedError
 
     config = _tiny_config(tmp_path / "resume", tiny_scene_src, steps=1)
     config.load_dir = tmp_path / "bad"

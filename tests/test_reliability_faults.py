@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from tests._paused_ns_train import launch_paused, wait_until_paused
-from willags_ns import checkpoints as ck
-from willags_ns.checkpoints import (
+from willags_ns.engine import checkpoints as ck
+from willags_ns.engine.checkpoints import (
     CheckpointError,
     CheckpointSpaceError,
     SaveTimer,
@@ -147,7 +147,7 @@ def test_row22_a_full_disk_on_a_real_small_filesystem(tmp_path):
 def test_row22_a_full_disk_stops_training_naming_the_last_good_checkpoint_and_the_resume_command(
     scene, tmp_path, monkeypatch, capsys
 ):
-    from willags_ns.checks import _excepthook
+    from willags_ns.engine.checks import _excepthook
 
     config = _config(tmp_path, scene, steps=8, steps_per_save=2, save_every_minutes=0.0)
     trainer = config.setup(local_rank=0, world_size=1)
@@ -425,7 +425,7 @@ def test_row27_progress_lines_in_a_log():
 
     from rich.console import Console
 
-    from willags_ns.progress import Progress, progress_line
+    from willags_ns.engine.progress import Progress, progress_line
 
     assert progress_line("x", 3, 10, 12.0) == "x: 3/10 (30%), 12 s, ~28 s left"
     assert progress_line("x", 10, 10, 200.0) == "x: 10/10 (100%), 3.3 min"

@@ -11,7 +11,7 @@ import torch
 
 from tests.test_mask_eval import _camera
 from tests.test_model import _tiny_model
-from willags_ns.checks import (
+from willags_ns.engine.checks import (
     WillagsInputError,
     WillagsTrainingError,
     check_gaussians_alive,
@@ -19,8 +19,8 @@ from willags_ns.checks import (
     check_train_memory,
     estimate_train_step_bytes,
 )
-from willags_ns.losses import masked_dssim, masked_l1, reconstruction_loss
-from willags_ns.transient import transient_mask
+from willags_ns.mask.transient import transient_mask
+from willags_ns.objective.losses import masked_dssim, masked_l1, reconstruction_loss
 
 H, W = 24, 32
 
@@ -53,7 +53,7 @@ def train_step(model, image_u8: torch.Tensor, cam=None, idx: int = 0):
     for name, p in model.named_parameters():
         if p.grad is not None:
             assert torch.isfinite(p.grad).all(), f"gradient of {name}"
-    model._end_step(0)
+    model.end_step(0)
     return {k: float(v) for k, v in losses.items()}, {k: float(v) for k, v in metrics.items() if torch.is_tensor(v)}
 
 
@@ -193,14 +193,14 @@ def test_row11_a_rejected_mask_is_reported_in_training(model):
     old = (mask_cfg.threshold, mask_cfg.threshold_rule)
     mask_cfg.threshold, mask_cfg.threshold_rule = 0.0, "fixed"  # D >= 0 everywhere: every pixel flagged
     try:
-        model._mask_cache.clear()
+        model.last_masks.clear()
         model.mask_step.visits.clear()
         losses, metrics = train_step(model, _image(seed=4))
         assert metrics.get("mask_rejected") == 1.0 and metrics["masked_fraction"] == 0.0
         assert losses["main_loss"] > 0  # supervised everywhere, not a 0/0
     finally:
         mask_cfg.threshold, mask_cfg.threshold_rule = old
-        model._mask_cache.clear()
+        model.last_masks.clear()
 
 
 def test_row11_pipeline_warns_when_the_mask_is_rejected():
@@ -208,7 +208,7 @@ def test_row11_pipeline_warns_when_the_mask_is_rejected():
 
     from nerfstudio.utils.rich_utils import CONSOLE
 
-    from willags_ns.pipeline import WillagsPipeline
+    from willags_ns.engine.pipeline import WillagsPipeline
 
     fake = SimpleNamespace(
         _last_mask_warning=-float("inf"),
@@ -227,7 +227,7 @@ def test_row11_the_rejected_flag_is_read_one_step_late_and_only_when_set():
 
     from nerfstudio.utils.rich_utils import CONSOLE
 
-    from willags_ns.pipeline import WillagsPipeline
+    from willags_ns.engine.pipeline import WillagsPipeline
 
     fake = SimpleNamespace(
         _last_mask_warning=-float("inf"),
@@ -305,7 +305,7 @@ def test_row18_bf16_autocast_keeps_the_appearance_mlps_finite_at_the_extremes(mo
 
 @pytest.mark.parametrize("hw", [(1, 1), (2, 2), (2, 7), (5, 5), (6, 6), (8, 8)])
 def test_row13_ssim_works_down_to_1x1_images(hw):
-    from willags_ns.losses import ssim_window
+    from willags_ns.objective.losses import ssim_window
 
     h, w = hw
     k, _ = ssim_window(h, w)
@@ -319,7 +319,7 @@ def test_row13_ssim_works_down_to_1x1_images(hw):
 
 
 def test_row13_vgg_mask_features_of_a_2x2_image():
-    from willags_ns.transient import PerceptualFeatures, perceptual_error
+    from willags_ns.mask.transient import PerceptualFeatures, perceptual_error
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -1,8 +1,13 @@
 """willags-ns: WilLaGS (latent-conditional 3D appearance fields for robust Gaussian splatting in the wild)
-as a nerfstudio method. Importing the package registers the checkpoint globals nerfstudio needs (see _compat)."""
+as a nerfstudio method. Importing the package registers the checkpoint globals nerfstudio needs and the classes of
+config.yml files written before the package had its rooms (see engine/compat.py)."""
 
-from willags_ns._compat import register_checkpoint_safe_globals
+import yaml
+
+from willags_ns.engine.compat import register_checkpoint_safe_globals, register_config_yml_classes
 
 register_checkpoint_safe_globals()
+register_config_yml_classes(yaml.Loader)
+register_config_yml_classes(yaml.UnsafeLoader)
 
 __version__ = "0.1.0"

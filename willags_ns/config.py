@@ -26,8 +26,8 @@ from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.sky import SkyConfig
 from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
-from willags_ns.teacher import TeacherConfig
-from willags_ns.transient import MaskConfig
+from willags_ns.mask.teacher import TeacherConfig
+from willags_ns.mask.transient import MaskConfig
 
 
 @dataclass
@@ -226,7 +226,7 @@ def fill_defaults(obj: Any) -> None:
 INERT_KNOBS: dict[str, str] = {
     "enable_collider": "splats are rasterised, not ray-marched",
     "collider_params": "splats are rasterised, not ray-marched",
-    "loss_coefficients": "the loss is reconstruction + the terms of willags_ns/regularizers.py",
+    "loss_coefficients": "the loss is reconstruction + the terms of willags_ns/objective/regularizers.py",
     "eval_num_rays_per_chunk": "splats are rendered per camera, not per ray chunk",
     "prompt": "willags has no text prompt",
     "n_split_samples": "gsplat's DefaultStrategy splits each Gaussian in two",

@@ -1,8 +1,8 @@
 """nerfstudio method specifications: `willags` (the default: SH colours transformed by the appearance latent, the
 scene inspected first and only what it needs trained), `willags-full` (every component, no inspection),
 `willags-paper` (the paper's exact configuration: colour decoder + tri-plane field), `willags-lite` (fast preset for
-short CPU budgets), `willags-3dgs` (plain 3DGS through the same code: the CPU stand-in for splatfacto in benchmarks),
-`willags-auto` (another name of `willags`). Why each default is set as it is: docs/design.md.
+short CPU budgets), `willags-3dgs` (plain 3DGS through the same code: the CPU stand-in for splatfacto in benchmarks). Each preset sets
+only fields that act in it. Why each default is set as it is: docs/design.md.
 
 Without CUDA the methods default to the CPU (`--machine.device-type cpu` is not needed) and to our torch
 rasteriser; with CUDA, to gsplat.
@@ -17,17 +17,16 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from willags_ns._compat import quick_external_method_check
 from willags_ns.appearance.sky import SkyConfig
-from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.config import LatentConfig
 from willags_ns.data.dataparser import WillagsDataParserConfig
+from willags_ns.engine.compat import quick_external_method_check
+from willags_ns.engine.pipeline import WillagsPipelineConfig
+from willags_ns.engine.trainer import PRESET_CONFIGS, WillagsTrainerConfig
+from willags_ns.mask.static_support import StaticSupportConfig
+from willags_ns.mask.transient import MaskConfig
 from willags_ns.model import WillagsModelConfig
-from willags_ns.pipeline import WillagsPipelineConfig
-from willags_ns.static_support import StaticSupportConfig
-from willags_ns.trainer import PRESET_CONFIGS, WillagsTrainerConfig
-from willags_ns.transient import MaskConfig
 
 quick_external_method_check()  # nerfstudio loads these configs before it lists its installable methods
 
@@ -145,7 +144,7 @@ def willags_paper_model_config() -> WillagsModelConfig:
         use_field=True,
         intrinsic_dim=32,
         mask=MaskConfig(every=1, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
-        sky=SkyConfig(enabled=False, region="everywhere"),
+        sky=SkyConfig(enabled=False),
         rasterize_mode="classic",
         auto_config=False,
     )
@@ -157,20 +156,20 @@ def willags_paper_config() -> WillagsTrainerConfig:
 
 
 def willags_lite_config() -> WillagsTrainerConfig:
-    """Fast preset: 32-d latent, 32x32x16 planes, mask refreshed every 4th visit of an image, 7k steps.
-
-    Smaller planes shrink the hypernetwork's last layer 8x (3*16*32*32 outputs); the cheaper mask cadence removes
-    most teacher renders and VGG passes. Ships the same components, so every switch still applies.
+    """Fast preset: a 32-d beta-VAE latent (of the photo at 32 px), the modulated SH colours without a tri-plane field
+    (as `willags`), the mask after a 300-step warm-up, refreshed every 4th visit of an image, no sky, no safeguard,
+    densification every 100 steps until step 5000, 7k steps.
 
     Cheaper than `willags` per step on a small CPU, which is where the time budget picks it
-    (willags_ns/time_budget.py). On the GPU it is neither better nor faster than `willags`: it runs the beta-VAE
-    encoder on every step's photo and VGG at 512 px (docs/design.md).
+    (willags_ns/engine/time_budget.py). A tri-plane field made its CPU step slower for no measured gain
+    (docs/design.md, "The fast preset without a tri-plane field"); `--pipeline.model.use-field True` adds it. On the
+    GPU it is neither better nor faster than `willags`: it runs the beta-VAE encoder on every step's photo and VGG at
+    512 px (docs/design.md).
     """
     model = WillagsModelConfig(
         latent=LatentConfig(kind="vae", dim=32, vae=VAEConfig(image_size=32)),
-        triplane=TriplaneConfig(resolution=32, channels=16, hyper_hidden=(64, 16)),
         mask=MaskConfig(warmup_steps=300, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
-        sky=SkyConfig(enabled=False, region="everywhere"),
+        sky=SkyConfig(enabled=False),
         refine_every=100,
         warmup_length=300,
         stop_split_at=5000,
@@ -182,28 +181,11 @@ def willags_lite_config() -> WillagsTrainerConfig:
 def willags_3dgs_config() -> WillagsTrainerConfig:
     """Plain 3DGS (splatfacto's colours, losses and densification) through our rasteriser: no appearance
     model, no mask. Use it as the splatfacto baseline where splatfacto's CUDA-only code cannot run."""
-    model = WillagsModelConfig(
-        appearance="sh",
-        latent=LatentConfig(dim=64),
-        intrinsic_dim=32,
-        mask=MaskConfig(enabled=False, every=1, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
-        sky=SkyConfig(enabled=False, region="everywhere"),
-        rasterize_mode="classic",
-        auto_config=False,
-    )
+    model = WillagsModelConfig(appearance="sh", rasterize_mode="classic", auto_config=False)
     return _trainer("willags-3dgs", model, 30000)
 
 
-def willags_auto_config() -> WillagsTrainerConfig:
-    """The same configuration as `willags` (the full model with `auto_config`) under a second name, which commands
-    and benchmark records may use: the scene is inspected before the model is built (willags_ns/tools/autoconfig.py,
-    docs/inspect.md)."""
-    config = willags_config()
-    config.method_name = "willags-auto"
-    return config
-
-
-# every method's factory (willags_ns/trainer.py): the presets the time budget chooses between, and the method's own
+# every method's factory (willags_ns/engine/trainer.py): the presets the time budget chooses between, and the method's own
 # preset that tells a user's auto_config switches from its defaults
 PRESET_CONFIGS.update(
     {
@@ -212,7 +194,6 @@ PRESET_CONFIGS.update(
         "willags-lite": willags_lite_config,
         "willags-paper": willags_paper_config,
         "willags-3dgs": willags_3dgs_config,
-        "willags-auto": willags_auto_config,
     }
 )
 
@@ -228,17 +209,14 @@ willags_full_method = MethodSpecification(
     description="WilLaGS with every component on every scene (latent, EMA teacher, transient mask, sky, the mask's "
     "SfM safeguard), no inspection.",
 )
-willags_auto_method = MethodSpecification(
-    config=willags_auto_config(),
-    description="The same as willags (inspects the scene, trains only what it needs), under a second name.",
-)
 willags_paper_method = MethodSpecification(
     config=willags_paper_config(),
     description="WilLaGS exactly as in the paper: colour decoder over tri-plane hypernetwork features + intrinsic "
     "features, beta-VAE latent, EMA teacher, perceptual transient mask.",
 )
 willags_lite_method = MethodSpecification(
-    config=willags_lite_config(), description="WilLaGS fast preset (smaller latent/planes, cheaper mask, 7k steps)."
+    config=willags_lite_config(),
+    description="WilLaGS fast preset for short CPU budgets (32-d VAE latent, no tri-plane field, cheaper mask, 7k steps).",
 )
 willags_3dgs_method = MethodSpecification(
     config=willags_3dgs_config(),

@@ -5,9 +5,9 @@ Per training step (the pipeline hands the model the training image first):
 
     image --table row or VAE encoder--> z [D]                           appearance/latents.py
     z, Gaussians, camera --> colours [N, 3]                             appearance/color_path.py, networks.py
-    colours (+ the EMA teacher's, fused) --rasterize--> render          gaussians.py, render/
-    VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask_step.py
-    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + the terms of regularizers.py   losses.py, regularizers.py
+    colours (+ the EMA teacher's, fused) --rasterize--> render          splats/gaussians.py, render/
+    VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask/step.py
+    loss = 0.8 L1 + 0.2 D-SSIM on static pixels + the regularisers      objective/losses.py, objective/regularizers.py
 
 The step's intermediates travel in `get_outputs`' dictionary (nerfstudio's habit) to `get_metrics_dict` and
 `get_loss_dict`: the image index, the latent (and the VAE's posterior and input), the modulation's residual, the
@@ -36,16 +36,30 @@ from torch.nn import Parameter
 
 from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
-from willags_ns.appearance.latents import image_as_float as image_as_float  # benchmarks/child.py imports it from here
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.sky import background, pixel_directions, sky_for_scene
 from willags_ns.appearance.triplane import robust_bounds
 from willags_ns.config import WillagsSettings, check_settings
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.image_metrics import image_metrics
-from willags_ns.eval.lpips import lpips_weights_cached as _lpips_weights_cached  # noqa: F401  (benchmarks)
 from willags_ns.eval.lpips import make_lpips
-from willags_ns.gaussians import (
+from willags_ns.mask.health import MaskHealth
+from willags_ns.mask.step import (
+    MaskFace,
+    MaskStep,
+    StepMask,
+    fused_teacher_rgb,
+    log_step_images,
+    mask_networks,
+    teacher_colors,
+    teacher_latent,
+)
+from willags_ns.mask.transient import PerceptualFeatures
+from willags_ns.objective.losses import reconstruction_loss
+from willags_ns.objective.regularizers import regularization_terms
+from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
+from willags_ns.splats.export import SplatExport
+from willags_ns.splats.gaussians import (
     active_sh_degree,
     composite,
     densification_strategy,
@@ -56,24 +70,8 @@ from willags_ns.gaussians import (
     sh_colors,
     strategy_absgrad,
 )
-from willags_ns.losses import reconstruction_loss
-from willags_ns.mask_health import MaskHealth
-from willags_ns.mask_step import (
-    MaskFace,
-    MaskStep,
-    StepMask,
-    fused_teacher_rgb,
-    log_step_images,
-    mask_networks,
-    teacher_colors,
-    teacher_latent,
-)
-from willags_ns.regularizers import regularization_terms
-from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
-from willags_ns.splat_export import SplatExport
-from willags_ns.transient import PerceptualFeatures
 
-__all__ = ["AppearanceNetworks", "WillagsModel", "WillagsModelConfig", "viewmat_from_c2w"]
+__all__ = ["WillagsModel", "WillagsModelConfig"]
 
 
 @dataclass
@@ -86,10 +84,10 @@ class WillagsModelConfig(WillagsSettings):
 
 class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
     """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Three mixins carry public
-    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splat_export.SplatExport), the
+    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splats.export.SplatExport), the
     latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...:
     appearance/latents.LatentFace) and the mask's (`update_teacher`, `static_support`, `sfm_observations`, the
-    teacher's second rasterisation, ...: mask_step.MaskFace)."""
+    teacher's second rasterisation, ...: mask.step.MaskFace)."""
 
     config: WillagsModelConfig
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
@@ -130,8 +128,11 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         self.teacher: AppearanceNetworks | None = None
         self.perceptual: PerceptualFeatures | None = None
         observations = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
-        # whether there is a sky and where it shows while training (region "open" without keypoints: no sky)
-        with_sky, self.open_regions = sky_for_scene(cfg.sky, observations)
+        # whether there is a sky and where it shows while training (region "open" without keypoints: no sky); plain
+        # 3DGS colours (appearance "sh") have no appearance model, so no sky
+        with_sky, self.open_regions = (
+            sky_for_scene(cfg.sky, observations) if cfg.appearance == "willags" else (False, None)
+        )
         if cfg.appearance == "willags":
             self.appearance_nets = AppearanceNetworks(cfg, self.num_train_data, with_sky)
             self.teacher, self.perceptual = mask_networks(cfg, self.appearance_nets)
@@ -179,13 +180,13 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         """SH coefficients [N, K, 3] of the Gaussians (`gp`: a cropped gauss_params view), or None without them."""
         return sh_coeffs(self.gauss_params if gp is None else gp)
 
-    def _color_context(self) -> ColorContext:
+    def color_context(self) -> ColorContext:
         return ColorContext(self.bounds_lo, self.bounds_hi, self.step, active_sh_degree(self.config, self.step))
 
     def appearance_colors(
         self, z: Tensor, means: Tensor, f_s, cam_center: Tensor, nets=None, cacheable=False, sh=None, base=None
     ) -> GaussianColors:
-        """Colours of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D] (ColorPath.colors),
+        """Colours of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D] (ColorPath.cached_colors),
         with the modulation's residual and the SH colours they came from.
 
         `nets`: the student's networks by default. `sh` [N, K, 3]: the Gaussians' SH coefficients
@@ -195,7 +196,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         assert nets is not None
         if sh is None and base is None and nets.modulation is not None:
             sh = self.sh_coeffs()
-        return self.color_path.colors(nets, z, means, f_s, cam_center, self._color_context(), cacheable, sh, base)
+        return self.color_path.cached_colors(nets, z, means, f_s, cam_center, self.color_context(), cacheable, sh, base)
 
     # ------------------------------------------------------------------ rendering
     def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
@@ -233,7 +234,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         if cfg.appearance == "sh":
             colors, sh_degree = sh_colors(cfg, gp, self.step)
         elif self.training:
-            lat = self._training_latent(camera)
+            lat = self.step_latent(camera)
             z = lat.z
             student = self.appearance_colors(z, gp["means"], gp.get("features"), cam_center, sh=sh_coeffs(gp))
             colors, sh_degree = student.rgb, None
@@ -241,10 +242,10 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
             step_data.update(vae_in=lat.vae_in, local_residual=student.residual)
             outputs.update({k: v for k, v in step_data.items() if v is not None})  # type: ignore[misc]
         else:  # a fixed appearance (no gradient) renders its baked SH (render_sh_degree) once it is cached
-            z = self._latent_for_forward(camera)
+            z = self.forward_latent(camera)
             colors, fixed, sh_degree = None, not torch.is_grad_enabled(), cfg.render_sh_degree
             if fixed and sh_degree >= 0 and "appearance_latent" not in (camera.metadata or {}):
-                ctx, f_s = self._color_context(), gp.get("features")
+                ctx, f_s = self.color_context(), gp.get("features")
                 colors = self.color_path.frame_sh(self.appearance_nets, z, gp["means"], f_s, sh_degree, ctx, gp)
             if colors is None:
                 args = (z, gp["means"], gp.get("features"), cam_center)
@@ -259,7 +260,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
             assert self.teacher is not None and lat is not None
             with torch.no_grad():
                 z_t = teacher_latent(self.teacher, lat.vae_in, idx)
-            t_colors = teacher_colors(self.teacher, z_t, gp, cam_center, self._color_context(), sh_base)
+            t_colors = teacher_colors(self.teacher, z_t, gp, cam_center, self.color_context(), sh_base)
             colors = torch.cat([colors, t_colors], dim=-1)
         render, alpha, self.info = self._rasterize(
             gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, render_mode, sh_degree
@@ -282,8 +283,11 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
             outputs["teacher_rgb"] = rgb.detach().squeeze(0)
         elif teacher_needed:
             assert lat is not None
+            with torch.no_grad():
+                z_t = teacher_latent(self.teacher, lat.vae_in, idx)
+                teacher_bg = self._background(self.teacher, z_t, dirs, fallback, idx)
             view = (cam_center, viewmat, K, W, H)
-            outputs["teacher_rgb"], z_t = self._teacher_render(gp, lat.vae_in, idx, *view, dirs, fallback, sh_base)
+            outputs["teacher_rgb"] = self.render_teacher(gp, z_t, *view, teacher_bg, sh_base)
         if z_t is not None:
             outputs["teacher_latent"] = z_t
 
@@ -331,7 +335,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         cfg = self.config
         gt_img = self._gt_image(outputs, batch)
         pred_img = outputs["rgb"]
-        step_mask = self._static_mask(outputs, gt_img) if self.training else StepMask(None, None, None)
+        step_mask = self.step_static_mask(outputs, gt_img) if self.training else StepMask(None, None, None)
         mask = step_mask.mask
         if "mask" in batch:  # user-provided masks (nerfstudio convention) combine with ours
             user = self._downscale_if_required(batch["mask"]).to(self.device)[..., 0].float()
@@ -352,7 +356,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
                 if warning is not None:
                     CONSOLE.log(warning)
 
-        # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (regularizers.py)
+        # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (objective/regularizers.py)
         vae = self.appearance_nets.vae if self.appearance_nets is not None else None
         args = (cfg, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
         terms, term_metrics, recon = regularization_terms(*args)
@@ -383,10 +387,10 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         cbs = super().get_training_callbacks(training_callback_attributes)
         if self.teacher is not None:
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_teacher))
-        cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._end_step))
+        cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.end_step))
         return cbs
 
-    def _end_step(self, step: int) -> None:
+    def end_step(self, step: int) -> None:
         self._train_batch = None
 
     # ------------------------------------------------------------------ checkpoints carry the mask provenance

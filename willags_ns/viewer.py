@@ -131,7 +131,7 @@ def training_view_panels(model: "WillagsModel", train_dataset, idx: int, max_wid
     VGG perceptual error against the teacher render, the threshold rule and the rejection of mostly-flagged images).
     """
     from willags_ns.eval.mask_eval import predicted_transient, teacher_render, training_view
-    from willags_ns.transient import mask_threshold
+    from willags_ns.mask.transient import mask_threshold
 
     cam, image, _ = training_view(train_dataset, idx)
     gt = torch.from_numpy(image).float().div(255.0).to(model.device)

@@ -10,7 +10,7 @@ from benchmarks.suite.timing import bench_fn, log, short_exc
 
 def _vgg_flops(h: int, w: int) -> float:
     """Multiply-adds x2 of VGG16 features[:16] (conv1_1 .. conv3_3) on one h x w image."""
-    from willags_ns.transient import VGG16_CFG
+    from willags_ns.mask.transient import VGG16_CFG
 
     flops, c_in = 0.0, 3
     for v in VGG16_CFG:
@@ -26,8 +26,8 @@ def section_components(args, cuda: bool, dev, backend: str, ceilings: dict) -> d
     """Isolated fwd+bwd timings of the appearance path at N Gaussians, with FLOP / byte floors."""
     from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig
     from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField
+    from willags_ns.mask.transient import PerceptualFeatures
     from willags_ns.render import rasterize
-    from willags_ns.transient import PerceptualFeatures
 
     n, size = args.n_gaussians, args.size
     tp, dc, latent_dim = TriplaneConfig(), ColorDecoderConfig(), 64

@@ -244,4 +244,4 @@ def train_step(model, opts, camera, batch, step: int, is_willags: bool, timer: R
         if model.teacher is not None:
             with region("teacher EMA"):
                 model.update_teacher(step)
-        model._end_step(step)
+        model.end_step(step)

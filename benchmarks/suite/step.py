@@ -61,9 +61,9 @@ def install_profile(model, timer: RegionTimer, is_willags: bool) -> list:
                 timer.suspended = False
 
             # the label's region opens before `enter` and closes after `leave`: it is recorded, its inside is not
-            wrap(model, "_teacher_render", "teacher render", enter, leave)
+            wrap(model, "render_teacher", "teacher render", enter, leave)
         if model.perceptual is not None:
-            wrap(model, "_static_mask", "VGG + mask")
+            wrap(model, "step_static_mask", "VGG + mask")
     else:
         from nerfstudio.models import splatfacto as sf
 

@@ -6,7 +6,7 @@
     bake (a fixed appearance, no gradient): those colours as SH coefficients [N, K, 3] that the rasteriser evaluates
     per frame like 3DGS; exact for the affine modulation, a least-squares fit over view directions otherwise.
 
-The two colour modes are the two implementations behind `AppearanceNetworks.colors`; this module adds what depends
+The two colour modes are the two implementations behind `AppearanceNetworks.gaussian_rgb`; this module adds what depends
 on the camera and the caches. :class:`ColorPath` holds the caches and nothing else: the networks, the Gaussians'
 tensors and the model's step arrive as arguments (:class:`ColorContext` for what every call shares).
 """
@@ -22,8 +22,8 @@ from torch import Tensor
 from willags_ns.appearance.modulation import ColorModulation
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.triplane import normalize_points
-from willags_ns.gaussians import sh_coeffs
 from willags_ns.render.sh import sh_basis, sh_color
+from willags_ns.splats.gaussians import sh_coeffs
 
 RENDER_SH_SAMPLES = 64
 """View directions over which the decoder is fitted by SH when rendering with a fixed appearance."""
@@ -88,13 +88,13 @@ def gaussian_colors(
     dirs = means - cam_center[None, :]
     if nets.modulation is None:
         assert f_s is not None
-        return GaussianColors(nets.colors(z, f_d, f_s, dirs), None, None)
+        return GaussianColors(nets.gaussian_rgb(z, f_d, f_s, dirs), None, None)
     residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0])
     if base is None:
         if sh is None:
             raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
         base = sh_color(sh_degree, dirs, sh)
-    return GaussianColors(nets.colors(z, f_d, f_s, dirs, residual=residual, base=base), residual, base)
+    return GaussianColors(nets.gaussian_rgb(z, f_d, f_s, dirs, residual=residual, base=base), residual, base)
 
 
 def modulated_sh(
@@ -137,7 +137,7 @@ def colors_over_directions(
     mod = nets.modulation
     residual = mod.local_residual(z, f_s, f_d, means.shape[0]) if mod is not None else None
     for d in dirs:
-        yield nets.colors(z, f_d, f_s, d.expand_as(means), sh=sh, sh_degree=sh_degree, residual=residual)
+        yield nets.gaussian_rgb(z, f_d, f_s, d.expand_as(means), sh=sh, sh_degree=sh_degree, residual=residual)
 
 
 class ColorPath:
@@ -168,7 +168,7 @@ class ColorPath:
             self.fd_cache = (key, f_d)
         return f_d
 
-    def colors(
+    def cached_colors(
         self,
         nets: AppearanceNetworks,
         z: Tensor,

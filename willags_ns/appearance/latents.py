@@ -277,12 +277,12 @@ class LatentFace:
     def _image_chw(self, image: Tensor) -> Tensor:
         return image_chw(image, self.device)  # [3, H, W]
 
-    def _latent_for_forward(self, camera: "Cameras") -> Tensor:
+    def forward_latent(self, camera: "Cameras") -> Tensor:
         """z [D] of a forward pass outside training: the camera's metadata, its training image, the chosen or the
         default appearance (AppearanceLatents.for_render)."""
         return self.latents.for_render(camera.metadata or {}, self.device, self.image_latents, self.current_latent)
 
-    def _training_latent(self, camera: "Cameras") -> TrainingLatent:
+    def step_latent(self, camera: "Cameras") -> TrainingLatent:
         """This training step's image's latent (the VAE's reparameterised sample, or the table's row)."""
         assert self.appearance_nets is not None
         nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen

@@ -54,9 +54,8 @@ class ColorModulationConfig:
     residual_chunk: int = 131072
     """Gaussians per chunk of the local residual's own backward (``LocalResidualMLP``): it keeps no [N, hidden]
     activation between forward and backward and recomputes the hidden layer chunk by chunk, so the MLP's extra
-    memory is two [chunk, hidden] buffers instead of ~3 x [N, hidden] (768 MB at 1M Gaussians, hidden 64), which
-    roughly halves the model's extra peak memory over splatfacto for about a millisecond more per step
-    (docs/design.md). 0: plain autograd (also what runs with the tri-plane field, whose feature enters the hidden
+    memory is two [chunk, hidden] buffers instead of ~3 x [N, hidden], which roughly halves the model's extra peak
+    memory over splatfacto for a little more time per step (docs/design.md). 0: plain autograd (also what runs with the tri-plane field, whose feature enters the hidden
     layer per Gaussian)."""
 
 
@@ -169,10 +168,10 @@ class LocalResidualMLP(torch.autograd.Function):
     z's share).
 
     Plain autograd keeps the [N, hidden] ReLU output from forward to backward and then holds it with two more
-    [N, hidden] gradients: the largest transient buffers of a willags step (~0.77 GB at 1M Gaussians, hidden 64),
-    which splatfacto does not have. Here only the inputs are saved; the backward rebuilds each chunk's hidden layer
+    [N, hidden] gradients: the largest transient buffers of a willags step (docs/design.md), which splatfacto does
+    not have. Here only the inputs are saved; the backward rebuilds each chunk's hidden layer
     (an [chunk, Fs] x [Fs, hidden] product, cheaper than reading it back from memory at this width) and accumulates
-    the weight gradients chunk by chunk. Same numbers as the plain MLP (``tests/test_modulation.py``)."""
+    the weight gradients chunk by chunk. Same numbers as the plain MLP (``tests/appearance/test_modulation.py``)."""
 
     @staticmethod
     def forward(ctx, f, w1, h0, w2, b2, chunk: int):  # type: ignore[override]

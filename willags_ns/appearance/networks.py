@@ -137,7 +137,7 @@ class AppearanceNetworks(nn.Module):
             return None
         return self.field(z, xyz_norm)
 
-    def colors(
+    def gaussian_rgb(
         self,
         z: Tensor,
         f_d: Tensor | None,

@@ -30,8 +30,8 @@ from jaxtyping import Float
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 
+from willags_ns.mask.static_support import open_background_map, support_at
 from willags_ns.render.sh import homogeneous_monomials, monomial_to_sh, num_sh_bases
-from willags_ns.static_support import open_background_map, support_at
 
 
 @dataclass

@@ -5,9 +5,8 @@ without any error and pulls the scene apart. The SfM points give a cheap test be
 subset of them into every training image (its own camera, the image read at <= ``max_side`` px), and fit one affine
 colour transform per image from the points' median colours (over the images that see them) to the colours the
 image has there. A real photo of the scene, whatever its exposure, white balance or time of day, is explained by
-such a transform to a fair degree (R^2 of the fit 0.09-0.9 on reichstag's 54 training photos, median 0.59, with
-crowds and night shots); a photo of another place is not (R^2 0.015: its pixels at the projections are unrelated to
-the points' colours). Measured in tests/test_reliability.py's photo-collection case. No depth test is possible
+such a transform to a fair degree, crowds and night shots included; a photo of another place is not: its pixels at
+the projections are unrelated to the points' colours (the fits measured: docs/design.md). No depth test is possible
 before training, so points hidden behind static geometry add noise to every image alike: the bound is low.
 """
 

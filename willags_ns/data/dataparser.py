@@ -352,7 +352,7 @@ class WillagsDataParser(DataParser):
         }
 
     def _transforms_parser(self, root: Path, json_path: Path) -> DataParser:
-        meta = _check_transforms(json_path, self.config.downscale_factor)
+        meta = check_transforms(json_path, self.config.downscale_factor)
         self._root = root
         tsv = self._find_tsv(root)
         has_split_keys = any(f"{s}_filenames" in meta for s in SPLITS)
@@ -389,7 +389,7 @@ class WillagsDataParser(DataParser):
         images_dir = root / images_path
         if self.config.downscale_factor is not None and self.config.downscale_factor > 1:
             images_dir = images_dir.parent / f"{images_dir.name}_{self.config.downscale_factor}"
-        _check_colmap(root, model, images_dir, self.config.load_3D_points)
+        check_colmap(root, model, images_dir, self.config.load_3D_points)
         tsv = self._find_tsv(root)
         if tsv is not None:
             lists = [p.name for p in root.glob("*_list.txt")]
@@ -462,7 +462,7 @@ def _select_tsv_split(outputs: DataparserOutputs, table: dict[str, str], split: 
     )
 
 
-def _check_transforms(json_path: Path, downscale_factor: int | None = None) -> dict[str, Any]:
+def check_transforms(json_path: Path, downscale_factor: int | None = None) -> dict[str, Any]:
     """Validate a transforms.json enough that nerfstudio's parser cannot fail deep inside. Returns its content.
     With an explicit downscale factor N > 1 the images are looked for where nerfstudio reads them: images_N/<name>."""
     try:
@@ -524,7 +524,7 @@ def _check_transforms(json_path: Path, downscale_factor: int | None = None) -> d
 
 
 ROTATION_TOL = 1e-3
-"""Largest |R^T R - I| entry and |det R - 1| accepted for a pose's rotation block (see willags_ns.checks)."""
+"""Largest |R^T R - I| entry and |det R - 1| accepted for a pose's rotation block (see willags_ns.engine.checks)."""
 
 
 def _check_rotation(R: np.ndarray, where: str) -> None:
@@ -538,7 +538,7 @@ def _check_rotation(R: np.ndarray, where: str) -> None:
         )
 
 
-def _check_colmap(root: Path, model: Path, images_dir: Path, need_points: bool) -> None:
+def check_colmap(root: Path, model: Path, images_dir: Path, need_points: bool) -> None:
     """Validate a COLMAP scene: image folder, readable model, one camera type, image files, points."""
     if not images_dir.is_dir():
         raise WillagsDataError(f"COLMAP scene {root}: image directory {images_dir} does not exist")

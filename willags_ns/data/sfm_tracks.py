@@ -4,7 +4,7 @@ and how many training photos see that point (its track length over the training 
 A 3D point that several photos matched and triangulated consistently is static by construction: a person, a car or a
 cloud moves between photos and does not give the same feature at one 3D position in five images. Its observations
 are therefore ground truth for "this pixel of this photo shows the static scene", available for every COLMAP scene
-without any labelling. The transient mask's safeguard (willags_ns/static_support.py) and the "static observations
+without any labelling. The transient mask's safeguard (willags_ns/mask/static_support.py) and the "static observations
 masked" measurement (benchmarks) read them.
 
 Only the training split counts: a test photo's keypoints never reach training (not even through a track length).

@@ -1,7 +1,7 @@
 """How well the perceptual transient mask finds the occluders: IoU / recall / clean false positives vs masks_gt.
 
 For every training image with a ground-truth mask (``masks_gt/<stem>.png``, 255 = transient) the mask is computed
-exactly as a training step at the end of training computes it (``MaskStep.static_mask``, willags_ns/mask_step.py):
+exactly as a training step at the end of training computes it (``MaskStep.static_mask``, willags_ns/mask/step.py):
 
     z   = teacher VAE encoder mean of the training image      (latent.kind embedding: the teacher's table row)
     R   = teacher render of the view (teacher networks, the student's current Gaussians, full resolution)
@@ -36,8 +36,8 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
+from willags_ns.mask.transient import image_distance, mask_threshold, transient_mask
 from willags_ns.render.camera import viewmat_from_c2w
-from willags_ns.transient import image_distance, mask_threshold, transient_mask
 
 
 @dataclass
@@ -106,7 +106,7 @@ def predicted_transient(
     """(transient [H, W] bool, rejected, D [H, W]) from GT and teacher render [H, W, 3] in [0, 1].
 
     Same rule as training: static = D < threshold (per image for rule "robust", see
-    willags_ns.transient.robust_threshold); if more than `max_masked_fraction` of the image would be dropped, the
+    willags_ns.mask.transient.robust_threshold); if more than `max_masked_fraction` of the image would be dropped, the
     mask is rejected (nothing is transient)."""
     d = image_distance(perceptual, gt.float(), teacher.float())
     transient, rejected = transient_mask(d, threshold, rule, robust_k, max_masked_fraction)
@@ -175,14 +175,14 @@ def training_view(train_dataset, idx: int, extra: np.ndarray | None = None):
 def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     """The EMA teacher's render [H, W, 3] of `camera` for the training image `image` [H, W, 3] in [0, 1].
 
-    Through training's functions (willags_ns/mask_step.py): the teacher's latent (VAE mean of the image, or its
+    Through training's functions (willags_ns/mask/step.py): the teacher's latent (VAE mean of the image, or its
     embedding row), its colours on the student's current Gaussians, the camera after the camera optimiser, the
     second rasterisation. Background: the teacher's sky behind every pixel when the model has one, else the model's
     fixed colour (training draws a random one per step, which only shows where alpha < 1). Without a teacher
     (teacher disabled) the student's networks are used.
     """
     from willags_ns.appearance.sky import background, pixel_directions
-    from willags_ns.mask_step import teacher_colors, teacher_latent, teacher_render
+    from willags_ns.mask.step import teacher_colors, teacher_latent, teacher_render
 
     nets = model.teacher if model.teacher is not None else model.appearance_nets
     z = teacher_latent(nets, image.permute(2, 0, 1).float().to(model.device), image_idx)
@@ -193,7 +193,7 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     K = cam.get_intrinsics_matrices().to(model.device)
     W, H = int(cam.width.item()), int(cam.height.item())
     gp = model.gauss_params
-    colors = teacher_colors(nets, z, gp, c2w[0, :3, 3], model._color_context(), None)
+    colors = teacher_colors(nets, z, gp, c2w[0, :3, 3], model.color_context(), None)
     dirs = pixel_directions(c2w[0], K[0], W, H) if nets.sky is not None else None
     bg = background(nets.sky, z, dirs, model.background_color.to(model.device))
     return teacher_render(model.config, colors, gp, viewmat_from_c2w(c2w), K, W, H, bg)

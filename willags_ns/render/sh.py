@@ -96,7 +96,7 @@ def sh_basis(dirs: Float[Tensor, "N 3"], degree: int) -> Float[Tensor, "N K"]:
     """Real spherical-harmonics basis of unit directions up to ``degree`` (0..3): ``K = (degree + 1)**2``, as 3DGS
     writes it (the colour decoder's view encoding, the SH bake's least-squares fit).
 
-    The same functions, order and signs as `eval_sh_bases` (equal to float rounding: tests/test_decoder.py), in
+    The same functions, order and signs as `eval_sh_bases` (equal to float rounding: tests/appearance/test_decoder.py), in
     another evaluation order: the colour decoder's outputs, and so the paper configuration's training, depend on
     its last bits. ``dirs`` must be unit length.
     At d = (0, 0, 1), degree 1: [C0, 0, C1, 0] (the basis is -C1*y, C1*z, -C1*x after the constant).

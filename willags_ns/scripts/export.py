@@ -22,9 +22,9 @@ import numpy as np
 import tyro
 from nerfstudio.scripts import exporter as ns_exporter
 
-from willags_ns.checkpoints import PARTIAL_SUFFIX, is_disk_full, no_space_message
-from willags_ns.checks import WillagsIOError
-from willags_ns.progress import Progress
+from willags_ns.engine.checkpoints import PARTIAL_SUFFIX, is_disk_full, no_space_message
+from willags_ns.engine.checks import WillagsIOError
+from willags_ns.engine.progress import Progress
 from willags_ns.scripts.render import with_appearance_options
 
 CHUNK = 1 << 16
@@ -102,7 +102,7 @@ _appearance_main = ExportGaussianSplat.main
 
 
 def _main(self) -> None:
-    from willags_ns.checks import install_cli_excepthook
+    from willags_ns.engine.checks import install_cli_excepthook
 
     install_cli_excepthook()  # a full disk: one line
     with numpy_ply_writer():

@@ -6,6 +6,5 @@ to decide or prepare a run, without being part of what trains.
 - `autoconfig.py`: applies that recommendation to a model config before the model is built (`auto_config`);
 - `process.py`: willags-process, photos to a COLMAP scene with pycolmap.
 
-The time budget (willags_ns/time_budget.py) is a tool too; it stays beside the trainer that applies it.
-`willags_ns.inspect`, `willags_ns.autoconfig` and `willags_ns.data.process` name these modules as well.
+The time budget (willags_ns/engine/time_budget.py) is a tool too; it stays beside the trainer that applies it.
 """

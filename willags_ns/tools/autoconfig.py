@@ -1,6 +1,6 @@
 """Automatic configuration: apply `willags-inspect`'s recommendation to the model before it is built.
 
-`ns-train willags-auto --data DIR` (or any willags method with `--pipeline.model.auto-config True`) inspects the
+`ns-train willags --data DIR` (or any willags method with `--pipeline.model.auto-config True`) inspects the
 scene (willags_ns/tools/inspect.py: appearance change measured on the SfM points, transients as occluded observations
 that nearby views disagree with) and switches off what the evidence says the scene does not need:
 

@@ -38,12 +38,12 @@ levels, median over channels): it mixes appearance with content (different views
 threshold is separate, and transients are not measured (`transient_score` is None).
 
 Evidence 3, scene facts: image count (and how many the analysis used), resolutions, scene extent (the diagonal of the
-5-95 percentile box of the points and of the camera centres, in the scene's units) and a rough resource estimate:
-Gaussians ~ `gaussians_per_point` x points (clipped to [1e5, 1.5e6]; the fox scenes grew to 1e5-1.4e5, reichstag to
-2.2e5), GPU memory = 1.5 GB (CUDA context, VGG for the mask) + images cached as uint8 + 1 KB per Gaussian (59
-parameters with Adam's two moments, gradients and the rasteriser's buffers), GPU step ~ 24 ms at reichstag's
-0.35 Mpx per image (H100, docs/benchmarks.md) scaled by pixels, CPU step ~ 0.8 s at fox's 0.13 Mpx (2 cores,
-docs/benchmarks.md) scaled by pixels. Rough estimates: step time also grows with the Gaussian count, not modelled.
+5-95 percentile box of the points and of the camera centres, in the scene's units) and a rough resource estimate
+(`resource_estimate`): Gaussians ~ `gaussians_per_point` x points (clipped), GPU memory = a fixed part (CUDA
+context, VGG for the mask) + images cached as uint8 + a share per Gaussian (59 parameters with Adam's two moments,
+gradients and the rasteriser's buffers), the GPU and CPU step times of a measured scene scaled by pixels per image
+(`GPU_STEP_S`, `CPU_STEP_S`; their measurements: docs/design.md). Rough estimates: step time also grows with the
+Gaussian count, not modelled.
 
 Evidence 4, open background (`background_score`, a share of the image area). Tourist photos are largely sky, and
 the sky's colour changes with the photo (sun, overcast, dusk); SfM finds no points in the sky (no texture, nothing
@@ -685,19 +685,30 @@ def _extent(x: np.ndarray | None) -> float | None:
     return float(np.linalg.norm(hi - lo))
 
 
+GPU_FIXED_GB = 1.5
+"""GPU memory of a run before its images and Gaussians: the CUDA context and the mask's VGG."""
+BYTES_PER_GAUSSIAN = 1e3
+"""GPU memory per Gaussian: its parameters, Adam's two moments, gradients and the rasteriser's buffers."""
+GPU_STEP_S, GPU_STEP_MPX = 0.024, 0.35
+"""A measured GPU step (seconds) and the megapixels per image it was measured at (reichstag on an H100)."""
+CPU_STEP_S, CPU_STEP_MPX = 0.8, 0.13
+"""A measured CPU step (seconds, 2 cores) and the megapixels per image it was measured at (fox)."""
+
+
 def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: InspectConfig) -> dict[str, Any]:
     """Rough memory and time (module docstring, evidence 3)."""
     mpx = float(np.mean(sizes[:, 0] * sizes[:, 1])) / 1e6
     gaussians = int(np.clip(cfg.gaussians_per_point * n_points, 1e5, 1.5e6))
     images_gb = n_images * mpx * 1e6 * 3 / 1e9
-    gpu_gb = 1.5 + images_gb + gaussians * 1e3 / 1e9
-    gpu_step_s = 0.024 * max(mpx / 0.35, 0.25)
-    cpu_step_s = 0.8 * max(mpx / 0.13, 0.25)
+    gpu_gb = GPU_FIXED_GB + images_gb + gaussians * BYTES_PER_GAUSSIAN / 1e9
+    gpu_step_s = GPU_STEP_S * max(mpx / GPU_STEP_MPX, 0.25)
+    cpu_step_s = CPU_STEP_S * max(mpx / CPU_STEP_MPX, 0.25)
     return {
         "rough": True,
-        "how": "Gaussians ~ gaussians_per_point x points (clipped to [1e5, 1.5e6]); GPU memory = 1.5 GB + images as "
-        "uint8 + 1 KB per Gaussian; step time scaled by pixels per image from 24 ms at 0.35 Mpx (H100) and 0.8 s at "
-        "0.13 Mpx (2 CPU cores), both measured in docs/benchmarks.md; the Gaussian count's effect is not modelled",
+        "how": f"Gaussians ~ gaussians_per_point x points (clipped to [1e5, 1.5e6]); GPU memory = {GPU_FIXED_GB} GB + "
+        f"images as uint8 + {BYTES_PER_GAUSSIAN / 1e3:g} KB per Gaussian; step time scaled by pixels per image from "
+        f"{GPU_STEP_S * 1e3:g} ms at {GPU_STEP_MPX} Mpx (H100) and {CPU_STEP_S:g} s at {CPU_STEP_MPX} Mpx (2 CPU "
+        "cores), both measured in docs/benchmarks.md; the Gaussian count's effect is not modelled",
         "expected_gaussians": gaussians,
         "gpu_memory_gb": round(gpu_gb, 2),
         "cpu_memory_gb": round(gpu_gb + 2.0, 2),
@@ -724,7 +735,7 @@ where the sky alone explains the photo, so no Gaussian floats in the sky around 
 
 WILLAGS_SKY: dict[str, Any] = SKY_MODES["skyline"]
 """The sky of the default `willags` preset: the command line names only what differs from it. Kept in step with
-method_configs.willags_model_config (tests/test_autoconfig.py checks)."""
+method_configs.willags_model_config (tests/tools/test_autoconfig.py checks)."""
 
 
 def sky_settings(mode: str) -> dict[str, Any]:

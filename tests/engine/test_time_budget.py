@@ -1,0 +1,551 @@
+"""The time budget (willags_ns/engine/time_budget.py, willags_ns/engine/trainer.py): the choice before training (pure, fake step
+times), the adaptation while training (fake clock), bad values, the table against its records, one real CPU run."""
+
+import dataclasses
+import json
+import math
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+from willags_ns.engine import time_budget as tb
+from willags_ns.engine.time_budget import (
+    OPTION,
+    STEP_TIMES,
+    TABLE,
+    TimeBudget,
+    TimeBudgetError,
+    choose,
+    end_schedules_at,
+    plan_steps,
+    schedule_warmups,
+    validate_minutes,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+CAPS = {"willags": 30000, "willags-lite": 7000}
+
+
+# ---------------------------------------------------------------------------------------------- the choice (pure)
+
+
+CURRENT = tuple(dataclasses.replace(p, measured_as=p.preset) for p in TABLE)
+"""The table as if today's presets had measured its points (the decision logic, away from the records' gaps)."""
+FAKE = {"willags-lite": 0.1, "willags": 0.3}
+"""Fake CPU step times (seconds)."""
+
+
+def test_tiny_cpu_budget_picks_lite_and_few_steps():
+    c = choose(30.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
+    assert c.preset == "willags-lite"
+    assert c.steps == 300  # 30 s / 0.1 s
+    assert c.point is not None and c.point.steps == 300  # lite's 300-step point takes 30 s: it fits, willags' do not
+    assert not c.keep_resolution_schedule  # the CPU points were measured at full resolution from the first step
+    assert "willags-lite" in c.reason
+
+
+def test_budget_below_every_point_takes_the_quickest_preset():
+    c = choose(5.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
+    assert c.preset == "willags-lite" and c.steps == 50 and c.point is None
+    assert "no measured point fits" in c.reason
+
+
+def test_large_cpu_budget_picks_the_default_with_its_full_step_count():
+    c = choose(600 * 60.0, "cpu", CAPS, step_s=FAKE, table=CURRENT)
+    assert c.preset == "willags"
+    assert c.steps == 30000  # 36000 s / 0.3 s = 120000 steps, capped at the preset's default
+    assert c.point is not None and c.point.steps == max(p.steps for p in TABLE if p.device == "cpu")
+
+
+def test_gpu_measured_points_pick_willags_over_lite_at_every_budget():
+    """Today's GPU points (one run of each preset alone on an H200, fox-wild): willags scores higher at every step
+    count and costs less per step, so every budget gets willags, and the reason names the lite point it beat."""
+    assert STEP_TIMES[("willags", "cuda")].seconds < STEP_TIMES[("willags-lite", "cuda")].seconds
+    for budget in (15.0, 30.0, 60.0, 300.0, 3600.0):
+        c = choose(budget, "cuda", CAPS)
+        assert c.preset == "willags" and c.keep_resolution_schedule, budget
+        assert c.point is not None and c.point.measured_as == "willags"
+    c = choose(60.0, "cuda", CAPS)  # fits: willags 1000/2000/5000 (54 s), lite 1000/2000 (29 s)
+    assert c.point.steps == 5000 and "vs willags-lite: 20.58 dB at 2000 steps" in c.reason
+
+
+def test_gpu_switches_preset_where_the_default_first_fits():
+    """The switch itself, on the GPU table's shape with a cheaper lite: willags' first point is its 1000-step one;
+    below its cost only lite's points fit, from it on willags' point beats every lite point that fits."""
+    step_s = {"willags": 0.02, "willags-lite": 0.005}
+    t = 1000 * step_s["willags"]
+    below = choose(t - 1, "cuda", CAPS, step_s=step_s)
+    above = choose(t + 1, "cuda", CAPS, step_s=step_s)
+    assert below.preset == "willags-lite" and above.preset == "willags"
+    assert below.keep_resolution_schedule and above.keep_resolution_schedule  # GPU points: the stock schedule
+    assert below.steps <= CAPS["willags-lite"]
+
+
+def test_points_of_earlier_configurations_do_not_decide():
+    """The real table: willags-lite-v0's points and the paper configuration's CPU points are cited but do not count
+    (the choice names them as unused); today's points decide, on both device classes."""
+    for budget in (30.0, 60.0, 600.0, 36000.0):
+        gpu = choose(budget, "cuda", CAPS)
+        assert gpu.preset == "willags" and "willags-lite-v0" in gpu.reason
+        assert gpu.steps == plan_steps(budget, 0, 0, STEP_TIMES[("willags", "cuda")].seconds, CAPS["willags"])
+    # CPU: lite is cheaper per step, willags better at equal steps; lite's 600 steps (78 s) beat willags' 300 (51 s)
+    # until willags' 600 steps fit (103 s)
+    for budget, preset in ((60.0, "willags"), (90.0, "willags-lite"), (600.0, "willags"), (36000.0, "willags")):
+        cpu = choose(budget, "cpu", CAPS)
+        assert cpu.preset == preset and cpu.point is not None and cpu.point.measured_as == preset, budget
+        assert "willags-paper" in cpu.reason and "willags-lite-v0" in cpu.reason
+        assert cpu.steps == plan_steps(budget, 0, 0, STEP_TIMES[(preset, "cpu")].seconds, CAPS[preset])
+        assert not cpu.keep_resolution_schedule  # the CPU points: full resolution from the first step
+    text = tb.format_choice(choose(60.0, "cpu", CAPS), 1.0, "cpu")
+    assert "re-planned from this run's own step time over steps 20-70" in text and "cpu-knob" in text
+
+
+def test_caps_limit_the_steps():
+    c = choose(1e6, "cuda", {"willags": 1234, "willags-lite": 7000})
+    assert c.preset == "willags" and c.steps == 1234 and c.max_steps == 1234
+
+
+@pytest.mark.parametrize(
+    "budget, elapsed, done, step_s, cap, want",
+    [
+        (600, 100, 1000, 0.05, 30000, 11000),  # the docstring's example
+        (600, 100, 1000, 0.01, 30000, 30000),  # capped
+        (600, 700, 1000, 0.05, 30000, 1000),  # over budget: stop now
+        (10, 0, 0, 0.1, 30000, 100),  # exact division is not lost to rounding
+    ],
+)
+def test_plan_steps(budget, elapsed, done, step_s, cap, want):
+    assert plan_steps(budget, elapsed, done, step_s, cap) == want
+
+
+def test_plan_steps_rejects_a_zero_step_time():
+    with pytest.raises(ValueError):
+        plan_steps(10, 0, 0, 0.0, 100)
+
+
+# ---------------------------------------------------------------------------------------------- bad values
+
+
+@pytest.mark.parametrize("bad", [-1, -0.5, float("nan"), float("inf"), "ten", True])
+def test_bad_budget_names_the_option(bad):
+    with pytest.raises(TimeBudgetError, match=OPTION.replace(".", r"\.")):
+        validate_minutes(bad)
+
+
+@pytest.mark.parametrize("off", [None, 0, 0.0])
+def test_zero_or_none_turns_it_off(off):
+    assert validate_minutes(off) is None
+
+
+def test_bad_budget_stops_the_trainer_before_training(tmp_path):
+    from willags_ns import method_configs
+
+    config = method_configs.willags_config()
+    config.output_dir = tmp_path
+    config.machine.device_type = "cpu"
+    config.pipeline.time_budget_minutes = float("nan")
+    trainer = config.setup(local_rank=0, world_size=1)
+    with pytest.raises(TimeBudgetError, match="time-budget-minutes"):
+        trainer.setup()
+
+
+# ---------------------------------------------------------------------------------------------- while training
+
+
+class FakeClock:
+    """A clock the test advances by hand (`_run` adds each step's seconds)."""
+
+    def __init__(self):
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _run(budget: TimeBudget, clock: FakeClock, step_s, start: int = 0, limit: int = 100000) -> int:
+    """Drive the budget as nerfstudio's loop does; returns the last step trained."""
+    for step in range(start, start + limit):
+        budget.before_step(step)
+        clock.t += step_s(step)
+        if budget.after_step(step):
+            return step
+    return start + limit - 1
+
+
+def _budget_on_two_ranks(rank: int) -> None:
+    """Each rank times its own step (rank 1 is slower; in the second run it also pauses for 10 s at step 100): both
+    plan from the slower rank's step time and stop after the same step, the clock's stop being read where the ranks
+    exchange it (every AGREE_EVERY steps)."""
+    import torch.distributed as dist
+
+    step_s = 0.125 if rank == 0 else 0.25
+    for pause in (0.0, 10.0):
+        clock = FakeClock()
+        budget = TimeBudget(60.0, max_steps=30000, clock=clock, log=lambda m: None)
+
+        def step_time(s: int, pause: float = pause) -> float:
+            return step_s + (pause if (rank == 1 and s == 100) else 0.0)
+
+        last = _run(budget, clock, step_time)
+        assert budget.agree is tb.agreed_max
+        everyone: list = [None, None]
+        dist.all_gather_object(everyone, (last, budget.end_step, budget.stop_reason, budget.history))
+        assert everyone[0] == everyone[1], everyone
+        if pause == 0.0:  # 70 steps of 0.25 s in 17.5 s, 42.5 s left = 170 steps
+            assert budget.history[0]["step_s"] == 0.25 and budget.end_step == 240 and last == 239
+        else:  # the pause makes the clock run out before the plan's end: read at step 199 (200 steps done)
+            assert budget.stop_reason.startswith("the clock") and last == 199
+
+
+def test_ranks_plan_from_the_slowest_and_stop_together():
+    from tests.engine.test_distributed import _run_gloo
+
+    _run_gloo(_budget_on_two_ranks)
+
+
+def test_one_process_reads_the_clock_at_every_step():
+    clock = FakeClock()
+    budget = TimeBudget(60.0, max_steps=30000, clock=clock, log=lambda m: None)
+    last = _run(budget, clock, lambda s: 0.25 + (3.0 if s == 100 else 0.0))
+    assert budget.agree is None
+    assert last == 227 and budget.stop_reason.startswith("the clock")  # 228 * 0.25 + 3 = 60 s
+
+
+def test_the_choice_says_what_a_step_is_on_several_devices():
+    text = tb.format_choice(choose(600.0, "cuda", CAPS), 10.0, "cuda", num_devices=4)
+    assert "devices:  4, one image each per step" in text
+    assert "devices:" not in tb.format_choice(choose(600.0, "cuda", CAPS), 10.0, "cuda")
+
+
+def test_measures_steps_20_to_70_and_stops_within_the_budget():
+    clock, ends, logs = FakeClock(), [], []
+    budget = TimeBudget(12.5, max_steps=30000, on_plan=ends.append, clock=clock, log=logs.append)
+    last = _run(budget, clock, lambda s: 0.125)  # binary-exact seconds: no rounding at the boundaries
+    assert budget.history[0]["step"] == 69 and budget.history[0]["step_s"] == 0.125
+    assert ends[0] == 100  # 70 steps in 8.75 s, 3.75 s left = 30 steps
+    assert last == 99 and budget.elapsed() <= 12.5
+    assert "measured 125.0 ms/step (steps 20-70)" in logs[0]
+
+
+def test_replans_when_steps_slow_down():
+    """Densification and the resolution schedule make later steps slower: re-plans move the end earlier and the run
+    still ends within the budget (at most one step late, when the clock stops it)."""
+    clock, ends = FakeClock(), []
+    budget = TimeBudget(60.0, max_steps=30000, on_plan=ends.append, clock=clock, log=lambda m: None)
+    last = _run(budget, clock, lambda s: 0.01 if s < 500 else 0.05)
+    assert len(ends) > 2 and ends[-1] < ends[0]
+    assert budget.elapsed() <= 60.0 + 0.05
+    assert last + 1 == ends[-1] or budget.stop_reason.startswith("the clock")
+
+
+def test_never_past_the_cap():
+    clock = FakeClock()
+    budget = TimeBudget(1e6, max_steps=300, clock=clock, log=lambda m: None)
+    assert _run(budget, clock, lambda s: 0.01) == 299
+
+
+def test_clock_stops_a_budget_shorter_than_the_measurement():
+    clock = FakeClock()
+    budget = TimeBudget(1.0, max_steps=30000, clock=clock, log=lambda m: None)
+    assert _run(budget, clock, lambda s: 0.125) == 7 and budget.end_step is None
+    assert budget.stop_reason.startswith("the clock")
+
+
+def test_resumed_run_counts_its_own_steps():
+    clock, ends = FakeClock(), []
+    budget = TimeBudget(12.5, max_steps=1000, start_step=5000, on_plan=ends.append, clock=clock, log=lambda m: None)
+    last = _run(budget, clock, lambda s: 0.125, start=5000)
+    assert budget.history[0]["step"] == 5069 and ends[0] == 5100 and last == 5099
+
+
+def test_schedules_end_at_the_planned_step():
+    opt = {
+        "means": {"scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=30000)},
+        "camera_opt": {"scheduler": ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=30000, warmup_steps=1000)},
+        "scales": {"scheduler": None},
+    }
+    warmups = schedule_warmups(opt)
+    end_schedules_at(opt, 500, warmups)
+    assert opt["means"]["scheduler"].max_steps == 500 and opt["camera_opt"]["scheduler"].warmup_steps == 50
+    end_schedules_at(opt, 5000, warmups)  # a re-plan starts from the schedule's own warm-up
+    assert opt["camera_opt"]["scheduler"].warmup_steps == 1000
+    # the live scheduler follows its config: at the planned last step the learning rate is the final one
+    param = torch.nn.Parameter(torch.zeros(1))
+    optim = torch.optim.Adam([param], lr=1.6e-4)
+    sched = opt["means"]["scheduler"].setup().get_scheduler(optim, lr_init=1.6e-4)
+    end_schedules_at(opt, 200, warmups)
+    for _ in range(200):
+        optim.step()
+        sched.step()
+    assert np.isclose(optim.param_groups[0]["lr"], 1.6e-6, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------- the table
+
+
+def _records():
+    """benchmarks/records/benchmarks.json, with each long run's scored milestones as records of their own (benchmarks/long_run.py
+    writes one record per run: its last step, and every milestone's PSNR and train seconds inside it)."""
+    out = []
+    for r in json.loads((REPO / "benchmarks" / "records" / "benchmarks.json").read_text()):
+        out.append(r)
+        for step, m in (r.get("milestones") or {}).items():
+            if int(step) != r["steps"] and m.get("psnr") is not None:
+                out.append({**r, "steps": int(step), "psnr": m["psnr"], "train_s": m.get("train_s"), "milestones": {}})
+    return out
+
+
+def _find(records, scene, method, device, steps, tag):
+    return [
+        r
+        for r in records
+        if (r["scene"], r["method"], r["device"], r["steps"], r.get("tag", "")) == (scene, method, device, steps, tag)
+        and r.get("status", "ok") == "ok"
+    ]
+
+
+def test_every_table_point_is_its_records_mean():
+    records = _records()
+    for p in TABLE:
+        runs = [r for tag in p.records for r in _find(records, p.scene, p.measured_as, p.device, p.steps, tag)]
+        assert len(runs) == len(p.records), (p, len(runs))
+        assert math.isclose(statistics.mean(r["psnr"] for r in runs), p.psnr, abs_tol=5e-4), p
+        assert {r["schedule"] for r in runs} == {"default" if p.schedule == "stock" else "short"}, p
+        scenes = {
+            r["scene"]
+            for r in records
+            if (r["method"], r["device"], r["steps"]) == (p.measured_as, p.device, p.steps) and r.get("psnr")
+        }
+        assert p.one_scene == (len(scenes) == 1), (p, scenes)
+
+
+@pytest.mark.parametrize(
+    "key, runs",
+    [
+        (("willags-lite", "cuda"), [("fox-wild", "willags-lite", "cuda", 5000, "h200-solo")]),
+        (("willags", "cuda"), [("fox-wild", "willags", "cuda", 5000, "h200-solo")]),
+        (("willags-lite", "cpu"), [("default", "willags-lite", "cpu", 600, "cpu-knob")]),
+        (("willags", "cpu"), [("default", "willags", "cpu", 600, "cpu-knob")]),
+    ],
+)
+def test_step_times_are_their_records(key, runs):
+    records = _records()
+    found = [r for k in runs for r in _find(records, *k)]
+    assert len(found) == len(runs)
+    per_step = statistics.mean(r["train_s"] / r["steps"] for r in found)
+    assert math.isclose(per_step, STEP_TIMES[key].seconds, rel_tol=2e-3)
+    notes = " ".join(str(r.get(k, "")) for r in found for k in ("note", "run_note"))
+    assert "shared" not in notes and "at once" not in notes  # alone on the device
+
+
+def test_preset_defaults_are_the_method_configs():
+    import willags_ns.method_configs  # noqa: F401  (registers the presets)
+    from willags_ns.engine.trainer import preset_defaults
+
+    assert (
+        preset_defaults("willags")[1] == CAPS["willags"] and preset_defaults("willags-lite")[1] == CAPS["willags-lite"]
+    )
+
+
+def test_presets_differ_only_in_model_steps_and_schedules():
+    """apply_budget switches a preset by swapping the model config and the step cap: nothing else may differ."""
+    from willags_ns import method_configs
+
+    a, b = method_configs.willags_config(), method_configs.willags_lite_config()
+    differ = {f.name for f in dataclasses.fields(a) if getattr(a, f.name) != getattr(b, f.name)}
+    assert differ <= {"method_name", "max_num_iterations", "pipeline", "optimizers"}
+    assert {
+        f.name for f in dataclasses.fields(a.pipeline) if getattr(a.pipeline, f.name) != getattr(b.pipeline, f.name)
+    } == {"model"}
+    for name, group in a.optimizers.items():
+        other = b.optimizers[name]
+        assert group["optimizer"] == other["optimizer"], name
+        if group["scheduler"] is not None:
+            assert dataclasses.replace(group["scheduler"], max_steps=0) == dataclasses.replace(
+                other["scheduler"], max_steps=0
+            ), name
+
+
+def test_apply_budget_switches_the_preset_in_the_config():
+    """With the current CPU points, a 90 s budget picks lite (its 600 steps fit, willags' do not): the model config is
+    swapped for the lite preset's, the user's settings kept, the steps capped at lite's default, full resolution."""
+    from willags_ns import method_configs
+    from willags_ns.engine.trainer import apply_budget, preset_defaults
+
+    config = method_configs.willags_config()
+    config.machine.device_type = "cpu"
+    config.pipeline.model.backend = "torch"
+    choice, notes, replaced = apply_budget(config, 90.0)
+    model = config.pipeline.model
+    assert choice.preset == "willags-lite" and model.latent.kind == "vae" and model.backend == "torch"
+    assert model.num_downscales == 0 and config.max_num_iterations == CAPS["willags-lite"]
+    assert replaced == preset_defaults("willags-lite")[0].num_downscales > 0
+    lite_step = STEP_TIMES[("willags-lite", "cpu")].seconds
+    assert config.optimizers["means"]["scheduler"].max_steps == choice.steps == plan_steps(90.0, 0, 0, lite_step, 7000)
+    assert config.method_name == "willags" and "your settings kept: backend" in notes[0]
+
+
+def test_switching_preset_keeps_the_users_settings():
+    import willags_ns.method_configs  # noqa: F401  (registers the presets)
+    from willags_ns.engine.trainer import carry_overrides, preset_defaults
+
+    willags, _ = preset_defaults("willags")
+    lite, _ = preset_defaults("willags-lite")
+    user = preset_defaults("willags")[0]
+    user.backend = "torch"
+    user.mask.threshold = 0.9
+    copied = carry_overrides(user, willags, lite)
+    assert sorted(copied) == ["backend", "mask.threshold"]
+    assert lite.backend == "torch" and lite.mask.threshold == 0.9
+    assert lite.latent.kind == "vae"  # the lite preset's own switches are untouched
+
+
+# ---------------------------------------------------------------------------------------------- a real run
+
+
+@pytest.mark.timing
+@pytest.mark.slow
+def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch, capsys):
+    from tests.test_train import _train
+    from willags_ns import method_configs
+    from willags_ns.engine.trainer import WillagsTrainer
+
+    monkeypatch.setattr(tb, "WARMUP_STEPS", 3)
+    monkeypatch.setattr(tb, "WINDOW_STEPS", 5)
+    # the trainer's clock advances one second per training step, whatever the machine's speed: the budget of 12 s
+    # measures 1 s/step and plans about 12 steps
+    clock = FakeClock()
+    train_iteration = WillagsTrainer.train_iteration
+
+    def one_second_steps(self, step):
+        out = train_iteration(self, step)
+        clock.t += 1.0
+        return out
+
+    monkeypatch.setattr(WillagsTrainer, "clock", staticmethod(clock))
+    monkeypatch.setattr(WillagsTrainer, "train_iteration", one_second_steps)
+    real_config = method_configs.willags_config
+
+    def budgeted():
+        config = real_config()
+        config.pipeline.time_budget_minutes = 0.2  # 12 s of training steps
+        return config
+
+    monkeypatch.setattr(method_configs, "willags_config", budgeted)
+    config, trainer, losses = _train(tmp_path, "willags", steps=5000)
+    out = capsys.readouterr().out
+    assert "willags time budget: 0.2 min" in out and "preset:" in out and "schedule:" in out
+    assert "stopped after step" in out
+    record = json.loads((config.get_base_dir() / "time_budget.json").read_text())
+    steps = record["run"]["steps_trained"]
+    assert 8 < steps <= 13 and len(losses) == steps  # past the measurement window, within the budget
+    assert record["run"]["elapsed_s"] <= 12.0 + 1.0  # at most one step past the budget
+    assert record["choice"]["preset"] in ("willags-lite", "willags")
+    saved = (config.get_base_dir() / "config.yml").read_text()
+    assert f"max_num_iterations: {steps}" in saved  # config.yml says what was trained
+    assert list((config.get_base_dir() / "nerfstudio_models").glob(f"step-{steps - 1:09d}.ckpt"))
+
+
+@pytest.mark.slow
+def test_ns_train_prints_one_line_for_a_bad_budget(tmp_path):
+    exe = Path(sys.executable).with_name("ns-train")
+    cmd = [str(exe), "willags", "--pipeline.time-budget-minutes", "-5", "--vis", "tensorboard"]
+    out = subprocess.run(cmd + ["--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 1
+    assert "willags: --pipeline.time-budget-minutes must be a finite number of minutes" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize(("side", "want_downscales"), [(128, 0), (256, 0), (800, "preset")])
+def test_a_cpu_choice_keeps_the_resolution_schedule_for_images_larger_than_the_measured_ones(side, want_downscales):
+    """The CPU points were measured at full resolution on 128 px images; on 800 px photos a full-resolution CPU step
+    took 12.9 s (19 steps in 4 minutes), so larger images keep the preset's resolution schedule."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from willags_ns import method_configs
+    from willags_ns.engine.trainer import WillagsTrainer, apply_budget, preset_defaults
+
+    config = method_configs.willags_config()
+    config.machine.device_type = "cpu"
+    choice, notes, replaced = apply_budget(config, 600.0)
+    assert not choice.keep_resolution_schedule and config.pipeline.model.num_downscales == 0
+    trainer = WillagsTrainer.__new__(WillagsTrainer)
+    cams = SimpleNamespace(width=torch.tensor([[side], [side // 2]]), height=torch.tensor([[side * 3 // 4], [side]]))
+    trainer.config = config
+    trainer.pipeline = SimpleNamespace(
+        datamanager=SimpleNamespace(train_dataset=SimpleNamespace(cameras=cams)),
+        model=SimpleNamespace(config=config.pipeline.model),
+    )
+    trainer._budget_record = {"notes": list(notes)}
+    trainer.local_rank = 1  # no config.yml written here
+    trainer._resolution_for_images(replaced)
+    preset = preset_defaults(choice.preset)[0].num_downscales
+    assert preset > 0 and replaced == preset
+    want = preset if want_downscales == "preset" else want_downscales
+    assert config.pipeline.model.num_downscales == want
+    kept = [n for n in trainer._budget_record["notes"] if "resolution schedule kept" in n]
+    assert (f"up to {side} px" in kept[0]) if want else not kept
+    assert tb.full_resolution_suits(side) == (want == 0)
+
+
+def test_the_users_own_resolution_schedule_is_kept_and_not_restored():
+    """--pipeline.model.num-downscales set by the user: the budget leaves it (and says so), and reports nothing for the
+    trainer to put back for large images."""
+    from willags_ns import method_configs
+    from willags_ns.engine.trainer import apply_budget
+
+    config = method_configs.willags_config()
+    config.machine.device_type = "cpu"
+    config.pipeline.model.num_downscales = 1
+    choice, notes, replaced = apply_budget(config, 600.0)
+    assert not choice.keep_resolution_schedule and config.pipeline.model.num_downscales == 1
+    assert replaced is None and "your --pipeline.model.num-downscales 1 kept" in notes
+
+
+def test_trainer_takes_a_budget_on_several_devices(tmp_path: Path):
+    """With a budget and world_size 2 willags' trainer goes on to build the pipeline (it then stops there: no process
+    group in this test) rather than refusing the budget first."""
+    from willags_ns import method_configs
+    from willags_ns.engine.distributed import DataParallelError
+
+    config = method_configs.willags_config()
+    config.output_dir, config.machine.device_type = tmp_path, "cpu"
+    config.pipeline.time_budget_minutes = 1.0
+    with pytest.raises(DataParallelError):
+        config.setup(local_rank=0, world_size=2).setup()
+
+
+@pytest.mark.slow
+def test_budget_on_two_ranks_stops_both_after_the_same_step(tmp_path, monkeypatch):
+    """Two CPU ranks through nerfstudio's launcher under a budget of a few seconds: the ranks measure their steps,
+    agree on the plan and on the clock, and stop after the same step with the same parameters."""
+    from nerfstudio.scripts.train import launch
+
+    from tests._distributed_launch import record_path, train_and_record
+    from tests.engine.test_distributed import _tiny_config
+    from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
+
+    scene_cfg = SyntheticSceneConfig(num_train=6, num_test=1, width=32, height=24, num_points=400, supersample=1)
+    config = _tiny_config(tmp_path, ensure_default_scene(scene_cfg, root=tmp_path / "scenes"))
+    config.method_name = "willags-3dgs"  # a method named explicitly keeps its model: only the steps follow the budget
+    config.max_num_iterations = 400
+    config.pipeline.time_budget_minutes = 0.05  # 3 s
+    config.pipeline.data_parallel.step_profile = False
+    config.set_timestamp()
+    config.save_config()
+    monkeypatch.setenv("WILLAGS_TEST_BUDGET_STEPS", "2,3,5")
+    launch(main_func=train_and_record, num_devices_per_machine=2, device_type="cpu", config=config)
+    r0, r1 = (torch.load(record_path(config, r), weights_only=False) for r in range(2))
+    assert len(r0["images"]) == len(r1["images"]) < 400
+    for k in r0["final"]:
+        assert torch.equal(r0["final"][k], r1["final"][k]), k
+    record = json.loads((Path(config.get_base_dir()) / "time_budget.json").read_text())
+    assert record["run"]["steps_trained"] == len(r0["images"]) and record["run"]["plans"]

@@ -1,0 +1,400 @@
+"""willags-process (willags_ns.tools.process): SfM on views of the synthetic generator, resume after Ctrl-C, the
+output read by the project's dataparser, bad inputs, and the pure helpers (pairs, split, similarity alignment)."""
+
+import itertools
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from willags_ns.data.synthetic import (  # noqa: E402
+    SyntheticSceneConfig,
+    camera_rays,
+    look_at,
+    make_objects,
+    to_uint8,
+    trace,
+)
+from willags_ns.tools import process as proc  # noqa: E402
+from willags_ns.tools.process import ProcessConfig, ProcessError, compare_poses, umeyama  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+"""OpenGL camera axes (x right, y up, looking down -z) -> COLMAP's (x right, y down, looking down +z)."""
+NUM_VIEWS = 16
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# synthetic photos
+
+
+def _value_noise(p: np.ndarray, seed: int = 1) -> np.ndarray:
+    """Smooth 3D value noise in [0, 1] (p [R, 3] -> [R]): random values on the integer lattice, smoothstep-trilinear."""
+    rng = np.random.default_rng(seed)
+    perm, vals = rng.permutation(256), rng.uniform(0, 1, 256)
+    i = np.floor(p).astype(np.int64)
+    f = p - i
+    f = f * f * (3 - 2 * f)
+    out = np.zeros(len(p))
+    for dx, dy, dz in itertools.product((0, 1), repeat=3):
+        h = vals[perm[(perm[(perm[(i[:, 0] + dx) & 255] + i[:, 1] + dy) & 255] + i[:, 2] + dz) & 255]]
+        w = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) * (f[:, 2] if dz else 1 - f[:, 2])
+        out += w * h
+    return out
+
+
+def render_textured_views(
+    n: int = NUM_VIEWS, width: int = 400, height: int = 300
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """`n` views of the generator's scene (its geometry, shading and ray caster) along a 120-degree arc, with a 3D
+    noise texture multiplied onto every surface. Why the texture: the generator's checkers and bricks repeat, and
+    SIFT's ratio test rejects repeated patterns (16 plain views gave < 60 matches per pair and no model); a texture
+    fixed in 3D keeps the views consistent. Returns the images [H, W, 3] uint8 and the OpenGL c2w [n, 4, 4]."""
+    cfg = SyntheticSceneConfig(width=width, height=height)
+    objects = make_objects(cfg)
+    focal = 0.5 * width / math.tan(math.radians(cfg.fov_x_deg) / 2)
+    K = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
+    images, c2ws = [], []
+    for i in range(n):
+        az, el = math.radians(120 * i / (n - 1)), math.radians(25 + 10 * math.sin(i))
+        r = cfg.camera_radius / math.cos(el)
+        eye = r * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        c2w = look_at(eye, np.array([0.0, 0.0, 0.35]))
+        o, d = camera_rays(c2w, K, width, height, 1)
+        o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+        t, _, rgb = trace(o, d, objects, cfg.seed)
+        p = o + d * t[:, None]
+        tex = sum(a * _value_noise(p * fq + 17.0 * k) for k, (fq, a) in enumerate([(6, 0.5), (13, 0.3), (27, 0.2)]))
+        images.append(to_uint8((rgb * (0.35 + 0.65 * tex)[:, None]).reshape(height, width, 3)))
+        c2ws.append(c2w)
+    return images, np.stack(c2ws)
+
+
+@pytest.fixture(scope="module")
+def synthetic_photos(tmp_path_factory) -> tuple[Path, dict[str, np.ndarray]]:
+    """A folder of PNG views and their ground-truth world-to-camera poses (COLMAP convention) by file name."""
+    root = tmp_path_factory.mktemp("photos")
+    images, c2ws = render_textured_views()
+    gt = {}
+    for i, (img, c2w) in enumerate(zip(images, c2ws, strict=True)):
+        name = f"view_{i:02d}.png"
+        Image.fromarray(img).save(root / name)
+        gt[name] = np.linalg.inv(c2w @ GL_TO_CV)
+    return root, gt
+
+
+@pytest.fixture(scope="module")
+def processed(synthetic_photos, tmp_path_factory):
+    """willags-process on the synthetic photos, interrupted by Ctrl-C after the first block of features, then run
+    again: (config, summary of the second run, image names extracted by the second run)."""
+    photos, _ = synthetic_photos
+    out = tmp_path_factory.mktemp("scene") / "synthetic"
+    # one thread: pycolmap's threaded matching and mapping depend on how the threads interleave; with two, a suite run
+    # beside other work on the 2-core machine once placed one view 49 % of the extent off
+    cfg = ProcessConfig(images=photos, output=out, num_threads=1, test_every=4, num_downscales=1)
+    real_extract = pycolmap.extract_features
+    calls: list[list[str]] = []
+
+    def interrupted_extract(*args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt  # what Ctrl-C does between two blocks of images
+        calls.append(list(kwargs["image_names"]))
+        return real_extract(*args, **kwargs)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(pycolmap, "extract_features", interrupted_extract)
+    with pytest.raises(KeyboardInterrupt):
+        proc.run(cfg, log=lambda msg: None)
+    first_block = calls[0]
+    with pycolmap.Database.open(str(out / "colmap" / "database.db")) as db:
+        kept = sorted(im.name for im in db.read_all_images() if db.exists_keypoints(im.image_id))
+    assert kept == sorted(first_block) and 0 < len(kept) < NUM_VIEWS
+    assert not (out / "images").exists() and not (out / "colmap" / "sparse").exists()
+
+    second: list[str] = []
+
+    def recording_extract(*args, **kwargs):
+        second.extend(kwargs["image_names"])
+        return real_extract(*args, **kwargs)
+
+    mp.setattr(pycolmap, "extract_features", recording_extract)
+    try:
+        summary = proc.run(cfg, log=lambda msg: None)
+    finally:
+        mp.undo()
+    return cfg, summary, first_block, second
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# SfM on the synthetic views
+
+
+def test_synthetic_views_register_with_accurate_poses(processed, synthetic_photos):
+    cfg, summary, _, _ = processed
+    _, gt = synthetic_photos
+    assert summary["registered"] == NUM_VIEWS and summary["total"] == NUM_VIEWS
+    assert summary["unregistered"] == []
+    assert summary["mean_reprojection_error_px"] < 1.0
+    assert summary["points3D"] > 500 and summary["mean_track_length"] > 2.0
+    assert summary["matching"] == "exhaustive" and summary["num_pairs"] == NUM_VIEWS * (NUM_VIEWS - 1) // 2
+    est = proc.model_w2c(cfg.output / "colmap" / "sparse" / "0")
+    err = compare_poses(est, gt)
+    assert err["num_common"] == NUM_VIEWS
+    # the issue's bounds for real photos (median rotation <= 2 deg, median centre <= 5 % of the extent), with a cap on
+    # the worst view: pycolmap's threaded matching is not bit-reproducible, and on 16 synthetic views one run in a
+    # fresh clone recovered every view within 3.5 deg (another within 1 deg)
+    assert err["median_rotation_error_deg"] < 2.0 and err["max_rotation_error_deg"] < 5.0, err["rotation_error_deg"]
+    assert err["median_centre_error_pct"] < 5.0 and err["max_centre_error_pct"] < 10.0, err["centre_error"]
+
+
+def test_rerun_after_interrupt_extracts_only_the_missing_images(processed):
+    _, _, first_block, second = processed
+    assert sorted(second) == sorted(set(f"view_{i:02d}.png" for i in range(NUM_VIEWS)) - set(first_block))
+
+
+def test_output_layout_undistorted_pinhole_and_downscales(processed):
+    cfg, summary, _, _ = processed
+    rec = pycolmap.Reconstruction(str(cfg.output / "colmap" / "sparse" / "0"))
+    assert {cam.model_name for cam in rec.cameras.values()} == {"PINHOLE"}  # undistorted SIMPLE_RADIAL
+    assert rec.num_cameras() == NUM_VIEWS  # one camera per image
+    distorted = pycolmap.Reconstruction(str(cfg.output / "colmap" / "distorted" / "0"))
+    assert {cam.model_name for cam in distorted.cameras.values()} == {"SIMPLE_RADIAL"}
+    for image_id in rec.reg_image_ids():
+        im, cam = rec.images[image_id], rec.cameras[rec.images[image_id].camera_id]
+        with Image.open(cfg.output / "images" / im.name) as full:
+            assert full.size == (cam.width, cam.height)
+        with Image.open(cfg.output / "images_2" / im.name) as half:
+            assert half.size == (cam.width // 2, cam.height // 2)
+    rows = (cfg.output / "synthetic.tsv").read_text().splitlines()
+    assert rows[0] == "filename\tid\tsplit\tdataset"
+    assert len(rows) == 1 + NUM_VIEWS and summary["num_test"] == NUM_VIEWS // 4
+
+
+def test_output_loads_through_the_dataparser(processed):
+    from willags_ns.data.dataparser import WillagsDataParserConfig
+
+    cfg, summary, _, _ = processed
+    parser = WillagsDataParserConfig(data=cfg.output).setup()
+    train = parser.get_dataparser_outputs("train")
+    test = parser.get_dataparser_outputs("test")
+    assert len(train.image_filenames) == summary["num_train"] and len(test.image_filenames) == summary["num_test"]
+    tsv = dict(line.split("\t")[0:3:2] for line in (cfg.output / "synthetic.tsv").read_text().splitlines()[1:])
+    assert all(tsv[p.name] == "test" for p in test.image_filenames)
+    assert all(p.is_file() and p.parent == cfg.output / "images" for p in train.image_filenames)
+    assert train.metadata["points3D_xyz"].shape[0] == summary["points3D"]
+
+
+def test_vocab_tree_matching_registers_the_views(processed, tmp_path):
+    """Retrieval matching on the same features: fewer pairs than exhaustive, all views still registered."""
+    cfg, _, _, _ = processed
+    out = tmp_path / "vt"
+    (out / "colmap").mkdir(parents=True)
+    shutil.copy(cfg.output / "colmap" / "database.db", out / "colmap" / "database.db")
+    with pycolmap.Database.open(str(out / "colmap" / "database.db")) as db:
+        db.clear_matches()
+        db.clear_two_view_geometries()
+    vt = ProcessConfig(images=cfg.images, output=out, num_threads=2, matching="vocab-tree", retrieval_neighbors=5)
+    summary = proc.run(vt, log=lambda msg: None)
+    assert summary["matching"] == "vocab-tree"
+    assert summary["num_pairs"] < NUM_VIEWS * (NUM_VIEWS - 1) // 2
+    assert summary["registered"] == NUM_VIEWS
+    assert (out / "colmap" / "vocab_tree.bin").is_file()
+
+
+def test_database_made_with_other_options_is_refused(processed, tmp_path):
+    cfg, _, _, _ = processed
+    other = ProcessConfig(images=cfg.images, output=cfg.output, camera_model="SIMPLE_PINHOLE")
+    with pytest.raises(ProcessError, match="other options"):
+        proc.run(other, log=lambda msg: None)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# bad inputs, through the command line (exit status and message, no traceback)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO), COLUMNS="200")
+    return subprocess.run(
+        [sys.executable, "-m", "willags_ns.scripts.process", *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+
+
+def _main(capsys, photos: Path, out: Path) -> tuple[int, str]:
+    """The CLI's main() in-process (a subprocess per case would mostly time imports): exit status, printed text."""
+    from willags_ns.scripts.process import main
+
+    code = main(ProcessConfig(images=photos, output=out, num_threads=2))
+    printed = capsys.readouterr()
+    return code, (printed.out + printed.err).replace("\n", "")
+
+
+def test_cli_empty_folder_fails_clearly(tmp_path):
+    """Through the installed command line: exit status 1 and one clear line, no traceback."""
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "notes.txt").write_text("not a photo")
+    r = _cli("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "out"))
+    assert r.returncode == 1
+    assert "holds no photos" in r.stdout and "Traceback" not in r.stdout + r.stderr
+
+
+def test_missing_folder_fails_clearly(tmp_path, capsys):
+    code, text = _main(capsys, tmp_path / "nope", tmp_path / "out")
+    assert code == 1 and "is not a folder" in text
+
+
+def test_unreadable_images_are_named_and_too_few_left_fails(tmp_path, synthetic_photos, capsys):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "empty.jpg").write_bytes(b"")
+    (photos / "garbage.png").write_bytes(os.urandom(2048))
+    good = sorted(synthetic_photos[0].iterdir())[0]
+    data = good.read_bytes()
+    (photos / "truncated.png").write_bytes(data[: len(data) // 2])
+    shutil.copy(good, photos / "good.png")
+    code, text = _main(capsys, photos, tmp_path / "out")
+    assert code == 1
+    for name in ("empty.jpg", "garbage.png", "truncated.png"):
+        assert f"skipping unreadable image {photos / name}" in text
+    assert "1 readable photo(s)" in text
+
+
+def test_unrelated_photos_fail_with_too_few_registered(tmp_path, capsys):
+    """Five photos of unrelated noise: SIFT finds features, no pair survives verification, nothing registers."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        noise = rng.uniform(0, 255, size=(40, 50, 3)).astype(np.uint8)
+        Image.fromarray(noise).resize((200, 160), Image.Resampling.BICUBIC).save(photos / f"{i}.png")
+    code, text = _main(capsys, photos, tmp_path / "out")
+    assert code == 1 and "fewer than 3" in text
+    assert "feature extraction: 5/5 (100%)" in text  # the stages' progress reaches a log (not a terminal) too
+    assert (tmp_path / "out" / "colmap" / "database.db").is_file()  # kept: a rerun would not extract again
+    assert not (tmp_path / "out" / "images").exists()
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# pure helpers
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 5, 12, 13, 30])
+def test_exhaustive_pair_blocks_cover_every_pair_once(n):
+    names = [f"{i:03d}.jpg" for i in range(n)]
+    pairs = [tuple(sorted(p)) for block in proc.exhaustive_pair_blocks(names, block=4) for p in block]
+    assert len(pairs) == len(set(pairs)) == n * (n - 1) // 2
+    assert all(a != b for a, b in pairs)
+
+
+def test_split_table_matches_nerfstudios_interval_rule():
+    from nerfstudio.data.utils.dataparsers_utils import get_train_eval_split_interval
+
+    ids = {7: "c.jpg", 2: "a.jpg", 40: "z.jpg", 3: "b.jpg", 11: "d.jpg", 12: "e.jpg"}
+    rows = proc.split_table(ids, test_every=4)
+    assert [r[1] for r in rows] == sorted(ids)  # COLMAP id order, as nerfstudio's colmap parser
+    _, i_eval = get_train_eval_split_interval([r[0] for r in rows], 4)
+    assert [r[0] for r in rows if r[2] == "test"] == [rows[i][0] for i in i_eval]
+    assert all(r[2] == "train" for r in proc.split_table(ids, test_every=0))
+
+
+def _rotation(axis, deg: float) -> np.ndarray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = math.radians(deg)
+    return np.eye(3) + math.sin(a) * k + (1 - math.cos(a)) * k @ k
+
+
+def test_umeyama_recovers_a_similarity():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(20, 3))
+    rot = _rotation([0.3, -1, 0.5], 73)
+    dst = 2.5 * src @ rot.T + np.array([1.0, -2.0, 3.0])
+    s, r, t = umeyama(src, dst)
+    assert s == pytest.approx(2.5) and np.allclose(r, rot) and np.allclose(t, [1, -2, 3])
+
+
+def test_compare_poses_is_similarity_invariant_and_finds_a_wrong_camera():
+    rng = np.random.default_rng(1)
+    ref = {}
+    for i in range(10):
+        c2w = np.eye(4)
+        c2w[:3, :3] = _rotation(rng.normal(size=3), rng.uniform(0, 180))
+        c2w[:3, 3] = rng.normal(size=3) * 5
+        ref[f"{i}.jpg"] = np.linalg.inv(c2w)
+    sim = np.eye(4)
+    sim[:3, :3], sim[:3, 3] = 0.3 * _rotation([1, 2, 3], 40), [4.0, 5.0, -6.0]
+    # est = the same cameras in another frame: c2w_est = S @ c2w_ref with the scale taken out of the rotation
+    est = {}
+    for name, w2c in ref.items():
+        c2w = sim @ np.linalg.inv(w2c)
+        c2w[:3, :3] /= 0.3
+        est[name] = np.linalg.inv(c2w)
+    for align in ("poses", "centres"):
+        err = compare_poses(est, ref, align=align)
+        assert err["max_rotation_error_deg"] < 1e-6 and err["max_centre_error_pct"] < 1e-6
+    # turn one estimated camera by 10 degrees about its own axis: (mostly) only its rotation error changes
+    c2w = np.linalg.inv(est["3.jpg"])
+    c2w[:3, :3] = c2w[:3, :3] @ _rotation([0, 0, 1], 10)
+    est["3.jpg"] = np.linalg.inv(c2w)
+    err = compare_poses(est, ref, align="centres")
+    assert err["rotation_error_deg"]["3.jpg"] == pytest.approx(10, abs=1e-6)
+    assert err["median_rotation_error_deg"] < 1e-6
+    err = compare_poses(est, ref, align="poses")  # the turned camera pulls the mean rotation by about 1/10 of it
+    assert err["rotation_error_deg"]["3.jpg"] == pytest.approx(9, abs=0.2)
+    assert 0.5 < err["median_rotation_error_deg"] < 1.5
+
+
+def test_compare_poses_needs_three_common_images():
+    eye = {"a": np.eye(4), "b": np.eye(4)}
+    with pytest.raises(ValueError, match=">= 3"):
+        compare_poses(eye, eye)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# real photos (../shared/data/reichstag): a small co-visible subset, fast settings
+
+
+@pytest.mark.data
+def test_reichstag_subset_registers_close_to_the_shared_model(shared_data, tmp_path):
+    scene = shared_data / "reichstag"
+    if not scene.is_dir():
+        pytest.skip(f"{scene} is absent")
+    ref_dir = scene / "colmap" / "sparse" / "0"
+    ref = pycolmap.Reconstruction(str(ref_dir))
+    # the image with the most 3D points and the 5 images sharing the most points with it
+    images = ref.images
+    anchor = max(images.values(), key=lambda im: im.num_points3D)
+    anchor_pts = {p.point3D_id for p in anchor.points2D if p.has_point3D()}
+    shared = {
+        im.name: len(anchor_pts & {p.point3D_id for p in im.points2D if p.has_point3D()})
+        for im in images.values()
+        if im.image_id != anchor.image_id
+    }
+    names = [anchor.name] + sorted(shared, key=lambda n: -shared[n])[:5]
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for n in names:
+        (photos / n).symlink_to(scene / "images" / n)
+    cfg = ProcessConfig(
+        images=photos,
+        output=tmp_path / "out",
+        camera_model="SIMPLE_PINHOLE",
+        max_num_features=4096,
+        num_threads=2,
+    )
+    summary = proc.run(cfg, log=lambda msg: None)
+    assert summary["registered"] >= 5, summary["unregistered"]
+    err = compare_poses(proc.model_w2c(cfg.output / "colmap" / "sparse" / "0"), proc.model_w2c(ref_dir))
+    assert err["median_rotation_error_deg"] < 2.0, err
+    assert err["median_centre_error_pct"] < 5.0

@@ -1,0 +1,540 @@
+"""WillagsPipeline: nerfstudio's VanillaPipeline, plus handing the training image to the model.
+
+Why a pipeline at all: the beta-VAE encodes the *training image itself* into the appearance latent before the
+scene is rendered, but nerfstudio calls `model(camera)` without the batch. The pipeline gives the model the
+batch first (`model.set_train_batch`), then runs the usual forward / metrics / loss sequence unchanged.
+
+It is also where every willags method checks its inputs and guards training, whatever the dataparser
+(docs/reliability.md):
+
+- before nerfstudio's parser runs, the raw scene (transforms.json or the COLMAP model) is checked where we know
+  its layout (`precheck_dataparser_config`);
+- after parsing and before the model is built or an image is cached, `checks.validate_dataparser_outputs`: image
+  files exist, decode, match their camera's size; poses finite and rotations proper; fx, fy > 0; >= 1 image;
+- during training: a clear error when every Gaussian was pruned; a (rate-limited) warning when the transient mask
+  was rejected because it flagged most of an image;
+- before training, a warning for a photo whose colours do not follow the SfM points it should show (a photo of
+  another place under a registered frame: `check_photo_content`);
+- with `--pipeline.model.auto-config True` (the method willags), the scene is inspected and the model's switches
+  set before the model is built (willags_ns/tools/autoconfig.py);
+- Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
+  at the next step with the same parameters and optimiser state (`InterruptCheckpoint`); the printed command
+  resumes it and ends at the planned step;
+- every willags command that loads a checkpoint (ns-eval, ns-render, ns-viewer, willags-render, willags-export)
+  reads it through willags_ns/engine/checkpoints.py: the newest readable one, a damaged one named
+  (`checkpoints.install_eval_loader`, installed when the pipeline is built).
+
+With `--machine.num-devices N` (N > 1) it trains data-parallel without nerfstudio's DDP wrapper: each rank renders
+its own image, gradients are averaged before the optimiser step and densification agrees over the ranks
+(willags_ns/engine/distributed.py, docs/distributed.md).
+"""
+
+import json
+import math
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.optimizers import Optimizers
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils import comms
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from willags_ns.data.consistency import foreign_photo_warnings
+from willags_ns.engine.checkpoints import install_eval_loader
+from willags_ns.engine.checks import (
+    check_gaussians_alive,
+    install_cli_excepthook,
+    validate_dataparser_outputs,
+    warn_all,
+)
+from willags_ns.engine.distributed import (
+    DataParallelConfig,
+    DataParallelError,
+    GradientAverager,
+    apply_latent_rows,
+    average_gradients,
+    broadcast_module,
+    comm_device,
+    draw_refine_seed,
+    from_rank_zero,
+    latent_row,
+    optimizer_parameters,
+    rank_and_world_size,
+    shard_image_cache,
+    shard_train_images,
+    share_train_latents,
+    synced_strategy,
+    validate_data_parallel,
+    validate_train_images,
+)
+from willags_ns.engine.progress import Progress
+from willags_ns.engine.step_profile import StepProfile
+from willags_ns.eval.protocol import EvalProtocolConfig, describe_protocol, eval_split_images, evaluate_model
+from willags_ns.tools.autoconfig import (
+    AUTO_CONFIG_FILE,
+    apply_auto_config,
+    format_summary,
+    scene_dir,
+    tensorboard_entries,
+)
+from willags_ns.viewer import appearance_controls, guard_viewer_host
+
+MASK_REJECTED_WARN_EVERY_S = 60.0
+"""At most one 'mask rejected' warning per this many seconds (it is normal early in training)."""
+
+
+@dataclass
+class WillagsPipelineConfig(VanillaPipelineConfig):
+    """VanillaPipeline that passes the training batch to the model before its forward pass."""
+
+    _target: type = field(default_factory=lambda: WillagsPipeline)
+    eval_protocol: EvalProtocolConfig = field(default_factory=lambda: EvalProtocolConfig(fit_max_side=-1))
+    """NeRF-W protocol used by `ns-eval` (fit the latent on the left half of each test image, score the right). Its
+    fit runs at most CPU_FIT_MAX_SIDE px on the CPU (fit_max_side -1; 0 = full resolution)."""
+    check_inputs: bool = True
+    """Before training: check every training image (exists, decodes, matches its camera's size), the poses
+    (finite, proper rotations) and the intrinsics (fx, fy > 0); stop with a message naming the file / frame."""
+    check_photo_content: bool = True
+    """Before training: warn about training photos whose colours do not follow the SfM points they should show (a
+    photo of another place under a registered frame; willags_ns/data/consistency.py). Needs SfM points; ~2 s per 50
+    photos on a CPU."""
+    checkpoint_on_interrupt: bool = True
+    """Ctrl-C finishes the current step, writes a checkpoint and exits; the printed command resumes it. A second Ctrl-C
+    interrupts at once."""
+    auto_config_keep: tuple[str, ...] = ()
+    """Model switches (dotted fields under pipeline.model, e.g. "use_mask") that `auto_config` leaves as they are:
+    the trainer fills it with those the command line set (named as a flag, or changed from the method's own preset),
+    so a user's flag wins over the inspector's recommendation."""
+    data_parallel: DataParallelConfig = field(default_factory=DataParallelConfig)
+    """With --machine.num-devices N > 1: how the ranks average gradients and cache images; the step profile (one
+    device too). willags_ns/engine/distributed.py, docs/distributed.md."""
+    time_budget_minutes: float | None = None
+    """Train within this many minutes of training steps (None or 0: off; set-up not counted). Before training
+    `ns-train willags` chooses the preset (willags-lite or willags), the step count and the resolution schedule from
+    measured points (willags_ns/engine/time_budget.py); after steps 20-70 the run's own step time sets the last step (never
+    past the preset's default), the learning-rate schedules end there, and the choice is printed and kept in
+    time_budget.json. Other methods (willags-lite named explicitly too) keep their model; only their step count
+    follows the budget."""
+
+
+def precheck_dataparser_config(datamanager_config) -> None:
+    """Check the raw scene of nerfstudio's own parsers (nerfstudio-data, colmap) before they run, so a missing
+    file or a NaN pose is named instead of failing inside them. willags-data checks its scenes itself."""
+    from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from willags_ns.data.dataparser import WillagsDataParserConfig, check_colmap, check_transforms
+
+    dp = datamanager_config.dataparser
+    data = datamanager_config.data if datamanager_config.data is not None else getattr(dp, "data", None)
+    if isinstance(dp, WillagsDataParserConfig) or data is None:
+        return
+    data = Path(data)
+    if isinstance(dp, NerfstudioDataParserConfig):
+        json_path = data if data.suffix == ".json" else data / "transforms.json"
+        if json_path.is_file():
+            check_transforms(json_path, dp.downscale_factor)
+    elif isinstance(dp, ColmapDataParserConfig):
+        model = data / dp.colmap_path
+        if model.is_dir():
+            check_colmap(data, model, data / dp.images_path, need_points=False)
+
+
+class InterruptCheckpoint:
+    """SIGINT -> finish the step, checkpoint, exit 130.
+
+    The handler is installed at the first training step (BEFORE_TRAIN_ITERATION) and the previous one restored when
+    training ends (AFTER_TRAIN) or after the checkpoint. The first Ctrl-C also restores the previous handler, so a
+    second Ctrl-C interrupts at once (and, should training have died of an exception before AFTER_TRAIN, the stale
+    handler costs one extra Ctrl-C, never a process that cannot be interrupted).
+
+    Why at the end of a step: a checkpoint written from inside the backward or the optimiser step would hold
+    parameters and Adam moments from two different steps. Saved after every AFTER_TRAIN_ITERATION callback of
+    step s (this one is the last registered), the checkpoint is exactly the state the next step would start from;
+    nerfstudio resumes at s + 1.
+    """
+
+    def __init__(self, trainer):
+        self.trainer = trainer
+        self.requested = False
+        self.installed = False
+        self._prev = None
+
+    def _handler(self, signum, frame):
+        self.requested = True
+        CONSOLE.log(
+            "[bold yellow]willags: interrupt received; finishing this step and writing a checkpoint "
+            "(Ctrl-C again to stop at once)"
+        )
+        self.uninstall()
+
+    def install(self, step: int) -> None:
+        if self.installed or self.requested:
+            return
+        try:
+            self._prev = signal.signal(signal.SIGINT, self._handler)
+            self.installed = True
+        except ValueError:  # not the main thread (a trainer driven from a thread): leave SIGINT alone
+            pass
+
+    def uninstall(self, step: int | None = None) -> None:
+        if self.installed:
+            signal.signal(signal.SIGINT, self._prev if self._prev is not None else signal.default_int_handler)
+            self.installed = False
+
+    def after_step(self, step: int) -> None:
+        if not self.requested:
+            return
+        self.uninstall()
+        self.trainer.save_checkpoint(step)
+        path = self.trainer.checkpoint_dir / f"step-{step:09d}.ckpt"
+        from nerfstudio.utils import writer
+
+        writer.write_out_storage()
+        if hasattr(self.trainer, "resume_command"):  # willags' trainer: the exact command
+            command = self.trainer.resume_command(step)
+        else:
+            from willags_ns.engine.checkpoints import resume_command
+
+            end = self.trainer._start_step + self.trainer.config.max_num_iterations
+            command = resume_command([], str(self.trainer.config.method_name), path, end - step - 1)
+        CONSOLE.print(
+            f"willags: interrupted after step {step}; checkpoint {path}\nresume with: {command}",
+            soft_wrap=True,  # one line however long: it is copied into a shell
+            markup=False,
+            highlight=False,
+        )
+        raise SystemExit(130)
+
+
+class WillagsPipeline(VanillaPipeline):
+    config: WillagsPipelineConfig
+
+    def __init__(self, config: WillagsPipelineConfig, *args, **kwargs):
+        install_cli_excepthook()
+        install_eval_loader()  # eval_setup loads the checkpoint after this pipeline is built
+        # VanillaPipeline's arguments by name: (device, test_mode, world_size, local_rank, grad_scaler)
+        setup_kwargs = dict(
+            zip(("device", "test_mode", "world_size", "local_rank", "grad_scaler"), args, strict=False), **kwargs
+        )
+        test_mode = setup_kwargs.get("test_mode", "val")
+        world_size = int(setup_kwargs.get("world_size", 1))
+        # a config.yml written before the field existed has no data_parallel
+        self.data_parallel = getattr(config, "data_parallel", None) or DataParallelConfig()
+        self.step_profile: StepProfile | None = None
+        if self.data_parallel.step_profile and test_mode == "val":
+            rank = rank_and_world_size()[0]
+            device = torch.device(str(setup_kwargs.get("device", "cpu")))
+            meta = {"local_rank": setup_kwargs.get("local_rank", 0), "reduction": self.data_parallel.reduction}
+            self.step_profile = StepProfile(Path("."), rank, world_size, device, meta)
+            self.step_profile.phase("pipeline_init")
+        if world_size > 1:
+            validate_data_parallel(world_size, setup_kwargs.get("device"), config.datamanager)
+            device = torch.device(str(setup_kwargs.get("device")))
+            if device.type == "cuda" and device.index is not None:
+                torch.cuda.set_device(device)  # NCCL and gsplat's launches follow the current device
+            # no DistributedDataParallel wrapper: its fixed buckets break when densification replaces the
+            # Gaussians; gradients are averaged by hand before each optimiser step (willags_ns/engine/distributed.py)
+            setup_kwargs["world_size"] = 1
+        checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
+        if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default
+            guard_viewer_host()
+        if checking:
+            precheck_dataparser_config(config.datamanager)
+        self.auto_config_summary = None
+        if getattr(config.model, "auto_config", False):
+            # before the model exists: the switches decide which modules and parameters it has. Several ranks:
+            # rank 0 inspects, the others take its settings (the same scene, the same decision)
+            summary, inspected = from_rank_zero(
+                lambda: apply_auto_config(config.model, scene_dir(config.datamanager), keep=config.auto_config_keep)
+            )
+            if not inspected:
+                for key, value in summary.get("settings", {}).items():
+                    *parents, last = key.split(".")
+                    target = config.model
+                    for part in parents:
+                        target = getattr(target, part)
+                    setattr(target, last, value)
+            if inspected:
+                CONSOLE.print(format_summary(summary))
+            # resolved either way (the recommended switches, or the method's own where nothing could be inspected):
+            # config.yml is rewritten with it, so reloading builds the trained model without inspecting again
+            config.model.auto_config = False
+            self.auto_config_summary = summary
+        if self.step_profile is not None:
+            self.step_profile.phase("scene_inspected")
+        # The model is built inside VanillaPipeline.__init__ right after the datamanager parses the scene; the
+        # outputs are validated in between (a NaN pose would otherwise surface in the model's kNN as a sklearn
+        # error). The hook is an instance attribute on this config only, removed again below.
+        model_config = config.model
+        original_setup = model_config.setup
+
+        def setup_after_checks(**model_kwargs):
+            if self.step_profile is not None:
+                self.step_profile.phase("data_parsed")
+            if checking:
+                device = setup_kwargs.get("device")
+                outputs = self.datamanager.train_dataparser_outputs
+                warn_all(validate_dataparser_outputs(outputs, device=str(device) if device is not None else None))
+                if config.check_photo_content and rank_and_world_size()[0] == 0:  # warnings, printed once
+                    warn_all(foreign_photo_warnings(outputs))
+            if self.step_profile is not None:
+                self.step_profile.phase("inputs_checked")
+            return original_setup(**model_kwargs)
+
+        model_config.setup = setup_after_checks  # type: ignore[method-assign]
+        try:
+            super().__init__(config, **setup_kwargs)
+        finally:
+            del model_config.setup
+        if self.step_profile is not None:
+            self.step_profile.phase("model_built")
+        self.world_size = world_size
+        self.rank = rank_and_world_size()[0]
+        names = [Path(p).name for p in self.datamanager.train_dataparser_outputs.image_filenames]
+        if hasattr(self.model, "set_train_image_names"):
+            self.model.set_train_image_names(names)
+        self._last_mask_warning = -float("inf")
+        self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
+        if getattr(self.model, "appearance_nets", None) is not None:
+            # the appearance panel: nerfstudio's viewer finds its elements on the pipeline; it shows a training
+            # view's transient mask / teacher render from the training dataset
+            self.viewer_controls = appearance_controls(self.model)
+            self.viewer_controls.set_train_dataset(self.datamanager.train_dataset)
+        self._step_image_idx = -1
+        if world_size > 1:
+            self._setup_data_parallel(world_size)
+            if self.step_profile is not None:
+                self.step_profile.phase("data_parallel_ready")
+
+    def _setup_data_parallel(self, world_size: int) -> None:
+        """Same model on every rank, a share of the images per rank, densification that agrees over the ranks."""
+        rank, _ = rank_and_world_size()
+        num_images = len(self.datamanager.train_dataset)
+        validate_train_images(num_images, world_size)
+        shard_train_images(self.datamanager, rank, world_size)
+        if self.data_parallel.shard_image_cache:
+            shard_image_cache(self.datamanager, rank, world_size)
+        broadcast_module(self.model)  # nerfstudio seeds rank r with seed + r: rank 0's initialisation wins
+        strategy = synced_strategy(self.model.strategy, draw_refine_seed(), world_size)
+        # after an opacity reset gsplat waits one epoch (splatfacto: num_train_data + refine_every steps) before
+        # refining again, so that every image is seen once; with one image per rank an epoch is N times shorter
+        strategy.pause_refine_after_reset -= num_images - math.ceil(num_images / world_size)
+        self.model.strategy = strategy
+        if rank == 0:
+            CONSOLE.log(
+                f"willags: data-parallel training on {world_size} devices: one image per device per step, gradients "
+                "averaged before each optimiser step, densification statistics all-reduced before each refinement"
+            )
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes):
+        cbs = super().get_training_callbacks(training_callback_attributes)
+        trainer = training_callback_attributes.trainer
+        if self.config.time_budget_minutes and trainer is not None and not hasattr(trainer, "time_budget"):
+            from willags_ns.engine.time_budget import OPTION, TimeBudgetError
+
+            raise TimeBudgetError(
+                f"{OPTION} needs willags' trainer (willags_ns.engine.trainer.WillagsTrainerConfig, which every willags method "
+                f"uses); this run's trainer is {type(trainer).__name__}"
+            )
+        if self.auto_config_summary is not None and trainer is not None:
+            cbs.append(self._record_auto_config(trainer))
+        optimizers = training_callback_attributes.optimizers
+        profile = self.step_profile
+        if profile is not None and trainer is not None:
+            profile.directory = Path(trainer.base_dir) / "step_profile"
+            cbs += self._profile_callbacks(profile)
+        if (self.world_size > 1 or profile is not None) and optimizers is not None:
+            self._average_gradients_before_step(optimizers)
+        if self.config.checkpoint_on_interrupt and trainer is not None and self.world_size > 1:
+            # nerfstudio's launcher terminates every rank on Ctrl-C (the parent gets the SIGINT too), so a rank
+            # cannot finish its step first: resume from the last periodic checkpoint instead
+            if comms.is_main_process():
+                CONSOLE.log("willags: several devices: Ctrl-C stops at once (no interrupt checkpoint)")
+        elif self.config.checkpoint_on_interrupt and trainer is not None:
+            ic = InterruptCheckpoint(trainer)
+            self.interrupt_checkpoint = ic
+            cbs.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], ic.install))
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], ic.after_step))
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], ic.uninstall))
+        return cbs
+
+    def _average_gradients_before_step(self, optimizers: Optimizers) -> None:
+        """Data-parallel: the trainer's optimiser step first averages every gradient over the ranks (after the
+        backward pass, which nerfstudio runs between get_train_loss_dict and this step) and shares this step's
+        image latents (`data_parallel.reduction`). With the step profile, it also marks the reduction and the
+        optimiser step (on one device: the optimiser step alone)."""
+        step_some = optimizers.optimizer_scaler_step_some
+        if getattr(step_some, "willags_averages_gradients", False):
+            return  # already installed (callbacks requested twice)
+        profile = self.step_profile
+        averager = None
+        if self.world_size > 1 and self.data_parallel.reduction == "buffer":
+            averager = GradientAverager(self.world_size)
+            if profile is not None:
+                averager.collective = (lambda: profile.mark("collective_start"), lambda: profile.mark("collective_end"))
+
+        def averaged_step_some(grad_scaler, param_groups):
+            if profile is not None:
+                profile.mark("reduce_start")
+            if self.world_size > 1:
+                self._average(optimizers, averager)
+            if profile is not None:
+                profile.mark("reduce_end")
+            out = step_some(grad_scaler, param_groups)
+            if profile is not None:
+                profile.mark("optimizer_end")
+            return out
+
+        averaged_step_some.willags_averages_gradients = True  # type: ignore[attr-defined]
+        optimizers.optimizer_scaler_step_some = averaged_step_some  # type: ignore[method-assign]
+
+    def _average(self, optimizers: Optimizers, averager: GradientAverager | None) -> None:
+        """Average the gradients over the ranks and share this step's training-image latents."""
+        params = optimizer_parameters(optimizers.optimizers)
+        model, profile = self.model, self.step_profile
+        # the memo is written by the rank that drew the image, so each step's row is shared; an embedding table is a
+        # parameter (its gradients are averaged with the others) and has no memo
+        memo = model.latent_memo() if hasattr(model, "latent_memo") else None
+        latents, seen = memo if memo is not None else (None, None)
+        if averager is None:  # the reference implementation
+            if profile is not None:
+                profile.mark("collective_start")
+            average_gradients(params, self.world_size)
+            if latents is not None:
+                share_train_latents(latents, seen, self._step_image_idx)
+            if profile is not None:
+                profile.mark("collective_end")
+                profile.note(bytes=4 * (len(params) + sum(p.numel() for p in params)))
+            return
+        row, width = None, 0
+        if latents is not None:
+            width = latents.shape[1] + 1
+            row = latent_row(latents, seen, self._step_image_idx, comm_device())
+        rows = averager.average(params, row, width)
+        if rows is not None and latents is not None:
+            apply_latent_rows(latents, seen, rows)
+        if profile is not None:
+            profile.note(bytes=averager.bytes_reduced, host_reads=averager.host_reads)
+
+    def _profile_callbacks(self, profile: StepProfile) -> list[TrainingCallback]:
+        """The step profile's marks around the trainer's loop: the training images cached (timed apart, before the
+        first step, so that the first step's timing is its own), the end of the after-step callbacks, the files."""
+
+        def cache_images(step: int) -> None:
+            if "images_cached" not in profile.meta["phases"]:
+                profile.phase("images_cache_start")
+                _ = self.datamanager.cached_train  # nerfstudio loads them at the first access
+                profile.phase("images_cached")
+
+        return [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], cache_images),
+            TrainingCallback(
+                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], lambda step: profile.mark("callbacks_end")
+            ),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], lambda step: profile.flush(final=True)),
+        ]
+
+    def _record_auto_config(self, trainer) -> TrainingCallback:
+        """auto_config.json and the resolved config.yml now; tensorboard at the first step (writers are set up)."""
+        summary = self.auto_config_summary
+        base = Path(trainer.base_dir)
+        if comms.is_main_process():  # one writer when several devices train (every rank resolved the same)
+            base.mkdir(parents=True, exist_ok=True)
+            (base / AUTO_CONFIG_FILE).write_text(json.dumps(summary, indent=1, default=str))
+            trainer.config.save_config()  # config.yml: the resolved switches, auto_config False
+        text, scalars = tensorboard_entries(summary)
+        logged = []
+
+        def log_once(step: int) -> None:
+            if logged:
+                return
+            from nerfstudio.utils import writer
+
+            writer.put_config(name="auto_config", config_dict=text, step=step)
+            for name, value in scalars.items():
+                writer.put_scalar(name=name, scalar=value, step=step)
+            logged.append(step)
+
+        return TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], log_once)
+
+    def get_train_loss_dict(self, step: int):
+        profile = self.step_profile
+        if profile is not None:
+            profile.mark("start")
+        check_gaussians_alive(self.model.num_points, step)
+        camera, batch = self.datamanager.next_train(step)
+        self._step_image_idx = int(batch.get("image_idx", -1))  # shared with the other ranks (several devices)
+        if self.world_size > 1 and self._step_image_idx >= 0 and self._step_image_idx % self.world_size != self.rank:
+            raise DataParallelError(
+                f"willags: rank {self.rank} drew training image {self._step_image_idx}, which belongs to rank "
+                f"{self._step_image_idx % self.world_size} (its image cache holds a placeholder there)"
+            )
+        self._report_rejected_mask()
+        self.model.set_train_batch(batch)  # type: ignore[attr-defined]
+        model_outputs = self._model(camera)
+        metrics_dict = self.model.get_metrics_dict(model_outputs, batch)
+        loss_dict = self.model.get_loss_dict(model_outputs, batch, metrics_dict)
+        if "mask_rejected" in metrics_dict:
+            self._pending_rejected = (step, batch, metrics_dict["mask_rejected"])
+        if profile is not None:
+            profile.mark("forward_end")
+            size = getattr(self.model, "last_size", None)
+            profile.note(
+                step=step,
+                image=self._step_image_idx,
+                pixels=int(size[0] * size[1]) if size else None,
+                gaussians=int(self.model.num_points),
+                teacher="teacher_rgb" in model_outputs,
+            )
+        return model_outputs, loss_dict, metrics_dict
+
+    def _report_rejected_mask(self) -> None:
+        """Warn about the previous mask step's rejected mask, read one step late: reading the device flag in its
+        own step would stall there until the GPU has run VGG; here the queue is about to drain anyway (the step's
+        first host sync is the camera's intrinsics in get_outputs)."""
+        pending, self._pending_rejected = self._pending_rejected, None
+        if pending is not None and bool(pending[2]):
+            self._warn_mask_rejected(pending[0], pending[1])
+
+    def get_average_eval_image_metrics(self, step=None, output_path=None, get_std: bool = False):
+        """`ns-eval`: the NeRF-W protocol over the eval split (see willags_ns/eval/protocol.py).
+
+        Headline `psnr`/`ssim`/`lpips` are right-half scores with the fitted latent; `encoder_*` use the encoder's
+        latent without optimisation; `full_*` score the whole image.
+        """
+        ds = self.datamanager.eval_dataset
+        images = eval_split_images(self.datamanager)
+        names = [Path(p).name for p in ds.image_filenames]
+        self.eval()
+        cfg = self.config.eval_protocol
+        CONSOLE.print(describe_protocol(cfg, ds.cameras, self.model), soft_wrap=True, markup=False, highlight=False)
+        with Progress(label="ns-eval") as progress:
+            agg, per_image = evaluate_model(self.model, ds.cameras, images, cfg, names, progress=progress)
+        self.train()
+        if get_std and len(per_image) > 1:
+            import statistics
+
+            for k in ("psnr", "ssim", "lpips"):
+                if k in per_image[0]:
+                    agg[f"{k}_std"] = statistics.pstdev(float(r[k]) for r in per_image)
+        return agg
+
+    def _warn_mask_rejected(self, step: int, batch) -> None:
+        now = time.monotonic()
+        if now - self._last_mask_warning < MASK_REJECTED_WARN_EVERY_S:
+            return
+        self._last_mask_warning = now
+        idx = int(batch.get("image_idx", -1))
+        names = self.datamanager.train_dataparser_outputs.image_filenames
+        name = Path(names[idx]).name if 0 <= idx < len(names) else f"image {idx}"
+        frac = getattr(self.model.config, "max_masked_fraction", None)
+        CONSOLE.log(
+            f"[bold yellow]willags warning:[/bold yellow] step {step}: the transient mask flagged more than "
+            f"{frac} of {name}; that image is supervised everywhere this step (normal early in training; if it "
+            "persists for one image, that photo may not show this scene)"
+        )

@@ -1,0 +1,528 @@
+"""Training under a time budget: which preset, how many steps, and when to stop (`--pipeline.time-budget-minutes`).
+
+Two decisions, both from measurements:
+
+1. **Before training** (:func:`choose`; for ``ns-train willags``: a method named explicitly, willags-lite included,
+   keeps its model), from the measured points (``TABLE``, loaded from willags_ns/data/time_budget_points.json): for
+   each preset, the steps that fit in the budget at its step time; among the measured points that fit, the one with
+   the highest right-half PSNR decides the preset. The run then reproduces that point's resolution schedule
+   (splatfacto's stock one on the GPU points, full resolution from the first step on the CPU ones, measured on 128 px
+   images: larger training images keep the stock schedule, :func:`full_resolution_suits`). The preset cannot change
+   later: willags-lite and willags build different appearance networks.
+2. **While training** (:class:`TimeBudget`), from the run's own clock: the wall time of steps 20-70 (after the first
+   steps' warm-up: allocations, kernel caches) gives the step time on this machine and scene; the last step is set so
+   that the run ends within the budget (never after the preset's own default, nor after ``--max-num-iterations``),
+   re-planned every 200 steps (steps get slower as densification adds Gaussians and the resolution schedule doubles
+   the image size), and every learning-rate schedule ends at that step. Should the clock run out first, training
+   stops there.
+
+The budget is wall-clock time of the trainer's loop (its periodic evaluation and checkpoints, and any pause in the
+viewer, included) from the first step; not the set-up before it (loading and caching images, gsplat's first JIT
+compile) nor the final checkpoint.
+
+**Several devices** (``--machine.num-devices N``, several machines too): a step trains N images, one per device, and
+every schedule stays counted in steps (docs/distributed.md), so the budget plans steps, as on one device. A measured
+point of S steps on one device is reached by S steps on N devices (the same schedules, N times the images), so the
+points keep their steps; what differs is the step's cost. Before the run has measured its own, the plan uses the
+single-device step time (a data-parallel step costs more: the first plan is optimistic and the measurement at step 70
+corrects it). While training, each rank times the distributed step (the wait for the others in the gradient
+all-reduce included), and every decision is taken on values the ranks agree on (the largest elapsed time and step
+time over the ranks, :func:`agreed_max`), so that every rank stops after the same step: a rank that stopped alone
+would leave the others waiting in their next all-reduce. The clock is therefore read against the budget only where
+the ranks exchange it: at the plans and every ``AGREE_EVERY`` steps.
+
+**The table** holds what has been measured, nothing else (the data file names every record and says where the runs
+come from). Its limits, stated where the choice is printed:
+
+- the PSNR of a point is the NeRF-W protocol's right-half PSNR on one reference scene per device class;
+- points of an earlier configuration are in the table (cited) but do not decide (``choose(current_only=True)``):
+  their configuration says nothing about the current preset, neither its PSNR nor its step cost;
+- GPU step times are of runs alone on one GPU (runs sharing a GPU measure the sharing, not the step);
+- ``one_scene``: only one scene has a record of this (configuration, steps, device); the others were measured on
+  several (PSNR still from the reference scene).
+
+The records are in benchmarks/records/benchmarks.json (keys: scene, method, device, steps, tag); tests/engine/test_time_budget.py checks
+every number of the data file against them.
+"""
+
+import json
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from willags_ns.engine.checks import WillagsTrainingError
+
+OPTION = "--pipeline.time-budget-minutes"
+PRESETS = ("willags-lite", "willags")
+"""The presets the budget chooses between, for `ns-train willags`; every other method (willags-lite named explicitly
+too) keeps its model and only its step count follows the budget."""
+DEFAULT_PRESET = "willags"
+"""The method whose preset the budget chooses, and the preset when no point of the current presets was measured on
+the device (the best measured configuration)."""
+
+WARMUP_STEPS = 20
+"""Steps before the step time is measured (the first steps allocate memory and fill kernel caches)."""
+WINDOW_STEPS = 50
+"""Steps whose wall time gives the first step-time measurement (steps 20-70 with the warm-up above)."""
+REPLAN_EVERY = 200
+"""After the first plan, the step time is measured again over each span of this many steps and the plan redone."""
+REPRINT_CHANGE = 0.05
+"""A re-plan is printed when it moves the last step by more than this fraction (the schedules follow every re-plan)."""
+AGREE_EVERY = 50
+"""Several devices: steps between two readings of the clock against the budget (each one an exchange of the elapsed
+time between the ranks, so that they stop after the same step), besides the readings of the plans."""
+
+
+class TimeBudgetError(WillagsTrainingError, ValueError):
+    """A bad time budget (negative, NaN, infinite, not a number); the message names the option. A WillagsTrainingError, so
+    ns-train prints one line instead of a traceback."""
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the measured table
+
+
+@dataclass(frozen=True)
+class MeasuredPoint:
+    """One measured (preset, steps) on a device class: the mean right-half PSNR of its runs on the reference scene."""
+
+    preset: str
+    """The preset whose slot this point fills (willags-lite or willags)."""
+    device: str
+    """Device class: "cuda" or "cpu"."""
+    steps: int
+    """Training steps of the runs."""
+    psnr: float
+    """Mean right-half PSNR (NeRF-W protocol) of the runs, in dB."""
+    scene: str
+    """The reference scene the runs trained on."""
+    records: tuple[str, ...]
+    """The runs: tags in benchmarks/records/benchmarks.json (scene, measured_as, device, steps, tag)."""
+    measured_as: str
+    """The method name of the records: the configuration that actually ran."""
+    schedule: str
+    """"stock": splatfacto's resolution schedule (1/4 resolution to step 3000, 1/2 to 6000, then full); "full": full
+    resolution from the first step (the CPU grid's short schedule, images downscaled by the harness)."""
+    one_scene: bool
+    """Only one scene has a record of (measured_as, steps, device)."""
+
+
+@dataclass(frozen=True)
+class StepTime:
+    """Seconds per training step of a preset on a device class, from runs alone on the device."""
+
+    seconds: float
+    """train_s / steps of the run(s) below."""
+    source: str
+    """Where it comes from (scene, method, steps, tag, machine)."""
+    measured_as: str
+    """The method name of the records (as MeasuredPoint.measured_as)."""
+
+
+POINTS_FILE = Path(__file__).parents[1] / "data" / "time_budget_points.json"
+"""The measured points and step times, with the records that measured them and where those runs come from."""
+
+
+def load_points(path: Path = POINTS_FILE) -> tuple[tuple[MeasuredPoint, ...], dict[tuple[str, str], StepTime]]:
+    """(TABLE, STEP_TIMES) from the data file `path` (its "what", "fields" and "provenance" say what each column means
+    and where each number was measured)."""
+    data = json.loads(Path(path).read_text())
+    points = tuple(MeasuredPoint(**{**p, "records": tuple(p["records"])}) for p in data["points"])
+    times = {
+        (t["preset"], t["device"]): StepTime(t["seconds"], t["source"], t["measured_as"]) for t in data["step_times"]
+    }
+    return points, times
+
+
+TABLE, STEP_TIMES = load_points()
+"""TABLE: every measured point the choice uses; STEP_TIMES: seconds per step of each preset on each device class on
+one device, before this run has measured its own."""
+
+
+CPU_SCENE_SIDE = 128
+"""Longest image side (px) of the scene the CPU points were measured on (the embedded default scene, 128x96)."""
+FULL_RESOLUTION_MAX_SIDE = 2 * CPU_SCENE_SIDE
+"""Largest image side (px) for which a CPU choice trains at full resolution from the first step, as its points were
+measured; larger images keep splatfacto's resolution schedule (:func:`full_resolution_suits`)."""
+
+
+def full_resolution_suits(image_side: int) -> bool:
+    """Whether full resolution from the first step (how the CPU points were measured, on 128 px images) suits training
+    images whose longest side is ``image_side`` px: up to twice the measured scene's side. Larger images keep
+    splatfacto's resolution schedule, whose first steps at a quarter of the resolution train far more steps in the
+    same minutes (the measurement: docs/design.md, "Measured numbers behind the code")."""
+    return image_side <= FULL_RESOLUTION_MAX_SIDE
+
+
+def device_class(device_type: str) -> str:
+    """The table's device class of a torch device type: "cuda", else "cpu" (mps and others: the CPU's table)."""
+    return "cuda" if str(device_type).startswith("cuda") else "cpu"
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the choice before training
+
+
+def validate_minutes(value: Any) -> float | None:
+    """The budget in minutes, or None when it is off (None or 0). Negative, NaN, infinite or non-numbers raise a
+    TimeBudgetError naming the option."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TimeBudgetError(f"{OPTION} must be a number of minutes (got {value!r})")
+    v = float(value)
+    if math.isnan(v) or math.isinf(v) or v < 0:
+        raise TimeBudgetError(
+            f"{OPTION} must be a finite number of minutes >= 0 (got {value!r}; 0 turns the budget off)"
+        )
+    return v if v > 0 else None
+
+
+def plan_steps(budget_s: float, elapsed_s: float, steps_done: int, step_s: float, max_steps: int) -> int:
+    """How many steps the run should have trained when it stops: those done plus what the rest of the budget affords
+    at ``step_s`` seconds per step, at most ``max_steps`` and at least ``steps_done``.
+
+    600 s budget, 100 s elapsed after 1000 steps at 0.05 s/step: 1000 + floor(500 / 0.05) = 11000 (30000 allowed).
+    """
+    if not step_s > 0:
+        raise ValueError(f"step time must be > 0 s (got {step_s})")
+    left = max(0.0, budget_s - elapsed_s)
+    return int(min(max_steps, max(steps_done, steps_done + math.floor(left / step_s + 1e-9))))
+
+
+@dataclass(frozen=True)
+class BudgetChoice:
+    """What the budget decided before training."""
+
+    preset: str
+    """willags-lite or willags (or the run's own method when it is not one of the presets)."""
+    steps: int
+    """Steps planned from the table's step time (replaced once the run has measured its own)."""
+    step_s: float
+    """The step time the plan used (seconds)."""
+    keep_resolution_schedule: bool
+    """Keep splatfacto's resolution schedule (else: full resolution from the first step)."""
+    point: MeasuredPoint | None
+    """The measured point that decided, or None when none fits in the budget."""
+    reason: str
+    """One line: why this preset and these steps."""
+    max_steps: int
+    """The cap: the preset's own default step count (or --max-num-iterations when lower)."""
+
+
+def choose(
+    budget_s: float,
+    device: str,
+    max_steps: Mapping[str, int],
+    step_s: Mapping[str, float] | None = None,
+    table: tuple[MeasuredPoint, ...] | None = None,
+    presets: tuple[str, ...] = PRESETS,
+    current_only: bool = True,
+) -> BudgetChoice:
+    """The preset and the step count for a budget of ``budget_s`` seconds on ``device`` ("cuda" | "cpu").
+
+    A point of the table fits when its steps at its preset's step time (``step_s``: seconds per step by preset;
+    default the table's STEP_TIMES) take no longer than the budget (``table``: default TABLE). The fitting point with the highest PSNR picks the
+    preset; without one (a budget below every measured point), the preset with the cheapest measured point. Steps: as
+    many as the budget affords at that preset's step time, at most ``max_steps[preset]``.
+
+    ``current_only``: only points (and step times) measured with the current configuration of their preset take
+    part; those of an earlier configuration (``measured_as`` another method: willags-lite-v0, the paper
+    configuration) say nothing about the current preset, neither its PSNR nor its step cost. With no point left, the
+    default preset, its own resolution schedule, and no step plan before the run has measured its own step time
+    (``step_s`` NaN).
+    """
+    if not budget_s > 0:
+        raise ValueError(f"budget must be > 0 s (got {budget_s})")
+    candidates = [p for p in (TABLE if table is None else table) if p.device == device and p.preset in presets]
+    stale = sorted({p.measured_as for p in candidates if p.measured_as != p.preset})
+    if current_only:
+        candidates = [p for p in candidates if p.measured_as == p.preset]
+    if step_s is None:
+        known = {p: STEP_TIMES[(p, device)] for p in presets if (p, device) in STEP_TIMES}
+        step_s = {p: t.seconds for p, t in known.items() if t.measured_as == p or not current_only}
+    not_used = f"; points of earlier configurations not used: {', '.join(stale)}" if stale and current_only else ""
+    points = [p for p in candidates if p.preset in step_s]
+    if not points:
+        preset = DEFAULT_PRESET
+        own = step_s.get(preset, math.nan)
+        steps = max_steps[preset] if math.isnan(own) else plan_steps(budget_s, 0.0, 0, own, max_steps[preset])
+        why = (
+            f"no point of the current presets measured on {device}{not_used}: the default, its own resolution schedule"
+        )
+        return BudgetChoice(preset, steps, own, True, None, why, max_steps[preset])
+
+    def cost(p: MeasuredPoint) -> float:
+        return p.steps * step_s[p.preset]
+
+    fits = [p for p in points if cost(p) <= budget_s]
+    if fits:
+        best = max(fits, key=lambda p: (p.psnr, -cost(p)))
+        others = [p for p in fits if p.preset != best.preset]
+        why = f"best measured PSNR within {budget_s:.0f} s: {_describe(best)} in ~{cost(best):.0f} s"
+        if others:
+            rival = max(others, key=lambda p: p.psnr)
+            why += f" (vs {rival.preset}: {rival.psnr:.2f} dB at {rival.steps} steps)"
+        elif len({p.preset for p in points}) > 1:
+            why += f" (no other preset has a measured point within {budget_s:.0f} s)"
+    else:
+        best = min(points, key=cost)
+        why = (
+            f"no measured point fits in {budget_s:.0f} s (the quickest: {_describe(best)} in ~{cost(best):.0f} s): "
+            f"the preset of the quickest, as many steps as fit"
+        )
+    preset = best.preset
+    steps = plan_steps(budget_s, 0.0, 0, step_s[preset], max_steps[preset])
+    return BudgetChoice(
+        preset=preset,
+        steps=steps,
+        step_s=step_s[preset],
+        keep_resolution_schedule=best.schedule == "stock",
+        point=best if fits else None,
+        reason=why + not_used,
+        max_steps=max_steps[preset],
+    )
+
+
+def fixed_choice(method: str, max_steps: int) -> BudgetChoice:
+    """The budget of a method named explicitly (willags-lite, willags-paper, willags-3dgs, ...): its own model and
+    resolution schedule; only the step count follows the budget, from the run's own step time."""
+    return BudgetChoice(
+        preset=method,
+        steps=max_steps,
+        step_s=math.nan,
+        keep_resolution_schedule=True,
+        point=None,
+        reason=f"kept (the preset is chosen for `ns-train {DEFAULT_PRESET}` only); the steps follow the measured step time",
+        max_steps=max_steps,
+    )
+
+
+def _describe(p: MeasuredPoint) -> str:
+    as_ = "" if p.measured_as == p.preset else f" (measured as {p.measured_as})"
+    return f"{p.preset}{as_}, {p.steps} steps, {p.psnr:.2f} dB on {p.scene}"
+
+
+def format_choice(
+    choice: BudgetChoice, budget_min: float, device: str, notes: list[str] | None = None, num_devices: int = 1
+) -> str:
+    """The block printed before training: budget, preset and why, the table point, the steps and the schedules (and,
+    with several devices, what a step is)."""
+    p = choice.point
+    src = STEP_TIMES.get((choice.preset, device))
+    lines = [
+        f"willags time budget: {budget_min:g} min ({budget_min * 60:.0f} s of training steps; set-up not counted)",
+        f"  preset:   {choice.preset}: {choice.reason}",
+    ]
+    if p is not None:
+        caveats = [f"runs {', '.join(t or '(untagged)' for t in p.records)}"]
+        if p.measured_as != p.preset:
+            caveats.append(f"measured as {p.measured_as}, not the current {p.preset}")
+        if p.one_scene:
+            caveats.append("only one scene measured")
+        lines.append(f"  entry:    {p.device} table, {p.scene}: {'; '.join(caveats)}")
+    measured = f"this run's own step time over steps {WARMUP_STEPS}-{WARMUP_STEPS + WINDOW_STEPS}"
+    if math.isnan(choice.step_s):
+        lines.append(f"  steps:    at most {choice.max_steps}, set from {measured}")
+    else:
+        from_table = f" ({src.source})" if src is not None and math.isclose(src.seconds, choice.step_s) else ""
+        lines.append(
+            f"  steps:    {choice.steps} planned at {choice.step_s * 1000:.1f} ms/step{from_table}"
+            + f"; at most {choice.max_steps}; re-planned from {measured}"
+        )
+    if choice.point is None and math.isnan(choice.step_s):
+        sched = f"{choice.preset}'s own resolution schedule (no measured point to change it)"
+    elif choice.keep_resolution_schedule:
+        sched = f"splatfacto's resolution schedule kept (the {device} points were measured with it)"
+    else:
+        sched = f"full resolution from the first step (the {device} points were measured so, on small images)"
+    lines.append(f"  schedule: {sched}; learning-rate schedules end at the last step")
+    if num_devices > 1:
+        lines.append(
+            f"  devices:  {num_devices}, one image each per step: the steps and every schedule as on one device, with "
+            f"{num_devices} times the images; planned first at the one-device step time, then at the measured "
+            "data-parallel step (the slowest rank's)"
+        )
+    lines += [f"  note:     {n}" for n in notes or []]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# while training
+
+
+def schedule_warmups(optimizers: Mapping[str, Mapping[str, Any]]) -> dict[str, int]:
+    """Each learning-rate schedule's own warm-up (steps), kept so that re-plans start from it, not from a shortened one."""
+    return {
+        name: int(group["scheduler"].warmup_steps)
+        for name, group in optimizers.items()
+        if group.get("scheduler") is not None and hasattr(group["scheduler"], "warmup_steps")
+    }
+
+
+def end_schedules_at(
+    optimizers: Mapping[str, Mapping[str, Any]], end_step: int, warmups: Mapping[str, int] | None = None
+) -> None:
+    """Make every learning-rate schedule with a ``max_steps`` end at ``end_step`` (what benchmarks/harness.py's short
+    schedule does, here also during the run: nerfstudio's schedulers read their config at every step). A warm-up
+    (``warmups``: the schedules' own, default their current one) that would not end before ``end_step`` is shortened
+    to a tenth of the run.
+
+    camera_opt (warm-up 1000, exponential decay to 5e-7) with end_step 500: max_steps 500, warm-up 50."""
+    for name, group in optimizers.items():
+        sched = group.get("scheduler")
+        if sched is None or not hasattr(sched, "max_steps"):
+            continue
+        sched.max_steps = int(end_step)
+        if hasattr(sched, "warmup_steps"):
+            own = int((warmups or {}).get(name, sched.warmup_steps) or 0)
+            sched.warmup_steps = own if own < end_step else int(end_step) // 10
+
+
+def agreed_max(values: list[float]) -> list[float]:
+    """The element-wise maximum of `values` over the ranks of the initialised process group (every rank calls it at
+    the same step with as many values); the values themselves without a group of several ranks."""
+    import torch
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() <= 1:
+        return [float(v) for v in values]
+    from willags_ns.engine.distributed import comm_device
+
+    t = torch.tensor([float(v) for v in values], dtype=torch.float64, device=comm_device())
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return t.tolist()
+
+
+def several_ranks() -> bool:
+    """Whether this process is one rank of an initialised process group of several."""
+    import torch.distributed as dist
+
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+
+
+@dataclass
+class TimeBudget:
+    """The budget during training: call :meth:`before_step` and :meth:`after_step` around every step (the trainer's
+    callbacks do); ``after_step`` says when to stop. ``clock`` and ``sync`` are injectable (tests use a fake clock;
+    on CUDA, ``sync`` waits for the device so the clock measures finished work). With several ranks every decision
+    is taken on values the ranks agree on (``agree``), read at the same steps on every rank, so that they all stop
+    after the same step."""
+
+    budget_s: float
+    """The budget in seconds, from the first step on."""
+    max_steps: int
+    """Never train more steps than this (the preset's default or --max-num-iterations)."""
+    start_step: int = 0
+    """The first step of this run (> 0 when resumed)."""
+    on_plan: Callable[[int], None] | None = None
+    """Called with the new end step (exclusive) at every plan: the trainer ends its learning-rate schedules there."""
+    log: Callable[[str], None] = print
+    clock: Callable[[], float] = time.perf_counter
+    sync: Callable[[], None] | None = None
+    agree: Callable[[list[float]], list[float]] | None = None
+    """Values -> the same values on every rank (their maximum over the ranks: :func:`agreed_max`). None: agreed_max
+    when this process is one rank of several (:func:`several_ranks`, read at the first step), else no exchange."""
+    warmup_steps: int = WARMUP_STEPS
+    window_steps: int = WINDOW_STEPS
+    replan_every: int = REPLAN_EVERY
+    agree_every: int = AGREE_EVERY
+    t0: float | None = None
+    end_step: int | None = None
+    """Planned end (exclusive step index): training stops after step end_step - 1. None until measured."""
+    stopped_after: int | None = None
+    """The last step trained when the budget stopped training."""
+    stop_reason: str = ""
+    history: list[dict[str, float]] = field(default_factory=list)
+    """Every plan: step, elapsed, measured step time, end step."""
+    _mark: tuple[int, float] | None = None
+
+    def before_step(self, step: int) -> None:
+        if self.t0 is None:
+            self.t0 = self._now()
+            if self.agree is None and several_ranks():
+                self.agree = agreed_max
+
+    def _now(self) -> float:
+        if self.sync is not None:
+            self.sync()
+        return self.clock()
+
+    def elapsed(self) -> float:
+        return 0.0 if self.t0 is None else self.clock() - self.t0
+
+    def after_step(self, step: int) -> bool:
+        """Record step ``step`` as done; True when training must stop after it (on every rank at the same step)."""
+        if self.t0 is None:
+            self.before_step(step)
+        t0 = self.t0
+        assert t0 is not None
+        done = step - self.start_step + 1  # steps trained in this run
+        due = (
+            done == self.warmup_steps
+            or (self.end_step is None and done == self.warmup_steps + self.window_steps)
+            or (self.end_step is not None and self._mark is not None and done - self._mark[0] >= self.replan_every)
+        )
+        # with several ranks the clock is held against the budget only where the ranks exchange it
+        read = self.agree is None or due or done % self.agree_every == 0
+        now = self._now() if due else self.clock()
+        elapsed = now - t0
+        if due:
+            if self._mark is not None and done > self._mark[0]:
+                step_s = (now - self._mark[1]) / (done - self._mark[0])
+                elapsed, step_s = self._agreed([elapsed, step_s])
+                self._plan(step, done, step_s, elapsed)
+            else:
+                elapsed = self._agreed([elapsed])[0]
+            self._mark = (done, now)
+        elif read:
+            elapsed = self._agreed([elapsed])[0]
+        if self.end_step is not None and step + 1 >= self.end_step:
+            return self._stop(step, f"reached the planned last step {step}")
+        if read and elapsed >= self.budget_s:
+            return self._stop(step, f"the clock: {elapsed:.0f} s of {self.budget_s:.0f} s used")
+        return False
+
+    def _agreed(self, values: list[float]) -> list[float]:
+        return self.agree(values) if self.agree is not None else values
+
+    def _plan(self, step: int, done: int, step_s: float, elapsed: float) -> None:
+        total = plan_steps(self.budget_s, elapsed, done, step_s, self.max_steps)
+        end = self.start_step + total
+        before = self.end_step
+        first = before is None
+        moved = before is None or abs(end - before) > REPRINT_CHANGE * max(1, before - self.start_step)
+        self.end_step = end
+        self.history.append({"step": step, "elapsed_s": elapsed, "step_s": step_s, "end_step": end})
+        if self.on_plan is not None:
+            self.on_plan(end)
+        if not moved:
+            return
+        span = f"steps {self._mark[0] if self._mark else 0}-{done}"
+        cap = " (the cap)" if total >= self.max_steps else ""
+        verb = "measured" if first else "re-planned: step time now"
+        self.log(
+            f"willags time budget: {verb} {step_s * 1000:.1f} ms/step ({span}), {elapsed:.0f} s of "
+            f"{self.budget_s:.0f} s used -> training stops after step {end - 1}{cap}; learning-rate schedules end there"
+        )
+
+    def _stop(self, step: int, why: str) -> bool:
+        self.stopped_after = step
+        self.stop_reason = why
+        return True
+
+    def summary(self) -> dict[str, Any]:
+        """What happened, for time_budget.json."""
+        trained = (self.stopped_after + 1 - self.start_step) if self.stopped_after is not None else None
+        return {
+            "budget_s": self.budget_s,
+            "elapsed_s": self.elapsed(),
+            "max_steps": self.max_steps,
+            "stopped_after_step": self.stopped_after,
+            "steps_trained": trained,
+            "stop_reason": self.stop_reason,
+            "plans": self.history,
+        }

@@ -1,0 +1,422 @@
+"""WillagsTrainer: nerfstudio's Trainer, plus the time budget (`--pipeline.time-budget-minutes N`) and checkpoints
+that survive faults.
+
+Why a Trainer of our own: the budget decides things only the trainer owns. Before the pipeline is built it picks the
+preset (its model config), the step cap and where the learning-rate schedules end; during training it stops the loop
+at the step the run's own clock allows (nerfstudio's loop runs a fixed ``max_num_iterations``). The decisions
+themselves are pure functions in willags_ns/engine/time_budget.py.
+
+Checkpoints (willags_ns/engine/checkpoints.py, docs/reliability.md): every save is atomic, and one that fails (a full disk)
+stops training with one line naming the directory, the size needed, the last good checkpoint and the command that
+resumes from it; saves come every ``steps_per_save`` steps and also every ``save_every_minutes`` of wall time (a
+killed run loses at most that much work); after each save, ``resume_command.txt`` beside config.yml holds the exact
+command that resumes from it (``--load-checkpoint`` naming its file) and ends at the planned step. ``--load-dir`` resumes from the newest readable
+checkpoint, naming any damaged newer one it skipped. On a log that is not a terminal, nerfstudio's step table (which
+redraws itself with cursor movements, and with it the viewer's address, at every log step) prints each line once.
+"""
+
+import copy
+import dataclasses
+import json
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import writer
+from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.misc import step_check
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from willags_ns.engine import time_budget
+from willags_ns.engine.checkpoints import (
+    RESUME_FILE,
+    CheckpointError,
+    SaveTimer,
+    checkpoint_path,
+    checkpoint_step,
+    list_checkpoints,
+    load_file,
+    load_latest,
+    resume_command,
+    save_atomic,
+    write_text_atomic,
+)
+from willags_ns.engine.checks import install_cli_excepthook
+from willags_ns.engine.time_budget import (
+    DEFAULT_PRESET,
+    PRESETS,
+    BudgetChoice,
+    TimeBudget,
+    choose,
+    device_class,
+    end_schedules_at,
+    fixed_choice,
+    format_choice,
+    schedule_warmups,
+    validate_minutes,
+)
+
+BUDGET_FILE = "time_budget.json"
+"""Written next to config.yml: the choice, the table point, every plan and where training stopped."""
+
+
+@dataclass
+class WillagsTrainerConfig(TrainerConfig):
+    """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py)."""
+
+    _target: type = field(default_factory=lambda: WillagsTrainer)
+    save_every_minutes: float = 5.0
+    """Also write a checkpoint once this many minutes of wall time have passed since the last one (0: only every
+    steps_per_save steps), so a killed run loses at most this much work. Saves are atomic and, with
+    save_only_latest_checkpoint, replace the previous one; a CPU step can take seconds, so steps alone can leave
+    hours between saves."""
+
+
+PRESET_CONFIGS: dict[str, Any] = {}
+"""method name -> factory of its TrainerConfig, registered by willags_ns/method_configs.py (which builds its methods
+on this module's WillagsTrainerConfig, so the trainer must not import it back): the time budget's presets
+(PRESETS) and every method's own defaults (a user's auto_config switches are those that differ)."""
+
+
+def preset_defaults(preset: str) -> tuple[Any, int]:
+    """(model config, default step count) of a preset, fresh from its registered factory."""
+    if preset not in PRESET_CONFIGS:
+        raise KeyError(f"time budget: preset {preset!r} is not registered (import willags_ns.method_configs first)")
+    config = PRESET_CONFIGS[preset]()
+    return config.pipeline.model, config.max_num_iterations
+
+
+def carry_overrides(current: Any, base: Any, target: Any) -> list[str]:
+    """Copy onto ``target`` every field where ``current`` differs from ``base`` (what the user changed in the preset
+    he ran: ``--pipeline.model.backend torch`` survives a switch to the other preset), recursing into nested config
+    dataclasses. Returns the dotted names copied."""
+    copied = []
+    for f in dataclasses.fields(current):
+        if f.name == "_target" or not hasattr(target, f.name):
+            continue
+        a, b = getattr(current, f.name), getattr(base, f.name, None)
+        if a == b:
+            continue
+        sub = getattr(target, f.name)
+        if dataclasses.is_dataclass(a) and type(a) is type(b) and type(sub) is type(a):
+            copied += [f"{f.name}.{n}" for n in carry_overrides(a, b, sub)]
+        else:
+            setattr(target, f.name, copy.deepcopy(a))
+            copied.append(f.name)
+    return copied
+
+
+def apply_budget(
+    config: TrainerConfig, budget_s: float, warmups: dict[str, int] | None = None
+) -> tuple[BudgetChoice, list[str], int | None]:
+    """Choose the preset and the steps for ``budget_s`` and write them into ``config`` (model, max_num_iterations,
+    learning-rate schedules with their own ``warmups``, resolution schedule). Returns the choice, notes for the
+    printed block, and the preset's num_downscales when this set full resolution from the first step in its place
+    (None otherwise: kept schedule, or the user's own num_downscales), which the trainer restores for large images."""
+    device = device_class(config.machine.device_type)
+    method = str(config.method_name)
+    notes: list[str] = []
+    replaced: int | None = None
+    if method != DEFAULT_PRESET:  # a method named explicitly (willags-lite too) keeps its model
+        choice = fixed_choice(method, config.max_num_iterations)
+    else:
+        defaults = {p: preset_defaults(p) for p in PRESETS}
+        caps = {p: min(steps, config.max_num_iterations) for p, (_, steps) in defaults.items()}
+        choice = choose(budget_s, device, caps)
+        base_model = defaults[method][0]
+        model: Any = config.pipeline.model  # a WillagsModelConfig (both presets' model)
+        if choice.preset != method:
+            target = copy.deepcopy(defaults[choice.preset][0])
+            kept = carry_overrides(model, base_model, target)
+            config.pipeline.model = model = target
+            base_model = defaults[choice.preset][0]
+            notes.append(
+                f"model switched from {method} to {choice.preset}"
+                + (f"; your settings kept: {', '.join(kept)}" if kept else "")
+            )
+        if not choice.keep_resolution_schedule:
+            if model.num_downscales == base_model.num_downscales:
+                replaced, model.num_downscales = model.num_downscales, 0
+            else:
+                notes.append(f"your --pipeline.model.num-downscales {model.num_downscales} kept")
+    config.max_num_iterations = choice.max_steps
+    end_schedules_at(config.optimizers, choice.steps, warmups)
+    return choice, notes, replaced
+
+
+def quiet_local_writer(writers: list, is_terminal: bool) -> list[str]:
+    """On a log that is not a terminal, make nerfstudio's LocalWriter in ``writers`` print each step line once
+    (``max_log_size`` 0, on a copy of its config) without its banner (re-printed with every redraw). Returns the
+    banner lines taken off, for the caller to print once."""
+    if is_terminal:
+        return []
+    banner: list[str] = []
+    for w in writers:
+        if not isinstance(w, writer.LocalWriter):
+            continue
+        if w.banner_len:
+            banner += [m for m in w.past_mssgs[-(w.banner_len - 1) :] if m]
+            w.past_mssgs = w.past_mssgs[: -w.banner_len]
+            w.banner_len = 0
+        w.config = dataclasses.replace(w.config, max_log_size=0)
+    return banner
+
+
+class WillagsTrainer(Trainer):
+    """nerfstudio's Trainer; with a time budget it also chooses, measures and stops; its checkpoints are atomic, by
+    steps and by time, and resumable with one printed command (see the module docstring)."""
+
+    config: WillagsTrainerConfig
+    clock: Callable[[], float] = staticmethod(time.monotonic)  # type: ignore[assignment]
+    """Wall clock of the timed saves and the time budget (tests replace it)."""
+
+    def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        install_cli_excepthook()  # a bad budget prints one line, as bad inputs do
+        self.time_budget: TimeBudget | None = None
+        self._budget_record: dict[str, Any] = {}
+        self._keep_user_switches()
+        minutes = validate_minutes(getattr(self.config.pipeline, "time_budget_minutes", None))
+        choice = None
+        if minutes is not None and test_mode == "val":
+            self._warmups = schedule_warmups(self.config.optimizers)
+            choice, notes, replaced = apply_budget(self.config, minutes * 60.0, self._warmups)
+            device = device_class(self.config.machine.device_type)
+            CONSOLE.print(format_choice(choice, minutes, device, notes, num_devices=self.world_size))
+            self._budget_record = {
+                "budget_minutes": minutes,
+                "device_class": device,
+                "choice": {
+                    k: (None if v != v else v) for k, v in dataclasses.asdict(choice).items()
+                },  # NaN step time -> null
+                "notes": notes,
+            }
+            if self.local_rank == 0:
+                self.config.save_config()  # config.yml: the preset and steps that will train, not the invoked ones
+        super().setup(test_mode)
+        if choice is not None and minutes is not None:
+            if replaced is not None:
+                self._resolution_for_images(replaced)
+            self._attach_budget(minutes * 60.0, choice)
+        for line in quiet_local_writer(writer.EVENT_WRITERS, sys.stdout.isatty()):
+            CONSOLE.print(line)
+        # last: after the model's own callbacks (densification) the step's state is complete; train() restarts the
+        # timer, so that the first timed save comes save_every_minutes after training starts
+        self._save_timer = SaveTimer(self.config.save_every_minutes * 60.0, clock=self.clock)
+        self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._save_if_due))
+
+    # ---- checkpoints
+
+    def train(self) -> None:
+        # the step after the last one this run plans to train (nerfstudio: max_num_iterations from the start)
+        self.planned_end = self._start_step + self.config.max_num_iterations
+        self._save_timer = SaveTimer(self.config.save_every_minutes * 60.0, clock=self.clock)
+        if self.local_rank == 0:
+            every = [f"every {self.config.steps_per_save} steps"] if self.config.steps_per_save > 0 else []
+            if self.config.save_every_minutes > 0:
+                every.append(f"every {self.config.save_every_minutes:g} min")
+            CONSOLE.print(
+                f"willags: checkpoints {' and '.join(every) or 'at the end only'} in {self.checkpoint_dir}; "
+                f"if the run stops, {Path(self.base_dir) / RESUME_FILE} holds the command that resumes it",
+                soft_wrap=True,
+                markup=False,
+                highlight=False,
+            )
+        try:
+            super().train()
+        except CheckpointError:
+            self.shutdown()  # the viewer's server threads would keep the process alive
+            raise
+        finally:  # training ended by an error: give Ctrl-C back (a normal end has done so already)
+            interrupt = getattr(self.pipeline, "interrupt_checkpoint", None)
+            if interrupt is not None:
+                interrupt.uninstall()
+
+    def _save_if_due(self, step: int) -> None:
+        if self._save_timer.due() and not step_check(step, self.config.steps_per_save):
+            self.save_checkpoint(step)  # nerfstudio's loop saves the steps_per_save steps itself
+
+    def resume_command(self, saved_step: int) -> str:
+        """The command that resumes this run from the checkpoint of ``saved_step`` and ends at its planned step."""
+        end = getattr(self, "planned_end", self._start_step + self.config.max_num_iterations)
+        path = checkpoint_path(self.checkpoint_dir, saved_step)
+        return resume_command(sys.argv, str(self.config.method_name), path, end - saved_step - 1)
+
+    @check_main_thread
+    def save_checkpoint(self, step: int) -> None:
+        """nerfstudio's checkpoint (same file, same contents) written atomically; the older ones removed only once it
+        is complete. A failed write stops training: CheckpointError naming the last good checkpoint and the
+        command that resumes from it."""
+        path = checkpoint_path(self.checkpoint_dir, step)
+        state = {
+            "step": step,
+            "pipeline": self.pipeline.module.state_dict()  # type: ignore
+            if hasattr(self.pipeline, "module")
+            else self.pipeline.state_dict(),
+            "optimizers": {k: v.state_dict() for (k, v) in self.optimizers.optimizers.items()},
+            "schedulers": {k: v.state_dict() for (k, v) in self.optimizers.schedulers.items()},
+            "scalers": self.grad_scaler.state_dict(),
+        }
+        try:
+            save_atomic(state, path)
+        except CheckpointError as e:
+            raise type(e)(f"{e}. {self._stopped_at(step)}") from None
+        self._write_resume_file(step)  # before the older checkpoints go: the command in it always names a file
+        if self.config.save_only_latest_checkpoint:
+            for f in list_checkpoints(self.checkpoint_dir):
+                if f != path:
+                    f.unlink()
+        if hasattr(self, "_save_timer"):
+            self._save_timer.saved()
+
+    def _stopped_at(self, step: int) -> str:
+        """What a failed save at ``step`` leaves: the last good checkpoint and the command that resumes from it."""
+        good = list_checkpoints(self.checkpoint_dir)
+        if not good:
+            return f"Training stopped at step {step}; no checkpoint was written yet: make room and start again"
+        last = checkpoint_step(good[0])
+        assert last is not None
+        return (
+            f"Training stopped at step {step}; the last good checkpoint is {good[0]} (step {last}). Make room, then "
+            f"resume with:\n  {self.resume_command(last)}"
+        )
+
+    def _write_resume_file(self, step: int) -> None:
+        path = Path(self.base_dir) / RESUME_FILE
+        try:
+            end = getattr(self, "planned_end", None)
+            if end is not None and end - step - 1 > 0:
+                write_text_atomic(path, self.resume_command(step) + "\n")
+            elif path.exists():
+                path.unlink()
+        except OSError as e:
+            CONSOLE.print(f"[bold yellow]willags warning:[/bold yellow] cannot write {path}: {e.strerror or e}")
+
+    def _load_checkpoint(self) -> None:
+        """nerfstudio's resume (--load-dir / --load-step / --load-checkpoint), reading through
+        willags_ns/engine/checkpoints.py: the newest readable checkpoint of --load-dir, a damaged one named."""
+        cfg = self.config
+        if cfg.load_dir is not None:
+            path, state = load_latest(cfg.load_dir, cfg.load_step)
+        elif cfg.load_checkpoint is not None:
+            path, state = Path(cfg.load_checkpoint), load_file(cfg.load_checkpoint)
+        else:
+            super()._load_checkpoint()
+            return
+        self._start_step = int(state["step"]) + 1
+        self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        self.optimizers.load_optimizers(state["optimizers"])
+        if "schedulers" in state and cfg.load_scheduler:
+            self.optimizers.load_schedulers(state["schedulers"])
+        self.grad_scaler.load_state_dict(state["scalers"])
+        CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
+
+    def _resolution_for_images(self, downscales: int) -> None:
+        """The budget set full resolution from the first step in place of the preset's ``downscales`` (the CPU points
+        were measured so, on 128 px images); with larger training images (known only now, the data loaded) put the
+        preset's resolution schedule back (time_budget.full_resolution_suits): a full-resolution step costs too much.
+        The model reads num_downscales at every step, so the change counts from the first one."""
+        cams = getattr(getattr(self.pipeline.datamanager, "train_dataset", None), "cameras", None)
+        if cams is None:
+            return
+        side = int(max(cams.width.max().item(), cams.height.max().item()))
+        if time_budget.full_resolution_suits(side):
+            return
+        self.pipeline.model.config.num_downscales = downscales  # what the model reads
+        self.config.pipeline.model.num_downscales = downscales  # what config.yml says (the same object in nerfstudio)
+        note = (
+            f"training images up to {side} px (the {device_class(self.config.machine.device_type)} points: "
+            f"{time_budget.CPU_SCENE_SIDE} px): splatfacto's resolution schedule kept (num_downscales {downscales}) instead of "
+            "full resolution from the first step"
+        )
+        CONSOLE.print(f"  note:     {note}")
+        self._budget_record["notes"].append(note)
+        if self.local_rank == 0:
+            self.config.save_config()
+
+    def _keep_user_switches(self) -> None:
+        """With auto_config, name the switches the user set (a flag on the command line, or a value other than the
+        invoked method's own preset) in pipeline.auto_config_keep, so the inspector leaves them (autoconfig.py).
+        Before the time budget, which may swap the preset and carry these settings over."""
+        model = self.config.pipeline.model
+        if not getattr(model, "auto_config", False) or not hasattr(self.config.pipeline, "auto_config_keep"):
+            return
+        from willags_ns.tools.autoconfig import user_switches
+
+        method = str(self.config.method_name)
+        preset = preset_defaults(method)[0] if method in PRESET_CONFIGS else None
+        keep = user_switches(model, preset, sys.argv[1:])
+        self.config.pipeline.auto_config_keep = tuple(sorted({*self.config.pipeline.auto_config_keep, *keep}))
+
+    def _attach_budget(self, budget_s: float, choice: BudgetChoice) -> None:
+        start = self._start_step  # > 0 when resumed with --load-dir: the budget is this run's
+        optimizers = self.config.optimizers  # the schedulers read these configs at every step
+        warmups = self._warmups
+
+        def on_plan(end_step: int) -> None:
+            end_schedules_at(optimizers, end_step, warmups)
+
+        on_plan(start + choice.steps)
+        cuda = str(self.device).startswith("cuda") and torch.cuda.is_available()
+        budget = TimeBudget(
+            budget_s,
+            max_steps=choice.max_steps,
+            start_step=start,
+            on_plan=on_plan,
+            log=CONSOLE.print,
+            sync=torch.cuda.synchronize if cuda else None,
+            clock=self.clock,
+            warmup_steps=time_budget.WARMUP_STEPS,  # read now, so a test can shorten them
+            window_steps=time_budget.WINDOW_STEPS,
+            replan_every=time_budget.REPLAN_EVERY,
+        )
+
+        def after_step(step: int) -> None:
+            if budget.after_step(step):
+                self.stop_training = True  # nerfstudio's loop breaks before the next step
+
+        # first, so that the interrupt checkpoint (the pipeline's last AFTER_TRAIN_ITERATION callback) stays last
+        self.callbacks[:0] = [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], budget.before_step),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._budget_done),
+        ]
+        self.time_budget = budget
+        self._write_budget_record()
+
+    def _after_train(self) -> None:
+        # the loop set self.step to the step it broke before (never trained): checkpoint the last trained one
+        if self.time_budget is not None and self.time_budget.stopped_after is not None:
+            self.step = self.time_budget.stopped_after
+        self.planned_end = self.step + 1  # finished (the budget may end it early): nothing left to resume
+        super()._after_train()
+
+    def _budget_done(self, step: int) -> None:
+        budget = self.time_budget
+        assert budget is not None
+        trained = step - budget.start_step + 1
+        how = budget.stop_reason or "trained every step allowed"
+        CONSOLE.print(
+            f"willags time budget: stopped after step {step} ({trained} steps; {how}) at {budget.elapsed():.0f} s of "
+            f"{budget.budget_s:.0f} s"
+        )
+        if self.local_rank == 0:
+            end_schedules_at(self.config.optimizers, step + 1, self._warmups)
+            self.config.max_num_iterations = trained
+            self.config.save_config()  # config.yml says what was trained
+        self._write_budget_record()
+
+    def _write_budget_record(self) -> None:
+        if self.local_rank != 0:
+            return
+        record = {**self._budget_record}
+        if self.time_budget is not None:
+            record["run"] = self.time_budget.summary()
+        path = Path(self.base_dir) / BUDGET_FILE
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(record, indent=1, default=str))

@@ -1,0 +1,241 @@
+"""The transient mask of one training step: the EMA teacher's render, its perceptual distance to the photo, the
+threshold, and the static-scene safeguard.
+
+    teacher latent (teacher VAE mean of the photo, or its embedding row)              teacher_latent
+    teacher colours (the student's Gaussians and SH colours, detached)                teacher_colors
+    teacher render (fused into the student's rasterisation as 3 extra channels, or a second one: teacher_render),
+        both composited like the student's render (gaussians.composite)
+    D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/mask/transient.py)
+    transient = D > threshold(step)   (rejected when it would drop more than mask.max_masked_fraction of the image)
+    static = ~transient | SfM support (pixels near points many photos saw; willags_ns/mask/static_support.py)
+
+:func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
+image's last mask, its visit count, its support grid and the scene's SfM observations) and reads the model's config;
+the teacher networks, the VGG features and the step arrive as arguments. The teacher's functions are plain: the
+student's colours, rasterisation and compositing are the same functions (appearance/color_path.py, gaussians.py).
+"""
+
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from willags_ns.appearance.color_path import ColorContext, field_features, gaussian_colors
+from willags_ns.appearance.networks import AppearanceNetworks
+from willags_ns.mask.static_support import apply_support, support_map
+from willags_ns.mask.teacher import ema_update_, make_teacher
+from willags_ns.mask.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
+from willags_ns.splats.gaussians import composite, rasterize_gaussians, sh_coeffs
+
+
+def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | None, PerceptualFeatures | None]:
+    """(EMA teacher, VGG16 features) of the mask for the student's networks `nets` (cfg: the model's config): the
+    teacher a frozen copy of `nets` (mask.enabled with mask.teacher.enabled), the features per cfg.mask
+    (mask.enabled); None where off."""
+    m = cfg.mask
+    if not m.enabled:
+        return None, None
+    teacher = cast(AppearanceNetworks, make_teacher(nets)) if m.teacher.enabled else None
+    return teacher, PerceptualFeatures(weights=m.vgg_weights, path=m.vgg_weights_path, max_resolution=m.max_resolution)
+
+
+class StepMask(NamedTuple):
+    """A training step's static mask and what made it."""
+
+    mask: Tensor | None
+    """[H, W] float, 1 = supervised; None when masking is off, warming up, or the image has no mask yet."""
+    distance: Tensor | None
+    """[H, W] the perceptual distance D of this step's teacher render, None on a step that reused a mask."""
+    rejected: Tensor | None
+    """0-d float, 1 when the new mask would drop more than mask.max_masked_fraction (then every pixel is
+    supervised), None on a step that reused a mask."""
+
+
+class MaskStep:
+    """Which steps render the teacher, and the static mask [H, W] those steps (and the ones between) supervise."""
+
+    def __init__(self, cfg, observations: list | None):
+        self.cfg = cfg
+        """The model's config (WillagsModelConfig: appearance and the mask group), read at every call so edits
+        after construction count."""
+        self.observations = observations
+        """SfM observations per training image (COLMAP scenes; None elsewhere): the safeguard's input."""
+        self.masks: dict[int, Tensor] = {}
+        """Each image's last perceptual mask (True = static), before the support."""
+        self.visits: dict[int, int] = {}
+        self.support_cache: dict[int, Tensor | None] = {}
+
+    def active(self, step: int) -> bool:
+        cfg = self.cfg
+        return cfg.appearance == "willags" and cfg.mask.enabled and mask_active(step, cfg.mask.warmup_steps)
+
+    def teacher_needed(self, step: int, idx: int) -> bool:
+        """Whether this training step renders the teacher for image `idx` (counts the visit): on every mask.every-th
+        visit of the image, and whenever it has no mask yet."""
+        if not self.active(step):
+            return False
+        visits = self.visits.get(idx, 0)
+        self.visits[idx] = visits + 1
+        return idx not in self.masks or visits % max(1, self.cfg.mask.every) == 0
+
+    def static_mask(
+        self,
+        step: int,
+        idx: int,
+        gt_img: Tensor,
+        teacher_rgb: Tensor | None,
+        perceptual: PerceptualFeatures | None,
+        device,
+    ) -> StepMask:
+        """The static mask of image `idx` at this step. With this step's teacher render, a new mask (with its D and
+        rejection flag); without, the image's last one at the current resolution."""
+        cfg = self.cfg.mask
+        if not self.active(step):
+            return StepMask(None, None, None)
+        H, W = gt_img.shape[:2]
+        d = rejected = None
+        if teacher_rgb is not None:
+            assert perceptual is not None
+            d = image_distance(perceptual, gt_img, teacher_rgb)  # [H, W]
+            thr = mask_threshold(step, cfg.threshold, cfg.warmup_steps, cfg.ramp_steps)
+            transient, flag = transient_mask(d, thr, cfg.threshold_rule, cfg.robust_k, cfg.max_masked_fraction)
+            mask = ~transient  # a rejected mask supervises every pixel rather than none
+            rejected = flag.float()  # a device tensor: no wait for VGG here
+            self.masks[idx] = mask
+        elif idx in self.masks:
+            mask = self.masks[idx]
+        else:
+            return StepMask(None, None, None)
+        if mask.shape != (H, W):  # resolution schedule moved on since the mask was cached
+            mask = F.interpolate(mask[None, None].float(), size=(H, W), mode="nearest")[0, 0] > 0.5
+        return StepMask(apply_support(mask, self.support(idx, H, W, device)).float(), d, rejected)
+
+    def support(self, idx: int, height: int, width: int, device) -> Tensor | None:
+        """Training image `idx`'s SfM support grid (True = vouched static; willags_ns/mask/static_support.py), or None
+        (safeguard off, no tracks in the scene). Built once per image on the device; the grid's aspect follows the
+        image's, so any resolution of the schedule maps onto it."""
+        cfg = self.cfg.mask.safeguard
+        obs = self.observations
+        if not cfg.enabled or obs is None or not 0 <= idx < len(obs):
+            return None
+        if idx not in self.support_cache:
+            self.support_cache[idx] = support_map(obs[idx], width, height, cfg).to(device)
+        return self.support_cache[idx]
+
+
+def teacher_latent(teacher: AppearanceNetworks, vae_in: Tensor | None, image_idx: int) -> Tensor:
+    """The EMA teacher's z [D] for training image `image_idx`: its VAE's mean of the photo (`vae_in` [3, H, W], the
+    encoder's input), or its row of the teacher's table."""
+    if teacher.vae is not None:
+        assert vae_in is not None
+        mu, _ = teacher.vae.encode(vae_in[None])
+        return mu[0]
+    assert teacher.embeddings is not None
+    return teacher.embeddings.weight[image_idx]
+
+
+@torch.no_grad()
+def teacher_colors(
+    teacher: AppearanceNetworks, z: Tensor, gp, cam_center: Tensor, ctx: ColorContext, sh_base: Tensor | None
+) -> Tensor:
+    """Per-Gaussian RGB [N, 3] of the EMA teacher networks under z (no grad) for the student's current Gaussians
+    `gp`, seen from `cam_center`. `sh_base`: the student's SH colours of this step (same Gaussians, same camera),
+    reused; None: evaluated from the Gaussians' SH."""
+    means = gp["means"].detach()
+    f_s = gp["features"].detach() if "features" in gp else None
+    sh = None
+    if sh_base is None:
+        sh = sh_coeffs(gp)
+        sh = sh.detach() if sh is not None else None
+    f_d = field_features(teacher, z, means, ctx)
+    return gaussian_colors(teacher, z, means, f_s, f_d, cam_center, ctx.sh_degree, sh, sh_base).rgb
+
+
+def fused_teacher_rgb(render: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
+    """Pseudo-GT [H, W, 3] from the fused rasterisation (mask.teacher.fused): the teacher's channels 3:6 of
+    `render` [1, H, W, >=6] composited on `background` (the teacher's sky, or the student's colour), all detached."""
+    return composite(render[..., 3:6].detach(), alpha.detach(), background.detach()).squeeze(0)
+
+
+@torch.no_grad()
+def teacher_render(cfg, colors: Tensor, gp, viewmat: Tensor, K, W: int, H: int, background) -> Tensor:
+    """Pseudo-GT [H, W, 3]: the teacher's `colors` on the student's current Gaussians (detached), rasterised with
+    the model's settings (`cfg`) and composited on `background`: the unfused path (without mask.teacher.fused)."""
+    means, quats, scales, opacities = (gp[k].detach() for k in ("means", "quats", "scales", "opacities"))
+    args = (means, quats, scales, opacities, colors, viewmat.detach(), K, W, H, "RGB", None, False)
+    render, alpha, _ = rasterize_gaussians(cfg, *args)
+    return composite(render[..., :3], alpha, background).squeeze(0)
+
+
+def log_step_images(
+    step: int, outputs: dict, gt_img: Tensor, mask: Tensor | None, distance: Tensor | None, recon: Tensor | None
+) -> None:
+    """Tensorboard pictures of a training step: photo | render, the teacher's render, the perceptual distance D,
+    the static mask, and the VAE's reconstruction of the photo (each when this step made one)."""
+    from nerfstudio.utils import writer
+
+    writer.put_image("train/render_vs_gt", torch.cat([gt_img, outputs["rgb"].detach()], dim=1), step)
+    if "teacher_rgb" in outputs:
+        writer.put_image("train/teacher_render", outputs["teacher_rgb"], step)
+    if distance is not None:
+        d = distance
+        writer.put_image("train/perceptual_D", (d / d.max().clamp_min(1e-6))[..., None].expand(-1, -1, 3), step)
+    if mask is not None:
+        writer.put_image("train/static_mask", mask[..., None].expand(-1, -1, 3), step)
+    if recon is not None:
+        writer.put_image("train/vae_reconstruction", recon[0].permute(1, 2, 0), step)
+
+
+class MaskFace:
+    """WillagsModel's mask methods (a mixin): the EMA update, the teacher's second rasterisation, the step's static
+    mask, and the safeguard's SfM observations and support grids (what the benchmarks and the viewer read)."""
+
+    if TYPE_CHECKING:  # provided by WillagsModel (nn.Module attributes and populate_modules)
+        config: Any
+        step: int
+        device: Any
+        teacher: AppearanceNetworks | None
+        appearance_nets: AppearanceNetworks | None
+        perceptual: PerceptualFeatures | None
+        mask_step: MaskStep
+
+        def color_context(self) -> ColorContext: ...
+
+    def update_teacher(self, step: int) -> None:
+        """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
+        assert self.teacher is not None and self.appearance_nets is not None
+        ema_update_(self.teacher, self.appearance_nets, self.config.mask.teacher.tau)
+
+    @torch.no_grad()
+    def render_teacher(self, gp, z_t: Tensor, cam_center, viewmat, K, W, H, bg: Tensor, sh_base=None) -> Tensor:
+        """The pseudo-GT [H, W, 3] under the teacher's latent `z_t` from the EMA teacher networks with the student's
+        current Gaussians, over `bg` (the teacher's own sky when there is one): a second rasterisation (without
+        mask.teacher.fused; the fused path renders the same image)."""
+        assert self.teacher is not None
+        colors = teacher_colors(self.teacher, z_t, gp, cam_center, self.color_context(), sh_base)
+        return teacher_render(self.config, colors, gp, viewmat, K, W, H, bg)
+
+    def step_static_mask(self, outputs, gt_img: Tensor) -> StepMask:
+        """This step's static mask (MaskStep.static_mask) of the image get_outputs rendered (`outputs`)."""
+        idx = int(outputs.get("image_idx", -1))
+        teacher_rgb = outputs.get("teacher_rgb")
+        return self.mask_step.static_mask(self.step, idx, gt_img, teacher_rgb, self.perceptual, self.device)
+
+    def static_support(self, idx: int, height: int, width: int) -> Tensor | None:
+        """Training image `idx`'s SfM support grid (True = vouched static), or None (MaskStep.support)."""
+        return self.mask_step.support(idx, height, width, self.device)
+
+    @property
+    def sfm_observations(self) -> list | None:
+        """SfM observations per training image (COLMAP scenes): the mask's safeguard (MaskStep.observations)."""
+        return self.mask_step.observations
+
+    @sfm_observations.setter
+    def sfm_observations(self, obs: list | None) -> None:
+        self.mask_step.observations = obs
+
+    @property
+    def last_masks(self) -> dict[int, Tensor]:
+        """Each image's last perceptual mask (MaskStep.masks; read by benchmarks/harness.py)."""
+        return self.mask_step.masks

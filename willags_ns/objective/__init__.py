@@ -1,0 +1,1 @@
+"""What training minimises: the masked reconstruction loss and the regularisers that join it."""

@@ -1,0 +1,67 @@
+"""The terms a training step adds to the reconstruction loss, each weighted by the model's config.
+
+    loss = reconstruction (losses.py, masked by the transient mask)
+         + latent.vae.weight * L_VAE        the beta-VAE of the step's photo        appearance/latents.py, vae.py
+         + sky.alpha_penalty * mean alpha   where the sky alone explains the photo  appearance/sky.py
+         + modulation.local_penalty * mean(s^2 + o^2)   the per-Gaussian residual   appearance/modulation.py
+         + splatfacto's scale penalty (every 10th step)                              losses.py
+
+Each term is computed where its component lives; this module only says when a term applies and how much it
+weighs. It sits above `losses.py`, which the NeRF-W protocol (and through it the SPEC parser) imports: the pure
+loss terms never import the appearance networks, so the latents can use the protocol without an import cycle.
+"""
+
+from jaxtyping import Float
+from torch import Tensor
+
+from willags_ns.appearance.latents import latent_loss
+from willags_ns.appearance.modulation import local_penalty
+from willags_ns.appearance.sky import background_alpha_penalty
+from willags_ns.appearance.vae import AppearanceVAE
+from willags_ns.objective.losses import scale_regularization
+
+
+def regularization_terms(
+    cfg,
+    vae: AppearanceVAE | None,
+    outputs: dict,
+    gt_img: Float[Tensor, "H W 3"],
+    mask: Float[Tensor, "H W"] | None,
+    log_scales: Float[Tensor, "N 3"],
+    step: int,
+    training: bool,
+) -> tuple[dict[str, Tensor], dict[str, Tensor], Tensor | None]:
+    """The weighted terms a step adds to the reconstruction loss, their metrics, and the VAE's reconstruction of the
+    photo for the logs (or None): ``(terms, metrics, recon)``.
+
+    ``cfg``: the model's config (WillagsModelConfig); ``outputs``: the step's render with its intermediates
+    (``latent``, ``latent_mu``, ``latent_logvar``, ``vae_in`` of a VAE latent, ``local_residual``: WillagsModel's
+    get_outputs). In the order the trainer sums them (the order of a float sum sets its last bits):
+
+    - ``vae_loss``: latent.vae.weight * L_VAE of the step's photo (training with the VAE; metrics ``vae_kl``, ``vae_recon``);
+    - ``sky_alpha``: sky.alpha_penalty * the mean alpha over pixels the sky alone reproduces (training with a sky);
+    - ``appearance_local``: modulation.local_penalty * mean(s^2 + o^2) of the student's local residual (training);
+    - ``scale_reg``: splatfacto's needle penalty on every 10th step (use_scale_regularization, training or not).
+    """
+    terms: dict[str, Tensor] = {}
+    metrics: dict[str, Tensor] = {}
+    recon = None
+    if training and outputs.get("latent_logvar") is not None:  # only the VAE has a log-variance
+        assert vae is not None
+        vcfg, o = cfg.latent.vae, outputs
+        args = (o["latent"], o["latent_mu"], o["latent_logvar"], o["vae_in"], vcfg.beta, vcfg.recon_reduction)
+        l_vae, parts, recon = latent_loss(vae, *args)
+        terms["vae_loss"] = vcfg.weight * l_vae
+        metrics["vae_kl"] = parts["vae_kl"].detach()
+        metrics["vae_recon"] = parts["vae_recon"].detach()
+    if training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:
+        acc, bg = outputs["accumulation"], outputs["background"]
+        pen_sky = background_alpha_penalty(acc, gt_img, bg, cfg.sky.alpha_tol, mask)
+        if pen_sky is not None:
+            terms["sky_alpha"] = cfg.sky.alpha_penalty * pen_sky
+    pen = local_penalty(outputs.get("local_residual")) if training else None
+    if pen is not None and cfg.modulation.local_penalty > 0:
+        terms["appearance_local"] = cfg.modulation.local_penalty * pen
+    if cfg.use_scale_regularization and step % 10 == 0:
+        terms["scale_reg"] = scale_regularization(log_scales, cfg.max_gauss_ratio)
+    return terms, metrics, recon
