@@ -11,13 +11,15 @@
 # GPU_ENV_REUSE=1 on a machine where an earlier call set up and whose runs still go on: only the exports (writing
 # the wheels or gsplat's build again under running processes would break them)
 reuse=0
-[ "${GPU_ENV_REUSE:-0}" = 1 ] && [ -f /tmp/gsplat_cuda.so ] && [ -d /tmp/site/gsplat ] && reuse=1
+# (a machine whose first call JIT-built gsplat has its build in /tmp/tex, which TORCH_EXTENSIONS_DIR points to)
+[ "${GPU_ENV_REUSE:-0}" = 1 ] && [ -d /tmp/site/gsplat ] \
+  && { [ -f /tmp/gsplat_cuda.so ] || [ -f /tmp/tex/gsplat_cuda/gsplat_cuda.so ]; } && reuse=1
 [ $reuse = 1 ] || python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site \
   .whl-gpu/*.whl >/dev/null 2>&1 || { echo "gpu_env: wheel install failed (carry .whl-gpu)"; return 1; }
 export PYTHONPATH=/tmp/site:$PWD/.whl-gpu/stub:$PWD MAX_JOBS=16 PYTHONUNBUFFERED=1 TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 \
   TORCH_EXTENSIONS_DIR=/tmp/tex
 if [ $reuse = 1 ]; then
-  export WILLAGS_GSPLAT_SO=/tmp/gsplat_cuda.so
+  [ -f /tmp/gsplat_cuda.so ] && export WILLAGS_GSPLAT_SO=/tmp/gsplat_cuda.so
 elif [ -f .gpu-cache/gsplat_cuda.so.gz ]; then
   gunzip -c .gpu-cache/gsplat_cuda.so.gz > /tmp/gsplat_cuda.so
   cp benchmarks/gsplat_csrc_shim.py /tmp/site/gsplat/csrc.py
@@ -36,4 +38,4 @@ groups = project["entry-points"]
 text = "".join(f"[{g}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) + "\n" for g, eps in groups.items())
 (info / "entry_points.txt").write_text(text)
 PY
-python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA module:', _C)"
+[ $reuse = 1 ] || python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA module:', _C)"
