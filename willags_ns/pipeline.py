@@ -44,7 +44,7 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.autoconfig import AUTO_CONFIG_FILE, apply_auto_config, format_summary, scene_dir, tensorboard_entries
-from willags_ns.checkpoints import install_eval_loader
+from willags_ns.checkpoints import eval_setup_run, install_eval_loader, resolve_run_paths
 from willags_ns.checks import (
     check_gaussians_alive,
     install_cli_excepthook,
@@ -235,6 +235,9 @@ class WillagsPipeline(VanillaPipeline):
             # Gaussians; gradients are averaged by hand before each optimiser step (willags_ns/distributed.py)
             setup_kwargs["world_size"] = 1
         checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
+        run = eval_setup_run()
+        if run is not None and run[1].pipeline is config:  # a saved run: its paths beside its config.yml
+            resolve_run_paths(run[1], run[0])
         if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default
             guard_viewer_host()
         if checking:

@@ -1,0 +1,88 @@
+"""A new user's path from photos to renders and exports, without traps (docs/reliability.md, "A user's path"): a run
+loads from any working directory and only ever its own checkpoints, big photos, renders without ffmpeg, render
+and export options that mean what they say, a readable start of ns-train. Each test names its row."""
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.test_reliability_faults import _config, scene  # noqa: F401 - the module's 8+2-image scene fixture
+from willags_ns.checkpoints import CheckpointError, list_checkpoints
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def project(scene, tmp_path_factory):  # noqa: F811
+    """A run as `ns-train willags --data scene` writes it from a project folder: output_dir `outputs` and the data
+    `scene`, both relative to that folder; checkpoints of steps 2 and 3. Returns (project folder, config.yml)."""
+    trained = _config(tmp_path_factory.mktemp("trained"), scene, steps=4, steps_per_save=2)
+    trained.save_only_latest_checkpoint = False
+    trainer = trained.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    proj = tmp_path_factory.mktemp("project")
+    shutil.copytree(scene, proj / "scene")
+    config = yaml.load((trained.get_base_dir() / "config.yml").read_text(), Loader=yaml.Loader)
+    config.output_dir = Path("outputs")
+    config.pipeline.datamanager.data = Path("scene")
+    config.pipeline.datamanager.dataparser.data = Path("scene")
+    run = proj / config.get_base_dir()
+    shutil.copytree(trained.get_base_dir(), run)
+    (run / "config.yml").write_text(yaml.dump(config), "utf8")
+    assert [p.name for p in list_checkpoints(run / "nerfstudio_models")][:2] == [
+        "step-000000003.ckpt",
+        "step-000000002.ckpt",
+    ]
+    return proj, run / "config.yml"
+
+
+def test_row_u1_a_run_loads_from_any_working_directory(project, tmp_path, monkeypatch):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    proj, cfg = project
+    monkeypatch.chdir(tmp_path)  # neither outputs/ nor scene/ exist here
+    config, pipeline, loaded, step = eval_setup(cfg, test_mode="test")
+    assert loaded == cfg.parent / "nerfstudio_models" / "step-000000003.ckpt" and step == 3
+    assert len(pipeline.datamanager.eval_dataset) == 2  # the scene found relative to where training ran
+    assert config.get_base_dir().resolve() == cfg.parent.resolve()  # files written into the run folder land there
+    assert not (tmp_path / "outputs").exists()
+
+
+def _copy_of(project, dest: Path) -> Path:
+    proj, cfg = project
+    shutil.copytree(proj, dest)
+    return dest / cfg.relative_to(proj)
+
+
+def test_row_u2_a_copy_loads_its_own_checkpoints_never_the_originals(project, tmp_path, monkeypatch):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    proj, cfg = project
+    copy_cfg = _copy_of(project, tmp_path / "copy")
+    ckpts = copy_cfg.parent / "nerfstudio_models"
+    monkeypatch.chdir(proj)  # from here the stored relative paths name the original run
+    _, _, loaded, step = eval_setup(copy_cfg, test_mode="inference")
+    assert loaded == ckpts / "step-000000003.ckpt" and step == 3
+
+    # its newest checkpoint truncated: named, and the copy's older one loads (not the original's newest)
+    newest = ckpts / "step-000000003.ckpt"
+    newest.write_bytes(newest.read_bytes()[:5000])
+    with pytest.warns(UserWarning, match=re.escape(str(newest))):
+        _, _, loaded, step = eval_setup(copy_cfg, test_mode="inference")
+    assert loaded == ckpts / "step-000000002.ckpt" and step == 2
+
+    # every checkpoint of the copy damaged: an error naming them, never the original run's readable ones
+    for p in list_checkpoints(ckpts):
+        p.write_bytes(b"")
+    with pytest.raises(CheckpointError, match=re.escape(str(ckpts))) as info:
+        eval_setup(copy_cfg, test_mode="inference")
+    assert "\n" not in str(info.value)
+
+    # no checkpoint folder beside the copied config.yml: an error, not the folder its stored paths name
+    shutil.rmtree(ckpts)
+    with pytest.raises(CheckpointError, match=re.escape(str(ckpts))):
+        eval_setup(copy_cfg, test_mode="inference")
