@@ -251,7 +251,8 @@ class WillagsDataParserConfig(DataParserConfig):
     load_3D_points: bool = True
     """Seed the Gaussians with the scene's points (transforms.json's ply_file_path, or the COLMAP points3D)."""
     downscale_factor: int | None = None
-    """Image downscale factor; None: nerfstudio's rule (largest side <= 1600 px, using existing images_N folders)."""
+    """Image downscale factor N: images read at 1/N of their size (COLMAP scenes: from images_N/, written from images/
+    when it is missing). None: nerfstudio's rule (largest side <= 1600 px, using existing images_N folders)."""
     scale_factor: float = 1.0
     """How much to scale the camera origins by (after auto-scaling)."""
     scene_scale: float = 1.0
@@ -287,6 +288,7 @@ class WillagsDataParser(DataParser):
     def _resolve(self) -> DataParser:
         if self._delegate is not None:
             return self._delegate
+        self.config.downscale_factor = checked_downscale_factor(self.config.downscale_factor)
         data = self.config.data
         if data is None or Path(data) == Path():
             scene_dir = ensure_default_scene(self.config.synthetic, self.config.cache_dir)
@@ -387,8 +389,16 @@ class WillagsDataParser(DataParser):
         if not (root / images_path).is_dir() and (root / "dense" / "images").is_dir():
             images_path = Path("dense/images")
         images_dir = root / images_path
-        if self.config.downscale_factor is not None and self.config.downscale_factor > 1:
-            images_dir = images_dir.parent / f"{images_dir.name}_{self.config.downscale_factor}"
+        factor = self.config.downscale_factor
+        if factor is None and images_dir.is_dir():  # nerfstudio's rule, without its interactive question
+            factor = auto_downscale_factor(images_dir)
+            if factor > 1:
+                CONSOLE.log(f"willags-data: images read at 1/{factor} size (largest side <= {MAX_AUTO_SIDE} px)")
+        if factor is not None and factor > 1:
+            full_dir, images_dir = images_dir, images_dir.parent / f"{images_dir.name}_{factor}"
+            if not images_dir.is_dir() and full_dir.is_dir():
+                _check_colmap(root, model, full_dir, self.config.load_3D_points)
+                write_downscaled_images(full_dir, factor, images_dir)
         _check_colmap(root, model, images_dir, self.config.load_3D_points)
         tsv = self._find_tsv(root)
         if tsv is not None:
@@ -402,7 +412,7 @@ class WillagsDataParser(DataParser):
             colmap_path=model.relative_to(root),
             images_path=images_path,
             load_3D_points=self.config.load_3D_points,
-            **self._common_kwargs(),
+            **{**self._common_kwargs(), "downscale_factor": factor},
             **self._split_kwargs(),
         )
         return cfg.setup()
@@ -460,6 +470,83 @@ def _select_tsv_split(outputs: DataparserOutputs, table: dict[str, str], split: 
         mask_filenames=[masks[i] for i in idx] if masks is not None else None,
         metadata=metadata,
     )
+
+
+MAX_AUTO_SIDE = 1600
+"""Without a downscale factor, images are read at 1/2**k of their size, the smallest k that brings the first image's
+largest side to at most this (nerfstudio's rule for COLMAP scenes)."""
+
+
+def auto_downscale_factor(images_dir: Path) -> int:
+    """nerfstudio's automatic downscale factor of a COLMAP scene's images (see MAX_AUTO_SIDE): the first image by
+    name decides; 1 when there is none or it cannot be read (the checks name it)."""
+    from PIL import Image
+
+    first = next(iter(sorted(p for p in images_dir.iterdir() if p.is_file())), None)
+    if first is None:
+        return 1
+    try:
+        with Image.open(first) as im:
+            side = max(im.size)
+    except OSError:
+        return 1
+    factor = 1
+    while side / factor > MAX_AUTO_SIDE:
+        factor *= 2
+    return factor
+
+
+def checked_downscale_factor(factor: float | None) -> int | None:
+    """The image downscale factor as nerfstudio's parsers need it: a whole number >= 1 (``willags-render dataset
+    --downscale-factor 2`` passes 2.0), or None. Anything else is a WillagsDataError naming the value."""
+    if factor is None:
+        return None
+    try:
+        value = float(factor)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (value >= 1 and value.is_integer()):
+        raise WillagsDataError(
+            f"downscale_factor {factor!r}: images are read at 1/factor of their size, so it must be a whole number "
+            ">= 1 (2: half the width and height)"
+        )
+    return int(value)
+
+
+def write_downscaled_images(images: Path, factor: int, dst: Path) -> None:
+    """Every image of ``images`` at floor(w / factor) x floor(h / factor) (nerfstudio's rounding of the cameras), with
+    PIL's area filter, into ``dst``: the ``images_N`` folder nerfstudio's COLMAP parser reads for ``downscale_factor
+    N``. Written to a hidden sibling and renamed when complete; a folder that cannot be written is one line."""
+    import os
+    import shutil
+
+    from PIL import Image
+
+    tmp = dst.parent / f".{dst.name}.{os.getpid()}.partial"
+    files = sorted(p for p in images.iterdir() if p.is_file())
+    CONSOLE.log(f"willags-data: writing {dst} ({len(files)} images at 1/{factor} size) for downscale_factor {factor}")
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for f in files:
+            try:
+                with Image.open(f) as im:
+                    small = im.resize((im.width // factor, im.height // factor), resample=Image.Resampling.BOX)
+                    if f.suffix.lower() in (".jpg", ".jpeg"):
+                        small.convert("RGB").save(tmp / f.name, quality=95, subsampling=0)
+                    else:
+                        small.save(tmp / f.name)
+            except OSError as e:
+                if isinstance(e, PermissionError) or e.errno is not None:
+                    raise
+                shutil.copy2(f, tmp / f.name)  # not an image (a stray file): kept as it is, as the checks see it
+        os.rename(tmp, dst)
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise WillagsDataError(
+            f"cannot write the downscaled images {dst} ({e.strerror or e}): make {dst.parent} writable, or run "
+            f"willags-process with --num-downscales to write them"
+        ) from None
 
 
 def _check_transforms(json_path: Path, downscale_factor: int | None = None) -> dict[str, Any]:
