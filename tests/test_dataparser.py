@@ -324,7 +324,7 @@ def test_specification_and_entry_point():
     assert eps["willags-data"].load() is willags_dataparser
 
 
-def test_explicit_downscale_reads_images_n(tmp_path):
+def test_explicit_downscale_reads_images_n_and_writes_it_when_missing(tmp_path):
     root = _tiny_transforms(tmp_path / "s")
     (root / "images_2").mkdir()
     for name in ("a.png", "b.png"):  # only the downscaled copies exist
@@ -334,6 +334,14 @@ def test_explicit_downscale_reads_images_n(tmp_path):
     _, out = _outputs(root, eval_mode="all", downscale_factor=2)
     assert out["train"].image_filenames == [root / "images_2" / "a.png", root / "images_2" / "b.png"]
     assert int(out["train"].cameras.width[0]) == 2
+
+    fresh = _tiny_transforms(tmp_path / "fresh")  # only images/: images_2 is written from it
+    _, out = _outputs(fresh, eval_mode="all", downscale_factor=2)
+    assert out["train"].image_filenames == [fresh / "images_2" / "a.png", fresh / "images_2" / "b.png"]
+    from PIL import Image
+
+    with Image.open(fresh / "images_2" / "a.png") as im:
+        assert im.size == (int(out["train"].cameras.width[0]), int(out["train"].cameras.height[0]))
 
 
 @pytest.mark.data

@@ -86,3 +86,81 @@ def test_row_u2_a_copy_loads_its_own_checkpoints_never_the_originals(project, tm
     shutil.rmtree(ckpts)
     with pytest.raises(CheckpointError, match=re.escape(str(ckpts))):
         eval_setup(copy_cfg, test_mode="inference")
+
+
+def _no_loading(monkeypatch):
+    """Loading a checkpoint fails the test: what is refused must be refused before it."""
+    from nerfstudio.scripts import render as ns_render
+
+    def eval_setup(*args, **kwargs):
+        raise AssertionError("the checkpoint was loaded")
+
+    monkeypatch.setattr(ns_render, "eval_setup", eval_setup)
+
+
+def test_row_u5_a_video_without_ffmpeg_is_refused_before_loading_and_images_need_none(
+    appearance_run, tmp_path, monkeypatch
+):
+    from willags_ns.scripts import render
+
+    cfg, _, _ = appearance_run
+    monkeypatch.setattr(render.shutil, "which", lambda name: None)  # no ffmpeg on the PATH
+    with monkeypatch.context() as m:
+        _no_loading(m)
+        with pytest.raises(SystemExit) as info:
+            render.RenderInterpolated(load_config=cfg, output_path=tmp_path / "v.mp4").main()
+        assert "\n" not in str(info.value.code) and "--output-format images" in str(info.value.code)
+    render.RenderInterpolated(
+        load_config=cfg, output_path=tmp_path / "v.mp4", output_format="images", interpolation_steps=2
+    ).main()
+    assert sorted((tmp_path / "v").glob("*.jpg"))
+
+
+def test_row_u6_downscale_below_one_is_refused_and_interpolated_frames_all_differ(
+    appearance_run, tmp_path, monkeypatch
+):
+    import numpy as np
+    from PIL import Image
+
+    from willags_ns.scripts import render
+
+    cfg, _, _ = appearance_run
+    with monkeypatch.context() as m:
+        _no_loading(m)
+        with pytest.raises(SystemExit):
+            render.RenderInterpolated(load_config=cfg, output_path=tmp_path / "x.mp4", downscale_factor=0.5).main()
+    out = tmp_path / "path.mp4"
+    opts = dict(pose_source="train", interpolation_steps=3, output_format="images", image_format="png")
+    render.RenderInterpolated(load_config=cfg, output_path=out, downscale_factor=2, **opts).main()
+    frames = [np.asarray(Image.open(p)) for p in sorted((tmp_path / "path").glob("*.png"))]
+    assert len(frames) >= 4
+    for a, b in zip(frames, frames[1:], strict=False):
+        assert not np.array_equal(a, b)  # each frame a new viewpoint: no repeated camera at the transitions
+    full = render.RenderInterpolated(load_config=cfg, output_path=tmp_path / "full.mp4", **opts)
+    full.main()
+    big = np.asarray(Image.open(sorted((tmp_path / "full").glob("*.png"))[0]))
+    assert frames[0].shape[0] == big.shape[0] // 2  # a factor of 2 renders at half the size
+
+
+def test_row_u7_dataset_render_of_the_test_split_downscaled(appearance_run, tmp_path, capsys):
+    from PIL import Image
+
+    from willags_ns.scripts import render
+
+    cfg, _, _ = appearance_run
+    out = tmp_path / "ds"
+    render.DatasetRender(
+        load_config=cfg, output_path=out, split="test", downscale_factor=2, rendered_output_names=["rgb"]
+    ).main()
+    images = sorted(out.rglob("*.jpg")) + sorted(out.rglob("*.png"))
+    assert images
+    yml = yaml.load(cfg.read_text(), Loader=yaml.Loader)
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(cfg, test_mode="test")
+    h = int(pipeline.datamanager.eval_dataset.cameras[0].height)
+    with Image.open(images[0]) as im:
+        assert im.height == h // 2
+    assert yml.pipeline.datamanager.dataparser.downscale_factor is None  # the run's own config is left as it was
+    captured = capsys.readouterr().out
+    assert "{}" not in captured and "test" in captured

@@ -354,6 +354,11 @@ class WillagsDataParser(DataParser):
         }
 
     def _transforms_parser(self, root: Path, json_path: Path) -> DataParser:
+        factor = self.config.downscale_factor
+        small = root / f"images_{factor}"
+        if factor is not None and factor > 1 and not small.is_dir():  # nerfstudio reads images_N/<name>
+            frames = _check_transforms(json_path)["frames"]
+            write_downscaled_images([root / f["file_path"] for f in frames], factor, small)
         meta = _check_transforms(json_path, self.config.downscale_factor)
         self._root = root
         tsv = self._find_tsv(root)
@@ -398,7 +403,7 @@ class WillagsDataParser(DataParser):
             full_dir, images_dir = images_dir, images_dir.parent / f"{images_dir.name}_{factor}"
             if not images_dir.is_dir() and full_dir.is_dir():
                 _check_colmap(root, model, full_dir, self.config.load_3D_points)
-                write_downscaled_images(full_dir, factor, images_dir)
+                write_downscaled_images(sorted(p for p in full_dir.iterdir() if p.is_file()), factor, images_dir)
         _check_colmap(root, model, images_dir, self.config.load_3D_points)
         tsv = self._find_tsv(root)
         if tsv is not None:
@@ -513,17 +518,17 @@ def checked_downscale_factor(factor: float | None) -> int | None:
     return int(value)
 
 
-def write_downscaled_images(images: Path, factor: int, dst: Path) -> None:
-    """Every image of ``images`` at floor(w / factor) x floor(h / factor) (nerfstudio's rounding of the cameras), with
-    PIL's area filter, into ``dst``: the ``images_N`` folder nerfstudio's COLMAP parser reads for ``downscale_factor
-    N``. Written to a hidden sibling and renamed when complete; a folder that cannot be written is one line."""
+def write_downscaled_images(files: list[Path], factor: int, dst: Path) -> None:
+    """Each of ``files`` at floor(w / factor) x floor(h / factor) (nerfstudio's rounding of the cameras), with PIL's
+    area filter, into ``dst`` under its own name: the ``images_N`` folder nerfstudio's parsers read for
+    ``downscale_factor N``. Written to a hidden sibling and renamed when complete; a folder that cannot be written is
+    one line."""
     import os
     import shutil
 
     from PIL import Image
 
     tmp = dst.parent / f".{dst.name}.{os.getpid()}.partial"
-    files = sorted(p for p in images.iterdir() if p.is_file())
     CONSOLE.log(f"willags-data: writing {dst} ({len(files)} images at 1/{factor} size) for downscale_factor {factor}")
     try:
         shutil.rmtree(tmp, ignore_errors=True)
