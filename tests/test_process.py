@@ -2,6 +2,7 @@
 output read by the project's dataparser, bad inputs, and the pure helpers (pairs, split, similarity alignment)."""
 
 import itertools
+import json
 import math
 import os
 import shutil
@@ -283,6 +284,37 @@ def test_unrelated_photos_fail_with_too_few_registered(tmp_path, capsys):
     assert "feature extraction: 5/5 (100%)" in text  # the stages' progress reaches a log (not a terminal) too
     assert (tmp_path / "out" / "colmap" / "database.db").is_file()  # kept: a rerun would not extract again
     assert not (tmp_path / "out" / "images").exists()
+
+
+def test_a_huge_photo_is_capped_and_named_and_the_scene_trains_at_the_cap(tmp_path, synthetic_photos, capsys):
+    """One photo 4x larger than the others (the 8000x6000 phone photo among ordinary ones): SfM and the scene see it
+    at --max-image-size on its long side, it registers, and the summary names it; unreadable photos are listed as
+    unreadable (not as unregistered) and the wall time is words, not a dict."""
+    from willags_ns.scripts.process import main, print_summary
+
+    src, _ = synthetic_photos
+    photos = tmp_path / "photos"
+    shutil.copytree(src, photos)
+    big = "view_05.png"
+    with Image.open(photos / big) as im:
+        im.resize((im.width * 4, im.height * 4), Image.Resampling.BICUBIC).save(photos / big)
+    (photos / "broken.png").write_bytes((photos / "view_00.png").read_bytes()[:500])
+    out = tmp_path / "out"
+    code = main(ProcessConfig(images=photos, output=out, num_threads=1, max_image_size=400, test_every=0))
+    text = capsys.readouterr().out.replace("\n", "")
+    assert code == 0
+    summary = json.loads((out / "process_summary.json").read_text())
+    assert list(summary["resized"]) == [big] and big in text
+    assert big not in summary["unregistered"]
+    for p in (out / "images").iterdir():
+        with Image.open(p) as im:
+            assert max(im.size) <= 400
+    assert Image.open(photos / big).size == (1600, 1200)  # the user's photo is never written
+    print_summary(summary)
+    table = capsys.readouterr().out
+    assert "{" not in table  # stage times as words
+    unreg_line = next(line for line in table.splitlines() if "unregistered" in line and "unreadable" not in line)
+    assert "broken.png" not in unreg_line and "broken.png" in table
 
 
 # --------------------------------------------------------------------------------------------------------------------

@@ -93,6 +93,10 @@ class ProcessConfig:
     """CPU threads for extraction, matching and mapping; -1: all cores."""
     min_registered: int = 3
     """Fail unless at least this many images are registered (fewer cannot define a scene)."""
+    max_image_size: int = 3200
+    """Photos whose long side is larger are resized to this many px (PIL's area filter) for SfM and training, so that
+    one huge photo does not make every training step need tens of GB; the summary names them. 0 keeps every photo at
+    full size."""
     num_downscales: int = 0
     """Also write images_2, images_4, ... images_(2**num_downscales) (floor size), for nerfstudio's
     --downscale-factor."""
@@ -131,6 +135,54 @@ def find_unreadable(images_dir: Path, names: Sequence[str]) -> dict[str, str]:
         except Exception as e:  # PIL raises OSError, SyntaxError, ValueError... depending on the codec
             bad[name] = f"{type(e).__name__}: {e}"
     return bad
+
+
+CAPPED_DIR = Path("colmap") / "inputs"
+"""Under the output: the photos SfM reads when some are larger than --max-image-size (the others linked)."""
+
+
+def cap_photos(cfg: ProcessConfig, names: Sequence[str]) -> tuple[Path, dict[str, tuple[int, int, int, int]]]:
+    """(folder SfM reads, {name: (w, h, new w, new h)} of the photos resized). Photos with a long side above
+    ``cfg.max_image_size`` are resized (area filter, EXIF kept for COLMAP's focal-length prior) into
+    OUTPUT/colmap/inputs/, the others symbolically linked there; without such photos (or with max_image_size 0),
+    ``cfg.images`` itself. A rerun reuses resized copies of the right size."""
+    cap = cfg.max_image_size
+    if cap <= 0:
+        return cfg.images, {}
+    resized: dict[str, tuple[int, int, int, int]] = {}
+    for name in names:
+        with Image.open(cfg.images / name) as im:
+            w, h = im.size
+        if max(w, h) > cap:
+            scale = cap / max(w, h)
+            resized[name] = (w, h, max(1, round(w * scale)), max(1, round(h * scale)))
+    if not resized:
+        return cfg.images, {}
+    out = cfg.output / CAPPED_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        src, dst = (cfg.images / name).resolve(), out / name
+        if name not in resized:
+            if not dst.is_symlink() or dst.resolve() != src:
+                dst.unlink(missing_ok=True)
+                os.symlink(src, dst)
+            continue
+        size = resized[name][2:]
+        if dst.is_file() and not dst.is_symlink():
+            with Image.open(dst) as im:
+                if im.size == size:
+                    continue
+        dst.unlink(missing_ok=True)
+        tmp = out / f".{name}.partial{src.suffix}"
+        with Image.open(src) as im:
+            small = im.resize(size, resample=Image.Resampling.BOX)
+            kwargs: dict[str, Any] = {"exif": im.info["exif"]} if "exif" in im.info else {}
+            if src.suffix.lower() in (".jpg", ".jpeg"):
+                small.convert("RGB").save(tmp, quality=95, subsampling=0, format="JPEG", **kwargs)
+            else:
+                small.save(tmp, format=im.format, **kwargs)
+        os.replace(tmp, dst)
+    return out, resized
 
 
 def split_table(image_ids: dict[int, str], test_every: int) -> list[tuple[str, int, str]]:
@@ -331,21 +383,25 @@ def _progress():
     )
 
 
-def _options_stamp(cfg: ProcessConfig) -> dict[str, Any]:
-    """The options that decide what the database holds: a rerun with other values cannot reuse it."""
-    return {
+def _options_stamp(cfg: ProcessConfig, capped: bool = False) -> dict[str, Any]:
+    """The options that decide what the database holds: a rerun with other values cannot reuse it. The size cap
+    only where it resized a photo (the database of a collection it leaves alone is the same either way)."""
+    stamp = {
         "camera_model": cfg.camera_model,
         "single_camera": cfg.single_camera,
         "max_num_features": cfg.max_num_features,
         "max_feature_image_size": cfg.max_feature_image_size,
         "images": str(cfg.images.resolve()),
     }
+    if capped:
+        stamp["max_image_size"] = cfg.max_image_size
+    return stamp
 
 
-def _check_database_options(cfg: ProcessConfig) -> None:
+def _check_database_options(cfg: ProcessConfig, capped: bool = False) -> None:
     stamp = cfg.output / OPTIONS_STAMP
     db = cfg.output / DATABASE
-    want = _options_stamp(cfg)
+    want = _options_stamp(cfg, capped)
     if db.exists() and stamp.is_file():
         have = json.loads(stamp.read_text())
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
@@ -664,10 +720,15 @@ def print_summary(summary: dict[str, Any]) -> None:
     table.add_row("camera model", summary["camera_model"])
     table.add_row("matching", f"{summary['matching']} ({summary['num_pairs']:,} pairs)")
     table.add_row("split", f"{summary['num_train']} train / {summary['num_test']} test ({summary['split_file']})")
-    table.add_row(
-        "wall time", f"{summary['wall_s']:.0f} s " + str({k: round(v) for k, v in summary["stage_s"].items()})
-    )
-    unreg = summary["unregistered"]
+    stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["stage_s"].items())
+    table.add_row("wall time", f"{summary['wall_s']:.0f} s ({stages})")
+    resized = summary.get("resized") or {}
+    if resized:
+        table.add_row("resized", ", ".join(f"{k} ({v})" for k, v in resized.items()))
+    unreadable = summary.get("unreadable") or []
+    if unreadable:
+        table.add_row("unreadable (skipped)", ", ".join(unreadable))
+    unreg = [n for n in summary["unregistered"] if n not in set(unreadable)]
     table.add_row("unregistered", ", ".join(unreg) if unreg else "none")
     CONSOLE.print(table)
     CONSOLE.print(f"Scene written to {summary['output']}: ns-train willags --data {summary['output']}")
@@ -699,7 +760,12 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
             f"SfM needs at least {cfg.min_registered}"
         )
     cfg.output.mkdir(parents=True, exist_ok=True)
-    _check_database_options(cfg)
+    photos, resized = cap_photos(cfg, readable)
+    _check_database_options(cfg, capped=bool(resized))
+    for name, (w, h, w2, h2) in resized.items():
+        log(f"{name}: {w}x{h} resized to {w2}x{h2} (--max-image-size {cfg.max_image_size}; 0 keeps full size)")
+    given = cfg.images
+    cfg = dataclasses.replace(cfg, images=photos)
     if not cfg.verbose:
         pycolmap.logging.minloglevel = 2  # errors only: COLMAP's INFO/WARNING lines would break the progress bars
     stage_s: dict[str, float] = {}
@@ -710,9 +776,7 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         stage_s["extraction"] = time.time() - t
         for name in readable:
             if name not in extracted:
-                log(
-                    f"[yellow]warning: no SIFT features in {cfg.images / name} (COLMAP could not read it or it is blank)"
-                )
+                log(f"[yellow]warning: no SIFT features in {given / name} (COLMAP could not read it or it is blank)")
         if len(extracted) < cfg.min_registered:
             raise ProcessError(f"only {len(extracted)} photo(s) gave SIFT features; SfM needs {cfg.min_registered}")
         t = time.time()
@@ -760,7 +824,11 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         "wall_s": time.time() - t0,
         "stage_s": stage_s,
         "pycolmap": pycolmap.__version__,
-        "options": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
+        "resized": {name: f"{w}x{h} -> {w2}x{h2}" for name, (w, h, w2, h2) in resized.items()},
+        "options": {
+            k: str(v) if isinstance(v, Path) else v
+            for k, v in dataclasses.asdict(dataclasses.replace(cfg, images=given)).items()
+        },
     }
     (cfg.output / SUMMARY).write_text(json.dumps(summary, indent=1) + "\n")
     return summary
