@@ -299,6 +299,8 @@ def test_a_huge_photo_is_capped_and_named_and_the_scene_trains_at_the_cap(tmp_pa
     with Image.open(photos / big) as im:
         im.resize((im.width * 4, im.height * 4), Image.Resampling.BICUBIC).save(photos / big)
     (photos / "broken.png").write_bytes((photos / "view_00.png").read_bytes()[:500])
+    noise = np.random.default_rng(3).uniform(0, 255, size=(60, 80, 3)).astype(np.uint8)
+    Image.fromarray(noise).resize((400, 300), Image.Resampling.BICUBIC).save(photos / "elsewhere.png")
     out = tmp_path / "out"
     code = main(ProcessConfig(images=photos, output=out, num_threads=1, max_image_size=400, test_every=0))
     text = capsys.readouterr().out.replace("\n", "")
@@ -315,6 +317,31 @@ def test_a_huge_photo_is_capped_and_named_and_the_scene_trains_at_the_cap(tmp_pa
     assert "{" not in table  # stage times as words
     unreg_line = next(line for line in table.splitlines() if "unregistered" in line and "unreadable" not in line)
     assert "broken.png" not in unreg_line and "broken.png" in table
+    assert summary["unregistered_why"]["elsewhere.png"]["reason"] == "no-matches"
+    assert "broken.png" not in summary["unregistered_why"]
+    assert any("elsewhere.png" in line and "registered:" in line for line in table.splitlines())
+
+
+def test_unregistered_reasons_tell_no_matches_from_another_group_and_weak_links():
+    """Known answer on a hand-made match graph: A-B-C registered; D linked (weakly placed) to B; E-F linked only to
+    each other; G with only sub-threshold matches."""
+    from willags_ns.tools.process import MIN_LINK_INLIERS, unregistered_reasons
+
+    strong, weak = MIN_LINK_INLIERS + 40, MIN_LINK_INLIERS - 1
+    pairs = {("A", "B"): 200, ("B", "C"): 150, ("D", "B"): strong, ("E", "F"): strong, ("G", "A"): weak}
+    links: dict[str, dict[str, int]] = {}
+    for (a, b), n in pairs.items():
+        links.setdefault(a, {})[b] = n
+        links.setdefault(b, {})[a] = n
+    why = unregistered_reasons(links, {"A", "B", "C"}, ["D", "E", "F", "G", "H"])
+    assert {k: v["reason"] for k, v in why.items()} == {
+        "D": "weak",
+        "E": "other-component",
+        "F": "other-component",
+        "G": "no-matches",
+        "H": "no-matches",
+    }
+    assert "F" in why["E"]["text"] and "E" in why["F"]["text"]  # the group is named
 
 
 # --------------------------------------------------------------------------------------------------------------------

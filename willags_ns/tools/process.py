@@ -695,6 +695,83 @@ def write_scene(cfg: ProcessConfig, rec, work: Path) -> None:
         write_downscaled(out / "images", 2**k, out / f"images_{2**k}")
 
 
+MIN_LINK_INLIERS = 15
+"""A verified pair with at least this many inlier matches links two photos (COLMAP's mapper needs 15 by default)."""
+
+
+def verified_links(db_path: Path) -> dict[str, dict[str, int]]:
+    """{photo: {other photo: inlier matches}} of every geometrically verified pair in the database."""
+    import pycolmap
+
+    with pycolmap.Database.open(str(db_path)) as db:
+        id_to_name = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+    links: dict[str, dict[str, int]] = {}
+    for pid, n in zip(pair_ids, inliers, strict=True):
+        a, b = (id_to_name.get(i) for i in pycolmap.pair_id_to_image_pair(pid))
+        if a is not None and b is not None and n > 0:
+            links.setdefault(a, {})[b] = int(n)
+            links.setdefault(b, {})[a] = int(n)
+    return links
+
+
+def unregistered_reasons(
+    links: dict[str, dict[str, int]], registered: set[str], unregistered: Sequence[str]
+) -> dict[str, dict[str, str]]:
+    """Why each photo of ``unregistered`` is not in the model, and what to try, from the verified pairs ``links``
+    ({photo: {other: inliers}}; pairs under MIN_LINK_INLIERS do not link). ``reason`` is one of:
+
+    - ``no-matches``: no verified pair with any photo (too little overlap, or another place);
+    - ``other-component``: linked only to other unregistered photos: a separate group the model does not reach;
+    - ``weak``: linked to registered photos, yet the mapper could not place it (too few or badly spread matches).
+    """
+    strong = {a: {b for b, n in others.items() if n >= MIN_LINK_INLIERS} for a, others in links.items()}
+    todo = set(unregistered)
+    group: dict[str, list[str]] = {}
+    for start in unregistered:  # connected groups of unregistered photos
+        if start in group:
+            continue
+        members, stack = [], [start]
+        seen = {start}
+        while stack:
+            a = stack.pop()
+            members.append(a)
+            for b in strong.get(a, ()):
+                if b in todo and b not in seen:
+                    seen.add(b)
+                    stack.append(b)
+        for m in members:
+            group[m] = sorted(members)
+    out = {}
+    for name in unregistered:
+        partners = strong.get(name, set())
+        placed = sorted(partners & registered)
+        best = max((links[name][b] for b in placed), default=0)
+        if not partners:
+            most = max(links.get(name, {}).values(), default=0)
+            out[name] = {
+                "reason": "no-matches",
+                "text": f"no photo shares enough verified matches with it (best {most}, need {MIN_LINK_INLIERS}): "
+                "too little overlap, a very different view, or another place; add photos taken between it and "
+                "the others",
+            }
+        elif not placed:
+            others = [g for g in group[name] if g != name]
+            out[name] = {
+                "reason": "other-component",
+                "text": f"it matches only {len(others)} other unregistered photo(s) ({', '.join(others[:4])}"
+                f"{', ...' if len(others) > 4 else ''}): a separate part of the scene the model does not reach; add "
+                "photos that link the two parts, or process that group on its own",
+            }
+        else:
+            out[name] = {
+                "reason": "weak",
+                "text": f"it matches {len(placed)} registered photo(s) (at most {best} inlier matches) but could not be "
+                "placed: add photos from nearby viewpoints, or try --camera-model SIMPLE_PINHOLE",
+            }
+    return out
+
+
 def reconstruction_stats(rec, all_names: Sequence[str]) -> dict[str, Any]:
     """Summary of a model: registered / total, 3D points, mean reprojection error, mean track length, unregistered."""
     reg = {rec.images[i].name for i in rec.reg_image_ids()}
@@ -706,6 +783,10 @@ def reconstruction_stats(rec, all_names: Sequence[str]) -> dict[str, Any]:
         "mean_track_length": float(rec.compute_mean_track_length()),
         "unregistered": [n for n in all_names if n not in reg],
     }
+
+
+MAX_REASONS_SHOWN = 12
+"""Unregistered photos explained one per line after the summary table; the rest only in process_summary.json."""
 
 
 def print_summary(summary: dict[str, Any]) -> None:
@@ -731,6 +812,12 @@ def print_summary(summary: dict[str, Any]) -> None:
     unreg = [n for n in summary["unregistered"] if n not in set(unreadable)]
     table.add_row("unregistered", ", ".join(unreg) if unreg else "none")
     CONSOLE.print(table)
+    why = summary.get("unregistered_why") or {}
+    shown = list(why.items())[:MAX_REASONS_SHOWN]
+    for name, entry in shown:
+        CONSOLE.print(f"  {name} not registered: {entry['text']}", soft_wrap=True, markup=False, highlight=False)
+    if len(why) > len(shown):
+        CONSOLE.print(f"  ... and {len(why) - len(shown)} more: see {SUMMARY} (unregistered_why)")
     CONSOLE.print(f"Scene written to {summary['output']}: ns-train willags --data {summary['output']}")
 
 
@@ -800,6 +887,9 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         )
     t = time.time()
     stats = reconstruction_stats(rec, names)
+    reg_names = {rec.images[i].name for i in rec.reg_image_ids()}
+    not_placed = [n for n in stats["unregistered"] if n not in bad]
+    why = unregistered_reasons(verified_links(cfg.output / DATABASE), reg_names, not_placed) if not_placed else {}
     write_scene(cfg, rec, work)
     final = pycolmap.Reconstruction(str(cfg.output / MODEL_DIR))
     ids = {i: final.images[i].name for i in final.reg_image_ids()}
@@ -812,6 +902,7 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     summary = {
         **stats,
         "unreadable": sorted(bad),
+        "unregistered_why": why,
         "camera_model": cfg.camera_model
         + (" -> undistorted to PINHOLE" if cfg.camera_model == "SIMPLE_RADIAL" else "")
         + (", one shared camera" if cfg.single_camera else ", one camera per image"),
