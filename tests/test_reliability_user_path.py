@@ -164,3 +164,31 @@ def test_row_u7_dataset_render_of_the_test_split_downscaled(appearance_run, tmp_
     assert yml.pipeline.datamanager.dataparser.downscale_factor is None  # the run's own config is left as it was
     captured = capsys.readouterr().out
     assert "{}" not in captured and "test" in captured
+
+
+def test_row_u8_export_needs_only_the_run_not_the_photos(project, tmp_path, monkeypatch):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from willags_ns.data.dataparser import WillagsDataError
+    from willags_ns.scripts.export import ExportGaussianSplat
+
+    copy_cfg = _copy_of(project, tmp_path / "copy")
+    shutil.rmtree(tmp_path / "copy" / "scene")  # the photos moved away
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "export"
+    ExportGaussianSplat(load_config=copy_cfg, output_dir=out, appearance="image:1").main()
+    from plyfile import PlyData
+
+    assert len(PlyData.read(str(out / "splat.ply"))["vertex"]) > 0
+    # what does read the photos says which are missing, in one line (the record names the photos where they were:
+    # here, as if this copy had trained from its own scene folder)
+    import torch
+
+    record_path = copy_cfg.parent / "scene_cameras.pt"
+    record = torch.load(record_path)
+    for part in ("train", "test"):
+        record[part]["names"] = [str(tmp_path / "copy" / "scene" / Path(n).name) for n in record[part]["names"]]
+    torch.save(record, record_path)
+    _, pipeline, _, _ = eval_setup(copy_cfg, test_mode="test")
+    with pytest.raises(WillagsDataError, match="do not exist"):
+        pipeline.get_average_eval_image_metrics()

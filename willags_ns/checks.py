@@ -199,7 +199,7 @@ def check_num_train_images(n: int) -> list[str]:
     if n <= 0:
         raise WillagsInputError(
             "the training split has no images: check the dataset's train_filenames / *.tsv split / eval_mode "
-            "(e.g. --pipeline.datamanager.dataparser.eval-mode all puts every image in training)"
+            "(e.g. `ns-train ... willags-data --eval-mode all` puts every image in training)"
         )
     if n == 1:
         return [

@@ -436,7 +436,7 @@ class WillagsDataParser(DataParser):
         if split == "train" and len(outputs.image_filenames) == 0:
             raise WillagsDataError(
                 f"{self._root}: the training split has no images: check train_filenames / the *.tsv split / "
-                "--pipeline.datamanager.dataparser.eval-mode (eval-mode all trains on every image)"
+                "the dataparser's eval-mode (`ns-train ... willags-data --eval-mode all` trains on every image)"
             )
         metadata = dict(outputs.metadata)
         metadata["data_dir"] = self._root
@@ -658,6 +658,88 @@ def _check_colmap(root: Path, model: Path, images_dir: Path, need_points: bool) 
         )
     if need_points and not ((model / "points3D.bin").is_file() or (model / "points3D.txt").is_file()):
         raise WillagsDataError(f"{model} has no points3D.bin/.txt (pass --load-3D-points False to start from random)")
+
+
+SCENE_RECORD = "scene_cameras.pt"
+"""Beside a run's config.yml: its scene without the photos (cameras, image names, scene box, whether it had SfM
+keypoints), written when training starts, so that commands that need only the trained model (willags-export,
+renders of trajectories) work when the photos have moved."""
+
+
+def scene_record(train: DataparserOutputs, test: DataparserOutputs | None, has_keypoints: bool) -> dict[str, Any]:
+    """What :class:`SavedSceneDataParser` rebuilds a scene from: tensors, strings and flags only (loads with
+    ``torch.load(weights_only=True)``)."""
+
+    def split(outputs: DataparserOutputs) -> dict[str, Any]:
+        c = outputs.cameras
+        out = {
+            "names": [str(p) for p in outputs.image_filenames],
+            "camera_to_worlds": c.camera_to_worlds.detach().cpu(),
+            "fx": c.fx.cpu(),
+            "fy": c.fy.cpu(),
+            "cx": c.cx.cpu(),
+            "cy": c.cy.cpu(),
+            "width": c.width.cpu(),
+            "height": c.height.cpu(),
+            "camera_type": c.camera_type.cpu(),
+        }
+        if c.distortion_params is not None:
+            out["distortion_params"] = c.distortion_params.cpu()
+        return out
+
+    return {
+        "train": split(train),
+        "test": split(test) if test is not None else None,
+        "scene_box": train.scene_box.aabb.cpu(),
+        "dataparser_transform": train.dataparser_transform.cpu(),
+        "dataparser_scale": float(train.dataparser_scale),
+        "has_keypoints": bool(has_keypoints),
+    }
+
+
+@dataclass
+class SavedSceneDataParserConfig(DataParserConfig):
+    """A run's scene rebuilt from its SCENE_RECORD, without the photos: for loading a trained model whose scene
+    folder is gone (willags-export, trajectory renders). Images are never read through it."""
+
+    _target: type = field(default_factory=lambda: SavedSceneDataParser)
+    record: Path = Path(SCENE_RECORD)
+    """The run's scene_cameras.pt."""
+    data: Path | None = None  # pyright: ignore[reportIncompatibleVariableOverride]
+    """Where the photos were (kept for messages; it does not exist)."""
+
+
+class SavedSceneDataParser(DataParser):
+    config: SavedSceneDataParserConfig  # pyright: ignore[reportIncompatibleVariableOverride]
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs: Any) -> DataparserOutputs:
+        from nerfstudio.cameras.cameras import Cameras
+        from nerfstudio.data.scene_box import SceneBox
+
+        rec = torch.load(self.config.record, map_location="cpu")
+        part = rec["train"] if split == "train" or rec.get("test") is None else rec["test"]
+        cams = Cameras(
+            camera_to_worlds=part["camera_to_worlds"],
+            fx=part["fx"],
+            fy=part["fy"],
+            cx=part["cx"],
+            cy=part["cy"],
+            width=part["width"],
+            height=part["height"],
+            camera_type=part["camera_type"],
+            distortion_params=part.get("distortion_params"),
+        )
+        metadata: dict[str, Any] = {}
+        if rec["has_keypoints"] and split == "train":  # the model's sky follows whether there were keypoints
+            metadata[SFM_OBSERVATIONS_KEY] = [np.zeros((0, 3), np.float32) for _ in part["names"]]
+        return DataparserOutputs(
+            image_filenames=[Path(n) for n in part["names"]],
+            cameras=cams,
+            scene_box=SceneBox(aabb=rec["scene_box"]),
+            dataparser_transform=rec["dataparser_transform"],
+            dataparser_scale=rec["dataparser_scale"],
+            metadata=metadata,
+        )
 
 
 willags_dataparser = DataParserSpecification(
