@@ -192,3 +192,64 @@ def test_row_u8_export_needs_only_the_run_not_the_photos(project, tmp_path, monk
     _, pipeline, _, _ = eval_setup(copy_cfg, test_mode="test")
     with pytest.raises(WillagsDataError, match="do not exist"):
         pipeline.get_average_eval_image_metrics()
+
+
+def test_row_u9_ns_train_starts_readably_and_a_bad_scene_leaves_no_run_folder(scene, tmp_path):  # noqa: F811
+    import os
+    import subprocess
+
+    from tests.test_reliability import _ns_train
+
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    bad = subprocess.run(
+        _ns_train(["willags", "--data", str(tmp_path / "nowhere"), "--output-dir", str(tmp_path / "bad")]),
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
+    assert bad.returncode == 1 and "Traceback" not in bad.stderr
+    assert not (tmp_path / "bad").exists()  # no run folder, no config.yml, for a run that never started
+
+    out = tmp_path / "good"
+    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--vis", "tensorboard"]
+    args += ["--max-num-iterations", "2", "--pipeline.model.mask.vgg-weights", "seeded"]
+    good = subprocess.run(_ns_train(args), capture_output=True, text=True, env=env, timeout=600)
+    assert good.returncode == 0, good.stderr[-3000:]
+    text = good.stdout + good.stderr
+    before = text.split("willags: checkpoints every")[0]  # printed as the first step starts
+    assert len(before.splitlines()) <= 40, before
+    assert "Warning:" not in text  # no FutureWarning / UserWarning a user cannot act on
+    assert len(list(out.rglob("config.yml"))) == 1  # the full configuration is in the run folder
+
+
+def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path):
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    proj, cfg = project
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    exe = Path(sys.executable).with_name("ns-viewer")
+    cmd = [str(exe), "--load-config", str(cfg), "--viewer.websocket-port", str(port)]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    try:
+        deadline = time.time() + 300
+        while True:  # serving: its port accepts connections
+            assert proc.poll() is None and time.time() < deadline, proc.communicate()[1][-3000:]
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert "Traceback" not in out + err, err[-3000:]

@@ -57,3 +57,20 @@ def quick_external_method_check() -> None:
 
     __post_init__.quick_caller_check = True  # type: ignore[attr-defined]
     cls.__post_init__ = __post_init__
+
+
+LIBRARY_NOISE = (
+    (FutureWarning, r"`torch\.cuda\.amp\.(GradScaler|custom_fwd|custom_bwd)\(args\.\.\.\)` is deprecated"),
+    (UserWarning, r"Converting a tensor with requires_grad=True to a scalar"),
+)
+"""(category, message pattern) of warnings nerfstudio 1.1.5's own calls raise under current torch on every run: the
+deprecated torch.cuda.amp spellings in its trainer and field components, and its tensorboard writer's float() of a
+loss. Nothing a user can change; hidden from the terminal."""
+
+
+def silence_library_noise() -> None:
+    """Ignore the warnings of LIBRARY_NOISE (only those messages; every other warning still shows)."""
+    import warnings
+
+    for category, pattern in LIBRARY_NOISE:
+        warnings.filterwarnings("ignore", message=pattern, category=category)

@@ -403,6 +403,9 @@ def _excepthook(prev):
         if isinstance(exc, (WillagsDataError, WillagsTrainingError, WillagsIOError)):
             print(f"\nwillags: {exc}", file=sys.stderr)
             return
+        if isinstance(exc, KeyboardInterrupt):  # Ctrl-C in a command that waits (ns-viewer): stopped, as asked
+            print("\nwillags: stopped (Ctrl-C)", file=sys.stderr)
+            return
         prev(exc_type, exc, tb)
 
     hook.willags = True  # type: ignore[attr-defined]
@@ -411,7 +414,7 @@ def _excepthook(prev):
 
 def install_cli_excepthook() -> None:
     """Make an uncaught WillagsDataError / WillagsTrainingError / WillagsIOError print ``willags: <message>`` (exit
-    status 1) instead of a 30-frame traceback through nerfstudio. Only these classes; every other error keeps
-    Python's traceback. Idempotent."""
+    status 1) instead of a 30-frame traceback through nerfstudio, and a Ctrl-C that nothing caught (ns-viewer waits
+    in a loop until it comes) one line. Only these; every other error keeps Python's traceback. Idempotent."""
     if not getattr(sys.excepthook, "willags", False):
         sys.excepthook = _excepthook(sys.excepthook)

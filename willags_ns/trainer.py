@@ -66,11 +66,36 @@ BUDGET_FILE = "time_budget.json"
 """Written next to config.yml: the choice, the table point, every plan and where training stopped."""
 
 
+_SAVE_AFTER_SETUP: set[int] = set()
+"""ids of configs whose ns-train start printed one line instead of the whole configuration: config.yml is written
+once the scene has been read (WillagsTrainer.setup), so a run that never starts leaves no run folder."""
+
+
 @dataclass
 class WillagsTrainerConfig(TrainerConfig):
-    """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/time_budget.py)."""
+    """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/time_budget.py).
+
+    At ns-train's start the configuration (some 350 lines) is not printed: one line says where config.yml will hold
+    it, and config.yml is written after the scene has been read, so a bad --data leaves no run folder behind."""
 
     _target: type = field(default_factory=lambda: WillagsTrainer)
+
+    def print_to_terminal(self) -> None:
+        _SAVE_AFTER_SETUP.add(id(self))
+        CONSOLE.print(
+            f"willags: training {self.method_name}; every setting is written to {self.get_base_dir() / 'config.yml'} "
+            "once the scene has been read (ns-train willags --help explains each)",
+            soft_wrap=True,
+            markup=False,
+            highlight=False,
+        )
+
+    def save_config(self) -> None:
+        if id(self) in _SAVE_AFTER_SETUP:  # ns-train's save right after print_to_terminal: WillagsTrainer.setup saves
+            _SAVE_AFTER_SETUP.discard(id(self))
+            return
+        super().save_config()
+
     save_every_minutes: float = 5.0
     """Also write a checkpoint once this many minutes of wall time have passed since the last one (0: only every
     steps_per_save steps), so a killed run loses at most this much work. Saves are atomic and, with
@@ -196,8 +221,10 @@ class WillagsTrainer(Trainer):
                 },  # NaN step time -> null
                 "notes": notes,
             }
-            if self.local_rank == 0:
-                self.config.save_config()  # config.yml: the preset and steps that will train, not the invoked ones
+        # config.yml once the scene is read and the model built (a bad --data leaves no run folder), before the
+        # viewer writes into the run folder: the resolved settings (the time budget's preset and steps), not the
+        # invoked ones (setup_optimizers runs between the two in nerfstudio's setup)
+        self._save_config_when_built = self.local_rank == 0 and test_mode == "val"
         super().setup(test_mode)
         if choice is not None and minutes is not None:
             if replaced is not None:
@@ -209,6 +236,13 @@ class WillagsTrainer(Trainer):
         # timer, so that the first timed save comes save_every_minutes after training starts
         self._save_timer = SaveTimer(self.config.save_every_minutes * 60.0, clock=self.clock)
         self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._save_if_due))
+
+    def setup_optimizers(self):
+        optimizers = super().setup_optimizers()
+        if getattr(self, "_save_config_when_built", False):
+            self._save_config_when_built = False
+            self.config.save_config()
+        return optimizers
 
     # ---- checkpoints
 
