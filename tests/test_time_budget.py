@@ -436,6 +436,39 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
     saved = (config.get_base_dir() / "config.yml").read_text()
     assert f"max_num_iterations: {steps}" in saved  # config.yml says what was trained
     assert list((config.get_base_dir() / "nerfstudio_models").glob(f"step-{steps - 1:09d}.ckpt"))
+    # the progress counted against the planned end, and the schedules fitted inside it
+    from nerfstudio.utils import writer
+
+    last_plan = record["run"]["plans"][-1]["end_step"] if record["run"]["plans"] else None
+    if last_plan is not None:
+        assert writer.GLOBAL_BUFFER["max_iter"] == last_plan
+        strategy = trainer.pipeline.model.strategy
+        assert strategy.refine_start_iter + strategy.refine_every < last_plan  # it densifies within the run
+        assert strategy.refine_start_iter < strategy.refine_stop_iter <= last_plan
+        assert trainer.pipeline.model.config.mask.warmup_steps < last_plan
+
+
+def test_fit_schedules_keeps_each_schedules_share_of_a_shorter_run():
+    own = {
+        "warmup_length": 500,
+        "refine_every": 100,
+        "stop_split_at": 15000,
+        "stop_screen_size_at": 4000,
+        "reset_alpha_every": 30,
+        "sh_degree_interval": 1000,
+        "mask.warmup_steps": 500,
+        "mask.ramp_steps": 0,
+    }
+    short = tb.fit_schedules(own, 600, 30000)  # the docstring's worked example
+    assert short["warmup_length"] == 10 and short["refine_every"] == 10 and short["stop_split_at"] == 300
+    assert short["reset_alpha_every"] * short["refine_every"] == 60 and short["mask.ramp_steps"] == 0
+    assert short["mask.warmup_steps"] == 10 and short["sh_degree_interval"] == 20
+    assert tb.fit_schedules(own, 30000, 30000) == own and tb.fit_schedules(own, 90000, 30000) == own
+    half = tb.fit_schedules(own, 15000, 30000)
+    assert half["warmup_length"] == 250 and half["refine_every"] == 50 and half["reset_alpha_every"] == 30
+    tiny = tb.fit_schedules(own, 1, 30000)  # never 0 (0 would switch a schedule off), refine_every floored
+    assert all(v >= 1 for k, v in tiny.items() if own[k] > 0) and tiny["refine_every"] == tb.MIN_REFINE_EVERY
+    assert tb.fit_schedules({**own, "refine_every": 4}, 600, 30000)["refine_every"] == 4  # below the floor: kept
 
 
 @pytest.mark.slow

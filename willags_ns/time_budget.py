@@ -382,6 +382,45 @@ def end_schedules_at(
             sched.warmup_steps = own if own < end_step else int(end_step) // 10
 
 
+STEP_SCHEDULES = (
+    "warmup_length",
+    "refine_every",
+    "stop_split_at",
+    "stop_screen_size_at",
+    "reset_alpha_every",
+    "sh_degree_interval",
+    "mask.warmup_steps",
+    "mask.ramp_steps",
+)
+"""The model's schedules counted in steps (dotted: under pipeline.model) that :func:`fit_schedules` fits into a run
+shorter than its preset's. reset_alpha_every counts refinements, the others steps. The resolution schedule is not
+among them: each doubling makes a step four times dearer, and the plan is re-measured at the resolution trained."""
+MIN_REFINE_EVERY = 10
+"""Fewest steps between two densifications in a fitted schedule (each one judges the gradients gathered since the
+last)."""
+
+
+def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> dict[str, int]:
+    """The step schedules ``own`` (STEP_SCHEDULES -> value, for a run of ``preset_steps``) fitted into a run of
+    ``run_steps``: each keeps its share of the run (scaled by r = run_steps / preset_steps, never above 1), so that a
+    short budget still densifies, resets opacities, raises the SH degree and warms up the mask within it.
+    refine_every is at least MIN_REFINE_EVERY (or its own value when smaller); the opacity reset keeps its period in
+    steps (reset_alpha_every x refine_every x r), counted in the fitted refinements; a schedule at 0 (off) stays 0.
+
+    willags (30000 steps: warm-up 500, refine every 100, split until 15000, reset every 30 refinements) in 600 steps:
+    warm-up 10, refine every 10, split until 300, reset every 6 refinements (60 steps)."""
+    r = min(1.0, max(0, int(run_steps)) / max(1, int(preset_steps)))
+    if r >= 1.0:
+        return dict(own)
+    out = {k: (max(1, round(v * r)) if v > 0 else int(v)) for k, v in own.items()}
+    refine = own.get("refine_every", 0)
+    if refine > 0:
+        out["refine_every"] = max(min(refine, MIN_REFINE_EVERY), round(refine * r))
+        if own.get("reset_alpha_every", 0) > 0:
+            out["reset_alpha_every"] = max(1, round(own["reset_alpha_every"] * refine * r / out["refine_every"]))
+    return out
+
+
 def agreed_max(values: list[float]) -> list[float]:
     """The element-wise maximum of `values` over the ranks of the initialised process group (every rank calls it at
     the same step with as many values); the values themselves without a group of several ranks."""

@@ -392,8 +392,13 @@ class WillagsTrainer(Trainer):
         optimizers = self.config.optimizers  # the schedulers read these configs at every step
         warmups = self._warmups
 
+        fit = self._schedule_fitter(choice.max_steps)
+
         def on_plan(end_step: int) -> None:
             end_schedules_at(optimizers, end_step, warmups)
+            fit(end_step - start)
+            # progress and ETA count against the planned end, not the cap (nerfstudio's step table reads max_iter)
+            writer.GLOBAL_BUFFER["max_iter"] = end_step
 
         on_plan(start + choice.steps)
         cuda = str(self.device).startswith("cuda") and torch.cuda.is_available()
@@ -421,6 +426,46 @@ class WillagsTrainer(Trainer):
         ]
         self.time_budget = budget
         self._write_budget_record()
+
+    def _schedule_fitter(self, preset_steps: int) -> Callable[[int], None]:
+        """A function of the run's planned steps that fits the model's step schedules into them
+        (time_budget.fit_schedules, from the values the run started with): the config (what config.yml says and
+        what the model reads at each step) and gsplat's densification strategy, which copied them when it was built."""
+        model = self.pipeline.model
+        cfg = model.config
+
+        def get(name: str) -> Any:
+            target = cfg
+            for part in name.split("."):
+                target = getattr(target, part, None)
+            return target
+
+        own = {k: int(v) for k in tb.STEP_SCHEDULES if isinstance(v := get(k), int) and not isinstance(v, bool)}
+        strategy = getattr(model, "strategy", None)
+        base_pause = getattr(strategy, "pause_refine_after_reset", None)
+
+        def fit(run_steps: int) -> None:
+            values = tb.fit_schedules(own, run_steps, preset_steps)
+            for name, value in values.items():
+                *parents, last = name.split(".")
+                target = cfg
+                for part in parents:
+                    target = getattr(target, part)
+                setattr(target, last, value)
+            if strategy is not None and hasattr(strategy, "refine_start_iter"):
+                strategy.refine_start_iter = values.get("warmup_length", strategy.refine_start_iter)
+                strategy.refine_stop_iter = values.get("stop_split_at", strategy.refine_stop_iter)
+                strategy.refine_scale2d_stop_iter = values.get("stop_screen_size_at", strategy.refine_scale2d_stop_iter)
+                if "refine_every" in values:
+                    strategy.refine_every = values["refine_every"]
+                    strategy.reset_every = values.get("reset_alpha_every", 0) * values["refine_every"]
+                    if base_pause is not None:  # an epoch after each reset, inside the (shorter) reset period
+                        pause = base_pause - own["refine_every"] + values["refine_every"]
+                        if strategy.reset_every > 0:
+                            pause = min(pause, strategy.reset_every // 2)
+                        strategy.pause_refine_after_reset = pause
+
+        return fit
 
     def _after_train(self) -> None:
         # the loop set self.step to the step it broke before (never trained): checkpoint the last trained one
