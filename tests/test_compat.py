@@ -35,3 +35,22 @@ def test_external_method_built_elsewhere_still_offers_its_install(monkeypatch):
         external_methods.ExternalMethodDummyTrainerConfig(method_name="x", method=method)
     assert stop.value.code == 0
     assert asked or not method.pip_package
+
+
+def test_willags_own_warnings_print_as_one_line_and_library_noise_is_hidden():
+    import warnings
+
+    import willags_ns  # noqa: F401 - installs both
+
+    own = warnings.formatwarning("willags: the weights are missing; run this", RuntimeWarning, "/x/t.py", 3, "code")
+    assert own == "willags: the weights are missing; run this\n"
+    other = warnings.formatwarning("something else", UserWarning, "/x/t.py", 3, "code")
+    assert "/x/t.py:3" in other  # everything else keeps Python's format
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        from willags_ns._compat import silence_library_noise
+
+        silence_library_noise()
+        warnings.warn("`torch.cuda.amp.GradScaler(args...)` is deprecated. Please use x", FutureWarning, stacklevel=2)
+        warnings.warn("a warning a user can act on", FutureWarning, stacklevel=2)
+    assert [str(w.message) for w in caught] == ["a warning a user can act on"]

@@ -74,3 +74,21 @@ def silence_library_noise() -> None:
 
     for category, pattern in LIBRARY_NOISE:
         warnings.filterwarnings("ignore", message=pattern, category=category)
+
+
+def one_line_own_warnings() -> None:
+    """Python prints a warning as ``file:line: Category: message`` plus the source line; willags' own warnings (their
+    message starts with ``willags:``) print as the message alone, one line. Others are left as they are."""
+    import warnings
+
+    if getattr(warnings.formatwarning, "willags", False):
+        return
+    previous = warnings.formatwarning
+
+    def formatwarning(message, category, filename, lineno, line=None):
+        if str(message).startswith("willags:"):
+            return f"{message}\n"
+        return previous(message, category, filename, lineno, line)
+
+    formatwarning.willags = True  # type: ignore[attr-defined]
+    warnings.formatwarning = formatwarning
