@@ -1,6 +1,7 @@
 """willags-process (willags_ns.tools.process): SfM on views of the synthetic generator, resume after Ctrl-C, the
 output read by the project's dataparser, bad inputs, and the pure helpers (pairs, split, similarity alignment)."""
 
+import dataclasses
 import itertools
 import json
 import math
@@ -154,6 +155,21 @@ def test_synthetic_views_register_with_accurate_poses(processed, synthetic_photo
     # fresh clone recovered every view within 3.5 deg (another within 1 deg)
     assert err["median_rotation_error_deg"] < 2.0 and err["max_rotation_error_deg"] < 5.0, err["rotation_error_deg"]
     assert err["median_centre_error_pct"] < 5.0 and err["max_centre_error_pct"] < 10.0, err["centre_error"]
+
+
+def test_global_mapper_registers_the_views_from_the_same_database(processed, synthetic_photos, tmp_path):
+    """--mapper global (GLOMAP) on the features and matches the incremental run left: every view, accurate poses;
+    auto picks by the collection's size."""
+    cfg, _, _, _ = processed
+    _, gt = synthetic_photos
+    out = tmp_path / "global"
+    shutil.copytree(cfg.output, out)
+    summary = proc.run(dataclasses.replace(cfg, output=out, mapper="global"), log=lambda msg: None)
+    assert summary["mapper"] == "global" and summary["registered"] == NUM_VIEWS
+    err = compare_poses(proc.model_w2c(out / "colmap" / "sparse" / "0"), gt)
+    assert err["median_rotation_error_deg"] < 2.0 and err["median_centre_error_pct"] < 5.0, err
+    assert proc.chosen_mapper(dataclasses.replace(cfg, mapper="auto", global_min_images=17), NUM_VIEWS) == "incremental"
+    assert proc.chosen_mapper(dataclasses.replace(cfg, mapper="auto", global_min_images=16), NUM_VIEWS) == "global"
 
 
 def test_rerun_after_interrupt_extracts_only_the_missing_images(processed):

@@ -7,7 +7,8 @@ Structure-from-motion with pycolmap on CPU (a pip wheel: no COLMAP binary, no GP
 2. matching: exhaustive up to `exhaustive_max_images` images (all n(n-1)/2 pairs); above that, image retrieval with
    a vocabulary tree built from the collection's own SIFT descriptors (no download) and each image matched with its
    `retrieval_neighbors` best-scoring images; every pair is verified geometrically;
-3. mapping: COLMAP's incremental mapper with a fixed seed; the largest model is kept;
+3. mapping: COLMAP's incremental mapper or GLOMAP (`--mapper`; auto: global from `global_min_images` images), fixed
+   seed; the largest model is kept;
 4. writing: SIMPLE_RADIAL models are undistorted to PINHOLE (images re-sampled, so the training images match a
    pinhole camera); SIMPLE_PINHOLE models are written as they are with the registered photos copied.
 
@@ -87,6 +88,12 @@ class ProcessConfig:
     """auto matching: the largest collection matched exhaustively (n(n-1)/2 pairs; 150 images = 11,175 pairs)."""
     retrieval_neighbors: int = 40
     """vocab-tree matching: each image is matched with its this many most similar images."""
+    mapper: Literal["auto", "incremental", "global"] = "auto"
+    """incremental: COLMAP's incremental mapper (registers images one by one; robust, slow on large collections).
+    global: GLOMAP through pycolmap (rotation averaging and global positioning of all images at once; much faster on
+    large collections). auto: incremental up to global_min_images images, global above."""
+    global_min_images: int = 500
+    """auto mapper: the smallest collection mapped with the global mapper."""
     seed: int = 0
     """Random seed of the mapper (RANSAC, image selection)."""
     num_threads: int = -1
@@ -631,6 +638,35 @@ def incremental_mapping(cfg: ProcessConfig, num_images: int, progress, work: Pat
     return best
 
 
+def global_mapping(cfg: ProcessConfig, num_images: int, progress, work: Path):
+    """GLOMAP (pycolmap.global_mapping, fixed seed): all images positioned at once; returns the reconstruction with
+    the most registered images, or None. Ctrl-C takes effect when it returns (pycolmap offers no cancellation)."""
+    import pycolmap
+
+    options = pycolmap.GlobalPipelineOptions()
+    options.num_threads = cfg.num_threads
+    options.random_seed = cfg.seed
+    options.min_model_size = max(3, min(10, cfg.min_registered))
+    pycolmap.set_random_seed(cfg.seed)
+    task = progress.add_task("global mapping", total=num_images)
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    models = pycolmap.global_mapping(str(cfg.output / DATABASE), str(cfg.images), str(work), options)
+    if not models:
+        return None
+    best = max(models.values(), key=lambda r: r.num_reg_images())
+    progress.update(task, completed=best.num_reg_images())
+    return best
+
+
+def chosen_mapper(cfg: ProcessConfig, num_images: int) -> str:
+    """The mapper that runs: cfg.mapper, or for "auto" incremental below global_min_images images and global from
+    there."""
+    if cfg.mapper != "auto":
+        return cfg.mapper
+    return "global" if num_images >= cfg.global_min_images else "incremental"
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # writing
 
@@ -800,6 +836,8 @@ def print_summary(summary: dict[str, Any]) -> None:
     table.add_row("mean track length", f"{summary['mean_track_length']:.2f}")
     table.add_row("camera model", summary["camera_model"])
     table.add_row("matching", f"{summary['matching']} ({summary['num_pairs']:,} pairs)")
+    if "mapper" in summary:
+        table.add_row("mapper", summary["mapper"])
     table.add_row("split", f"{summary['num_train']} train / {summary['num_test']} test ({summary['split_file']})")
     stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["stage_s"].items())
     table.add_row("wall time", f"{summary['wall_s']:.0f} s ({stages})")
@@ -876,7 +914,9 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
             num_pairs = match_vocab_tree(cfg, extracted, progress)
         stage_s["matching"] = time.time() - t
         t = time.time()
-        rec = incremental_mapping(cfg, len(extracted), progress, work / "mapping")
+        mapper = chosen_mapper(cfg, len(extracted))
+        mapping = global_mapping if mapper == "global" else incremental_mapping
+        rec = mapping(cfg, len(extracted), progress, work / "mapping")
         stage_s["mapping"] = time.time() - t
     registered = 0 if rec is None else rec.num_reg_images()
     if rec is None or registered < cfg.min_registered:
@@ -907,6 +947,7 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         + (" -> undistorted to PINHOLE" if cfg.camera_model == "SIMPLE_RADIAL" else "")
         + (", one shared camera" if cfg.single_camera else ", one camera per image"),
         "matching": method,
+        "mapper": mapper,
         "num_pairs": num_pairs,
         "num_train": sum(r[2] == "train" for r in rows),
         "num_test": sum(r[2] == "test" for r in rows),
