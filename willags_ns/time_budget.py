@@ -71,6 +71,13 @@ REPLAN_EVERY = 200
 """After the first plan, the step time is measured again over each span of this many steps and the plan redone."""
 REPRINT_CHANGE = 0.05
 """A re-plan is printed when it moves the last step by more than this fraction (the schedules follow every re-plan)."""
+EARLY_SHARE = 0.05
+"""Slow steps (one device): the measurement starts once this share of the budget has passed, even before
+WARMUP_STEPS, and the first plan comes after another such share (and at least EARLY_MIN_STEPS steps), even before
+WINDOW_STEPS: a run whose 70 steps would take half its budget replaces the table's step time by its own after about
+two such shares (a 180 s budget of 4.5 s steps: at 27 s, after 6 steps)."""
+EARLY_MIN_STEPS = 3
+"""Fewest steps a measurement spans (and fewest steps before it starts)."""
 AGREE_EVERY = 50
 """Several devices: steps between two readings of the clock against the budget (each one an exchange of the elapsed
 time between the ranks, so that they stop after the same step), besides the readings of the plans."""
@@ -469,6 +476,8 @@ class TimeBudget:
     window_steps: int = WINDOW_STEPS
     replan_every: int = REPLAN_EVERY
     agree_every: int = AGREE_EVERY
+    early_share: float = EARLY_SHARE
+    """See EARLY_SHARE; 0 measures only at the step counts."""
     t0: float | None = None
     end_step: int | None = None
     """Planned end (exclusive step index): training stops after step end_step - 1. None until measured."""
@@ -501,10 +510,16 @@ class TimeBudget:
         assert t0 is not None
         done = step - self.start_step + 1  # steps trained in this run
         due = (
-            done == self.warmup_steps
+            (self._mark is None and done == self.warmup_steps)
             or (self.end_step is None and done == self.warmup_steps + self.window_steps)
             or (self.end_step is not None and self._mark is not None and done - self._mark[0] >= self.replan_every)
         )
+        if not due and self.agree is None and self.end_step is None and self.early_share > 0:  # slow steps
+            early = self.early_share * self.budget_s
+            if self._mark is None:
+                due = done >= EARLY_MIN_STEPS and self.clock() - t0 >= early
+            else:
+                due = done - self._mark[0] >= EARLY_MIN_STEPS and self.clock() - self._mark[1] >= early
         # with several ranks the clock is held against the budget only where the ranks exchange it
         read = self.agree is None or due or done % self.agree_every == 0
         now = self._now() if due else self.clock()
