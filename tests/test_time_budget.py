@@ -449,6 +449,13 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
         strategy = trainer.pipeline.model.strategy
         assert strategy.refine_start_iter + strategy.refine_every < last_plan  # it densifies within the run
         assert strategy.refine_start_iter < strategy.refine_stop_iter <= last_plan
+        # a densification step that is not in the pause after an opacity reset, before the splits stop
+        refines = [
+            s
+            for s in range(strategy.refine_start_iter + 1, strategy.refine_stop_iter)
+            if s % strategy.refine_every == 0 and s % strategy.reset_every >= strategy.pause_refine_after_reset
+        ]
+        assert refines, (strategy.refine_every, strategy.reset_every, strategy.pause_refine_after_reset)
         assert trainer.pipeline.model.config.mask.warmup_steps < last_plan
 
 
@@ -486,6 +493,7 @@ def test_fit_schedules_keeps_each_schedules_share_of_a_shorter_run():
     assert half["warmup_length"] == 250 and half["refine_every"] == 50 and half["reset_alpha_every"] == 30
     tiny = tb.fit_schedules(own, 1, 30000)  # never 0 (0 would switch a schedule off), refine_every floored
     assert all(v >= 1 for k, v in tiny.items() if own[k] > 0) and tiny["refine_every"] == tb.MIN_REFINE_EVERY
+    assert tiny["reset_alpha_every"] == tb.MIN_RESET_REFINES  # densifications between two resets
     assert tb.fit_schedules({**own, "refine_every": 4}, 600, 30000)["refine_every"] == 4  # below the floor: kept
 
 

@@ -405,6 +405,9 @@ among them: each doubling makes a step four times dearer, and the plan is re-mea
 MIN_REFINE_EVERY = 10
 """Fewest steps between two densifications in a fitted schedule (each one judges the gradients gathered since the
 last)."""
+MIN_RESET_REFINES = 3
+"""Fewest densifications between two opacity resets in a fitted schedule: a reset at every densification would
+leave none outside the pause that follows each reset."""
 
 
 def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> dict[str, int]:
@@ -412,7 +415,8 @@ def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> 
     ``run_steps``: each keeps its share of the run (scaled by r = run_steps / preset_steps, never above 1), so that a
     short budget still densifies, resets opacities, raises the SH degree and warms up the mask within it.
     refine_every is at least MIN_REFINE_EVERY (or its own value when smaller); the opacity reset keeps its period in
-    steps (reset_alpha_every x refine_every x r), counted in the fitted refinements; a schedule at 0 (off) stays 0.
+    steps (reset_alpha_every x refine_every x r), counted in the fitted refinements and at least MIN_RESET_REFINES of
+    them; a schedule at 0 (off) stays 0.
 
     willags (30000 steps: warm-up 500, refine every 100, split until 15000, reset every 30 refinements) in 600 steps:
     warm-up 10, refine every 10, split until 300, reset every 6 refinements (60 steps)."""
@@ -424,7 +428,8 @@ def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> 
     if refine > 0:
         out["refine_every"] = max(min(refine, MIN_REFINE_EVERY), round(refine * r))
         if own.get("reset_alpha_every", 0) > 0:
-            out["reset_alpha_every"] = max(1, round(own["reset_alpha_every"] * refine * r / out["refine_every"]))
+            scaled = round(own["reset_alpha_every"] * refine * r / out["refine_every"])
+            out["reset_alpha_every"] = max(min(own["reset_alpha_every"], MIN_RESET_REFINES), scaled)
     return out
 
 

@@ -459,10 +459,10 @@ class WillagsTrainer(Trainer):
                 if "refine_every" in values:
                     strategy.refine_every = values["refine_every"]
                     strategy.reset_every = values.get("reset_alpha_every", 0) * values["refine_every"]
-                    if base_pause is not None:  # an epoch after each reset, inside the (shorter) reset period
+                    if base_pause is not None:  # an epoch after each reset; in a shorter run, one refinement
                         pause = base_pause - own["refine_every"] + values["refine_every"]
-                        if strategy.reset_every > 0:
-                            pause = min(pause, strategy.reset_every // 2)
+                        if values != own:
+                            pause = min(pause, values["refine_every"])
                         strategy.pause_refine_after_reset = pause
 
         return fit
