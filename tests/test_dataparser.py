@@ -324,7 +324,7 @@ def test_specification_and_entry_point():
     assert eps["willags-data"].load() is willags_dataparser
 
 
-def test_explicit_downscale_reads_images_n(tmp_path):
+def test_explicit_downscale_reads_images_n_and_writes_it_when_missing(tmp_path):
     root = _tiny_transforms(tmp_path / "s")
     (root / "images_2").mkdir()
     for name in ("a.png", "b.png"):  # only the downscaled copies exist
@@ -334,3 +334,38 @@ def test_explicit_downscale_reads_images_n(tmp_path):
     _, out = _outputs(root, eval_mode="all", downscale_factor=2)
     assert out["train"].image_filenames == [root / "images_2" / "a.png", root / "images_2" / "b.png"]
     assert int(out["train"].cameras.width[0]) == 2
+
+    fresh = _tiny_transforms(tmp_path / "fresh")  # only images/: images_2 is written from it
+    _, out = _outputs(fresh, eval_mode="all", downscale_factor=2)
+    assert out["train"].image_filenames == [fresh / "images_2" / "a.png", fresh / "images_2" / "b.png"]
+    from PIL import Image
+
+    with Image.open(fresh / "images_2" / "a.png") as im:
+        assert im.size == (int(out["train"].cameras.width[0]), int(out["train"].cameras.height[0]))
+
+
+@pytest.mark.data
+def test_colmap_downscale_without_images_n_writes_it(shared_data, tmp_path, monkeypatch):
+    """A COLMAP scene downscales with only images/: images_N is written from it (no interactive question, no
+    hand-made folder); the factor may come as a float (willags-render dataset passes 2.0); 0.5 is refused."""
+    from PIL import Image
+
+    from willags_ns.data import dataparser
+
+    root = _colmap_copy(shared_data, tmp_path / "s")
+    _, out = _outputs(root, downscale_factor=2.0)
+    first = out["train"].image_filenames[0]
+    assert first.parent == root / "images_2"
+    with Image.open(first) as im, Image.open(root / "images" / first.name) as full:
+        assert im.size == (full.width // 2, full.height // 2)
+        assert (int(out["train"].cameras.width[0]), int(out["train"].cameras.height[0])) == im.size
+    for bad in (0.5, 1.5, 0):
+        with pytest.raises(WillagsDataError, match=f"downscale_factor {bad!r}"):
+            _outputs(root, downscale_factor=bad)
+
+    # no factor: nerfstudio's rule (largest side <= MAX_AUTO_SIDE) picks one and its folder is written
+    monkeypatch.setattr(dataparser, "MAX_AUTO_SIDE", 300)
+    auto = _colmap_copy(shared_data, tmp_path / "auto")
+    _, out = _outputs(auto)
+    assert out["train"].image_filenames[0].parent == auto / "images_4"
+    assert max(int(out["train"].cameras.width[0]), int(out["train"].cameras.height[0])) <= 300

@@ -4,6 +4,7 @@ render, fused teacher render, VGG mask, losses, backward) on extreme inputs. Eve
 must be finite."""
 
 import math
+import re
 import warnings
 
 import pytest
@@ -339,3 +340,29 @@ def test_row8_latent_clamping_of_the_appearance_spec_parser():
     assert torch.isfinite(out).all() and float(out.norm()) <= spec.MAX_LATENT_NORM + 1e-3
     with pytest.raises(ValueError, match="z.pt.*NaN"):
         spec.checked_latent(torch.tensor([0.0, float("nan")]), "latent file z.pt")
+
+
+def test_row13_the_memory_error_names_the_photo_and_its_command_parses():
+    """The command in the message parses as ns-train and reads the images at the suggested factor."""
+    import shlex
+
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    argv = ["/venv/bin/ns-train", "willags", "--data", "scenes/church", "--max-num-iterations", "100"]
+    with pytest.raises(WillagsInputError) as info:
+        check_train_memory(100_000, 8000, 6000, available=16 * 2**30, names=["IMG_9.jpg"], argv=argv)
+    text = str(info.value)
+    assert "IMG_9.jpg" in text and "\n" not in text
+    command = re.search(r"(ns-train .*?); or ", text).group(1)
+    words = shlex.split(command)
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=words[1:])
+    factor = config.pipeline.datamanager.dataparser.downscale_factor
+    assert config.max_num_iterations == 100 and factor >= 2
+    assert estimate_train_step_bytes(100_000, 8000 // factor, 6000 // factor) <= 16 * 2**30
+    # a line that already names the dataparser: the factor replaced there, still one that parses
+    again = argv + ["willags-data", "--downscale-factor", "2"]
+    with pytest.raises(WillagsInputError) as info:
+        check_train_memory(100_000, 8000, 6000, available=16 * 2**30, argv=again)
+    words = shlex.split(re.search(r"(ns-train .*?); or ", str(info.value)).group(1))
+    assert tyro.cli(AnnotatedBaseConfigUnion, args=words[1:]).pipeline.datamanager.dataparser.downscale_factor == factor

@@ -60,3 +60,22 @@ def test_an_unknown_module_in_a_config_yml_still_fails():
 
     with pytest.raises(yaml.constructor.ConstructorError, match="willags_ns.nowhere"):
         yaml.load("!!python/object:willags_ns.nowhere.Config {}", Loader=yaml.Loader)
+
+
+def test_willags_own_warnings_print_as_one_line_and_library_noise_is_hidden():
+    import warnings
+
+    import willags_ns  # noqa: F401 - installs both
+
+    own = warnings.formatwarning("willags: the weights are missing; run this", RuntimeWarning, "/x/t.py", 3, "code")
+    assert own == "willags: the weights are missing; run this\n"
+    other = warnings.formatwarning("something else", UserWarning, "/x/t.py", 3, "code")
+    assert "/x/t.py:3" in other  # everything else keeps Python's format
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        from willags_ns.engine.compat import silence_library_noise
+
+        silence_library_noise()
+        warnings.warn("`torch.cuda.amp.GradScaler(args...)` is deprecated. Please use x", FutureWarning, stacklevel=2)
+        warnings.warn("a warning a user can act on", FutureWarning, stacklevel=2)
+    assert [str(w.message) for w in caught] == ["a warning a user can act on"]

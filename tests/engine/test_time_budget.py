@@ -211,7 +211,8 @@ def test_ranks_plan_from_the_slowest_and_stop_together():
 
 def test_one_process_reads_the_clock_at_every_step():
     clock = FakeClock()
-    budget = TimeBudget(60.0, max_steps=30000, clock=clock, log=lambda m: None)
+    # measured at the step counts only (early_share 0), so that the clock, not a plan, ends it
+    budget = TimeBudget(60.0, max_steps=30000, clock=clock, log=lambda m: None, early_share=0)
     last = _run(budget, clock, lambda s: 0.25 + (3.0 if s == 100 else 0.0))
     assert budget.agree is None
     assert last == 227 and budget.stop_reason.startswith("the clock")  # 228 * 0.25 + 3 = 60 s
@@ -224,8 +225,9 @@ def test_the_choice_says_what_a_step_is_on_several_devices():
 
 
 def test_measures_steps_20_to_70_and_stops_within_the_budget():
+    # early_share 0 here and below: the step-count windows alone (slow steps: test_slow_steps_are_measured_...)
     clock, ends, logs = FakeClock(), [], []
-    budget = TimeBudget(12.5, max_steps=30000, on_plan=ends.append, clock=clock, log=logs.append)
+    budget = TimeBudget(12.5, max_steps=30000, on_plan=ends.append, clock=clock, log=logs.append, early_share=0)
     last = _run(budget, clock, lambda s: 0.125)  # binary-exact seconds: no rounding at the boundaries
     assert budget.history[0]["step"] == 69 and budget.history[0]["step_s"] == 0.125
     assert ends[0] == 100  # 70 steps in 8.75 s, 3.75 s left = 30 steps
@@ -237,7 +239,7 @@ def test_replans_when_steps_slow_down():
     """Densification and the resolution schedule make later steps slower: re-plans move the end earlier and the run
     still ends within the budget (at most one step late, when the clock stops it)."""
     clock, ends = FakeClock(), []
-    budget = TimeBudget(60.0, max_steps=30000, on_plan=ends.append, clock=clock, log=lambda m: None)
+    budget = TimeBudget(60.0, max_steps=30000, on_plan=ends.append, clock=clock, log=lambda m: None, early_share=0)
     last = _run(budget, clock, lambda s: 0.01 if s < 500 else 0.05)
     assert len(ends) > 2 and ends[-1] < ends[0]
     assert budget.elapsed() <= 60.0 + 0.05
@@ -252,14 +254,16 @@ def test_never_past_the_cap():
 
 def test_clock_stops_a_budget_shorter_than_the_measurement():
     clock = FakeClock()
-    budget = TimeBudget(1.0, max_steps=30000, clock=clock, log=lambda m: None)
+    budget = TimeBudget(1.0, max_steps=30000, clock=clock, log=lambda m: None, early_share=0)
     assert _run(budget, clock, lambda s: 0.125) == 7 and budget.end_step is None
     assert budget.stop_reason.startswith("the clock")
 
 
 def test_resumed_run_counts_its_own_steps():
     clock, ends = FakeClock(), []
-    budget = TimeBudget(12.5, max_steps=1000, start_step=5000, on_plan=ends.append, clock=clock, log=lambda m: None)
+    budget = TimeBudget(
+        12.5, max_steps=1000, start_step=5000, on_plan=ends.append, clock=clock, log=lambda m: None, early_share=0
+    )
     last = _run(budget, clock, lambda s: 0.125, start=5000)
     assert budget.history[0]["step"] == 5069 and ends[0] == 5100 and last == 5099
 
@@ -450,6 +454,61 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
     saved = (config.get_base_dir() / "config.yml").read_text()
     assert f"max_num_iterations: {steps}" in saved  # config.yml says what was trained
     assert list((config.get_base_dir() / "nerfstudio_models").glob(f"step-{steps - 1:09d}.ckpt"))
+    # the progress counted against the planned end, and the schedules fitted inside it
+    from nerfstudio.utils import writer
+
+    last_plan = record["run"]["plans"][-1]["end_step"] if record["run"]["plans"] else None
+    if last_plan is not None:
+        assert writer.GLOBAL_BUFFER["max_iter"] == last_plan
+        strategy = trainer.pipeline.model.strategy
+        assert strategy.refine_start_iter + strategy.refine_every < last_plan  # it densifies within the run
+        assert strategy.refine_start_iter < strategy.refine_stop_iter <= last_plan
+        # a densification step that is not in the pause after an opacity reset, before the splits stop
+        refines = [
+            s
+            for s in range(strategy.refine_start_iter + 1, strategy.refine_stop_iter)
+            if s % strategy.refine_every == 0 and s % strategy.reset_every >= strategy.pause_refine_after_reset
+        ]
+        assert refines, (strategy.refine_every, strategy.reset_every, strategy.pause_refine_after_reset)
+        assert trainer.pipeline.model.config.mask.warmup_steps < last_plan
+
+
+def test_slow_steps_are_measured_within_the_first_sixth_of_the_budget():
+    """4.5 s steps in a 180 s budget (a loaded 2-core CPU, 800 px photos): 70 steps would outlast the budget; the plan
+    comes from the run's own steps within its first sixth (2 x EARLY_SHARE and a few steps), and the run ends at its
+    plan, not at the table's."""
+    clock = FakeClock()
+    plans: list[int] = []
+    budget = TimeBudget(180.0, max_steps=30000, clock=clock, log=lambda m: None, on_plan=plans.append)
+    last = _run(budget, clock, lambda s: 4.5)
+    first = budget.history[0]
+    assert first["elapsed_s"] <= 180 / 6 and first["step_s"] == pytest.approx(4.5)
+    assert plans and plans[0] == 40  # 180 s / 4.5 s
+    assert last + 1 == 40 and budget.stop_reason.startswith("reached the planned last step")
+
+
+def test_fit_schedules_keeps_each_schedules_share_of_a_shorter_run():
+    own = {
+        "warmup_length": 500,
+        "refine_every": 100,
+        "stop_split_at": 15000,
+        "stop_screen_size_at": 4000,
+        "reset_alpha_every": 30,
+        "sh_degree_interval": 1000,
+        "mask.warmup_steps": 500,
+        "mask.ramp_steps": 0,
+    }
+    short = tb.fit_schedules(own, 600, 30000)  # the docstring's worked example
+    assert short["warmup_length"] == 10 and short["refine_every"] == 10 and short["stop_split_at"] == 300
+    assert short["reset_alpha_every"] * short["refine_every"] == 60 and short["mask.ramp_steps"] == 0
+    assert short["mask.warmup_steps"] == 10 and short["sh_degree_interval"] == 20
+    assert tb.fit_schedules(own, 30000, 30000) == own and tb.fit_schedules(own, 90000, 30000) == own
+    half = tb.fit_schedules(own, 15000, 30000)
+    assert half["warmup_length"] == 250 and half["refine_every"] == 50 and half["reset_alpha_every"] == 30
+    tiny = tb.fit_schedules(own, 1, 30000)  # never 0 (0 would switch a schedule off), refine_every floored
+    assert all(v >= 1 for k, v in tiny.items() if own[k] > 0) and tiny["refine_every"] == tb.MIN_REFINE_EVERY
+    assert tiny["reset_alpha_every"] == tb.MIN_RESET_REFINES  # densifications between two resets
+    assert tb.fit_schedules({**own, "refine_every": 4}, 600, 30000)["refine_every"] == 4  # below the floor: kept
 
 
 @pytest.mark.slow

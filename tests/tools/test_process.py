@@ -1,7 +1,9 @@
 """willags-process (willags_ns.tools.process): SfM on views of the synthetic generator, resume after Ctrl-C, the
 output read by the project's dataparser, bad inputs, and the pure helpers (pairs, split, similarity alignment)."""
 
+import dataclasses
 import itertools
+import json
 import math
 import os
 import shutil
@@ -155,6 +157,21 @@ def test_synthetic_views_register_with_accurate_poses(processed, synthetic_photo
     assert err["median_centre_error_pct"] < 5.0 and err["max_centre_error_pct"] < 10.0, err["centre_error"]
 
 
+def test_global_mapper_registers_the_views_from_the_same_database(processed, synthetic_photos, tmp_path):
+    """--mapper global (GLOMAP) on the features and matches the incremental run left: every view, accurate poses;
+    auto picks by the collection's size."""
+    cfg, _, _, _ = processed
+    _, gt = synthetic_photos
+    out = tmp_path / "global"
+    shutil.copytree(cfg.output, out)
+    summary = proc.run(dataclasses.replace(cfg, output=out, mapper="global"), log=lambda msg: None)
+    assert summary["mapper"] == "global" and summary["registered"] == NUM_VIEWS
+    err = compare_poses(proc.model_w2c(out / "colmap" / "sparse" / "0"), gt)
+    assert err["median_rotation_error_deg"] < 2.0 and err["median_centre_error_pct"] < 5.0, err
+    assert proc.chosen_mapper(dataclasses.replace(cfg, mapper="auto", global_min_images=17), NUM_VIEWS) == "incremental"
+    assert proc.chosen_mapper(dataclasses.replace(cfg, mapper="auto", global_min_images=16), NUM_VIEWS) == "global"
+
+
 def test_rerun_after_interrupt_extracts_only_the_missing_images(processed):
     _, _, first_block, second = processed
     assert sorted(second) == sorted(set(f"view_{i:02d}.png" for i in range(NUM_VIEWS)) - set(first_block))
@@ -283,6 +300,64 @@ def test_unrelated_photos_fail_with_too_few_registered(tmp_path, capsys):
     assert "feature extraction: 5/5 (100%)" in text  # the stages' progress reaches a log (not a terminal) too
     assert (tmp_path / "out" / "colmap" / "database.db").is_file()  # kept: a rerun would not extract again
     assert not (tmp_path / "out" / "images").exists()
+
+
+def test_a_huge_photo_is_capped_and_named_and_the_scene_trains_at_the_cap(tmp_path, synthetic_photos, capsys):
+    """One photo 4x larger than the others (the 8000x6000 phone photo among ordinary ones): SfM and the scene see it
+    at --max-image-size on its long side, it registers, and the summary names it; unreadable photos are listed as
+    unreadable (not as unregistered) and the wall time is words, not a dict."""
+    from willags_ns.scripts.process import main, print_summary
+
+    src, _ = synthetic_photos
+    photos = tmp_path / "photos"
+    shutil.copytree(src, photos)
+    big = "view_05.png"
+    with Image.open(photos / big) as im:
+        im.resize((im.width * 4, im.height * 4), Image.Resampling.BICUBIC).save(photos / big)
+    (photos / "broken.png").write_bytes((photos / "view_00.png").read_bytes()[:500])
+    noise = np.random.default_rng(3).uniform(0, 255, size=(60, 80, 3)).astype(np.uint8)
+    Image.fromarray(noise).resize((400, 300), Image.Resampling.BICUBIC).save(photos / "elsewhere.png")
+    out = tmp_path / "out"
+    code = main(ProcessConfig(images=photos, output=out, num_threads=1, max_image_size=400, test_every=0))
+    text = capsys.readouterr().out.replace("\n", "")
+    assert code == 0
+    summary = json.loads((out / "process_summary.json").read_text())
+    assert list(summary["resized"]) == [big] and big in text
+    assert big not in summary["unregistered"]
+    for p in (out / "images").iterdir():
+        with Image.open(p) as im:
+            assert max(im.size) <= 400
+    assert Image.open(photos / big).size == (1600, 1200)  # the user's photo is never written
+    print_summary(summary)
+    table = capsys.readouterr().out
+    assert "{" not in table  # stage times as words
+    unreg_line = next(line for line in table.splitlines() if "unregistered" in line and "unreadable" not in line)
+    assert "broken.png" not in unreg_line and "broken.png" in table
+    assert summary["unregistered_why"]["elsewhere.png"]["reason"] == "no-matches"
+    assert "broken.png" not in summary["unregistered_why"]
+    assert any("elsewhere.png" in line and "registered:" in line for line in table.splitlines())
+
+
+def test_unregistered_reasons_tell_no_matches_from_another_group_and_weak_links():
+    """Known answer on a hand-made match graph: A-B-C registered; D linked (weakly placed) to B; E-F linked only to
+    each other; G with only sub-threshold matches."""
+    from willags_ns.tools.process import MIN_LINK_INLIERS, unregistered_reasons
+
+    strong, weak = MIN_LINK_INLIERS + 40, MIN_LINK_INLIERS - 1
+    pairs = {("A", "B"): 200, ("B", "C"): 150, ("D", "B"): strong, ("E", "F"): strong, ("G", "A"): weak}
+    links: dict[str, dict[str, int]] = {}
+    for (a, b), n in pairs.items():
+        links.setdefault(a, {})[b] = n
+        links.setdefault(b, {})[a] = n
+    why = unregistered_reasons(links, {"A", "B", "C"}, ["D", "E", "F", "G", "H"])
+    assert {k: v["reason"] for k, v in why.items()} == {
+        "D": "weak",
+        "E": "other-component",
+        "F": "other-component",
+        "G": "no-matches",
+        "H": "no-matches",
+    }
+    assert "F" in why["E"]["text"] and "E" in why["F"]["text"]  # the group is named
 
 
 # --------------------------------------------------------------------------------------------------------------------

@@ -251,7 +251,8 @@ class WillagsDataParserConfig(DataParserConfig):
     load_3D_points: bool = True
     """Seed the Gaussians with the scene's points (transforms.json's ply_file_path, or the COLMAP points3D)."""
     downscale_factor: int | None = None
-    """Image downscale factor; None: nerfstudio's rule (largest side <= 1600 px, using existing images_N folders)."""
+    """Image downscale factor N: images read at 1/N of their size (COLMAP scenes: from images_N/, written from images/
+    when it is missing). None: nerfstudio's rule (largest side <= 1600 px, using existing images_N folders)."""
     scale_factor: float = 1.0
     """How much to scale the camera origins by (after auto-scaling)."""
     scene_scale: float = 1.0
@@ -287,6 +288,7 @@ class WillagsDataParser(DataParser):
     def _resolve(self) -> DataParser:
         if self._delegate is not None:
             return self._delegate
+        self.config.downscale_factor = checked_downscale_factor(self.config.downscale_factor)
         data = self.config.data
         if data is None or Path(data) == Path():
             scene_dir = ensure_default_scene(self.config.synthetic, self.config.cache_dir)
@@ -352,6 +354,11 @@ class WillagsDataParser(DataParser):
         }
 
     def _transforms_parser(self, root: Path, json_path: Path) -> DataParser:
+        factor = self.config.downscale_factor
+        small = root / f"images_{factor}"
+        if factor is not None and factor > 1 and not small.is_dir():  # nerfstudio reads images_N/<name>
+            frames = check_transforms(json_path)["frames"]
+            write_downscaled_images([root / f["file_path"] for f in frames], factor, small)
         meta = check_transforms(json_path, self.config.downscale_factor)
         self._root = root
         tsv = self._find_tsv(root)
@@ -387,8 +394,16 @@ class WillagsDataParser(DataParser):
         if not (root / images_path).is_dir() and (root / "dense" / "images").is_dir():
             images_path = Path("dense/images")
         images_dir = root / images_path
-        if self.config.downscale_factor is not None and self.config.downscale_factor > 1:
-            images_dir = images_dir.parent / f"{images_dir.name}_{self.config.downscale_factor}"
+        factor = self.config.downscale_factor
+        if factor is None and images_dir.is_dir():  # nerfstudio's rule, without its interactive question
+            factor = auto_downscale_factor(images_dir)
+            if factor > 1:
+                CONSOLE.log(f"willags-data: images read at 1/{factor} size (largest side <= {MAX_AUTO_SIDE} px)")
+        if factor is not None and factor > 1:
+            full_dir, images_dir = images_dir, images_dir.parent / f"{images_dir.name}_{factor}"
+            if not images_dir.is_dir() and full_dir.is_dir():
+                check_colmap(root, model, full_dir, self.config.load_3D_points)
+                write_downscaled_images(sorted(p for p in full_dir.iterdir() if p.is_file()), factor, images_dir)
         check_colmap(root, model, images_dir, self.config.load_3D_points)
         tsv = self._find_tsv(root)
         if tsv is not None:
@@ -402,7 +417,7 @@ class WillagsDataParser(DataParser):
             colmap_path=model.relative_to(root),
             images_path=images_path,
             load_3D_points=self.config.load_3D_points,
-            **self._common_kwargs(),
+            **{**self._common_kwargs(), "downscale_factor": factor},
             **self._split_kwargs(),
         )
         return cfg.setup()
@@ -421,7 +436,7 @@ class WillagsDataParser(DataParser):
         if split == "train" and len(outputs.image_filenames) == 0:
             raise WillagsDataError(
                 f"{self._root}: the training split has no images: check train_filenames / the *.tsv split / "
-                "--pipeline.datamanager.dataparser.eval-mode (eval-mode all trains on every image)"
+                "the dataparser's eval-mode (`ns-train ... willags-data --eval-mode all` trains on every image)"
             )
         metadata = dict(outputs.metadata)
         metadata["data_dir"] = self._root
@@ -460,6 +475,83 @@ def _select_tsv_split(outputs: DataparserOutputs, table: dict[str, str], split: 
         mask_filenames=[masks[i] for i in idx] if masks is not None else None,
         metadata=metadata,
     )
+
+
+MAX_AUTO_SIDE = 1600
+"""Without a downscale factor, images are read at 1/2**k of their size, the smallest k that brings the first image's
+largest side to at most this (nerfstudio's rule for COLMAP scenes)."""
+
+
+def auto_downscale_factor(images_dir: Path) -> int:
+    """nerfstudio's automatic downscale factor of a COLMAP scene's images (see MAX_AUTO_SIDE): the first image by
+    name decides; 1 when there is none or it cannot be read (the checks name it)."""
+    from PIL import Image
+
+    first = next(iter(sorted(p for p in images_dir.iterdir() if p.is_file())), None)
+    if first is None:
+        return 1
+    try:
+        with Image.open(first) as im:
+            side = max(im.size)
+    except OSError:
+        return 1
+    factor = 1
+    while side / factor > MAX_AUTO_SIDE:
+        factor *= 2
+    return factor
+
+
+def checked_downscale_factor(factor: float | None) -> int | None:
+    """The image downscale factor as nerfstudio's parsers need it: a whole number >= 1 (``willags-render dataset
+    --downscale-factor 2`` passes 2.0), or None. Anything else is a WillagsDataError naming the value."""
+    if factor is None:
+        return None
+    try:
+        value = float(factor)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (value >= 1 and value.is_integer()):
+        raise WillagsDataError(
+            f"downscale_factor {factor!r}: images are read at 1/factor of their size, so it must be a whole number "
+            ">= 1 (2: half the width and height)"
+        )
+    return int(value)
+
+
+def write_downscaled_images(files: list[Path], factor: int, dst: Path) -> None:
+    """Each of ``files`` at floor(w / factor) x floor(h / factor) (nerfstudio's rounding of the cameras), with PIL's
+    area filter, into ``dst`` under its own name: the ``images_N`` folder nerfstudio's parsers read for
+    ``downscale_factor N``. Written to a hidden sibling and renamed when complete; a folder that cannot be written is
+    one line."""
+    import os
+    import shutil
+
+    from PIL import Image
+
+    tmp = dst.parent / f".{dst.name}.{os.getpid()}.partial"
+    CONSOLE.log(f"willags-data: writing {dst} ({len(files)} images at 1/{factor} size) for downscale_factor {factor}")
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for f in files:
+            try:
+                with Image.open(f) as im:
+                    small = im.resize((im.width // factor, im.height // factor), resample=Image.Resampling.BOX)
+                    if f.suffix.lower() in (".jpg", ".jpeg"):
+                        small.convert("RGB").save(tmp / f.name, quality=95, subsampling=0)
+                    else:
+                        small.save(tmp / f.name)
+            except OSError as e:
+                if isinstance(e, PermissionError) or e.errno is not None:
+                    raise
+                shutil.copy2(f, tmp / f.name)  # not an image (a stray file): kept as it is, as the checks see it
+        os.rename(tmp, dst)
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise WillagsDataError(
+            f"cannot write the downscaled images {dst} ({e.strerror or e}): make {dst.parent} writable, or run "
+            f"willags-process with --num-downscales to write them"
+        ) from None
 
 
 def check_transforms(json_path: Path, downscale_factor: int | None = None) -> dict[str, Any]:
@@ -566,6 +658,88 @@ def check_colmap(root: Path, model: Path, images_dir: Path, need_points: bool) -
         )
     if need_points and not ((model / "points3D.bin").is_file() or (model / "points3D.txt").is_file()):
         raise WillagsDataError(f"{model} has no points3D.bin/.txt (pass --load-3D-points False to start from random)")
+
+
+SCENE_RECORD = "scene_cameras.pt"
+"""Beside a run's config.yml: its scene without the photos (cameras, image names, scene box, whether it had SfM
+keypoints), written when training starts, so that commands that need only the trained model (willags-export,
+renders of trajectories) work when the photos have moved."""
+
+
+def scene_record(train: DataparserOutputs, test: DataparserOutputs | None, has_keypoints: bool) -> dict[str, Any]:
+    """What :class:`SavedSceneDataParser` rebuilds a scene from: tensors, strings and flags only (loads with
+    ``torch.load(weights_only=True)``)."""
+
+    def split(outputs: DataparserOutputs) -> dict[str, Any]:
+        c = outputs.cameras
+        out = {
+            "names": [str(p) for p in outputs.image_filenames],
+            "camera_to_worlds": c.camera_to_worlds.detach().cpu(),
+            "fx": c.fx.cpu(),
+            "fy": c.fy.cpu(),
+            "cx": c.cx.cpu(),
+            "cy": c.cy.cpu(),
+            "width": c.width.cpu(),
+            "height": c.height.cpu(),
+            "camera_type": c.camera_type.cpu(),
+        }
+        if c.distortion_params is not None:
+            out["distortion_params"] = c.distortion_params.cpu()
+        return out
+
+    return {
+        "train": split(train),
+        "test": split(test) if test is not None else None,
+        "scene_box": train.scene_box.aabb.cpu(),
+        "dataparser_transform": train.dataparser_transform.cpu(),
+        "dataparser_scale": float(train.dataparser_scale),
+        "has_keypoints": bool(has_keypoints),
+    }
+
+
+@dataclass
+class SavedSceneDataParserConfig(DataParserConfig):
+    """A run's scene rebuilt from its SCENE_RECORD, without the photos: for loading a trained model whose scene
+    folder is gone (willags-export, trajectory renders). Images are never read through it."""
+
+    _target: type = field(default_factory=lambda: SavedSceneDataParser)
+    record: Path = Path(SCENE_RECORD)
+    """The run's scene_cameras.pt."""
+    data: Path | None = None  # pyright: ignore[reportIncompatibleVariableOverride]
+    """Where the photos were (kept for messages; it does not exist)."""
+
+
+class SavedSceneDataParser(DataParser):
+    config: SavedSceneDataParserConfig  # pyright: ignore[reportIncompatibleVariableOverride]
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs: Any) -> DataparserOutputs:
+        from nerfstudio.cameras.cameras import Cameras
+        from nerfstudio.data.scene_box import SceneBox
+
+        rec = torch.load(self.config.record, map_location="cpu")
+        part = rec["train"] if split == "train" or rec.get("test") is None else rec["test"]
+        cams = Cameras(
+            camera_to_worlds=part["camera_to_worlds"],
+            fx=part["fx"],
+            fy=part["fy"],
+            cx=part["cx"],
+            cy=part["cy"],
+            width=part["width"],
+            height=part["height"],
+            camera_type=part["camera_type"],
+            distortion_params=part.get("distortion_params"),
+        )
+        metadata: dict[str, Any] = {}
+        if rec["has_keypoints"] and split == "train":  # the model's sky follows whether there were keypoints
+            metadata[SFM_OBSERVATIONS_KEY] = [np.zeros((0, 3), np.float32) for _ in part["names"]]
+        return DataparserOutputs(
+            image_filenames=[Path(n) for n in part["names"]],
+            cameras=cams,
+            scene_box=SceneBox(aabb=rec["scene_box"]),
+            dataparser_transform=rec["dataparser_transform"],
+            dataparser_scale=rec["dataparser_scale"],
+            metadata=metadata,
+        )
 
 
 willags_dataparser = DataParserSpecification(

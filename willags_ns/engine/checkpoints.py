@@ -369,11 +369,72 @@ def load_file(path: Path, map_location: str = "cpu") -> dict:
     return _read_or_point_elsewhere(path, others, map_location)
 
 
+def eval_setup_run() -> tuple[Path, Any] | None:
+    """(config.yml path, its TrainerConfig) of the nerfstudio ``eval_setup`` call running on this thread's stack, or
+    None outside one. ``eval_setup`` reads config.yml itself and keeps its path to itself; the run's folder is that
+    path's directory."""
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_code.co_name == "eval_setup" and frame.f_globals.get("__name__") == "nerfstudio.utils.eval_utils":
+            path, config = frame.f_locals.get("config_path"), frame.f_locals.get("config")
+            if path is not None and config is not None:
+                return Path(path), config
+        frame = frame.f_back
+    return None
+
+
+def run_root(config, config_path: Path) -> Path | None:
+    """The directory a run's relative paths (its ``output_dir``, its ``--data``) were relative to: ``config_path``'s
+    directory less the stored ``output_dir/experiment/method/timestamp`` parts, when config.yml still sits under
+    them (a run used in place or a copied ``outputs`` tree); None otherwise (a run folder moved on its own)."""
+    stored = Path(config.get_base_dir())
+    if stored.is_absolute():
+        return None
+    here = Path(config_path).resolve().parent
+    parts = stored.parts
+    if len(here.parts) <= len(parts) or here.parts[-len(parts) :] != parts:
+        return None
+    return here.parents[len(parts) - 1]
+
+
+def resolve_run_paths(config, config_path: Path) -> None:
+    """Point a loaded run's paths at the run whose config.yml is ``config_path``, whatever the working directory:
+
+    - checkpoints: always ``nerfstudio_models/`` beside config.yml (``load_dir``). The stored path is relative to the
+      directory training ran in; from elsewhere it names nothing, or another run (the original of a copied run);
+    - ``output_dir``: the folder under which config.yml sits, so files nerfstudio writes into the run folder
+      (the viewer's log) land there;
+    - the scene (``--data``), when stored relative and not found from the working directory: relative to the
+      directory training ran in (:func:`run_root`)."""
+    here = Path(config_path).resolve().parent
+    config.load_dir = here / config.relative_model_dir
+    root = run_root(config, config_path)
+    if root is not None:
+        config.output_dir = root / config.output_dir
+    dm = config.pipeline.datamanager
+    for owner in (dm, getattr(dm, "dataparser", None)):
+        data = getattr(owner, "data", None)
+        if data is None or Path(data) == Path() or Path(data).is_absolute() or Path(data).exists():
+            continue
+        if root is not None and (root / data).exists():
+            owner.data = root / data
+
+
 def eval_load_checkpoint(config, pipeline) -> tuple[Path, int]:
     """nerfstudio's ``eval_utils.eval_load_checkpoint`` (ns-eval, ns-render, ns-viewer, ns-export and willags'
-    commands), reading with :func:`load_latest`: the newest readable checkpoint, a damaged one named."""
+    commands), reading with :func:`load_latest`: the newest readable checkpoint, a damaged one named. Inside
+    ``eval_setup`` the checkpoints are those beside the config.yml it was given (:func:`resolve_run_paths`), never the
+    directory its stored, relative paths name from the working directory."""
     from nerfstudio.utils.rich_utils import CONSOLE
 
+    run = eval_setup_run()
+    if run is not None and run[1] is config:
+        resolve_run_paths(config, run[0])
+        if not Path(config.load_dir).is_dir():
+            raise CheckpointError(
+                f"no checkpoint directory {config.load_dir} beside {run[0]}: a run's checkpoints are loaded from "
+                f"{config.relative_model_dir}/ in the folder of its config.yml; copy that folder with it"
+            )
     if config.load_dir is None:
         raise CheckpointError("the run's config names no checkpoint directory (load_dir)")
     path, state = load_latest(config.load_dir, config.load_step)

@@ -199,7 +199,7 @@ def check_num_train_images(n: int) -> list[str]:
     if n <= 0:
         raise WillagsInputError(
             "the training split has no images: check the dataset's train_filenames / *.tsv split / eval_mode "
-            "(e.g. --pipeline.datamanager.dataparser.eval-mode all puts every image in training)"
+            "(e.g. `ns-train ... willags-data --eval-mode all` puts every image in training)"
         )
     if n == 1:
         return [
@@ -227,9 +227,12 @@ def validate_dataparser_outputs(outputs, check_files: bool = True, device: str |
     points = outputs.metadata.get("points3D_xyz")
     check_scene_scale(cams.camera_to_worlds[:, :3, 3], points)
     if device is not None and str(device).startswith("cpu"):
-        i = int((cams.width.reshape(-1) * cams.height.reshape(-1)).argmax())
+        pixels = cams.width.reshape(-1) * cams.height.reshape(-1)
+        i = int(pixels.argmax())
         n_points = int(points.shape[0]) if points is not None else 0
-        check_train_memory(n_points, int(cams.width.reshape(-1)[i]), int(cams.height.reshape(-1)[i]))
+        largest = [names[k] for k in (pixels == pixels[i]).nonzero().reshape(-1).tolist() if k < len(names)]
+        w, h = int(cams.width.reshape(-1)[i]), int(cams.height.reshape(-1)[i])
+        check_train_memory(n_points, w, h, names=largest)
     if check_files:
         sizes = [(int(w), int(h)) for w, h in zip(cams.width.reshape(-1), cams.height.reshape(-1), strict=True)]
         if len(sizes) == 1 and len(files) > 1:
@@ -270,18 +273,77 @@ def estimate_train_step_bytes(num_gaussians: int, width: int, height: int) -> in
     return BYTES_PER_PIXEL * int(width) * int(height) + BYTES_PER_GAUSSIAN * int(num_gaussians)
 
 
-def check_train_memory(num_gaussians: int, width: int, height: int, available: int | None = None) -> None:
+MAX_SUGGESTED_DOWNSCALE = 16
+"""The largest downscale factor the memory error suggests; beyond it, only a GPU or smaller photos."""
+
+
+def downscale_command(argv: Sequence[str], factor: int) -> str:
+    """The ``ns-train`` command line ``argv`` reading its images at 1/``factor`` size: ``--downscale-factor`` is an
+    option of the dataparser subcommand, so it goes after ``willags-data`` (appended when the line names no
+    dataparser; replaced when it names one already). Another command line (a script): the words to add."""
+    import shlex
+
+    option = ["--downscale-factor", str(int(factor))]
+    exe = Path(argv[0]).as_posix() if argv else ""
+    if not (Path(exe).name == "ns-train" or exe.endswith("nerfstudio/scripts/train.py")):
+        return "ns-train ... " + shlex.join(["willags-data", *option]) + " (after the run's other options)"
+    args = list(argv[1:])
+    kept: list[str] = []
+    i = 0
+    while i < len(args):
+        name = args[i].split("=", 1)[0].replace("_", "-")
+        if name == "--downscale-factor":
+            i += 1 if "=" in args[i] else 2
+            continue
+        kept.append(args[i])
+        i += 1
+    parsers = {"willags-data", "colmap", "nerfstudio-data"}
+    at = next((k + 1 for k, a in enumerate(kept) if a in parsers), None)
+    if at is None:
+        kept += ["willags-data", *option]
+    else:
+        kept[at:at] = option
+    return shlex.join(["ns-train", *kept])
+
+
+def check_train_memory(
+    num_gaussians: int,
+    width: int,
+    height: int,
+    available: int | None = None,
+    names: Sequence[str] = (),
+    argv: Sequence[str] | None = None,
+) -> None:
     """Raise WillagsInputError when a CPU training step on a ``width`` x ``height`` image would not fit in
-    ``available`` bytes (default: the host's MemAvailable) by :func:`estimate_train_step_bytes`."""
+    ``available`` bytes (default: the host's MemAvailable) by :func:`estimate_train_step_bytes`. The message names
+    the photos of that size (``names``) and gives the command (``argv``, default ``sys.argv``) with the smallest
+    power-of-two downscale factor that fits."""
     need = estimate_train_step_bytes(num_gaussians, width, height)
     if available is None:
         available = available_memory_bytes()
-    if available is not None and need > available:
-        raise WillagsInputError(
-            f"training on a {width}x{height} image needs about {need / 2**30:.1f} GiB of memory on the CPU but "
-            f"{available / 2**30:.1f} GiB is free: downscale the images (--pipeline.datamanager.dataparser."
-            "downscale-factor 2 or 4, or images_N folders) or train on a GPU"
-        )
+    if available is None or need <= available:
+        return
+    factor = 2
+    while (
+        factor < MAX_SUGGESTED_DOWNSCALE
+        and estimate_train_step_bytes(num_gaussians, width // factor, height // factor) > available
+    ):
+        factor *= 2
+    which = ""
+    if names:
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        which = f" ({shown})"
+    fits = estimate_train_step_bytes(num_gaussians, width // factor, height // factor) <= available
+    fix = (
+        f"read the images at 1/{factor} size: {downscale_command(sys.argv if argv is None else argv, factor)}; or "
+        if fits
+        else ""
+    )
+    raise WillagsInputError(
+        f"training on a {width}x{height} image{which} needs about {need / 2**30:.1f} GiB of memory on the CPU but "
+        f"{available / 2**30:.1f} GiB is free: {fix}make the photos smaller (willags-process --max-image-size, or "
+        "remove the large ones), or train on a GPU"
+    )
 
 
 NEAR_PLANE = 0.01
@@ -340,6 +402,9 @@ def _excepthook(prev):
         if isinstance(exc, (WillagsDataError, WillagsTrainingError, WillagsIOError)):
             print(f"\nwillags: {exc}", file=sys.stderr)
             return
+        if isinstance(exc, KeyboardInterrupt):  # Ctrl-C in a command that waits (ns-viewer): stopped, as asked
+            print("\nwillags: stopped (Ctrl-C)", file=sys.stderr)
+            return
         prev(exc_type, exc, tb)
 
     hook.willags = True  # type: ignore[attr-defined]
@@ -348,7 +413,7 @@ def _excepthook(prev):
 
 def install_cli_excepthook() -> None:
     """Make an uncaught WillagsDataError / WillagsTrainingError / WillagsIOError print ``willags: <message>`` (exit
-    status 1) instead of a 30-frame traceback through nerfstudio. Only these classes; every other error keeps
-    Python's traceback. Idempotent."""
+    status 1) instead of a 30-frame traceback through nerfstudio, and a Ctrl-C that nothing caught (ns-viewer waits
+    in a loop until it comes) one line. Only these; every other error keeps Python's traceback. Idempotent."""
     if not getattr(sys.excepthook, "willags", False):
         sys.excepthook = _excepthook(sys.excepthook)

@@ -90,3 +90,38 @@ def register_config_yml_classes(loader: type) -> None:
 
         loader.add_constructor(f"tag:yaml.org,2002:python/object:{old}", construct_object)
         loader.add_constructor(f"tag:yaml.org,2002:python/name:{old}", construct_name)
+
+
+LIBRARY_NOISE = (
+    (FutureWarning, r"`torch\.cuda\.amp\.(GradScaler|custom_fwd|custom_bwd)\(args\.\.\.\)` is deprecated"),
+    (UserWarning, r"Converting a tensor with requires_grad=True to a scalar"),
+)
+"""(category, message pattern) of warnings nerfstudio 1.1.5's own calls raise under current torch on every run: the
+deprecated torch.cuda.amp spellings in its trainer and field components, and its tensorboard writer's float() of a
+loss. Nothing a user can change; hidden from the terminal."""
+
+
+def silence_library_noise() -> None:
+    """Ignore the warnings of LIBRARY_NOISE (only those messages; every other warning still shows)."""
+    import warnings
+
+    for category, pattern in LIBRARY_NOISE:
+        warnings.filterwarnings("ignore", message=pattern, category=category)
+
+
+def one_line_own_warnings() -> None:
+    """Python prints a warning as ``file:line: Category: message`` plus the source line; willags' own warnings (their
+    message starts with ``willags:``) print as the message alone, one line. Others are left as they are."""
+    import warnings
+
+    if getattr(warnings.formatwarning, "willags", False):
+        return
+    previous = warnings.formatwarning
+
+    def formatwarning(message, category, filename, lineno, line=None):
+        if str(message).startswith("willags:"):
+            return f"{message}\n"
+        return previous(message, category, filename, lineno, line)
+
+    formatwarning.willags = True  # type: ignore[attr-defined]
+    warnings.formatwarning = formatwarning

@@ -44,7 +44,8 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.data.consistency import foreign_photo_warnings
-from willags_ns.engine.checkpoints import install_eval_loader
+from willags_ns.data.dataparser import SCENE_RECORD, WillagsDataError
+from willags_ns.engine.checkpoints import eval_setup_run, install_eval_loader, resolve_run_paths
 from willags_ns.engine.checks import (
     check_gaussians_alive,
     install_cli_excepthook,
@@ -144,6 +145,37 @@ def precheck_dataparser_config(datamanager_config) -> None:
             check_colmap(data, model, data / dp.images_path, need_points=False)
 
 
+def use_saved_scene_without_photos(datamanager_config, record: Path) -> bool:
+    """When a saved run's scene folder is gone and the run kept its cameras (``record``, written when training
+    started), read the scene from the record instead: loading the trained model needs the cameras, not the photos
+    (willags-export, trajectory renders). Returns whether it did; commands that read photos (ns-eval, dataset
+    renders) then name the missing files."""
+    from willags_ns.data.dataparser import SavedSceneDataParserConfig
+
+    dp = datamanager_config.dataparser
+    data = datamanager_config.data if datamanager_config.data is not None else getattr(dp, "data", None)
+    if data is None or Path(data) == Path() or Path(data).expanduser().exists() or not record.is_file():
+        return False
+    datamanager_config.dataparser = SavedSceneDataParserConfig(record=record, data=Path(data))
+    datamanager_config.data = None
+    CONSOLE.log(f"willags: the scene {data} does not exist; using the cameras saved with the run ({record.name})")
+    return True
+
+
+def write_scene_record(datamanager, path: Path) -> None:
+    """The run's scene without its photos (willags_ns.data.dataparser.scene_record), beside config.yml."""
+    from willags_ns.data.dataparser import scene_record
+    from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
+    from willags_ns.engine.checkpoints import save_atomic
+
+    train = datamanager.train_dataparser_outputs
+    try:
+        test = datamanager.dataparser.get_dataparser_outputs(split="test")
+    except Exception:  # noqa: BLE001 - a scene without a test split: the record holds the training cameras only
+        test = None
+    save_atomic(scene_record(train, test, SFM_OBSERVATIONS_KEY in train.metadata), path)
+
+
 class InterruptCheckpoint:
     """SIGINT -> finish the step, checkpoint, exit 130.
 
@@ -241,6 +273,11 @@ class WillagsPipeline(VanillaPipeline):
             # Gaussians; gradients are averaged by hand before each optimiser step (willags_ns/engine/distributed.py)
             setup_kwargs["world_size"] = 1
         checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
+        run = eval_setup_run()
+        if run is not None and run[1].pipeline is config:  # a saved run: its paths beside its config.yml
+            resolve_run_paths(run[1], run[0])
+            if test_mode != "val":
+                use_saved_scene_without_photos(config.datamanager, Path(run[0]).parent / SCENE_RECORD)
         if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default
             guard_viewer_host()
         if checking:
@@ -343,6 +380,9 @@ class WillagsPipeline(VanillaPipeline):
             )
         if self.auto_config_summary is not None and trainer is not None:
             cbs.append(self._record_auto_config(trainer))
+        if trainer is not None and comms.is_main_process():
+            Path(trainer.base_dir).mkdir(parents=True, exist_ok=True)
+            write_scene_record(self.datamanager, Path(trainer.base_dir) / SCENE_RECORD)
         optimizers = training_callback_attributes.optimizers
         profile = self.step_profile
         if profile is not None and trainer is not None:
@@ -508,6 +548,13 @@ class WillagsPipeline(VanillaPipeline):
         latent without optimisation; `full_*` score the whole image.
         """
         ds = self.datamanager.eval_dataset
+        missing = [Path(p) for p in ds.image_filenames if not Path(p).is_file()]
+        if missing:
+            raise WillagsDataError(
+                f"ns-eval scores the test photos, and {len(missing)} of them do not exist (first: {missing[0]}): "
+                "put the scene back where it was trained, or pass its new folder (ns-eval reads the data path from "
+                "config.yml: edit 'data' there)"
+            )
         images = eval_split_images(self.datamanager)
         names = [Path(p).name for p in ds.image_filenames]
         self.eval()

@@ -71,6 +71,13 @@ REPLAN_EVERY = 200
 """After the first plan, the step time is measured again over each span of this many steps and the plan redone."""
 REPRINT_CHANGE = 0.05
 """A re-plan is printed when it moves the last step by more than this fraction (the schedules follow every re-plan)."""
+EARLY_SHARE = 0.05
+"""Slow steps (one device): the measurement starts once this share of the budget has passed, even before
+WARMUP_STEPS, and the first plan comes after another such share (and at least EARLY_MIN_STEPS steps), even before
+WINDOW_STEPS: a run whose 70 steps would take half its budget replaces the table's step time by its own after about
+two such shares (a 180 s budget of 4.5 s steps: at 27 s, after 6 steps)."""
+EARLY_MIN_STEPS = 3
+"""Fewest steps a measurement spans (and fewest steps before it starts)."""
 AGREE_EVERY = 50
 """Several devices: steps between two readings of the clock against the budget (each one an exchange of the elapsed
 time between the ranks, so that they stop after the same step), besides the readings of the plans."""
@@ -382,6 +389,50 @@ def end_schedules_at(
             sched.warmup_steps = own if own < end_step else int(end_step) // 10
 
 
+STEP_SCHEDULES = (
+    "warmup_length",
+    "refine_every",
+    "stop_split_at",
+    "stop_screen_size_at",
+    "reset_alpha_every",
+    "sh_degree_interval",
+    "mask.warmup_steps",
+    "mask.ramp_steps",
+)
+"""The model's schedules counted in steps (dotted: under pipeline.model) that :func:`fit_schedules` fits into a run
+shorter than its preset's. reset_alpha_every counts refinements, the others steps. The resolution schedule is not
+among them: each doubling makes a step four times dearer, and the plan is re-measured at the resolution trained."""
+MIN_REFINE_EVERY = 10
+"""Fewest steps between two densifications in a fitted schedule (each one judges the gradients gathered since the
+last)."""
+MIN_RESET_REFINES = 3
+"""Fewest densifications between two opacity resets in a fitted schedule: a reset at every densification would
+leave none outside the pause that follows each reset."""
+
+
+def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> dict[str, int]:
+    """The step schedules ``own`` (STEP_SCHEDULES -> value, for a run of ``preset_steps``) fitted into a run of
+    ``run_steps``: each keeps its share of the run (scaled by r = run_steps / preset_steps, never above 1), so that a
+    short budget still densifies, resets opacities, raises the SH degree and warms up the mask within it.
+    refine_every is at least MIN_REFINE_EVERY (or its own value when smaller); the opacity reset keeps its period in
+    steps (reset_alpha_every x refine_every x r), counted in the fitted refinements and at least MIN_RESET_REFINES of
+    them; a schedule at 0 (off) stays 0.
+
+    willags (30000 steps: warm-up 500, refine every 100, split until 15000, reset every 30 refinements) in 600 steps:
+    warm-up 10, refine every 10, split until 300, reset every 6 refinements (60 steps)."""
+    r = min(1.0, max(0, int(run_steps)) / max(1, int(preset_steps)))
+    if r >= 1.0:
+        return dict(own)
+    out = {k: (max(1, round(v * r)) if v > 0 else int(v)) for k, v in own.items()}
+    refine = own.get("refine_every", 0)
+    if refine > 0:
+        out["refine_every"] = max(min(refine, MIN_REFINE_EVERY), round(refine * r))
+        if own.get("reset_alpha_every", 0) > 0:
+            scaled = round(own["reset_alpha_every"] * refine * r / out["refine_every"])
+            out["reset_alpha_every"] = max(min(own["reset_alpha_every"], MIN_RESET_REFINES), scaled)
+    return out
+
+
 def agreed_max(values: list[float]) -> list[float]:
     """The element-wise maximum of `values` over the ranks of the initialised process group (every rank calls it at
     the same step with as many values); the values themselves without a group of several ranks."""
@@ -430,6 +481,8 @@ class TimeBudget:
     window_steps: int = WINDOW_STEPS
     replan_every: int = REPLAN_EVERY
     agree_every: int = AGREE_EVERY
+    early_share: float = EARLY_SHARE
+    """See EARLY_SHARE; 0 measures only at the step counts."""
     t0: float | None = None
     end_step: int | None = None
     """Planned end (exclusive step index): training stops after step end_step - 1. None until measured."""
@@ -462,10 +515,16 @@ class TimeBudget:
         assert t0 is not None
         done = step - self.start_step + 1  # steps trained in this run
         due = (
-            done == self.warmup_steps
+            (self._mark is None and done == self.warmup_steps)
             or (self.end_step is None and done == self.warmup_steps + self.window_steps)
             or (self.end_step is not None and self._mark is not None and done - self._mark[0] >= self.replan_every)
         )
+        if not due and self.agree is None and self.end_step is None and self.early_share > 0:  # slow steps
+            early = self.early_share * self.budget_s
+            if self._mark is None:
+                due = done >= EARLY_MIN_STEPS and self.clock() - t0 >= early
+            else:
+                due = done - self._mark[0] >= EARLY_MIN_STEPS and self.clock() - self._mark[1] >= early
         # with several ranks the clock is held against the budget only where the ranks exchange it
         read = self.agree is None or due or done % self.agree_every == 0
         now = self._now() if due else self.clock()

@@ -66,11 +66,36 @@ BUDGET_FILE = "time_budget.json"
 """Written next to config.yml: the choice, the table point, every plan and where training stopped."""
 
 
+_SAVE_AFTER_SETUP: set[int] = set()
+"""ids of configs whose ns-train start printed one line instead of the whole configuration: config.yml is written
+once the scene has been read (WillagsTrainer.setup), so a run that never starts leaves no run folder."""
+
+
 @dataclass
 class WillagsTrainerConfig(TrainerConfig):
-    """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py)."""
+    """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py).
+
+    At ns-train's start the configuration (some 350 lines) is not printed: one line says where config.yml will hold
+    it, and config.yml is written after the scene has been read, so a bad --data leaves no run folder behind."""
 
     _target: type = field(default_factory=lambda: WillagsTrainer)
+
+    def print_to_terminal(self) -> None:
+        _SAVE_AFTER_SETUP.add(id(self))
+        CONSOLE.print(
+            f"willags: training {self.method_name}; every setting is written to {self.get_base_dir() / 'config.yml'} "
+            "once the scene has been read (ns-train willags --help explains each)",
+            soft_wrap=True,
+            markup=False,
+            highlight=False,
+        )
+
+    def save_config(self) -> None:
+        if id(self) in _SAVE_AFTER_SETUP:  # ns-train's save right after print_to_terminal: WillagsTrainer.setup saves
+            _SAVE_AFTER_SETUP.discard(id(self))
+            return
+        super().save_config()
+
     save_every_minutes: float = 5.0
     """Also write a checkpoint once this many minutes of wall time have passed since the last one (0: only every
     steps_per_save steps), so a killed run loses at most this much work. Saves are atomic and, with
@@ -196,8 +221,10 @@ class WillagsTrainer(Trainer):
                 },  # NaN step time -> null
                 "notes": notes,
             }
-            if self.local_rank == 0:
-                self.config.save_config()  # config.yml: the preset and steps that will train, not the invoked ones
+        # config.yml once the scene is read and the model built (a bad --data leaves no run folder), before the
+        # viewer writes into the run folder: the resolved settings (the time budget's preset and steps), not the
+        # invoked ones (setup_optimizers runs between the two in nerfstudio's setup)
+        self._save_config_when_built = self.local_rank == 0 and test_mode == "val"
         super().setup(test_mode)
         if choice is not None and minutes is not None:
             if replaced is not None:
@@ -209,6 +236,13 @@ class WillagsTrainer(Trainer):
         # timer, so that the first timed save comes save_every_minutes after training starts
         self._save_timer = SaveTimer(self.config.save_every_minutes * 60.0, clock=self.clock)
         self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._save_if_due))
+
+    def setup_optimizers(self):
+        optimizers = super().setup_optimizers()
+        if getattr(self, "_save_config_when_built", False):
+            self._save_config_when_built = False
+            self.config.save_config()
+        return optimizers
 
     # ---- checkpoints
 
@@ -358,8 +392,13 @@ class WillagsTrainer(Trainer):
         optimizers = self.config.optimizers  # the schedulers read these configs at every step
         warmups = self._warmups
 
+        fit = self._schedule_fitter(choice.max_steps)
+
         def on_plan(end_step: int) -> None:
             end_schedules_at(optimizers, end_step, warmups)
+            fit(end_step - start)
+            # progress and ETA count against the planned end, not the cap (nerfstudio's step table reads max_iter)
+            writer.GLOBAL_BUFFER["max_iter"] = end_step
 
         on_plan(start + choice.steps)
         cuda = str(self.device).startswith("cuda") and torch.cuda.is_available()
@@ -388,6 +427,46 @@ class WillagsTrainer(Trainer):
         ]
         self.time_budget = budget
         self._write_budget_record()
+
+    def _schedule_fitter(self, preset_steps: int) -> Callable[[int], None]:
+        """A function of the run's planned steps that fits the model's step schedules into them
+        (time_budget.fit_schedules, from the values the run started with): the config (what config.yml says and
+        what the model reads at each step) and gsplat's densification strategy, which copied them when it was built."""
+        model = self.pipeline.model
+        cfg = model.config
+
+        def get(name: str) -> Any:
+            target = cfg
+            for part in name.split("."):
+                target = getattr(target, part, None)
+            return target
+
+        own = {k: int(v) for k in time_budget.STEP_SCHEDULES if isinstance(v := get(k), int) and not isinstance(v, bool)}
+        strategy = getattr(model, "strategy", None)
+        base_pause = getattr(strategy, "pause_refine_after_reset", None)
+
+        def fit(run_steps: int) -> None:
+            values = time_budget.fit_schedules(own, run_steps, preset_steps)
+            for name, value in values.items():
+                *parents, last = name.split(".")
+                target = cfg
+                for part in parents:
+                    target = getattr(target, part)
+                setattr(target, last, value)
+            if strategy is not None and hasattr(strategy, "refine_start_iter"):
+                strategy.refine_start_iter = values.get("warmup_length", strategy.refine_start_iter)
+                strategy.refine_stop_iter = values.get("stop_split_at", strategy.refine_stop_iter)
+                strategy.refine_scale2d_stop_iter = values.get("stop_screen_size_at", strategy.refine_scale2d_stop_iter)
+                if "refine_every" in values:
+                    strategy.refine_every = values["refine_every"]
+                    strategy.reset_every = values.get("reset_alpha_every", 0) * values["refine_every"]
+                    if base_pause is not None:  # an epoch after each reset; in a shorter run, one refinement
+                        pause = base_pause - own["refine_every"] + values["refine_every"]
+                        if values != own:
+                            pause = min(pause, values["refine_every"])
+                        strategy.pause_refine_after_reset = pause
+
+        return fit
 
     def _after_train(self) -> None:
         # the loop set self.step to the step it broke before (never trained): checkpoint the last trained one

@@ -21,7 +21,8 @@ def make_lpips(device) -> tuple[torch.nn.Module | None, str]:
 
         return LearnedPerceptualImagePatchSimilarity(normalize=True).to(device), "torchmetrics alexnet"
     CONSOLE.log(
-        f"willags: LPIPS unavailable (no AlexNet weights in {torch.hub.get_dir()}/checkpoints; "
-        "offline): reporting PSNR and SSIM only"
+        f"willags: reporting PSNR and SSIM only: LPIPS needs AlexNet's ImageNet weights in "
+        f"{torch.hub.get_dir()}/checkpoints, which willags never downloads itself; to add LPIPS, run once with "
+        "internet: python -c \"import torchvision; torchvision.models.alexnet(weights='DEFAULT')\""
     )
     return None, "unavailable"

@@ -247,10 +247,10 @@ def _warn_fallback(looked_in: Sequence[str], source: str) -> None:
         what = "seeded VGG16 features requested instead of the ImageNet weights"
     msg = (
         f"willags: {what}; using {source} (a seeded, calibrated random VGG16) "
-        "-- perceptual mask quality differs from the paper"
+        "-- perceptual mask quality differs from the paper; to get the weights, run once with internet: "
+        "python -c \"import torchvision; torchvision.models.vgg16(weights='IMAGENET1K_V1')\""
     )
-    logger.warning(msg)
-    warnings.warn(msg, RuntimeWarning, stacklevel=3)
+    warnings.warn(msg, RuntimeWarning, stacklevel=3)  # one line on the terminal (_compat.one_line_own_warnings)
 
 
 def hub_weights_file() -> Path:

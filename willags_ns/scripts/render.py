@@ -17,6 +17,7 @@ and the path they wrote; frame progress is a bar on a terminal and a line every 
 
 import contextlib
 import dataclasses
+import shutil
 from typing import Annotated, Any, Union
 
 import torch
@@ -86,6 +87,7 @@ def with_appearance_options(cls: type, module: Any = ns_render) -> type:
             parse_spec(_spec_text(self), "--appearance")
         except AppearanceSpecError as e:
             raise SystemExit(f"error: {e}") from None
+        check_render_options(self, module)  # before the checkpoint is loaded too
         with appearance_hooks(self, module) as state:
             cls.main(self)
         out = written_path(self)
@@ -97,6 +99,52 @@ def with_appearance_options(cls: type, module: Any = ns_render) -> type:
     sub.__doc__ = cls.__doc__
     sub.__module__ = __name__
     return sub
+
+
+FFMPEG_HELP = (
+    "add --output-format images to write the frames as image files, or install ffmpeg (Debian/Ubuntu: "
+    "sudo apt install ffmpeg; macOS: brew install ffmpeg; conda: conda install -c conda-forge ffmpeg)"
+)
+"""The way out when a video is asked for and ffmpeg is missing."""
+
+
+def writes_video(opts: Any) -> bool:
+    """Whether a render command writes a video (and so needs ffmpeg): every trajectory render unless
+    ``--output-format images``; the dataset render writes image files."""
+    if isinstance(opts, ns_render.DatasetRender) or not hasattr(opts, "output_format"):
+        return False
+    return opts.output_format == "video"
+
+
+def check_render_options(opts: Any, module: Any = ns_render) -> None:
+    """Options that would fail or mislead only after the checkpoint is loaded, refused before it with one line:
+    a video without ffmpeg on the PATH, and a ``--downscale-factor`` below 1 (nerfstudio renders at 1 / factor of
+    the training size, so 0.5 would render at twice it)."""
+    if module is not ns_render:
+        return
+    factor = getattr(opts, "downscale_factor", None)
+    if factor is not None and not (factor >= 1):
+        raise SystemExit(
+            f"error: --downscale-factor {factor:g}: renders are 1/factor of the training size, so the factor must be "
+            ">= 1 (1: the training size, 2: half of it)"
+        )
+    if writes_video(opts) and shutil.which("ffmpeg") is None:
+        raise SystemExit(f"error: writing a video needs ffmpeg, which is not on the PATH: {FFMPEG_HELP}")
+
+
+def distinct_frames(cameras):
+    """The cameras of a path without repeats of the previous frame. nerfstudio's interpolated path ends each
+    transition at the camera the next one starts from, so every training camera but the ends appears twice in a
+    row, as two identical frames."""
+    if cameras.size < 2:
+        return cameras
+    c2w = cameras.camera_to_worlds.reshape(cameras.size, -1)
+    intr = torch.stack([cameras.fx.reshape(-1), cameras.fy.reshape(-1), cameras.cx.reshape(-1), cameras.cy.reshape(-1)])
+    same = (c2w[1:] == c2w[:-1]).all(dim=1) & (intr[:, 1:] == intr[:, :-1]).all(dim=0)
+    keep = torch.cat([torch.ones(1, dtype=torch.bool), ~same])
+    if bool(keep.all()):
+        return cameras
+    return cameras[torch.nonzero(keep).reshape(-1)]
 
 
 def _spec_text(opts) -> str:
@@ -227,6 +275,10 @@ def appearance_hooks(opts: Any, module: Any = ns_render):
         return out
 
     def render_trajectory_video(pipeline, cameras, *args, **kwargs):
+        if isinstance(opts, ns_render.RenderInterpolated):
+            cameras = distinct_frames(cameras)
+            if "seconds" in kwargs:  # the video's length follows its frames
+                kwargs["seconds"] = int(cameras.size) / opts.frame_rate
         spec = state.get("sweep")
         if spec is not None:
             try:
@@ -246,6 +298,16 @@ def appearance_hooks(opts: Any, module: Any = ns_render):
         return Progress(*columns, label=f"{_command(module)}: frames", **kwargs)
 
     orig_progress = getattr(module, "Progress", None)
+    orig_panel = getattr(module, "Panel", None)
+
+    def panel(*args, title=None, **kwargs):  # nerfstudio's dataset banner leaves its split as "{}"
+        if isinstance(title, str) and "{}" in title:
+            title = title.replace("{}", str(getattr(opts, "split", "")))
+        assert orig_panel is not None
+        return orig_panel(*args, title=title, **kwargs)
+
+    if orig_panel is not None and isinstance(opts, ns_render.DatasetRender):
+        module.Panel = panel
     module.eval_setup = eval_setup
     if orig_video is not None:
         module._render_trajectory_video = render_trajectory_video
@@ -260,6 +322,8 @@ def appearance_hooks(opts: Any, module: Any = ns_render):
             module._render_trajectory_video = orig_video
         if orig_progress is not None:
             module.Progress = orig_progress
+        if orig_panel is not None:
+            module.Panel = orig_panel
         install_checks.check_ffmpeg_installed = orig_ffmpeg
 
 

@@ -94,12 +94,16 @@ def uses_gsplat(backend: str, means: Tensor) -> bool:
 
 def strategy_absgrad(strategy, cfg, means: Tensor) -> bool:
     """Whether this rasterisation keeps |grad| for densification (cfg.use_absgrad), with gsplat's `strategy` set to
-    agree. Only gsplat's CUDA backward writes |grad|: a strategy that expects it on the torch backend would read a
-    gradient that was never written, so it densifies on plain gradients there (said once per switch)."""
+        agree. Only gsplat's CUDA backward writes |grad|: a strategy that expects it on the torch backend would read a
+        gradient that was never written, so it densifies on plain gradients there (said once per switch on a GPU, where
+    gsplat was an option; on the CPU it is the only one)."""
     absgrad = cfg.use_absgrad and uses_gsplat(cfg.backend, means)
     if strategy.absgrad != absgrad:
-        if not absgrad and cfg.use_absgrad:
-            CONSOLE.log("willags: use_absgrad needs gsplat's CUDA backward; densifying on plain gradients")
+        if not absgrad and cfg.use_absgrad and means.is_cuda:  # on the CPU plain gradients are the only kind
+            CONSOLE.log(
+                "willags: use_absgrad needs gsplat's CUDA backward; densifying on plain gradients "
+                "(--pipeline.model.backend auto uses gsplat on a GPU)"
+            )
         strategy.absgrad = absgrad
     return absgrad
 

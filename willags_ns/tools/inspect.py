@@ -701,21 +701,48 @@ def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: Insp
     gaussians = int(np.clip(cfg.gaussians_per_point * n_points, 1e5, 1.5e6))
     images_gb = n_images * mpx * 1e6 * 3 / 1e9
     gpu_gb = GPU_FIXED_GB + images_gb + gaussians * BYTES_PER_GAUSSIAN / 1e9
-    gpu_step_s = GPU_STEP_S * max(mpx / GPU_STEP_MPX, 0.25)
-    cpu_step_s = CPU_STEP_S * max(mpx / CPU_STEP_MPX, 0.25)
+
+    def step_s(at: float, mpx_measured: float, scale: float) -> float:  # pixels of the image trained at 1/scale
+        return at * max(mpx / (scale * scale) / mpx_measured, 0.25)
+
+    def run_s(at: float, mpx_measured: float) -> float:  # the resolution schedule: 1/2**k size until its steps
+        return sum(step_s(at, mpx_measured, 2.0**k) * n for k, n in resolution_spans(cfg.steps).items())
+
+    first = max(resolution_spans(cfg.steps))
     return {
         "rough": True,
         "how": f"Gaussians ~ gaussians_per_point x points (clipped to [1e5, 1.5e6]); GPU memory = {GPU_FIXED_GB} GB + "
         f"images as uint8 + {BYTES_PER_GAUSSIAN / 1e3:g} KB per Gaussian; step time scaled by pixels per image from "
         f"{GPU_STEP_S * 1e3:g} ms at {GPU_STEP_MPX} Mpx (H100) and {CPU_STEP_S:g} s at {CPU_STEP_MPX} Mpx (2 CPU "
-        "cores), both measured in docs/benchmarks.md; the Gaussian count's effect is not modelled",
+        "cores), both measured in docs/benchmarks.md, at the size each step trains (splatfacto's resolution schedule: "
+        "1/4 size, then 1/2, then full); the Gaussian count's effect is not modelled",
         "expected_gaussians": gaussians,
         "gpu_memory_gb": round(gpu_gb, 2),
         "cpu_memory_gb": round(gpu_gb + 2.0, 2),
-        "gpu_hours": round(gpu_step_s * cfg.steps / 3600, 2),
-        "cpu_hours": round(cpu_step_s * cfg.steps / 3600, 1),
+        "gpu_hours": round(run_s(GPU_STEP_S, GPU_STEP_MPX) / 3600, 2),
+        "cpu_hours": round(run_s(CPU_STEP_S, CPU_STEP_MPX) / 3600, 1),
+        "cpu_first_step_s": round(step_s(CPU_STEP_S, CPU_STEP_MPX, 2.0**first), 2),
+        "cpu_full_step_s": round(step_s(CPU_STEP_S, CPU_STEP_MPX, 1.0), 2),
         "steps": cfg.steps,
     }
+
+
+RESOLUTION_SCHEDULE = 3000
+"""Steps per resolution level of the willags presets (splatfacto's resolution_schedule)."""
+NUM_DOWNSCALES = 2
+"""Resolution levels below full size the willags presets start at (splatfacto's num_downscales: 1/4 size)."""
+
+
+def resolution_spans(steps: int) -> dict[int, int]:
+    """{k: steps trained at 1/2**k size} of a run of ``steps`` under the presets' resolution schedule (the model's
+    rule: k = max(0, NUM_DOWNSCALES - step // RESOLUTION_SCHEDULE)). 30000 steps: {2: 3000, 1: 3000, 0: 24000}."""
+    spans: dict[int, int] = {}
+    for k in range(NUM_DOWNSCALES, -1, -1):
+        start = (NUM_DOWNSCALES - k) * RESOLUTION_SCHEDULE
+        end = steps if k == 0 else min(steps, start + RESOLUTION_SCHEDULE)
+        if end > start:
+            spans[k] = end - start
+    return spans
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -924,7 +951,9 @@ def format_report(report: dict[str, Any]) -> str:
         f"  extent: points {f['points_extent'] if f['points_extent'] is None else round(f['points_extent'], 2)}, "
         f"cameras {f['cameras_extent'] if f['cameras_extent'] is None else round(f['cameras_extent'], 2)} (scene units)",
         f"  rough estimate: ~{est['expected_gaussians']:,} Gaussians, GPU ~{est['gpu_memory_gb']} GB / "
-        f"~{est['gpu_hours']} h, CPU ~{est['cpu_memory_gb']} GB / ~{est['cpu_hours']} h for {est['steps']} steps",
+        f"~{est['gpu_hours']} h, CPU ~{est['cpu_memory_gb']} GB / ~{est['cpu_hours']} h for {est['steps']} steps "
+        f"(a CPU step ~{est['cpu_first_step_s']} s at the first 1/4 size, ~{est['cpu_full_step_s']} s at full size: an "
+        "ETA taken early in a run counts the first)",
         f"  evidence ({e['method']}): appearance {e['appearance_score']:.2f} levels, transients "
         + ("not measured" if ts is None else f"{ts:.2f} of the images occluded")
         + ", open background "

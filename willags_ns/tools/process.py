@@ -7,7 +7,8 @@ Structure-from-motion with pycolmap on CPU (a pip wheel: no COLMAP binary, no GP
 2. matching: exhaustive up to `exhaustive_max_images` images (all n(n-1)/2 pairs); above that, image retrieval with
    a vocabulary tree built from the collection's own SIFT descriptors (no download) and each image matched with its
    `retrieval_neighbors` best-scoring images; every pair is verified geometrically;
-3. mapping: COLMAP's incremental mapper with a fixed seed; the largest model is kept;
+3. mapping: COLMAP's incremental mapper or GLOMAP (`--mapper`; auto: global from `global_min_images` images), fixed
+   seed; the largest model is kept;
 4. writing: SIMPLE_RADIAL models are undistorted to PINHOLE (images re-sampled, so the training images match a
    pinhole camera); SIMPLE_PINHOLE models are written as they are with the registered photos copied.
 
@@ -87,12 +88,22 @@ class ProcessConfig:
     """auto matching: the largest collection matched exhaustively (n(n-1)/2 pairs; 150 images = 11,175 pairs)."""
     retrieval_neighbors: int = 40
     """vocab-tree matching: each image is matched with its this many most similar images."""
+    mapper: Literal["auto", "incremental", "global"] = "auto"
+    """incremental: COLMAP's incremental mapper (registers images one by one; robust, slow on large collections).
+    global: GLOMAP through pycolmap (rotation averaging and global positioning of all images at once; much faster on
+    large collections). auto: incremental up to global_min_images images, global above."""
+    global_min_images: int = 500
+    """auto mapper: the smallest collection mapped with the global mapper."""
     seed: int = 0
     """Random seed of the mapper (RANSAC, image selection)."""
     num_threads: int = -1
     """CPU threads for extraction, matching and mapping; -1: all cores."""
     min_registered: int = 3
     """Fail unless at least this many images are registered (fewer cannot define a scene)."""
+    max_image_size: int = 3200
+    """Photos whose long side is larger are resized to this many px (PIL's area filter) for SfM and training, so that
+    one huge photo does not make every training step need tens of GB; the summary names them. 0 keeps every photo at
+    full size."""
     num_downscales: int = 0
     """Also write images_2, images_4, ... images_(2**num_downscales) (floor size), for nerfstudio's
     --downscale-factor."""
@@ -131,6 +142,54 @@ def find_unreadable(images_dir: Path, names: Sequence[str]) -> dict[str, str]:
         except Exception as e:  # PIL raises OSError, SyntaxError, ValueError... depending on the codec
             bad[name] = f"{type(e).__name__}: {e}"
     return bad
+
+
+CAPPED_DIR = Path("colmap") / "inputs"
+"""Under the output: the photos SfM reads when some are larger than --max-image-size (the others linked)."""
+
+
+def cap_photos(cfg: ProcessConfig, names: Sequence[str]) -> tuple[Path, dict[str, tuple[int, int, int, int]]]:
+    """(folder SfM reads, {name: (w, h, new w, new h)} of the photos resized). Photos with a long side above
+    ``cfg.max_image_size`` are resized (area filter, EXIF kept for COLMAP's focal-length prior) into
+    OUTPUT/colmap/inputs/, the others symbolically linked there; without such photos (or with max_image_size 0),
+    ``cfg.images`` itself. A rerun reuses resized copies of the right size."""
+    cap = cfg.max_image_size
+    if cap <= 0:
+        return cfg.images, {}
+    resized: dict[str, tuple[int, int, int, int]] = {}
+    for name in names:
+        with Image.open(cfg.images / name) as im:
+            w, h = im.size
+        if max(w, h) > cap:
+            scale = cap / max(w, h)
+            resized[name] = (w, h, max(1, round(w * scale)), max(1, round(h * scale)))
+    if not resized:
+        return cfg.images, {}
+    out = cfg.output / CAPPED_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        src, dst = (cfg.images / name).resolve(), out / name
+        if name not in resized:
+            if not dst.is_symlink() or dst.resolve() != src:
+                dst.unlink(missing_ok=True)
+                os.symlink(src, dst)
+            continue
+        size = resized[name][2:]
+        if dst.is_file() and not dst.is_symlink():
+            with Image.open(dst) as im:
+                if im.size == size:
+                    continue
+        dst.unlink(missing_ok=True)
+        tmp = out / f".{name}.partial{src.suffix}"
+        with Image.open(src) as im:
+            small = im.resize(size, resample=Image.Resampling.BOX)
+            kwargs: dict[str, Any] = {"exif": im.info["exif"]} if "exif" in im.info else {}
+            if src.suffix.lower() in (".jpg", ".jpeg"):
+                small.convert("RGB").save(tmp, quality=95, subsampling=0, format="JPEG", **kwargs)
+            else:
+                small.save(tmp, format=im.format, **kwargs)
+        os.replace(tmp, dst)
+    return out, resized
 
 
 def split_table(image_ids: dict[int, str], test_every: int) -> list[tuple[str, int, str]]:
@@ -331,21 +390,25 @@ def _progress():
     )
 
 
-def _options_stamp(cfg: ProcessConfig) -> dict[str, Any]:
-    """The options that decide what the database holds: a rerun with other values cannot reuse it."""
-    return {
+def _options_stamp(cfg: ProcessConfig, capped: bool = False) -> dict[str, Any]:
+    """The options that decide what the database holds: a rerun with other values cannot reuse it. The size cap
+    only where it resized a photo (the database of a collection it leaves alone is the same either way)."""
+    stamp = {
         "camera_model": cfg.camera_model,
         "single_camera": cfg.single_camera,
         "max_num_features": cfg.max_num_features,
         "max_feature_image_size": cfg.max_feature_image_size,
         "images": str(cfg.images.resolve()),
     }
+    if capped:
+        stamp["max_image_size"] = cfg.max_image_size
+    return stamp
 
 
-def _check_database_options(cfg: ProcessConfig) -> None:
+def _check_database_options(cfg: ProcessConfig, capped: bool = False) -> None:
     stamp = cfg.output / OPTIONS_STAMP
     db = cfg.output / DATABASE
-    want = _options_stamp(cfg)
+    want = _options_stamp(cfg, capped)
     if db.exists() and stamp.is_file():
         have = json.loads(stamp.read_text())
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
@@ -575,6 +638,35 @@ def incremental_mapping(cfg: ProcessConfig, num_images: int, progress, work: Pat
     return best
 
 
+def global_mapping(cfg: ProcessConfig, num_images: int, progress, work: Path):
+    """GLOMAP (pycolmap.global_mapping, fixed seed): all images positioned at once; returns the reconstruction with
+    the most registered images, or None. Ctrl-C takes effect when it returns (pycolmap offers no cancellation)."""
+    import pycolmap
+
+    options = pycolmap.GlobalPipelineOptions()
+    options.num_threads = cfg.num_threads
+    options.random_seed = cfg.seed
+    options.min_model_size = max(3, min(10, cfg.min_registered))
+    pycolmap.set_random_seed(cfg.seed)
+    task = progress.add_task("global mapping", total=num_images)
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    models = pycolmap.global_mapping(str(cfg.output / DATABASE), str(cfg.images), str(work), options)
+    if not models:
+        return None
+    best = max(models.values(), key=lambda r: r.num_reg_images())
+    progress.update(task, completed=best.num_reg_images())
+    return best
+
+
+def chosen_mapper(cfg: ProcessConfig, num_images: int) -> str:
+    """The mapper that runs: cfg.mapper, or for "auto" incremental below global_min_images images and global from
+    there."""
+    if cfg.mapper != "auto":
+        return cfg.mapper
+    return "global" if num_images >= cfg.global_min_images else "incremental"
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # writing
 
@@ -639,6 +731,83 @@ def write_scene(cfg: ProcessConfig, rec, work: Path) -> None:
         write_downscaled(out / "images", 2**k, out / f"images_{2**k}")
 
 
+MIN_LINK_INLIERS = 15
+"""A verified pair with at least this many inlier matches links two photos (COLMAP's mapper needs 15 by default)."""
+
+
+def verified_links(db_path: Path) -> dict[str, dict[str, int]]:
+    """{photo: {other photo: inlier matches}} of every geometrically verified pair in the database."""
+    import pycolmap
+
+    with pycolmap.Database.open(str(db_path)) as db:
+        id_to_name = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+    links: dict[str, dict[str, int]] = {}
+    for pid, n in zip(pair_ids, inliers, strict=True):
+        a, b = (id_to_name.get(i) for i in pycolmap.pair_id_to_image_pair(pid))
+        if a is not None and b is not None and n > 0:
+            links.setdefault(a, {})[b] = int(n)
+            links.setdefault(b, {})[a] = int(n)
+    return links
+
+
+def unregistered_reasons(
+    links: dict[str, dict[str, int]], registered: set[str], unregistered: Sequence[str]
+) -> dict[str, dict[str, str]]:
+    """Why each photo of ``unregistered`` is not in the model, and what to try, from the verified pairs ``links``
+    ({photo: {other: inliers}}; pairs under MIN_LINK_INLIERS do not link). ``reason`` is one of:
+
+    - ``no-matches``: no verified pair with any photo (too little overlap, or another place);
+    - ``other-component``: linked only to other unregistered photos: a separate group the model does not reach;
+    - ``weak``: linked to registered photos, yet the mapper could not place it (too few or badly spread matches).
+    """
+    strong = {a: {b for b, n in others.items() if n >= MIN_LINK_INLIERS} for a, others in links.items()}
+    todo = set(unregistered)
+    group: dict[str, list[str]] = {}
+    for start in unregistered:  # connected groups of unregistered photos
+        if start in group:
+            continue
+        members, stack = [], [start]
+        seen = {start}
+        while stack:
+            a = stack.pop()
+            members.append(a)
+            for b in strong.get(a, ()):
+                if b in todo and b not in seen:
+                    seen.add(b)
+                    stack.append(b)
+        for m in members:
+            group[m] = sorted(members)
+    out = {}
+    for name in unregistered:
+        partners = strong.get(name, set())
+        placed = sorted(partners & registered)
+        best = max((links[name][b] for b in placed), default=0)
+        if not partners:
+            most = max(links.get(name, {}).values(), default=0)
+            out[name] = {
+                "reason": "no-matches",
+                "text": f"no photo shares enough verified matches with it (best {most}, need {MIN_LINK_INLIERS}): "
+                "too little overlap, a very different view, or another place; add photos taken between it and "
+                "the others",
+            }
+        elif not placed:
+            others = [g for g in group[name] if g != name]
+            out[name] = {
+                "reason": "other-component",
+                "text": f"it matches only {len(others)} other unregistered photo(s) ({', '.join(others[:4])}"
+                f"{', ...' if len(others) > 4 else ''}): a separate part of the scene the model does not reach; add "
+                "photos that link the two parts, or process that group on its own",
+            }
+        else:
+            out[name] = {
+                "reason": "weak",
+                "text": f"it matches {len(placed)} registered photo(s) (at most {best} inlier matches) but could not be "
+                "placed: add photos from nearby viewpoints, or try --camera-model SIMPLE_PINHOLE",
+            }
+    return out
+
+
 def reconstruction_stats(rec, all_names: Sequence[str]) -> dict[str, Any]:
     """Summary of a model: registered / total, 3D points, mean reprojection error, mean track length, unregistered."""
     reg = {rec.images[i].name for i in rec.reg_image_ids()}
@@ -652,6 +821,10 @@ def reconstruction_stats(rec, all_names: Sequence[str]) -> dict[str, Any]:
     }
 
 
+MAX_REASONS_SHOWN = 12
+"""Unregistered photos explained one per line after the summary table; the rest only in process_summary.json."""
+
+
 def print_summary(summary: dict[str, Any]) -> None:
     from nerfstudio.utils.rich_utils import CONSOLE
     from rich.table import Table
@@ -663,13 +836,26 @@ def print_summary(summary: dict[str, Any]) -> None:
     table.add_row("mean track length", f"{summary['mean_track_length']:.2f}")
     table.add_row("camera model", summary["camera_model"])
     table.add_row("matching", f"{summary['matching']} ({summary['num_pairs']:,} pairs)")
+    if "mapper" in summary:
+        table.add_row("mapper", summary["mapper"])
     table.add_row("split", f"{summary['num_train']} train / {summary['num_test']} test ({summary['split_file']})")
-    table.add_row(
-        "wall time", f"{summary['wall_s']:.0f} s " + str({k: round(v) for k, v in summary["stage_s"].items()})
-    )
-    unreg = summary["unregistered"]
+    stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["stage_s"].items())
+    table.add_row("wall time", f"{summary['wall_s']:.0f} s ({stages})")
+    resized = summary.get("resized") or {}
+    if resized:
+        table.add_row("resized", ", ".join(f"{k} ({v})" for k, v in resized.items()))
+    unreadable = summary.get("unreadable") or []
+    if unreadable:
+        table.add_row("unreadable (skipped)", ", ".join(unreadable))
+    unreg = [n for n in summary["unregistered"] if n not in set(unreadable)]
     table.add_row("unregistered", ", ".join(unreg) if unreg else "none")
     CONSOLE.print(table)
+    why = summary.get("unregistered_why") or {}
+    shown = list(why.items())[:MAX_REASONS_SHOWN]
+    for name, entry in shown:
+        CONSOLE.print(f"  {name} not registered: {entry['text']}", soft_wrap=True, markup=False, highlight=False)
+    if len(why) > len(shown):
+        CONSOLE.print(f"  ... and {len(why) - len(shown)} more: see {SUMMARY} (unregistered_why)")
     CONSOLE.print(f"Scene written to {summary['output']}: ns-train willags --data {summary['output']}")
 
 
@@ -699,7 +885,12 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
             f"SfM needs at least {cfg.min_registered}"
         )
     cfg.output.mkdir(parents=True, exist_ok=True)
-    _check_database_options(cfg)
+    photos, resized = cap_photos(cfg, readable)
+    _check_database_options(cfg, capped=bool(resized))
+    for name, (w, h, w2, h2) in resized.items():
+        log(f"{name}: {w}x{h} resized to {w2}x{h2} (--max-image-size {cfg.max_image_size}; 0 keeps full size)")
+    given = cfg.images
+    cfg = dataclasses.replace(cfg, images=photos)
     if not cfg.verbose:
         pycolmap.logging.minloglevel = 2  # errors only: COLMAP's INFO/WARNING lines would break the progress bars
     stage_s: dict[str, float] = {}
@@ -710,9 +901,7 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         stage_s["extraction"] = time.time() - t
         for name in readable:
             if name not in extracted:
-                log(
-                    f"[yellow]warning: no SIFT features in {cfg.images / name} (COLMAP could not read it or it is blank)"
-                )
+                log(f"[yellow]warning: no SIFT features in {given / name} (COLMAP could not read it or it is blank)")
         if len(extracted) < cfg.min_registered:
             raise ProcessError(f"only {len(extracted)} photo(s) gave SIFT features; SfM needs {cfg.min_registered}")
         t = time.time()
@@ -725,7 +914,9 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
             num_pairs = match_vocab_tree(cfg, extracted, progress)
         stage_s["matching"] = time.time() - t
         t = time.time()
-        rec = incremental_mapping(cfg, len(extracted), progress, work / "mapping")
+        mapper = chosen_mapper(cfg, len(extracted))
+        mapping = global_mapping if mapper == "global" else incremental_mapping
+        rec = mapping(cfg, len(extracted), progress, work / "mapping")
         stage_s["mapping"] = time.time() - t
     registered = 0 if rec is None else rec.num_reg_images()
     if rec is None or registered < cfg.min_registered:
@@ -736,6 +927,9 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         )
     t = time.time()
     stats = reconstruction_stats(rec, names)
+    reg_names = {rec.images[i].name for i in rec.reg_image_ids()}
+    not_placed = [n for n in stats["unregistered"] if n not in bad]
+    why = unregistered_reasons(verified_links(cfg.output / DATABASE), reg_names, not_placed) if not_placed else {}
     write_scene(cfg, rec, work)
     final = pycolmap.Reconstruction(str(cfg.output / MODEL_DIR))
     ids = {i: final.images[i].name for i in final.reg_image_ids()}
@@ -748,10 +942,12 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     summary = {
         **stats,
         "unreadable": sorted(bad),
+        "unregistered_why": why,
         "camera_model": cfg.camera_model
         + (" -> undistorted to PINHOLE" if cfg.camera_model == "SIMPLE_RADIAL" else "")
         + (", one shared camera" if cfg.single_camera else ", one camera per image"),
         "matching": method,
+        "mapper": mapper,
         "num_pairs": num_pairs,
         "num_train": sum(r[2] == "train" for r in rows),
         "num_test": sum(r[2] == "test" for r in rows),
@@ -760,7 +956,11 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         "wall_s": time.time() - t0,
         "stage_s": stage_s,
         "pycolmap": pycolmap.__version__,
-        "options": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
+        "resized": {name: f"{w}x{h} -> {w2}x{h2}" for name, (w, h, w2, h2) in resized.items()},
+        "options": {
+            k: str(v) if isinstance(v, Path) else v
+            for k, v in dataclasses.asdict(dataclasses.replace(cfg, images=given)).items()
+        },
     }
     (cfg.output / SUMMARY).write_text(json.dumps(summary, indent=1) + "\n")
     return summary

@@ -1,0 +1,255 @@
+"""A new user's path from photos to renders and exports, without traps (docs/reliability.md, "A user's path"): a run
+loads from any working directory and only ever its own checkpoints, big photos, renders without ffmpeg, render
+and export options that mean what they say, a readable start of ns-train. Each test names its row."""
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.test_reliability_faults import _config, scene  # noqa: F401 - the module's 8+2-image scene fixture
+from willags_ns.engine.checkpoints import CheckpointError, list_checkpoints
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def project(scene, tmp_path_factory):  # noqa: F811
+    """A run as `ns-train willags --data scene` writes it from a project folder: output_dir `outputs` and the data
+    `scene`, both relative to that folder; checkpoints of steps 2 and 3. Returns (project folder, config.yml)."""
+    trained = _config(tmp_path_factory.mktemp("trained"), scene, steps=4, steps_per_save=2)
+    trained.save_only_latest_checkpoint = False
+    trainer = trained.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    proj = tmp_path_factory.mktemp("project")
+    shutil.copytree(scene, proj / "scene")
+    config = yaml.load((trained.get_base_dir() / "config.yml").read_text(), Loader=yaml.Loader)
+    config.output_dir = Path("outputs")
+    config.pipeline.datamanager.data = Path("scene")
+    config.pipeline.datamanager.dataparser.data = Path("scene")
+    run = proj / config.get_base_dir()
+    shutil.copytree(trained.get_base_dir(), run)
+    (run / "config.yml").write_text(yaml.dump(config), "utf8")
+    assert [p.name for p in list_checkpoints(run / "nerfstudio_models")][:2] == [
+        "step-000000003.ckpt",
+        "step-000000002.ckpt",
+    ]
+    return proj, run / "config.yml"
+
+
+def test_row_u1_a_run_loads_from_any_working_directory(project, tmp_path, monkeypatch):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    proj, cfg = project
+    monkeypatch.chdir(tmp_path)  # neither outputs/ nor scene/ exist here
+    config, pipeline, loaded, step = eval_setup(cfg, test_mode="test")
+    assert loaded == cfg.parent / "nerfstudio_models" / "step-000000003.ckpt" and step == 3
+    assert len(pipeline.datamanager.eval_dataset) == 2  # the scene found relative to where training ran
+    assert config.get_base_dir().resolve() == cfg.parent.resolve()  # files written into the run folder land there
+    assert not (tmp_path / "outputs").exists()
+
+
+def _copy_of(project, dest: Path) -> Path:
+    proj, cfg = project
+    shutil.copytree(proj, dest)
+    return dest / cfg.relative_to(proj)
+
+
+def test_row_u2_a_copy_loads_its_own_checkpoints_never_the_originals(project, tmp_path, monkeypatch):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    proj, cfg = project
+    copy_cfg = _copy_of(project, tmp_path / "copy")
+    ckpts = copy_cfg.parent / "nerfstudio_models"
+    monkeypatch.chdir(proj)  # from here the stored relative paths name the original run
+    _, _, loaded, step = eval_setup(copy_cfg, test_mode="inference")
+    assert loaded == ckpts / "step-000000003.ckpt" and step == 3
+
+    # its newest checkpoint truncated: named, and the copy's older one loads (not the original's newest)
+    newest = ckpts / "step-000000003.ckpt"
+    newest.write_bytes(newest.read_bytes()[:5000])
+    with pytest.warns(UserWarning, match=re.escape(str(newest))):
+        _, _, loaded, step = eval_setup(copy_cfg, test_mode="inference")
+    assert loaded == ckpts / "step-000000002.ckpt" and step == 2
+
+    # every checkpoint of the copy damaged: an error naming them, never the original run's readable ones
+    for p in list_checkpoints(ckpts):
+        p.write_bytes(b"")
+    with pytest.raises(CheckpointError, match=re.escape(str(ckpts))) as info:
+        eval_setup(copy_cfg, test_mode="inference")
+    assert "\n" not in str(info.value)
+
+    # no checkpoint folder beside the copied config.yml: an error, not the folder its stored paths name
+    shutil.rmtree(ckpts)
+    with pytest.raises(CheckpointError, match=re.escape(str(ckpts))):
+        eval_setup(copy_cfg, test_mode="inference")
+
+
+def _no_loading(monkeypatch):
+    """Loading a checkpoint fails the test: what is refused must be refused before it."""
+    from nerfstudio.scripts import render as ns_render
+
+    def eval_setup(*args, **kwargs):
+        raise AssertionError("the checkpoint was loaded")
+
+    monkeypatch.setattr(ns_render, "eval_setup", eval_setup)
+
+
+def test_row_u5_a_video_without_ffmpeg_is_refused_before_loading_and_images_need_none(
+    appearance_run, tmp_path, monkeypatch
+):
+    from willags_ns.scripts import render
+
+    cfg, _, _ = appearance_run
+    monkeypatch.setattr(render.shutil, "which", lambda name: None)  # no ffmpeg on the PATH
+    with monkeypatch.context() as m:
+        _no_loading(m)
+        with pytest.raises(SystemExit) as info:
+            render.RenderInterpolated(load_config=cfg, output_path=tmp_path / "v.mp4").main()
+        assert "\n" not in str(info.value.code) and "--output-format images" in str(info.value.code)
+    render.RenderInterpolated(
+        load_config=cfg, output_path=tmp_path / "v.mp4", output_format="images", interpolation_steps=2
+    ).main()
+    assert sorted((tmp_path / "v").glob("*.jpg"))
+
+
+def test_row_u6_downscale_below_one_is_refused_and_interpolated_frames_all_differ(
+    appearance_run, tmp_path, monkeypatch
+):
+    import numpy as np
+    from PIL import Image
+
+    from willags_ns.scripts import render
+
+    cfg, _, _ = appearance_run
+    with monkeypatch.context() as m:
+        _no_loading(m)
+        with pytest.raises(SystemExit):
+            render.RenderInterpolated(load_config=cfg, output_path=tmp_path / "x.mp4", downscale_factor=0.5).main()
+    out = tmp_path / "path.mp4"
+    opts = dict(pose_source="train", interpolation_steps=3, output_format="images", image_format="png")
+    render.RenderInterpolated(load_config=cfg, output_path=out, downscale_factor=2, **opts).main()
+    frames = [np.asarray(Image.open(p)) for p in sorted((tmp_path / "path").glob("*.png"))]
+    assert len(frames) >= 4
+    for a, b in zip(frames, frames[1:], strict=False):
+        assert not np.array_equal(a, b)  # each frame a new viewpoint: no repeated camera at the transitions
+    full = render.RenderInterpolated(load_config=cfg, output_path=tmp_path / "full.mp4", **opts)
+    full.main()
+    big = np.asarray(Image.open(sorted((tmp_path / "full").glob("*.png"))[0]))
+    assert frames[0].shape[0] == big.shape[0] // 2  # a factor of 2 renders at half the size
+
+
+def test_row_u7_dataset_render_of_the_test_split_downscaled(appearance_run, tmp_path, capsys):
+    from PIL import Image
+
+    from willags_ns.scripts import render
+
+    cfg, _, _ = appearance_run
+    out = tmp_path / "ds"
+    render.DatasetRender(
+        load_config=cfg, output_path=out, split="test", downscale_factor=2, rendered_output_names=["rgb"]
+    ).main()
+    images = sorted(out.rglob("*.jpg")) + sorted(out.rglob("*.png"))
+    assert images
+    yml = yaml.load(cfg.read_text(), Loader=yaml.Loader)
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(cfg, test_mode="test")
+    h = int(pipeline.datamanager.eval_dataset.cameras[0].height)
+    with Image.open(images[0]) as im:
+        assert im.height == h // 2
+    assert yml.pipeline.datamanager.dataparser.downscale_factor is None  # the run's own config is left as it was
+    captured = capsys.readouterr().out
+    assert "{}" not in captured and "test" in captured
+
+
+def test_row_u8_export_needs_only_the_run_not_the_photos(project, tmp_path, monkeypatch):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from willags_ns.data.dataparser import WillagsDataError
+    from willags_ns.scripts.export import ExportGaussianSplat
+
+    copy_cfg = _copy_of(project, tmp_path / "copy")
+    shutil.rmtree(tmp_path / "copy" / "scene")  # the photos moved away
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "export"
+    ExportGaussianSplat(load_config=copy_cfg, output_dir=out, appearance="image:1").main()
+    from plyfile import PlyData
+
+    assert len(PlyData.read(str(out / "splat.ply"))["vertex"]) > 0
+    # what does read the photos says which are missing, in one line (the record names the photos where they were:
+    # here, as if this copy had trained from its own scene folder)
+    import torch
+
+    record_path = copy_cfg.parent / "scene_cameras.pt"
+    record = torch.load(record_path)
+    for part in ("train", "test"):
+        record[part]["names"] = [str(tmp_path / "copy" / "scene" / Path(n).name) for n in record[part]["names"]]
+    torch.save(record, record_path)
+    _, pipeline, _, _ = eval_setup(copy_cfg, test_mode="test")
+    with pytest.raises(WillagsDataError, match="do not exist"):
+        pipeline.get_average_eval_image_metrics()
+
+
+def test_row_u9_ns_train_starts_readably_and_a_bad_scene_leaves_no_run_folder(scene, tmp_path):  # noqa: F811
+    import os
+    import subprocess
+
+    from tests.test_reliability import _ns_train
+
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    bad = subprocess.run(
+        _ns_train(["willags", "--data", str(tmp_path / "nowhere"), "--output-dir", str(tmp_path / "bad")]),
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
+    assert bad.returncode == 1 and "Traceback" not in bad.stderr
+    assert not (tmp_path / "bad").exists()  # no run folder, no config.yml, for a run that never started
+
+    out = tmp_path / "good"
+    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--vis", "tensorboard"]
+    args += ["--max-num-iterations", "2", "--pipeline.model.mask.vgg-weights", "seeded"]
+    good = subprocess.run(_ns_train(args), capture_output=True, text=True, env=env, timeout=600)
+    assert good.returncode == 0, good.stderr[-3000:]
+    text = good.stdout + good.stderr
+    before = text.split("willags: checkpoints every")[0]  # printed as the first step starts
+    assert len(before.splitlines()) <= 40, before
+    assert "Warning:" not in text  # no FutureWarning / UserWarning a user cannot act on
+    assert len(list(out.rglob("config.yml"))) == 1  # the full configuration is in the run folder
+
+
+def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path):
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    proj, cfg = project
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    exe = Path(sys.executable).with_name("ns-viewer")
+    cmd = [str(exe), "--load-config", str(cfg), "--viewer.websocket-port", str(port)]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    try:
+        deadline = time.time() + 300
+        while True:  # serving: its port accepts connections
+            assert proc.poll() is None and time.time() < deadline, proc.communicate()[1][-3000:]
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert "Traceback" not in out + err, err[-3000:]
