@@ -258,3 +258,16 @@ def test_training_view_matches_nerfstudio_undistortion(shared_data):
                 float(getattr(dm.train_dataset.cameras, attr)[i, 0])
             )
         assert abs(mask.mean() - gt.mean()) < 0.02  # the occluder survives the warp
+
+
+def test_residual_distance_scores_the_occluder_without_vgg(tmp_path):
+    """mask.distance "residual": the same scene's flat occluder is found from the colour residual alone."""
+    model, ds, mdir, _, _ = _scene_with_occluder(tmp_path)
+    model.config.mask.distance = "residual"
+    out = mask_scores(model, ds, mdir, threshold=0.1, keep_per_image=True)
+    assert out["status"] == "ok" and out["rule"] == "residual"
+    assert out["recall"] > 0.9 and out["iou"] > 0.8
+    assert out["per_image"][1]["fp"] == 0  # the clean view: nothing masked
+    model.step = 0  # before the warm-up: nothing is transient
+    out = mask_scores(model, ds, mdir)
+    assert out["threshold"] == math.inf and out["recall"] == 0.0 and out["fp_rate"] == 0.0
