@@ -258,3 +258,27 @@ def test_training_view_matches_nerfstudio_undistortion(shared_data):
                 float(getattr(dm.train_dataset.cameras, attr)[i, 0])
             )
         assert abs(mask.mean() - gt.mean()) < 0.02  # the occluder survives the warp
+
+
+def test_residual_distance_scores_the_occluder_without_vgg(tmp_path):
+    """mask.distance "residual": the same scene's flat occluder is found from the colour residual alone."""
+    model, ds, mdir, _, _ = _scene_with_occluder(tmp_path)
+    model.config.mask.distance = "residual"
+    out = mask_scores(model, ds, mdir, threshold=0.1, keep_per_image=True)
+    assert out["status"] == "ok" and out["rule"] == "residual"
+    assert out["recall"] > 0.9 and out["iou"] > 0.8
+    assert out["per_image"][1]["fp"] == 0  # the clean view: nothing masked
+    from willags_ns.viewer import training_view_panels
+
+    model.step = model.config.mask.warmup_steps  # the viewer's mask picture: the occluder tinted red, once masked
+    W = ds.images[0].shape[1]
+    pic = training_view_panels(model, ds, 0, max_width=3 * W).astype(int)
+    overlay = pic[:, 2 * W :]
+    assert overlay.shape[:2] == ds.images[0].shape[:2]
+    occluded = np.zeros(overlay.shape[:2], bool)
+    occluded[30:62, 44:84] = True
+    tint = (overlay - pic[:, :W])[..., 0]  # overlay minus photo, red channel: what the mask added
+    assert tint[occluded].mean() > 30 and abs(tint[~occluded]).mean() < 2
+    model.step = 0  # before the warm-up: nothing is transient
+    out = mask_scores(model, ds, mdir)
+    assert out["threshold"] == math.inf and out["recall"] == 0.0 and out["fp_rate"] == 0.0

@@ -127,23 +127,19 @@ def _png_data_url(img: np.ndarray) -> str:
 def training_view_panels(model: "WillagsModel", train_dataset, idx: int, max_width: int = 320) -> np.ndarray:
     """[training image | teacher render | transient mask] of training image `idx` as one uint8 picture.
 
-    The mask is computed as training computes it at the model's current step (teacher latent from the image,
-    VGG perceptual error against the teacher render, the threshold rule and the rejection of mostly-flagged images).
+    The mask is computed as training computes it at the model's current step (teacher latent from the image, the
+    comparison of mask.distance with the teacher render (VGG features or colour residual), its threshold and the
+    rejection of mostly-flagged images).
     """
-    from willags_ns.eval.mask_eval import predicted_transient, teacher_render, training_view
-    from willags_ns.mask.transient import mask_threshold
+    from willags_ns.eval.mask_eval import teacher_render, training_view
+    from willags_ns.mask.step import compare_to_teacher
 
     cam, image, _ = training_view(train_dataset, idx)
     gt = torch.from_numpy(image).float().div(255.0).to(model.device)
     teacher = teacher_render(model, cam, gt, idx)
     cfg = model.config
-    if model.perceptual is not None:
-        thr = mask_threshold(model.step, cfg.mask.threshold, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
-        transient, rejected, _ = predicted_transient(
-            model.perceptual, gt, teacher, thr, cfg.mask.max_masked_fraction, cfg.mask.threshold_rule, cfg.mask.robust_k
-        )
-        if rejected:
-            transient = torch.zeros_like(transient)
+    if model.perceptual is not None:  # the comparison of mask.distance; a rejected mask is all False
+        transient, _, _ = compare_to_teacher(cfg.mask, model.step, gt, teacher, model.perceptual)
     else:  # mask.enabled False: no mask, every pixel is supervised
         transient = torch.zeros(gt.shape[:2], dtype=torch.bool, device=gt.device)
     overlay = gt.clone()

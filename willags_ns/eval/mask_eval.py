@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
+from willags_ns.mask.residual import colour_residual, residual_transient
 from willags_ns.mask.transient import image_distance, mask_threshold, transient_mask
 from willags_ns.render.camera import viewmat_from_c2w
 
@@ -217,9 +218,11 @@ def mask_scores(
     if getattr(cfg, "appearance", "sh") != "willags" or not cfg.mask.enabled or model.perceptual is None:
         return {"status": "no perceptual mask in this model"}
     masks_gt_dir = Path(masks_gt_dir)
-    thr = threshold
+    residual = getattr(cfg.mask, "distance", "vgg") == "residual"
+    thr = threshold  # distance "residual": the floor of the residual bar
     if thr is None:
-        thr = mask_threshold(model.step, cfg.mask.threshold, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
+        base = cfg.mask.residual.floor if residual else cfg.mask.threshold
+        thr = mask_threshold(model.step, base, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
     was_training = model.training
     model.eval()
     counts: list[MaskCounts] = []
@@ -241,9 +244,14 @@ def mask_scores(
             cam, image, gt_mask = training_view(train_dataset, i, gt_mask)
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
             render = teacher_render(model, cam, img, i)
-            pred, rejected, d = predicted_transient(
-                model.perceptual, img, render, thr, cfg.mask.max_masked_fraction, rule, k
-            )
+            if residual:
+                d = colour_residual(img, render)
+                pred, rejected_t = residual_transient(d, thr, cfg.mask.residual, cfg.mask.max_masked_fraction)
+                rejected = bool(rejected_t)
+            else:
+                pred, rejected, d = predicted_transient(
+                    model.perceptual, img, render, thr, cfg.mask.max_masked_fraction, rule, k
+                )
             gt_t = torch.from_numpy(gt_mask).to(pred.device)
             c = count_pixels(pred, gt_t, rejected)
             counts.append(c)
@@ -268,7 +276,7 @@ def mask_scores(
         return {"status": f"no training image has a mask in {masks_gt_dir}"}
     out: dict = dict(aggregate_counts(counts))
     out["threshold"] = float(thr)
-    out["rule"] = rule
+    out["rule"] = "residual" if residual else rule
     fixed_agg = aggregate_counts(counts_fixed)
     for key in ("iou", "recall", "fp_rate", "rejected"):
         out[f"fixed_{key}"] = fixed_agg[key]

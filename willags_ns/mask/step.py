@@ -6,7 +6,9 @@ threshold, and the static-scene safeguard.
     teacher render (fused into the student's rasterisation as 3 extra channels, or a second one: teacher_render),
         both composited like the student's render (gaussians.composite)
     D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/mask/transient.py)
-    transient = D > threshold(step)   (rejected when it would drop more than mask.max_masked_fraction of the image)
+        or, with mask.distance "residual", D = mean_c |photo - teacher render| (willags_ns/mask/residual.py)
+    transient = D > threshold(step)   (rejected when it would drop more than mask.max_masked_fraction of the image;
+        "residual": a per-image robust bar and two majority filters, compare_to_teacher)
     static = ~transient | SfM support (pixels near points many photos saw; willags_ns/mask/static_support.py)
 
 :func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
@@ -23,6 +25,7 @@ from torch import Tensor
 
 from willags_ns.appearance.color_path import ColorContext, field_features, gaussian_colors
 from willags_ns.appearance.networks import AppearanceNetworks
+from willags_ns.mask.residual import colour_residual, residual_transient
 from willags_ns.mask.static_support import apply_support, support_map
 from willags_ns.mask.teacher import ema_update_, make_teacher
 from willags_ns.mask.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
@@ -38,6 +41,31 @@ def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | N
         return None, None
     teacher = cast(AppearanceNetworks, make_teacher(nets)) if m.teacher.enabled else None
     return teacher, PerceptualFeatures(weights=m.vgg_weights, path=m.vgg_weights_path, max_resolution=m.max_resolution)
+
+
+def compare_to_teacher(
+    mask_cfg, step: int, photo: Tensor, render: Tensor, perceptual: PerceptualFeatures | None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(transient [H, W] bool, rejected 0-d bool, D [H, W])`` of a photo [H, W, 3] against the teacher's render
+    of it at `step`, by the comparison mask_cfg.distance names: "vgg" (perceptual D, its threshold rule;
+    willags_ns/mask/transient.py) or "residual" (colour residual, robust bar, coherence; willags_ns/mask/residual.py).
+    The one rule of training, the mask evaluation and the viewer."""
+    distance = getattr(mask_cfg, "distance", "vgg")  # configs saved before the switch existed: the VGG mask
+    if distance == "residual":
+        res = mask_cfg.residual
+        d = colour_residual(photo, render)
+        floor = mask_threshold(step, res.floor, mask_cfg.warmup_steps, mask_cfg.ramp_steps)
+        transient, rejected = residual_transient(d, floor, res, mask_cfg.max_masked_fraction)
+        return transient, rejected, d
+    if distance != "vgg":
+        raise ValueError(f"mask.distance {distance!r}: expected vgg | residual")
+    assert perceptual is not None
+    d = image_distance(perceptual, photo, render)  # [H, W]
+    thr = mask_threshold(step, mask_cfg.threshold, mask_cfg.warmup_steps, mask_cfg.ramp_steps)
+    transient, rejected = transient_mask(
+        d, thr, mask_cfg.threshold_rule, mask_cfg.robust_k, mask_cfg.max_masked_fraction
+    )
+    return transient, rejected, d
 
 
 class StepMask(NamedTuple):
@@ -96,10 +124,7 @@ class MaskStep:
         H, W = gt_img.shape[:2]
         d = rejected = None
         if teacher_rgb is not None:
-            assert perceptual is not None
-            d = image_distance(perceptual, gt_img, teacher_rgb)  # [H, W]
-            thr = mask_threshold(step, cfg.threshold, cfg.warmup_steps, cfg.ramp_steps)
-            transient, flag = transient_mask(d, thr, cfg.threshold_rule, cfg.robust_k, cfg.max_masked_fraction)
+            transient, flag, d = compare_to_teacher(cfg, step, gt_img, teacher_rgb, perceptual)
             mask = ~transient  # a rejected mask supervises every pixel rather than none
             rejected = flag.float()  # a device tensor: no wait for VGG here
             self.masks[idx] = mask

@@ -49,6 +49,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor, nn
 
 from willags_ns.mask.health import MaskHealthConfig
+from willags_ns.mask.residual import ResidualConfig
 from willags_ns.mask.static_support import StaticSupportConfig
 from willags_ns.mask.teacher import TeacherConfig
 
@@ -83,8 +84,16 @@ class MaskConfig:
     enabled: bool = True
     """Mask transients with the perceptual mask of the EMA teacher. Off: every pixel is supervised, and neither the
     teacher nor VGG16 is built."""
+    distance: Literal["vgg", "residual"] = "vgg"
+    """How the photo is compared with the EMA teacher's render (after the appearance transform of the image's
+    latent). "vgg": the perceptual distance D of VGG16 features (the paper's; threshold, threshold_rule, robust_k,
+    vgg_weights, max_resolution). "residual": the per-pixel colour residual with a per-image robust bar and
+    spatial coherence, no network and no weights (mask.residual; willags_ns/mask/residual.py). Both share the
+    teacher, warmup_steps, ramp_steps, max_masked_fraction, every, the safeguard and the health watch."""
+    residual: ResidualConfig = field(default_factory=ResidualConfig)
+    """The colour-residual comparison's bar and coherence filters (distance "residual")."""
     threshold: float = 0.85
-    """Pixels with perceptual error D >= threshold are transient (excluded from the loss)."""
+    """Pixels with perceptual error D >= threshold are transient (excluded from the loss; distance "vgg")."""
     threshold_rule: Literal["fixed", "robust"] = "robust"
     """"fixed": the paper's rule, transient iff D >= threshold. "robust": per image, transient iff
     D >= max(threshold, median(D) + robust_k * 1.4826 * MAD(D)) (see :func:`robust_threshold`). Equal to "fixed"
