@@ -1,8 +1,8 @@
 """Speed vs accuracy per scene: right-half PSNR against training wall time, from the run records. The command that
 writes docs/curves.md and the PNGs is benchmarks/curves_report.py:
 
-    python -m benchmarks.curves_report          # benchmarks/records/benchmarks.json -> docs/curves.md + PNGs
-    python -m benchmarks.curves_report --records benchmarks/records/benchmarks.json $OUT/long-*.json \
+    python -m benchmarks curves          # benchmarks/records/benchmarks.json -> docs/curves.md + PNGs
+    python -m benchmarks curves --records benchmarks/records/benchmarks.json $OUT/long-*.json \
         --scenes reichstag south-building
 
 Points (one per run and step count) come from two kinds of record:

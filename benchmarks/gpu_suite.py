@@ -2,8 +2,8 @@
 
 One process measures all of it on one GPU:
 
-    python benchmarks/gpu_suite.py --all --n-gaussians 1000000 --size 800 --json-out $OUT/gpu_suite.json
-    python benchmarks/gpu_suite.py --quick --all            # CPU smoke test (< 60 s): torch backend only
+    python -m benchmarks speed --all --n-gaussians 1000000 --size 800 --json-out $OUT/gpu_suite.json
+    python -m benchmarks speed --quick --all            # CPU smoke test (< 60 s): torch backend only
 
 Sections (each in its own try/except: a failure is recorded and the others still run; the JSON is rewritten
 after every section, so a run killed at its time limit keeps what it finished; the code of each is in

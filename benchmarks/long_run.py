@@ -9,9 +9,9 @@ run's first step to the end of each milestone's step (measured, so a milestone i
 seconds per segment and per milestone, runs sharing the GPU per segment, steps, scores), which `record` turns into a
 benchmarks/records/benchmarks.json record (benchmarks/curves.py draws PSNR vs time from the milestones).
 
-    python -m benchmarks.long_run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
-    python -m benchmarks.long_run eval   --run-dir /tmp/lr/willags
-    python -m benchmarks.long_run record --run-dir /tmp/lr/willags --tag h100-30k --out $OUT/willags-30k.json
+    python -m benchmarks long-run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
+    python -m benchmarks long-run eval   --run-dir /tmp/lr/willags
+    python -m benchmarks long-run record --run-dir /tmp/lr/willags --tag h100-30k --out $OUT/willags-30k.json
 
 Methods are benchmarks.methods METHODS (stock schedule: only max_num_iterations is set, as
 `ns-train <method> --max-num-iterations N` does). Train seconds exclude set-up, checkpoint loading and evaluation.

@@ -1,7 +1,7 @@
 """willags on 1, 2 and 4 GPUs at equal images seen, with each rank's step profile: where a data-parallel step's
 time goes, the wall time, the protocol PSNR, and records with ``num_devices`` (docs/distributed.md).
 
-    python3 -m benchmarks.multi_gpu run --data .gpu-r/reichstag --out $OUT --images 8000 --runs 4,1,2,4:reference
+    python -m benchmarks multi-gpu run --data .gpu-r/reichstag --out $OUT --images 8000 --runs 4,1,2,4:reference
 
 A run is ``<devices>[x<machines>][:reference][@<images>]``: ``4`` trains on 4 GPUs of one machine; ``2x2`` on two
 "machines" of 2 GPUs each, started as two launches (``--machine.num-machines 2 --machine.machine-rank 0|1
@@ -403,7 +403,7 @@ def record(result: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
         "machine": result.get("machine"),
         "commit": os.environ.get("WILLAGS_COMMIT"),
         "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "command": f"python3 -m benchmarks.multi_gpu run --images {args.images} --runs {args.runs} (run {result['name']})",
+        "command": f"python -m benchmarks multi-gpu run --images {args.images} --runs {args.runs} (run {result['name']})",
         "seed": args.seed,
     }
 

@@ -1,7 +1,7 @@
 """The harness's runner: read a grid of methods x scenes x step budgets, run each in a child process, keep the
 records.
 
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json
+    python -m benchmarks run --grid configs/benchmark_cpu.json
 
 Each (scene, method, steps) run is a *subprocess* (``python -m benchmarks.harness child SPEC RESULT``, run from the
 repository root; its side is :mod:`benchmarks.child`), so peak memory and the global state nerfstudio keeps
