@@ -110,7 +110,7 @@ def gpu_sharing(rec: dict[str, Any], grids: dict[str, str] | None = None) -> Sha
     ``concurrent_runs`` or ``shared_with`` + 1, and numbers in its notes ("12, 9 and 3 runs concurrent", "4-5 runs at
     once", "with 6 other runs"); the largest wins. Without a count above 1: words in the notes ("shared-GPU",
     "concurrently" -> shared; "alone", "one after another" -> alone), then the grid file named in ``command``
-    (gpu_scenes.sh grids say their runs are concurrent; the Pareto grid ran one after another).
+    (remote/grid.sh grids say their runs are concurrent; the Pareto grid ran one after another).
     """
     counts: list[int] = []
     why: list[str] = []

@@ -10,7 +10,7 @@ data-parallel implementation (``--pipeline.data-parallel.reduction reference``) 
 ``@N`` sees N images instead of ``--images``. With D devices in all a run takes images / D steps, and every setting
 counted in steps is divided by D (densification warm-up / interval / stop, the resolution and SH schedules, the
 mask's warm-up and ramp, the learning-rate decays and warm-ups; the EMA teacher's decay becomes tau^D), as
-benchmarks/multi_gpu.sh always did. Configs are built here in Python and handed to nerfstudio's own
+benchmarks/remote/multi_gpu.sh always did. Configs are built here in Python and handed to nerfstudio's own
 ``nerfstudio.scripts.train.main`` (its launcher: one process per GPU, NCCL), so no method registry and no parsing of
 anyone's stdout is involved.
 
@@ -24,7 +24,7 @@ phases from the launch. Then every run is scored by ``ns-eval`` (the NeRF-W prot
 at once after the last training.
 
 Deadline: nothing starts that would not end before ``--deadline-s`` seconds after ``$MULTI_GPU_T0`` (the
-command's start, set by benchmarks/multi_gpu.sh; else this script's start); a run or evaluation still going at the
+command's start, set by benchmarks/remote/multi_gpu.sh; else this script's start); a run or evaluation still going at the
 deadline is stopped (its process group killed) and counted as such; the results are rewritten under ``--out``
 after every stage: ``multi_gpu.tgz`` (logs, step profiles, configs, evaluations, summary, records),
 ``multi_gpu_records.json`` (benchmarks/records/benchmarks.json records: copy into benchmarks/records/gpu_runs/ and run
@@ -512,7 +512,7 @@ def cmd_run(args: argparse.Namespace) -> None:
         for gpu, r in zip(gpus, batch, strict=False):  # the last batch may be shorter
             cmd = [python, "-m", "nerfstudio.scripts.eval", "--load-config", str(Path(r["run_dir"]) / "config.yml")]
             cmd += ["--output-path", str(work / f"{r['name']}.eval.json")]
-            # ns-eval looks the method up by name in the entry points: pip's, or those gpu_env.sh writes on a lent GPU
+            # ns-eval looks the method up by name in the entry points: pip's, or those remote/env.sh writes on a lent GPU
             env = _env({"CUDA_VISIBLE_DEVICES": gpu})
             procs.append(_start(cmd, work / f"{r['name']}.eval.log", env))
         for r, p in zip(batch, procs, strict=True):

@@ -398,7 +398,7 @@ def run_grid(
 
     overrides: RunSpec fields set on every run (e.g. {"tag": "r2", "seed": 43} for a repeat).
 
-    stop_after_s > 0: start no new run once that many seconds have passed (for time-limited GPU leases: the
+    stop_after_s > 0: start no new run once that many seconds have passed (for machines lent for a limited time: the
     records of the finished runs are already written; rerun with --methods / --scenes for the rest)."""
     grid = json.loads(Path(grid_path).read_text())
     settings, specs = parse_grid(grid)

@@ -1,5 +1,5 @@
 """Train methods on one scene in-process (nerfstudio's Trainer, as ns-train does) and score them under the NeRF-W
-protocol. A trimmed harness for a GPU lease: one process, one JIT, several runs; prints a table, writes JSON.
+protocol. A trimmed harness: one process, one JIT, several runs; prints a table, writes JSON.
 
     python -m benchmarks train-eval --scene ../shared/data/fox-wild --methods willags willags-3dgs --steps 5000
 

@@ -1,4 +1,4 @@
-"""benchmarks/gpu_solo.sh: the queue of runs alone on the GPU, driven with a stand-in for python3 (no GPU here) that
+"""benchmarks/remote/solo.sh: the queue of runs alone on the GPU, driven with a stand-in for python3 (no GPU here) that
 logs what it was asked to do."""
 
 import os
@@ -37,8 +37,8 @@ def tree(tmp_path):
     if shutil.which("bash") is None or shutil.which("setsid") is None:
         pytest.skip("needs bash and setsid")
     root = tmp_path / "repo"
-    (root / "benchmarks").mkdir(parents=True)
-    shutil.copy(REPO / "benchmarks" / "gpu_solo.sh", root / "benchmarks")
+    (root / "benchmarks" / "remote").mkdir(parents=True)
+    shutil.copy(REPO / "benchmarks" / "remote" / "solo.sh", root / "benchmarks" / "remote")
     for d in ("willags_ns", "configs"):
         (root / d).mkdir()
     (root / "pyproject.toml").write_text("")
@@ -61,7 +61,7 @@ def tree(tmp_path):
 
 def _sh(root, env, *args, **extra):
     return subprocess.run(
-        ["bash", "benchmarks/gpu_solo.sh", *args],
+        ["bash", "benchmarks/remote/solo.sh", *args],
         cwd=root,
         env={**env, **extra},
         capture_output=True,

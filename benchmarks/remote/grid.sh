@@ -2,7 +2,7 @@
 # Run (scene, method[, tag, seed]) pairs of a grid on one GPU, one harness process per pair, at most $JOBS at once
 # (the runs are mostly launch/Python-bound at ~100k-300k Gaussians, so they share a large GPU well; train times
 # are then shared-GPU times). Records: OUT/<scene>-<method>-<tag>.json; the tail of each log: OUT/logs.txt.
-#   GRID=configs/benchmark_gpu_fidelity.json JOBS=12 bash benchmarks/gpu_scenes.sh OUT scene:method[:tag[:seed]] ...
+#   GRID=configs/benchmark_gpu_fidelity.json JOBS=12 bash benchmarks/remote/grid.sh OUT scene:method[:tag[:seed]] ...
 set -u
 out=$1; shift
 grid=${GRID:-configs/benchmark_gpu_scenes.json}
@@ -22,7 +22,7 @@ for pair in "$@"; do
   [ -n "${tag:-}" ] && extra+=(--tag "$tag")
   [ -n "${seed:-}" ] && extra+=(--seed "$seed")
   while [ "$(jobs -rp | wc -l)" -ge "$jobs_max" ]; do sleep 2; done
-  python3 benchmarks/run_benchmark.py --grid "$grid" --scenes "$scene" --methods "$method" "${extra[@]}" \
+  python3 -m benchmarks run --grid "$grid" --scenes "$scene" --methods "$method" "${extra[@]}" \
     --out "$logs/$name" --work-dir "/tmp/willags-gpu-work/$name" > "$logs/$name.log" 2>&1 &
 done
 wait

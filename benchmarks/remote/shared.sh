@@ -1,16 +1,15 @@
 #!/usr/bin/env bash
-# benchmarks/gpu_scenes.sh detached: the pairs of a grid share one GPU (at most $JOBS at once) and go on between
-# back-to-back device calls on the same machine, so a grid longer than one call's 10 minutes still finishes.
+# benchmarks/remote/grid.sh detached: the pairs of a grid share one GPU (at most $JOBS at once) and outlive the
+# shell that started them, so `wait` can be called again until a long grid finishes. Source benchmarks/remote/env.sh.
 #
-#   export WILLAGS_COMMIT=<sha>; source benchmarks/gpu_env.sh
 #   SHARED_DATA=".gpu-lib .gpu-r" GRID=configs/benchmark_gpu_fidelity.json JOBS=12 \
-#     bash benchmarks/gpu_shared.sh start "liberty:peer:h200-l1:42 liberty:willags:h200-l1:42 ..."
-#   bash benchmarks/gpu_shared.sh wait $OUT 540      # this call and each later one: bring back what finished
+#     bash benchmarks/remote/shared.sh start "liberty:peer:h200-l1:42 liberty:willags:h200-l1:42 ..."
+#   bash benchmarks/remote/shared.sh wait $OUT 540      # again until done: each brings back what finished
 #
-# `start` copies the tree to /tmp/shared/wrk (a later call's fresh copy of the tree changes nothing under a running
-# run) and the scenes of the folders in SHARED_DATA to its .gpu-data, then runs gpu_scenes.sh there under setsid.
+# `start` copies the tree to /tmp/shared/wrk (a later copy of the tree changes nothing under a running run) and the
+# scenes of the folders in SHARED_DATA to its .gpu-data, then runs grid.sh there under setsid.
 # `wait OUT SECONDS` returns once every pair finished or after SECONDS, and tars the records, the logs and the
-# pictures (WILLAGS_BENCH_RENDERS) to OUT/shared-records.tgz: one file, whatever the number of runs.
+# pictures (WILLAGS_BENCH_RENDERS) to OUT/shared-records.tgz.
 set -u
 S=${SHARED_DIR:-/tmp/shared}
 case "${1:-}" in
@@ -24,7 +23,7 @@ case "${1:-}" in
     done
     cd "$S/wrk" || exit 1
     export PYTHONPATH=/tmp/site:$S/wrk/.whl-gpu/stub:$S/wrk WILLAGS_BENCH_RENDERS=$S/renders
-    setsid nohup bash -c "bash benchmarks/gpu_scenes.sh $S/out $2; touch $S/done" > "$S/grid.log" 2>&1 < /dev/null &
+    setsid nohup bash -c "bash benchmarks/remote/grid.sh $S/out $2; touch $S/done" > "$S/grid.log" 2>&1 < /dev/null &
     echo "gpu_shared: started $(echo "$2" | wc -w) pairs"
     ;;
   wait)
@@ -40,5 +39,5 @@ case "${1:-}" in
     tail -c 3000 "$S/out/logs.txt"
     [ -e "$S/done" ] && echo "gpu_shared: all done" || echo "gpu_shared: still running"
     ;;
-  *) echo "usage: gpu_shared.sh start PAIRS | wait OUT [SECONDS]" >&2; exit 2 ;;
+  *) echo "usage: remote/shared.sh start PAIRS | wait OUT [SECONDS]" >&2; exit 2 ;;
 esac
