@@ -136,5 +136,5 @@ __all__ = [
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "child":
         sys.exit(_child_main(sys.argv[2], sys.argv[3]))
-    print("usage: python -m benchmarks.harness child SPEC.json RESULT.json (use benchmarks/run_benchmark.py)")
+    print("usage: python -m benchmarks.harness child SPEC.json RESULT.json (use python -m benchmarks run)")
     sys.exit(2)

@@ -2,7 +2,7 @@
 splatfacto, peer, willags), and the transient mask of 4 training images, from the sheets that runs with
 WILLAGS_BENCH_RENDERS write (docs/real_scene_comparison.png: reichstag; docs/pictures_<scene>.png: every real scene).
 
-    WILLAGS_BENCH_RENDERS=OUT/renders GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/remote/grid.sh OUT \\
+    WILLAGS_BENCH_RENDERS=OUT/renders GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/remote/grid.sh run OUT \\
         reichstag:splatfacto:h100-r3:42 reichstag:peer:h100-r3:42 reichstag:willags:h100-r4:43
     python -m benchmarks pictures OUT/renders --out docs/real_scene_comparison.png
     python -m benchmarks pictures OUT/renders --scene ../shared/data/south-building \\

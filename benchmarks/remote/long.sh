@@ -32,7 +32,7 @@ for run in $LONG_RUNS; do
       --steps "$steps" --milestones "$milestones" --seed "$seed" --concurrent "$n" >> "$d.log" 2>&1
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$milestones" >> "$d.log" 2>&1 ) &
 done
-[ $# -gt 0 ] && { GRID=${GRID:-configs/benchmark_gpu_fidelity.json} JOBS=${JOBS:-8} bash benchmarks/remote/grid.sh "$out/grid" "$@" > "$out/grid.log" 2>&1 & }
+[ $# -gt 0 ] && { GRID=${GRID:-configs/benchmark_gpu_fidelity.json} JOBS=${JOBS:-8} bash benchmarks/remote/grid.sh run "$out/grid" "$@" > "$out/grid.log" 2>&1 & }
 wait
 for run in $LONG_RUNS; do
   IFS=: read -r scene m <<< "$run"

@@ -18,6 +18,15 @@
 # there; runs whose scene is missing wait at the back of the queue (up to SOLO_WAIT_S, 900 s). No run starts after
 # SOLO_DEADLINE_S (1560 s) from `start`. Records: $SOLO_DIR/rec/long-<run>.json (tag SOLO_TAG, default h200-curve;
 # -s<seed> for other seeds, -knob<min> for budget runs), which `wait` tars to OUT/solo-records.tgz with the logs.
+#
+# Several queues side by side on one GPU (`queues`): the runs of a queue one after another, the queues at the same
+# time (their train times are then shared-GPU times; scores do not depend on them), for grids too long to run one at
+# a time, e.g. every method of a scene trained to 15k for the region table:
+#   export WILLAGS_BENCH_REGIONS=/tmp/regions SOLO_MILESTONES="5000 10000 15000" SOLO_DATA=".gpu-r .gpu-lib"
+#   bash benchmarks/remote/solo.sh queues start "reichstag:peer-full:15000" "reichstag:willags:15000 liberty:willags:15000"
+#   bash benchmarks/remote/solo.sh queues wait $OUT 540   # again until done; each call copies scenes that arrived
+# `queues wait OUT SECONDS` gives every queue the scenes in SOLO_DATA, returns once every queue is done or after
+# SECONDS, and packs every queue's records and logs and the region maps ($WILLAGS_BENCH_REGIONS) into OUT/queues.tgz.
 set -u
 S=${SOLO_DIR:-/tmp/solo}  # (tests point it elsewhere)
 export SOLO_DIR=$S
@@ -105,7 +114,50 @@ loop() {
   touch "$S/done"
 }
 
+queues() {  # start RUNS... | wait OUT [SECONDS]: several queues side by side
+  local Q=${QUEUES_DIR:-/tmp/queues} self=${BASH_SOURCE[0]} out limit end left regions i d runs
+  case "${1:-}" in
+    start)
+      shift
+      rm -rf "$Q" && mkdir -p "$Q"
+      i=0
+      for runs in "$@"; do
+        i=$((i + 1))
+        SOLO_DIR=$Q/q$i bash "$self" start "$runs"
+      done
+      ;;
+    wait)
+      out=$2
+      limit=${3:-540}
+      end=$(( $(date +%s) + limit ))
+      for d in "$Q"/q*; do SOLO_DIR=$d bash "$self" wait "$Q/.copy" 0 > /dev/null; done  # new scenes
+      while [ "$(date +%s)" -lt "$end" ]; do
+        left=0
+        for d in "$Q"/q*; do [ -e "$d/done" ] || left=$((left + 1)); done
+        [ "$left" = 0 ] && break
+        sleep 5
+      done
+      mkdir -p "$out"
+      regions=${WILLAGS_BENCH_REGIONS:-}
+      tar czf "$out/queues.tgz" -C / $(cd / && ls -d "${Q#/}"/q*/rec "${Q#/}"/q*/queue.log) \
+        $( [ -n "$regions" ] && [ -d "$regions" ] && echo "${regions#/}")
+      for d in "$Q"/q*; do
+        echo "== $(basename "$d"): $(tr -d '\n' < "$d/queue" 2>/dev/null)"
+        grep "gpu_solo:\|long_run:\|Traceback\|Error" "$d/queue.log" | tail -n 6
+      done
+      left=0
+      for d in "$Q"/q*; do [ -e "$d/done" ] || left=$((left + 1)); done
+      echo "gpu_queues: $left queue(s) still running"
+      ;;
+    *) echo "usage: solo.sh queues start RUNS... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
+  esac
+}
+
 case "${1:-}" in
+  queues)
+    shift
+    queues "$@"
+    ;;
   start)
     rm -rf "$S" && mkdir -p "$S/wrk/.whl-gpu" "$S/rec" "$S/runs"
     cp -r benchmarks willags_ns configs pyproject.toml "$S/wrk/"
@@ -129,5 +181,5 @@ case "${1:-}" in
     grep "gpu_solo:\|long_run:\|time budget\|Traceback\|Error" "$S/queue.log" | tail -n 60
     [ -e "$S/done" ] && echo "gpu_solo: all done" || echo "gpu_solo: still running"
     ;;
-  *) echo "usage: remote/solo.sh start QUEUE | wait OUT [SECONDS]" >&2; exit 2 ;;
+  *) echo "usage: solo.sh start QUEUE | wait OUT [SECONDS] | queues start QUEUE... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
 esac
