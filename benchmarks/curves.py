@@ -106,7 +106,7 @@ def grid_descriptions(repo: Path = REPO) -> dict[str, str]:
 def gpu_sharing(rec: dict[str, Any], grids: dict[str, str] | None = None) -> Sharing:
     """How many runs shared the GPU while ``rec`` trained, from what the record says.
 
-    Counts: ``concurrent_runs`` (long runs: runs on the GPU in the device call that recorded it), each segment's
+    Counts: ``concurrent_runs`` (long runs: runs on the GPU while its segment trained), each segment's
     ``concurrent_runs`` or ``shared_with`` + 1, and numbers in its notes ("12, 9 and 3 runs concurrent", "4-5 runs at
     once", "with 6 other runs"); the largest wins. Without a count above 1: words in the notes ("shared-GPU",
     "concurrently" -> shared; "alone", "one after another" -> alone), then the grid file named in ``command``

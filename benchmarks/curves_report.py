@@ -41,7 +41,7 @@ from benchmarks.records import RECORDS
 MEASURE = (
     "How the points alone on the GPU are measured (`benchmarks/remote/solo.sh`): a queue of runs trained one after "
     "another on one GPU, each scored at its milestones (1k, 2k, 5k, 10k, 15k, 30k up to its steps) right after it "
-    "trained, going on across back-to-back device calls: `export WILLAGS_COMMIT=<sha>; source benchmarks/remote/env.sh; "
+    "trained, detached, so `wait` can be called again until it is done: `export WILLAGS_COMMIT=<sha>; source benchmarks/remote/env.sh; "
     'SOLO_DATA=.gpu-data bash benchmarks/remote/solo.sh start "reichstag:peer:15000 reichstag:willags:30000 '
     'reichstag:willags:30000:42:5"` then `bash benchmarks/remote/solo.sh wait $OUT 570` in that call and each next '
     "one (`scene:method:steps[:seed[:budget minutes]]`; the last form is a run of the time-budget knob), then "

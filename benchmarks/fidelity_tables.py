@@ -289,7 +289,7 @@ def long_run_section(records: list[dict[str, Any]]) -> list[str]:
     out = [
         "## Full-length runs: `benchmarks/long_run.py`, stock schedule",
         "",
-        "Trained in checkpointed segments across device calls (`benchmarks/remote/long.sh`, or one run after another "
+        "Trained in checkpointed segments, each resumed by the next call (`benchmarks/remote/long.sh`, or one run after another "
         "alone on the GPU: `benchmarks/remote/solo.sh`; each call resumes from the "
         "newest checkpoint, as `--load-dir` does, with the optimiser and scheduler states). train s = the sum of the "
         "segments' training time (set-up, checkpoint loading and evaluation excluded); the segments say how many "

@@ -198,8 +198,8 @@ def parse_args(argv=None):
         "--time-budget",
         type=float,
         default=480.0,
-        help="seconds from start; sections (and step variants) that would start later are skipped. A device call is "
-        "killed at 600 s, and the wheel install and imports run before this clock starts: keep <= 480",
+        help="seconds from start; sections (and step variants) that would start later are skipped. On a machine "
+        "whose commands are killed at 600 s (the wheel install and imports run before this clock starts): <= 480",
     )
     ap.add_argument("--json-out", default=None, help="write the records (a JSON list) here, and *_details.json")
     args = ap.parse_args(argv)
