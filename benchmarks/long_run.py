@@ -1,12 +1,13 @@
 """A full-length training run (30k steps by default) in time-limited segments, scored at milestones.
 
-For machines whose commands are time-limited, a 30k-step run is trained in segments: each `train` call resumes
-from the run's newest checkpoint (nerfstudio's --load-dir mechanism: parameters, optimiser and scheduler states),
-trains until its time budget, writes a checkpoint at the end of the last step it finished and stops. Milestone checkpoints (--milestones) are kept, with the train seconds from the
-run's first step to the end of each milestone's step (measured, so a milestone inside a segment has its own time);
-`eval` scores each milestone under the NeRF-W protocol once. Everything it learns goes into RUN_DIR/state.json (train
-seconds per segment and per milestone, runs sharing the GPU per segment, steps, scores), which `record` turns into a
-benchmarks/records/benchmarks.json record (benchmarks/curves.py draws PSNR vs time from the milestones).
+For machines whose commands are time-limited, a 30k-step run is trained in segments: each `train` call resumes from
+the run's newest checkpoint (nerfstudio's --load-dir mechanism: parameters, optimiser and scheduler states), trains
+until its time budget, writes a checkpoint at the end of the last step it finished and stops. Milestone checkpoints
+(--milestones) are kept, with the train seconds from the run's first step to the end of each milestone's step
+(measured, so a milestone inside a segment has its own time); `eval` scores each milestone under the NeRF-W protocol
+once. Everything it learns goes into RUN_DIR/state.json (train seconds per segment and per milestone, runs sharing
+the GPU per segment, steps, scores), which `record` turns into a benchmarks/records/benchmarks.json record
+(benchmarks/curves.py draws PSNR vs time from the milestones).
 
     python -m benchmarks long-run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
     python -m benchmarks long-run eval   --run-dir /tmp/lr/willags
