@@ -60,7 +60,7 @@ lint: $(STAMP)
 	$(BIN)/ruff format --check willags_ns tests benchmarks
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/bench_rasterize.py
+	$(BIN)/python -m benchmarks rasterize
 
 clean-venv:
 	rm -rf $(VENV)

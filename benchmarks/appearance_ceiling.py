@@ -16,7 +16,7 @@ rows bounds what a method can score under the protocol even with perfect geometr
 screen-space gradient and an elliptical shadow per image (appearance.json): they are independent random draws
 per image, so the left half says nothing about where the shadow falls on the right.
 
-    python benchmarks/appearance_ceiling.py --scene ../shared/data/fox-wild
+    python -m benchmarks ceiling --scene ../shared/data/fox-wild
 
 Prints a table (per image and mean PSNR of the right half).
 """

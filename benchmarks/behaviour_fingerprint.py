@@ -8,7 +8,7 @@ VAE, tri-plane field, unfused teacher). Compare two commits by running it in a c
 
     git worktree add --detach /tmp/old 022d2a9
     (cd /tmp/old && PYTHONPATH=$PWD python $REPO/benchmarks/behaviour_fingerprint.py)
-    python benchmarks/behaviour_fingerprint.py
+    python -m benchmarks fingerprint
 """
 
 import sys
@@ -36,8 +36,13 @@ def fingerprint(name: str, out: Path, steps: int = 20) -> str:
     return f"{name}: last loss {losses[-1][0]!r}, sum of losses {total!r}, sum of means {float(m.means.sum())!r}"
 
 
-if __name__ == "__main__":
+def main() -> int:
     # one folder for every run: nerfstudio's event writer is process-global and keeps the first run's file open
     with tempfile.TemporaryDirectory() as d:
         for n in CONFIGS:
             print(fingerprint(n, Path(d)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -14,9 +14,9 @@ machine, other processes' load inflates the median of a 2-thread run (a deschedu
 parallel op); the min column is the less disturbed figure.
 
 Usage:
-    python benchmarks/bench_rasterize.py            # full grid
-    python benchmarks/bench_rasterize.py --quick    # fewer repeats, skips the 100k x 256^2 cell
-    python benchmarks/bench_rasterize.py --profile  # torch.profiler table for 20k @ 128^2 (torch backend)
+    python -m benchmarks rasterize            # full grid
+    python -m benchmarks rasterize --quick    # fewer repeats, skips the 100k x 256^2 cell
+    python -m benchmarks rasterize --profile  # torch.profiler table for 20k @ 128^2 (torch backend)
 """
 
 import argparse

@@ -1,8 +1,8 @@
 """Speed vs accuracy per scene: right-half PSNR against training wall time, from the run records. The command that
 writes docs/curves.md and the PNGs is benchmarks/curves_report.py:
 
-    python -m benchmarks.curves_report          # benchmarks/records/benchmarks.json -> docs/curves.md + PNGs
-    python -m benchmarks.curves_report --records benchmarks/records/benchmarks.json $OUT/long-*.json \
+    python -m benchmarks curves          # benchmarks/records/benchmarks.json -> docs/curves.md + PNGs
+    python -m benchmarks curves --records benchmarks/records/benchmarks.json $OUT/long-*.json \
         --scenes reichstag south-building
 
 Points (one per run and step count) come from two kinds of record:
@@ -106,11 +106,11 @@ def grid_descriptions(repo: Path = REPO) -> dict[str, str]:
 def gpu_sharing(rec: dict[str, Any], grids: dict[str, str] | None = None) -> Sharing:
     """How many runs shared the GPU while ``rec`` trained, from what the record says.
 
-    Counts: ``concurrent_runs`` (long runs: runs on the GPU in the device call that recorded it), each segment's
+    Counts: ``concurrent_runs`` (long runs: runs on the GPU while its segment trained), each segment's
     ``concurrent_runs`` or ``shared_with`` + 1, and numbers in its notes ("12, 9 and 3 runs concurrent", "4-5 runs at
     once", "with 6 other runs"); the largest wins. Without a count above 1: words in the notes ("shared-GPU",
     "concurrently" -> shared; "alone", "one after another" -> alone), then the grid file named in ``command``
-    (gpu_scenes.sh grids say their runs are concurrent; the Pareto grid ran one after another).
+    (remote/grid.sh grids say their runs are concurrent; the Pareto grid ran one after another).
     """
     counts: list[int] = []
     why: list[str] = []

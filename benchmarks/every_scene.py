@@ -144,7 +144,7 @@ def every_scene_section(records: list[dict[str, Any]]) -> list[str]:
         "behind every pixel with the alpha penalty, i.e. `willags-skyalpha-nomask`'s model; the other scenes: as "
         "before, their inspector decisions did not move). **mask + skyline sky**: liberty's `willags` runs before the "
         f"surround sky and the colour-twin transient test ({INSPECTOR_SINCE}). Decisions: docs/inspect.md. Command: "
-        "`GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_shared.sh start "
+        "`GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/remote/grid.sh start "
         '"liberty:willags:<tag>:42 ..."`.',
         "",
         *rows,

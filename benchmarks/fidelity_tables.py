@@ -62,7 +62,7 @@ def fidelity_section(records: list[dict[str, Any]]) -> list[str]:
         "## Fidelity grid: 5000 steps, stock schedule, NeRF-W protocol",
         "",
         "`python benchmarks/run_benchmark.py --grid configs/benchmark_gpu_fidelity.json` (on the lent H100 through "
-        "`GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_scenes.sh OUT scene:method:tag:seed ...`, "
+        "`GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/remote/grid.sh run OUT scene:method:tag:seed ...`, "
         "5-10 runs concurrent on one GPU, so train times are shared-GPU times). Schedule: splatfacto's stock one "
         "(num_downscales 2, resolution_schedule 3000): a 5000-step run trains at 1/4 resolution until step 3000, "
         "then 1/2, and is scored at full resolution. Right-half PSNR; `n` = repeats (seeds 42-47, each with its "
@@ -261,7 +261,7 @@ def fifteen_k_section(records: list[dict[str, Any]]) -> list[str]:
     out = [
         "## 15000 steps: full resolution from step 6000",
         "",
-        "`GRID=configs/benchmark_gpu_15k.json bash benchmarks/gpu_scenes.sh OUT scene:method:h100-15k:42 ...` "
+        "`GRID=configs/benchmark_gpu_15k.json bash benchmarks/remote/grid.sh run OUT scene:method:h100-15k:42 ...` "
         "(reichstag: `benchmarks/long_run.py`, below). Stock schedule with the learning-rate schedules of each "
         "method's own config, runs concurrent on one H100. Right-half PSNR under the NeRF-W protocol (128 steps).",
         "",
@@ -289,8 +289,8 @@ def long_run_section(records: list[dict[str, Any]]) -> list[str]:
     out = [
         "## Full-length runs: `benchmarks/long_run.py`, stock schedule",
         "",
-        "Trained in checkpointed segments across device calls (`benchmarks/gpu_long.sh`, or one run after another "
-        "alone on the GPU: `benchmarks/gpu_solo.sh`; each call resumes from the "
+        "Trained in checkpointed segments, each resumed by the next call (`benchmarks/remote/long.sh`, or one run after another "
+        "alone on the GPU: `benchmarks/remote/solo.sh`; each call resumes from the "
         "newest checkpoint, as `--load-dir` does, with the optimiser and scheduler states). train s = the sum of the "
         "segments' training time (set-up, checkpoint loading and evaluation excluded); the segments say how many "
         "other runs shared the GPU. Right-half PSNR under the NeRF-W protocol (128 steps) at each milestone.",

@@ -2,8 +2,8 @@
 
 One process measures all of it on one GPU:
 
-    python benchmarks/gpu_suite.py --all --n-gaussians 1000000 --size 800 --json-out $OUT/gpu_suite.json
-    python benchmarks/gpu_suite.py --quick --all            # CPU smoke test (< 60 s): torch backend only
+    python -m benchmarks speed --all --n-gaussians 1000000 --size 800 --json-out $OUT/gpu_suite.json
+    python -m benchmarks speed --quick --all            # CPU smoke test (< 60 s): torch backend only
 
 Sections (each in its own try/except: a failure is recorded and the others still run; the JSON is rewritten
 after every section, so a run killed at its time limit keeps what it finished; the code of each is in
@@ -198,8 +198,8 @@ def parse_args(argv=None):
         "--time-budget",
         type=float,
         default=480.0,
-        help="seconds from start; sections (and step variants) that would start later are skipped. A device call is "
-        "killed at 600 s, and the wheel install and imports run before this clock starts: keep <= 480",
+        help="seconds from start; sections (and step variants) that would start later are skipped. On a machine "
+        "whose commands are killed at 600 s (the wheel install and imports run before this clock starts): <= 480",
     )
     ap.add_argument("--json-out", default=None, help="write the records (a JSON list) here, and *_details.json")
     args = ap.parse_args(argv)

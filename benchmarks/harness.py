@@ -1,6 +1,6 @@
 """Benchmark harness: train a grid of methods x scenes x step budgets, evaluate each run, keep the records.
 
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json
+    python -m benchmarks run --grid configs/benchmark_cpu.json
 
 This module is the harness's one name for scripts and tests, and the child process's entry point
 (``python -m benchmarks.harness child SPEC RESULT``, how :func:`benchmarks.runner.run_one` starts a run). The work
@@ -136,5 +136,5 @@ __all__ = [
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "child":
         sys.exit(_child_main(sys.argv[2], sys.argv[3]))
-    print("usage: python -m benchmarks.harness child SPEC.json RESULT.json (use benchmarks/run_benchmark.py)")
+    print("usage: python -m benchmarks.harness child SPEC.json RESULT.json (use python -m benchmarks run)")
     sys.exit(2)

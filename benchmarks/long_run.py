@@ -1,17 +1,17 @@
-"""A full-length training run (30k steps by default) across several device calls, scored at milestones.
+"""A full-length training run (30k steps by default) in time-limited segments, scored at milestones.
 
-One device call lasts 10 minutes and the machine is given back ~30 s after a call, so a 30k-step run is trained
-in segments: each `train` call resumes from the run's newest checkpoint (nerfstudio's --load-dir mechanism:
-parameters, optimiser and scheduler states), trains until its time budget, writes a checkpoint at the end of the
-last step it finished and stops. Milestone checkpoints (--milestones) are kept, with the train seconds from the
-run's first step to the end of each milestone's step (measured, so a milestone inside a segment has its own time);
-`eval` scores each milestone under the NeRF-W protocol once. Everything it learns goes into RUN_DIR/state.json (train
-seconds per segment and per milestone, runs sharing the GPU per segment, steps, scores), which `record` turns into a
-benchmarks/records/benchmarks.json record (benchmarks/curves.py draws PSNR vs time from the milestones).
+For machines whose commands are time-limited, a 30k-step run is trained in segments: each `train` call resumes from
+the run's newest checkpoint (nerfstudio's --load-dir mechanism: parameters, optimiser and scheduler states), trains
+until its time budget, writes a checkpoint at the end of the last step it finished and stops. Milestone checkpoints
+(--milestones) are kept, with the train seconds from the run's first step to the end of each milestone's step
+(measured, so a milestone inside a segment has its own time); `eval` scores each milestone under the NeRF-W protocol
+once. Everything it learns goes into RUN_DIR/state.json (train seconds per segment and per milestone, runs sharing
+the GPU per segment, steps, scores), which `record` turns into a benchmarks/records/benchmarks.json record
+(benchmarks/curves.py draws PSNR vs time from the milestones).
 
-    python -m benchmarks.long_run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
-    python -m benchmarks.long_run eval   --run-dir /tmp/lr/willags
-    python -m benchmarks.long_run record --run-dir /tmp/lr/willags --tag h100-30k --out $OUT/willags-30k.json
+    python -m benchmarks long-run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
+    python -m benchmarks long-run eval   --run-dir /tmp/lr/willags
+    python -m benchmarks long-run record --run-dir /tmp/lr/willags --tag h100-30k --out $OUT/willags-30k.json
 
 Methods are benchmarks.methods METHODS (stock schedule: only max_num_iterations is set, as
 `ns-train <method> --max-num-iterations N` does). Train seconds exclude set-up, checkpoint loading and evaluation.

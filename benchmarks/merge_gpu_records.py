@@ -2,7 +2,7 @@
 and benchmarks/gpu_suite.py on a lent GPU) into benchmarks/records/benchmarks.json, and regenerate
 docs/benchmarks.md.
 
-    python benchmarks/merge_gpu_records.py
+    python -m benchmarks merge-gpu
 
 Records are taken as the scripts wrote them; this adds only provenance (command, machine, tag, status).
 """

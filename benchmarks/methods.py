@@ -112,17 +112,6 @@ METHODS: dict[str, MethodSpec] = {
         "willags-paper", (("use_field", False),), note="paper ablation: decoder without the tri-plane field"
     ),
     "willags-paper-novae": MethodSpec("willags-paper", (("latent.kind", "embedding"),), note="paper ablation: no VAE"),
-    # the paper preset's south-building runs lose PSNR on their own training views from 1k to 5k steps
-    # (records h200-curve15, h200-curve15-s43): which of its differences from the default does it
-    "willags-paper-nomask": MethodSpec("willags-paper", (("mask.enabled", False),), note="paper ablation: no mask"),
-    "willags-paper-support": MethodSpec(
-        "willags-paper",
-        (("mask.safeguard.enabled", True),),
-        note="paper ablation: the mask's SfM-track safeguard on (the default's; COLMAP scenes)",
-    ),
-    "willags-paper-aa": MethodSpec(
-        "willags-paper", (("rasterize_mode", "antialiased"),), note="paper ablation: antialiased rasterisation"
-    ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
     "peer": MethodSpec(
         "peer",

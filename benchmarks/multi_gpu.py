@@ -1,7 +1,7 @@
 """willags on 1, 2 and 4 GPUs at equal images seen, with each rank's step profile: where a data-parallel step's
 time goes, the wall time, the protocol PSNR, and records with ``num_devices`` (docs/distributed.md).
 
-    python3 -m benchmarks.multi_gpu run --data .gpu-r/reichstag --out $OUT --images 8000 --runs 4,1,2,4:reference
+    python -m benchmarks multi-gpu run --data .gpu-r/reichstag --out $OUT --images 8000 --runs 4,1,2,4:reference
 
 A run is ``<devices>[x<machines>][:reference][@<images>]``: ``4`` trains on 4 GPUs of one machine; ``2x2`` on two
 "machines" of 2 GPUs each, started as two launches (``--machine.num-machines 2 --machine.machine-rank 0|1
@@ -10,7 +10,7 @@ data-parallel implementation (``--pipeline.data-parallel.reduction reference``) 
 ``@N`` sees N images instead of ``--images``. With D devices in all a run takes images / D steps, and every setting
 counted in steps is divided by D (densification warm-up / interval / stop, the resolution and SH schedules, the
 mask's warm-up and ramp, the learning-rate decays and warm-ups; the EMA teacher's decay becomes tau^D), as
-benchmarks/multi_gpu.sh always did. Configs are built here in Python and handed to nerfstudio's own
+benchmarks/remote/multi_gpu.sh always did. Configs are built here in Python and handed to nerfstudio's own
 ``nerfstudio.scripts.train.main`` (its launcher: one process per GPU, NCCL), so no method registry and no parsing of
 anyone's stdout is involved.
 
@@ -24,7 +24,7 @@ phases from the launch. Then every run is scored by ``ns-eval`` (the NeRF-W prot
 at once after the last training.
 
 Deadline: nothing starts that would not end before ``--deadline-s`` seconds after ``$MULTI_GPU_T0`` (the
-command's start, set by benchmarks/multi_gpu.sh; else this script's start); a run or evaluation still going at the
+command's start, set by benchmarks/remote/multi_gpu.sh; else this script's start); a run or evaluation still going at the
 deadline is stopped (its process group killed) and counted as such; the results are rewritten under ``--out``
 after every stage: ``multi_gpu.tgz`` (logs, step profiles, configs, evaluations, summary, records),
 ``multi_gpu_records.json`` (benchmarks/records/benchmarks.json records: copy into benchmarks/records/gpu_runs/ and run
@@ -403,7 +403,7 @@ def record(result: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
         "machine": result.get("machine"),
         "commit": os.environ.get("WILLAGS_COMMIT"),
         "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "command": f"python3 -m benchmarks.multi_gpu run --images {args.images} --runs {args.runs} (run {result['name']})",
+        "command": f"python -m benchmarks multi-gpu run --images {args.images} --runs {args.runs} (run {result['name']})",
         "seed": args.seed,
     }
 
@@ -512,7 +512,7 @@ def cmd_run(args: argparse.Namespace) -> None:
         for gpu, r in zip(gpus, batch, strict=False):  # the last batch may be shorter
             cmd = [python, "-m", "nerfstudio.scripts.eval", "--load-config", str(Path(r["run_dir"]) / "config.yml")]
             cmd += ["--output-path", str(work / f"{r['name']}.eval.json")]
-            # ns-eval looks the method up by name in the entry points: pip's, or those gpu_env.sh writes on a lent GPU
+            # ns-eval looks the method up by name in the entry points: pip's, or those remote/env.sh writes on a lent GPU
             env = _env({"CUDA_VISIBLE_DEVICES": gpu})
             procs.append(_start(cmd, work / f"{r['name']}.eval.log", env))
         for r, p in zip(batch, procs, strict=True):

@@ -19,7 +19,7 @@ a measurement:
   get_outputs); the backward pass is what the labels leave out. The default's step launches more kernels than
   splatfacto's (docs/design.md, Speed); this says which part owns them.
 
-    python -m benchmarks.profile_step --method willags --data .gpu-r/reichstag --warmup 3000 --steps 50 \\
+    python -m benchmarks profile --method willags --data .gpu-r/reichstag --warmup 3000 --steps 50 \\
         --out $OUT/profile-reichstag-willags.json
 
 Steps are splatfacto's stock schedule (as `ns-train <method>`); ``--warmup`` puts the window past the resolution

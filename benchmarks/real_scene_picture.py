@@ -2,10 +2,10 @@
 splatfacto, peer, willags), and the transient mask of 4 training images, from the sheets that runs with
 WILLAGS_BENCH_RENDERS write (docs/real_scene_comparison.png: reichstag; docs/pictures_<scene>.png: every real scene).
 
-    WILLAGS_BENCH_RENDERS=OUT/renders GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/gpu_scenes.sh OUT \\
+    WILLAGS_BENCH_RENDERS=OUT/renders GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/remote/grid.sh run OUT \\
         reichstag:splatfacto:h100-r3:42 reichstag:peer:h100-r3:42 reichstag:willags:h100-r4:43
-    python benchmarks/real_scene_picture.py OUT/renders --out docs/real_scene_comparison.png
-    python benchmarks/real_scene_picture.py OUT/renders --scene ../shared/data/south-building \\
+    python -m benchmarks pictures OUT/renders --out docs/real_scene_comparison.png
+    python -m benchmarks pictures OUT/renders --scene ../shared/data/south-building \\
         --rows "peer-h200-r1=peer,willags-h200-r1-wip=willags,willags-auto-h200-r1=willags-auto" \\
         --masks "{scene}-willags-h200-r1-wip-masks.png" --out docs/pictures_south-building.png
 

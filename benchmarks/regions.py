@@ -20,7 +20,7 @@ The error maps and the geometry are written while a run is scored (`benchmarks.c
 (``BLOCK`` x ``BLOCK`` pixels of the right half: mean squared errors average exactly over blocks). ``report`` turns
 a folder of them into the table and one picture per scene:
 
-    python -m benchmarks.regions report DUMPS --out docs/regions.md --pictures docs/regions
+    python -m benchmarks regions report DUMPS --out docs/regions.md --pictures docs/regions
 """
 
 from __future__ import annotations

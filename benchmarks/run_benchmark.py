@@ -1,12 +1,12 @@
 """Train and evaluate a grid of methods x scenes x step budgets; merge the records into
 benchmarks/records/benchmarks.json and regenerate docs/benchmarks.md.
 
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json
-    python benchmarks/run_benchmark.py --grid configs/benchmark_gpu.json                  # adds GPU records
-    python benchmarks/run_benchmark.py --render-only                                      # markdown from the JSON
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --dry-run        # list the runs
-    python benchmarks/run_benchmark.py --merge gpu_out/benchmarks.json                    # fetched records
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json --out /tmp/b     # /tmp/b.json, /tmp/b.md
+    python -m benchmarks run --grid configs/benchmark_cpu.json
+    python -m benchmarks run --grid configs/benchmark_gpu.json                  # adds GPU records
+    python -m benchmarks tables                                      # markdown from the JSON
+    python -m benchmarks run --grid configs/benchmark_cpu.json --dry-run        # list the runs
+    python -m benchmarks merge gpu_out/benchmarks.json                    # fetched records
+    python -m benchmarks run --grid configs/benchmark_cpu.json --out /tmp/b     # /tmp/b.json, /tmp/b.md
 
 Each run trains in its own subprocess (see benchmarks/runner.py); records merge into the existing JSON
 (same (scene, method, device, steps, tag) replaced, others kept) and the markdown is regenerated after every run.
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         return 0
     if args.grid is None:
         ap.error("--grid is required (unless --render-only)")
-    command = "python benchmarks/run_benchmark.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python -m benchmarks run " + " ".join(sys.argv[1:] if argv is None else argv)
     run_grid(
         args.grid,
         out,

@@ -1,7 +1,7 @@
 """The harness's runner: read a grid of methods x scenes x step budgets, run each in a child process, keep the
 records.
 
-    python benchmarks/run_benchmark.py --grid configs/benchmark_cpu.json
+    python -m benchmarks run --grid configs/benchmark_cpu.json
 
 Each (scene, method, steps) run is a *subprocess* (``python -m benchmarks.harness child SPEC RESULT``, run from the
 repository root; its side is :mod:`benchmarks.child`), so peak memory and the global state nerfstudio keeps
@@ -398,7 +398,7 @@ def run_grid(
 
     overrides: RunSpec fields set on every run (e.g. {"tag": "r2", "seed": 43} for a repeat).
 
-    stop_after_s > 0: start no new run once that many seconds have passed (for time-limited GPU leases: the
+    stop_after_s > 0: start no new run once that many seconds have passed (for machines lent for a limited time: the
     records of the finished runs are already written; rerun with --methods / --scenes for the rest)."""
     grid = json.loads(Path(grid_path).read_text())
     settings, specs = parse_grid(grid)

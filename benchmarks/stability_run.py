@@ -1,7 +1,7 @@
 """Row 19 of docs/reliability.md: train willags on a real scene with anomaly checks; every parameter and gradient
 must stay finite. Too slow for CI on CPU (2k steps), so it is a script; its result goes into docs/reliability.md.
 
-    python benchmarks/stability_run.py --scene ../shared/data/fox-wild --steps 2000 --downscales 1 \
+    python -m benchmarks stability --scene ../shared/data/fox-wild --steps 2000 --downscales 1 \
         --out /tmp/stability --json /tmp/stability.json
 
 What it does: nerfstudio's Trainer exactly as `ns-train willags` sets it up (method defaults; only the step count,

@@ -1,6 +1,6 @@
 """Windowed means of a training run's logged scalars (nerfstudio's tensorboard events), one line per tag.
 
-    python -m benchmarks.tb_scalars RUN_DIR [--tags psnr,masked_fraction,gaussian_count] [--window 250]
+    python -m benchmarks tb-scalars RUN_DIR [--tags psnr,masked_fraction,gaussian_count] [--window 250]
 
 Why: the training PSNR and the mask's share are logged every few steps and are noisy (each step is one photo);
 means over windows of steps show a trend, e.g. whether a run keeps fitting its own training views or loses them

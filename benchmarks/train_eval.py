@@ -1,7 +1,7 @@
 """Train methods on one scene in-process (nerfstudio's Trainer, as ns-train does) and score them under the NeRF-W
-protocol. A trimmed harness for a GPU lease: one process, one JIT, several runs; prints a table, writes JSON.
+protocol. A trimmed harness: one process, one JIT, several runs; prints a table, writes JSON.
 
-    python benchmarks/train_eval.py --scene ../shared/data/fox-wild --methods willags willags-3dgs --steps 5000
+    python -m benchmarks train-eval --scene ../shared/data/fox-wild --methods willags willags-3dgs --steps 5000
 
 Methods: willags, willags-lite, willags-3dgs, willags-novae, willags-nofield, willags-nomask. Schedules are the
 methods' own defaults (the paper's / splatfacto's), only the iteration count is set.

@@ -25,7 +25,7 @@ from benchmarks.curves import (
 )
 
 GRIDS = {
-    "configs/concurrent.json": "benchmarks/gpu_scenes.sh runs the pairs concurrently on one GPU",
+    "configs/concurrent.json": "benchmarks/remote/grid.sh runs the pairs concurrently on one GPU",
     "configs/seq.json": "runs one after another (true times)",
 }
 ALONE = Sharing("alone", 1, "test")

@@ -1,4 +1,4 @@
-"""benchmarks/gpu_solo.sh: the queue of runs alone on the GPU, driven with a stand-in for python3 (no GPU here) that
+"""benchmarks/remote/solo.sh: the queue of runs alone on the GPU, driven with a stand-in for python3 (no GPU here) that
 logs what it was asked to do."""
 
 import os
@@ -37,8 +37,8 @@ def tree(tmp_path):
     if shutil.which("bash") is None or shutil.which("setsid") is None:
         pytest.skip("needs bash and setsid")
     root = tmp_path / "repo"
-    (root / "benchmarks").mkdir(parents=True)
-    shutil.copy(REPO / "benchmarks" / "gpu_solo.sh", root / "benchmarks")
+    (root / "benchmarks" / "remote").mkdir(parents=True)
+    shutil.copy(REPO / "benchmarks" / "remote" / "solo.sh", root / "benchmarks" / "remote")
     for d in ("willags_ns", "configs"):
         (root / d).mkdir()
     (root / "pyproject.toml").write_text("")
@@ -61,7 +61,7 @@ def tree(tmp_path):
 
 def _sh(root, env, *args, **extra):
     return subprocess.run(
-        ["bash", "benchmarks/gpu_solo.sh", *args],
+        ["bash", "benchmarks/remote/solo.sh", *args],
         cwd=root,
         env={**env, **extra},
         capture_output=True,
@@ -128,3 +128,30 @@ def test_no_run_starts_after_the_deadline(tree, tmp_path):
     waited = _sh(root, env, "wait", str(tmp_path / "out"), "600")
     assert "deadline passed; not started: reichstag:peer:2000" in waited.stdout
     assert not (solo / "calls.log").exists()
+
+
+@pytest.mark.timing
+def test_queues_run_side_by_side_and_one_archive_brings_back_every_queue(tree, tmp_path):
+    root, env, solo = tree
+    queues = tmp_path / "queues"
+    qenv = {**env, "QUEUES_DIR": str(queues), "SOLO_DATA": ".data-a"}
+    started = _sh(
+        root, qenv, "queues", "start", "reichstag:peer:2000", "reichstag:willags:1000 reichstag:splatfacto:1000"
+    )
+    assert started.returncode == 0, started.stderr
+    waited = _sh(root, qenv, "queues", "wait", str(tmp_path / "out"), "600")
+    assert waited.returncode == 0, waited.stderr
+    assert "gpu_queues: 0 queue(s) still running" in waited.stdout
+    calls = {q: (queues / q / "calls.log").read_text() for q in ("q1", "q2")}
+    assert [ln.split()[2] for ln in calls["q1"].splitlines() if ln.startswith("train ")] == ["peer"]
+    assert [ln.split()[2] for ln in calls["q2"].splitlines() if ln.startswith("train ")] == ["willags", "splatfacto"]
+    with tarfile.open(tmp_path / "out" / "queues.tgz") as tar:
+        names = set(tar.getnames())
+    prefix = str(queues).lstrip("/")
+    assert {f"{prefix}/q1/rec/long-reichstag-peer-2000-s42.json", f"{prefix}/q2/queue.log"} <= names
+
+
+def test_an_unknown_command_prints_the_usage(tree):
+    root, env, _ = tree
+    bad = _sh(root, env, "queues", "bogus")
+    assert bad.returncode == 2 and "usage: solo.sh queues start" in bad.stderr

@@ -570,7 +570,7 @@ def test_records_name_the_commit_given_by_the_gpu_command(monkeypatch):
 
 
 def test_long_run_record_carries_the_seed_and_the_last_milestone(tmp_path):
-    """A repeat of a long run differs from the first by its seed: the record must say which (gpu_long.sh's
+    """A repeat of a long run differs from the first by its seed: the record must say which (remote/long.sh's
     LONG_SEED), and its scores are the final milestone's."""
     from benchmarks import long_run
 

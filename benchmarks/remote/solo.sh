@@ -1,26 +1,32 @@
 #!/usr/bin/env bash
-# Runs ALONE on the GPU, one after another (their train times are the methods' own), each scored at its milestones
-# right after it trained (one evaluation process per milestone, nothing training meanwhile), as a queue that goes on
-# across back-to-back device calls. The curves (benchmarks/curves.py) and the knob's check come from it.
+# A queue of runs ALONE on the GPU, one after another (their train times are the methods' own), each scored at its
+# milestones right after it trained (one evaluation process per milestone, nothing training meanwhile). The curves
+# (benchmarks/curves.py) and the time budget's check come from it. Source benchmarks/remote/env.sh first.
 #
-#   export WILLAGS_COMMIT=<sha>; source benchmarks/gpu_env.sh
-#   SOLO_DATA=".gpu-data" bash benchmarks/gpu_solo.sh start "reichstag:peer:15000 reichstag:willags:30000 ..."
-#   SOLO_DATA=".gpu-sb" bash benchmarks/gpu_solo.sh wait $OUT 560    # this call and each later one: bring back records
+#   SOLO_DATA=".gpu-data" bash benchmarks/remote/solo.sh start "reichstag:peer:15000 reichstag:willags:30000 ..."
+#   SOLO_DATA=".gpu-sb" bash benchmarks/remote/solo.sh wait $OUT 560   # copies new scenes, brings back the records
 #
 # A run is scene:method:steps[:seed[:budget_minutes]]: a benchmarks/methods.py method trained to `steps` with
 # splatfacto's stock schedule (the learning-rate schedules do not depend on the step count, so the 15k point of a
-# 30k run is a 15k run), scored at 1000, 2000, 5000, 10000, 15000 and 30000 up to `steps`. With budget_minutes it
-# is `--pipeline.time-budget-minutes` instead (willags' knob chooses the preset and when to stop; `steps` is the
-# cap) and is scored where it stopped. The seed defaults to 42.
+# 30k run is a 15k run), scored at 1000, 2000, 5000, 10000, 15000 and 30000 up to `steps` (SOLO_MILESTONES: another
+# list; SOLO_SCORE: only these). With budget_minutes it is `--pipeline.time-budget-minutes` instead (the budget
+# chooses the preset and when to stop; `steps` is the cap), scored where it stopped. The seed defaults to 42.
 #
-# The queue runs detached (setsid) from a copy of the tree in /tmp/solo, so it goes on between calls on the same
-# machine (given back ~30 s after a call: call `wait` again at once) and a later call's fresh copy of the tree
-# changes nothing under a running run. Scenes are copied to /tmp/solo/data from the folders in SOLO_DATA by `start`
-# and by every `wait`: a scene that a later call carries (the 64 MiB carry limit) is trained once it is there; runs
-# whose scene is missing wait at the back of the queue (up to SOLO_WAIT_S, 900 s). No run starts after
-# SOLO_DEADLINE_S (1560 s) from `start`: a machine goes back 30 minutes after it started, whatever runs on it.
-# Records: /tmp/solo/rec/long-<run>.json (tag SOLO_TAG, default h200-curve; -s<seed> for other seeds, -knob<min>
-# for budget runs), which `wait` tars to OUT/solo-records.tgz with the logs.
+# The queue runs detached (setsid) from a copy of the tree in $SOLO_DIR (/tmp/solo), so it outlives the shell that
+# started it, and a later copy of the tree changes nothing under a running run. Scenes are copied to $SOLO_DIR/data
+# from the folders in SOLO_DATA by `start` and by every `wait`: a scene that arrives later is trained once it is
+# there; runs whose scene is missing wait at the back of the queue (up to SOLO_WAIT_S, 900 s). No run starts after
+# SOLO_DEADLINE_S (1560 s) from `start`. Records: $SOLO_DIR/rec/long-<run>.json (tag SOLO_TAG, default h200-curve;
+# -s<seed> for other seeds, -knob<min> for budget runs), which `wait` tars to OUT/solo-records.tgz with the logs.
+#
+# Several queues side by side on one GPU (`queues`): the runs of a queue one after another, the queues at the same
+# time (their train times are then shared-GPU times; scores do not depend on them), for grids too long to run one at
+# a time, e.g. every method of a scene trained to 15k for the region table:
+#   export WILLAGS_BENCH_REGIONS=/tmp/regions SOLO_MILESTONES="5000 10000 15000" SOLO_DATA=".gpu-r .gpu-lib"
+#   bash benchmarks/remote/solo.sh queues start "reichstag:peer-full:15000" "reichstag:willags:15000 liberty:willags:15000"
+#   bash benchmarks/remote/solo.sh queues wait $OUT 540   # again until done; each call copies scenes that arrived
+# `queues wait OUT SECONDS` gives every queue the scenes in SOLO_DATA, returns once every queue is done or after
+# SECONDS, and packs every queue's records and logs and the region maps ($WILLAGS_BENCH_REGIONS) into OUT/queues.tgz.
 set -u
 S=${SOLO_DIR:-/tmp/solo}  # (tests point it elsewhere)
 export SOLO_DIR=$S
@@ -108,7 +114,50 @@ loop() {
   touch "$S/done"
 }
 
+queues() {  # start RUNS... | wait OUT [SECONDS]: several queues side by side
+  local Q=${QUEUES_DIR:-/tmp/queues} self=${BASH_SOURCE[0]} out limit end left regions i d runs
+  case "${1:-}" in
+    start)
+      shift
+      rm -rf "$Q" && mkdir -p "$Q"
+      i=0
+      for runs in "$@"; do
+        i=$((i + 1))
+        SOLO_DIR=$Q/q$i bash "$self" start "$runs"
+      done
+      ;;
+    wait)
+      out=$2
+      limit=${3:-540}
+      end=$(( $(date +%s) + limit ))
+      for d in "$Q"/q*; do SOLO_DIR=$d bash "$self" wait "$Q/.copy" 0 > /dev/null; done  # new scenes
+      while [ "$(date +%s)" -lt "$end" ]; do
+        left=0
+        for d in "$Q"/q*; do [ -e "$d/done" ] || left=$((left + 1)); done
+        [ "$left" = 0 ] && break
+        sleep 5
+      done
+      mkdir -p "$out"
+      regions=${WILLAGS_BENCH_REGIONS:-}
+      tar czf "$out/queues.tgz" -C / $(cd / && ls -d "${Q#/}"/q*/rec "${Q#/}"/q*/queue.log) \
+        $( [ -n "$regions" ] && [ -d "$regions" ] && echo "${regions#/}")
+      for d in "$Q"/q*; do
+        echo "== $(basename "$d"): $(tr -d '\n' < "$d/queue" 2>/dev/null)"
+        grep "gpu_solo:\|long_run:\|Traceback\|Error" "$d/queue.log" | tail -n 6
+      done
+      left=0
+      for d in "$Q"/q*; do [ -e "$d/done" ] || left=$((left + 1)); done
+      echo "gpu_queues: $left queue(s) still running"
+      ;;
+    *) echo "usage: solo.sh queues start RUNS... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
+  esac
+}
+
 case "${1:-}" in
+  queues)
+    shift
+    queues "$@"
+    ;;
   start)
     rm -rf "$S" && mkdir -p "$S/wrk/.whl-gpu" "$S/rec" "$S/runs"
     cp -r benchmarks willags_ns configs pyproject.toml "$S/wrk/"
@@ -117,7 +166,7 @@ case "${1:-}" in
     date +%s > "$S/t0"
     echo "$2" > "$S/queue"
     copy_data
-    setsid nohup bash "$S/wrk/benchmarks/gpu_solo.sh" _loop > "$S/queue.log" 2>&1 < /dev/null &
+    setsid nohup bash "$S/wrk/benchmarks/remote/solo.sh" _loop > "$S/queue.log" 2>&1 < /dev/null &
     echo "gpu_solo: queue started: $2"
     ;;
   _loop) loop ;;
@@ -132,5 +181,5 @@ case "${1:-}" in
     grep "gpu_solo:\|long_run:\|time budget\|Traceback\|Error" "$S/queue.log" | tail -n 60
     [ -e "$S/done" ] && echo "gpu_solo: all done" || echo "gpu_solo: still running"
     ;;
-  *) echo "usage: gpu_solo.sh start QUEUE | wait OUT [SECONDS]" >&2; exit 2 ;;
+  *) echo "usage: solo.sh start QUEUE | wait OUT [SECONDS] | queues start QUEUE... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
 esac

@@ -1,11 +1,10 @@
 #!/usr/bin/env bash
-# One device call's share of long runs (benchmarks/long_run.py: checkpointed segments, resumed by the next call),
-# optionally beside grid pairs. Source benchmarks/gpu_env.sh first. Run state lives in /tmp/long on the device
-# machine: it survives between back-to-back calls on the same machine (given back ~30 s after a call), not a new
-# machine.
-#   LONG_BUDGET_S=400 LONG_METHODS="willags splatfacto" bash benchmarks/gpu_long.sh OUT [scene:method[:tag[:seed]] ...]
+# Long runs in checkpointed segments (benchmarks/long_run.py), each call training up to LONG_BUDGET_S seconds and
+# the next call resuming them, optionally beside grid pairs (benchmarks/remote/grid.sh). Source
+# benchmarks/remote/env.sh first. Run state lives in /tmp/long: it survives between calls on one machine.
+#   LONG_BUDGET_S=400 LONG_METHODS="willags splatfacto" bash benchmarks/remote/long.sh OUT [scene:method[:tag[:seed]] ...]
 #   LONG_RUNS="fox-clean:peer sacre-coeur-mini:willags" LONG_STEPS=15000 LONG_MILESTONES=15000 LONG_TAG=h100-15k \
-#     LONG_BUDGET_S=450 bash benchmarks/gpu_long.sh OUT           # several scenes; scenes from $LONG_DATA_ROOT
+#     LONG_BUDGET_S=450 bash benchmarks/remote/long.sh OUT           # several scenes; scenes from $LONG_DATA_ROOT
 # LONG_SEED (default 42): the runs' seed; a repeat takes its own seed and its own LONG_TAG (h100-15k-s43), since
 # records of one (scene, method, steps, tag) replace each other when merged.
 set -u
@@ -33,7 +32,7 @@ for run in $LONG_RUNS; do
       --steps "$steps" --milestones "$milestones" --seed "$seed" --concurrent "$n" >> "$d.log" 2>&1
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$milestones" >> "$d.log" 2>&1 ) &
 done
-[ $# -gt 0 ] && { GRID=${GRID:-configs/benchmark_gpu_fidelity.json} JOBS=${JOBS:-8} bash benchmarks/gpu_scenes.sh "$out/grid" "$@" > "$out/grid.log" 2>&1 & }
+[ $# -gt 0 ] && { GRID=${GRID:-configs/benchmark_gpu_fidelity.json} JOBS=${JOBS:-8} bash benchmarks/remote/grid.sh run "$out/grid" "$@" > "$out/grid.log" 2>&1 & }
 wait
 for run in $LONG_RUNS; do
   IFS=: read -r scene m <<< "$run"
