@@ -441,7 +441,9 @@ class WillagsTrainer(Trainer):
                 target = getattr(target, part, None)
             return target
 
-        own = {k: int(v) for k in time_budget.STEP_SCHEDULES if isinstance(v := get(k), int) and not isinstance(v, bool)}
+        own = {
+            k: int(v) for k in time_budget.STEP_SCHEDULES if isinstance(v := get(k), int) and not isinstance(v, bool)
+        }
         strategy = getattr(model, "strategy", None)
         base_pause = getattr(strategy, "pause_refine_after_reset", None)
 
