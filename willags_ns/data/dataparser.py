@@ -526,7 +526,7 @@ def write_downscaled_images(files: list[Path], factor: int, dst: Path) -> None:
     import os
     import shutil
 
-    from PIL import Image
+    from willags_ns.data.images import save_downscaled
 
     tmp = dst.parent / f".{dst.name}.{os.getpid()}.partial"
     CONSOLE.log(f"willags-data: writing {dst} ({len(files)} images at 1/{factor} size) for downscale_factor {factor}")
@@ -535,12 +535,7 @@ def write_downscaled_images(files: list[Path], factor: int, dst: Path) -> None:
         tmp.mkdir(parents=True)
         for f in files:
             try:
-                with Image.open(f) as im:
-                    small = im.resize((im.width // factor, im.height // factor), resample=Image.Resampling.BOX)
-                    if f.suffix.lower() in (".jpg", ".jpeg"):
-                        small.convert("RGB").save(tmp / f.name, quality=95, subsampling=0)
-                    else:
-                        small.save(tmp / f.name)
+                save_downscaled(f, factor, tmp / f.name)
             except OSError as e:
                 if isinstance(e, PermissionError) or e.errno is not None:
                     raise

@@ -44,6 +44,8 @@ from typing import Any, Literal
 import numpy as np
 from PIL import Image
 
+from willags_ns.data.images import save_downscaled
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 """Files (case-insensitive suffix) taken as photos; everything else in the folder is ignored."""
 
@@ -686,12 +688,7 @@ def write_downscaled(images: Path, factor: int, dst: Path) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     for f in sorted(images.iterdir()):
-        with Image.open(f) as im:
-            small = im.resize((im.width // factor, im.height // factor), resample=Image.Resampling.BOX)
-            if f.suffix.lower() in (".jpg", ".jpeg"):
-                small.convert("RGB").save(tmp / f.name, quality=95, subsampling=0)
-            else:
-                small.save(tmp / f.name)
+        save_downscaled(f, factor, tmp / f.name)
     _replace_dir(tmp, dst)
 
 
