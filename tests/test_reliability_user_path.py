@@ -223,6 +223,7 @@ def test_row_u9_ns_train_starts_readably_and_a_bad_scene_leaves_no_run_folder(sc
     assert len(list(out.rglob("config.yml"))) == 1  # the full configuration is in the run folder
 
 
+@pytest.mark.timing
 def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path):
     import os
     import signal
@@ -253,3 +254,4 @@ def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path)
         if proc.poll() is None:
             proc.kill()
     assert "Traceback" not in out + err, err[-3000:]
+    assert proc.returncode == 130 and "willags: stopped (Ctrl-C)" in err, (proc.returncode, err[-3000:])

@@ -21,6 +21,7 @@ Behaviour chosen for the edge cases (docs/reliability.md has the whole table):
 """
 
 import hashlib
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -404,7 +405,11 @@ def _excepthook(prev):
             return
         if isinstance(exc, KeyboardInterrupt):  # Ctrl-C in a command that waits (ns-viewer): stopped, as asked
             print("\nwillags: stopped (Ctrl-C)", file=sys.stderr)
-            return
+            # at once, whatever the moment: the viewer's server threads would keep the process alive (and may hold a
+            # lock the interrupted main thread left taken), so the interpreter's wait for its threads never ends
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(130)
         prev(exc_type, exc, tb)
 
     hook.willags = True  # type: ignore[attr-defined]
