@@ -239,7 +239,17 @@ def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path)
     exe = Path(sys.executable).with_name("ns-viewer")
     cmd = [str(exe), "--load-config", str(cfg), "--viewer.websocket-port", str(port)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    # Ctrl-C as in a terminal: a suite started in the background (`make test &`, CI runners) hands its children SIGINT
+    # ignored, and Python then never raises KeyboardInterrupt; the viewer gets the terminal's default disposition
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     try:
         deadline = time.time() + 300
         while True:  # serving: its port accepts connections
