@@ -23,6 +23,8 @@ class MethodSpec:
     note: str = ""
     """Shown next to the method in the tables."""
     needs_cuda: bool = False
+    keep: tuple[str, ...] = ()
+    """Switches the overrides set that the inspector (auto_config) must leave as they are, as a user's flags."""
 
 
 PEER_BASES = ("peer", "peer-full")
@@ -112,6 +114,20 @@ METHODS: dict[str, MethodSpec] = {
         "willags-paper", (("use_field", False),), note="paper ablation: decoder without the tri-plane field"
     ),
     "willags-paper-novae": MethodSpec("willags-paper", (("latent.kind", "embedding"),), note="paper ablation: no VAE"),
+    # candidates for the default, each the default (the scene inspected first) with one change
+    "willags-residual": MethodSpec(
+        "willags",
+        (("auto_config", True), ("mask.enabled", True), ("mask.distance", "residual")),
+        note="default with the transient mask on every scene, by the weight-free colour residual against the "
+        "teacher's render (mask.distance residual)",
+        keep=("mask.enabled",),
+    ),
+    "willags-mcmc": MethodSpec(
+        "willags",
+        (("auto_config", True), ("mcmc.enabled", True)),
+        note="default with MCMC densification (relocation, growth to 300k, position noise, opacity and scale "
+        "penalties) in place of splatfacto's split / clone / prune",
+    ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
     "peer": MethodSpec(
         "peer",
@@ -390,6 +406,8 @@ def build_config(
             set_lr(config, k, v)
         else:
             set_nested(m, k, v)
+    if spec.keep:
+        config.pipeline.auto_config_keep = tuple(sorted({*config.pipeline.auto_config_keep, *spec.keep}))
     if hasattr(m, "log_images_every"):
         m.log_images_every = 0
     return config

@@ -21,6 +21,7 @@ if [ "$1" = "-c" ]; then
 fi
 shift 2; cmd=$1; shift
 echo "$cmd $*" >> "$SOLO_DIR/calls.log"
+[ "$cmd" = train ] && echo "${{CUDA_VISIBLE_DEVICES:-none}}" >> "$SOLO_DIR/gpus.log"
 while [ $# -gt 0 ]; do case $1 in --run-dir) d=$2;; --out) o=$2;; --milestones) ms=$2;; esac; shift; done
 case $cmd in
   train) mkdir -p "$d"
@@ -149,6 +150,21 @@ def test_queues_run_side_by_side_and_one_archive_brings_back_every_queue(tree, t
         names = set(tar.getnames())
     prefix = str(queues).lstrip("/")
     assert {f"{prefix}/q1/rec/long-reichstag-peer-2000-s42.json", f"{prefix}/q2/queue.log"} <= names
+
+
+@pytest.mark.timing
+def test_queues_are_spread_over_the_gpus_and_added_queues_go_on_round_the_list(tree, tmp_path):
+    root, env, _ = tree
+    queues = tmp_path / "queues"
+    qenv = {**env, "QUEUES_DIR": str(queues), "SOLO_DATA": ".data-a", "QUEUE_GPUS": "0 1"}
+    runs = ("reichstag:peer:1000", "reichstag:willags:1000", "reichstag:splatfacto:1000")
+    assert _sh(root, qenv, "queues", "start", *runs).returncode == 0
+    assert _sh(root, qenv, "queues", "add", "reichstag:peer-full:1000").returncode == 0
+    waited = _sh(root, qenv, "queues", "wait", str(tmp_path / "out"), "600")
+    assert "gpu_queues: 0 queue(s) still running" in waited.stdout
+    gpus = {q: (queues / q / "gpus.log").read_text().split() for q in ("q1", "q2", "q3", "q4")}
+    assert gpus == {"q1": ["0"], "q2": ["1"], "q3": ["0"], "q4": ["1"]}
+    assert "== q4 (GPU 1): reichstag:peer-full:1000" in waited.stdout
 
 
 def test_an_unknown_command_prints_the_usage(tree):

@@ -6,6 +6,7 @@ as it is: docs/design.md). Settings come in groups, one flag prefix each:
     --pipeline.model.latent.*     the appearance latent z: kind (per-image embedding or beta-VAE), dim
     --pipeline.model.mask.*       the transient mask: teacher, threshold, cadence (every), safeguard, health
     --pipeline.model.sky.*        the appearance-conditioned background
+    --pipeline.model.mcmc.*       densification as Markov chain Monte Carlo instead of splatfacto's
     --pipeline.model.modulation.* / decoder.* / triplane.*   how z makes a Gaussian's colour
 
 No field is rewritten while the model is built: what a scene lacks (a skyline without SfM keypoints) is decided
@@ -28,6 +29,7 @@ from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.mask.teacher import TeacherConfig
 from willags_ns.mask.transient import MaskConfig
+from willags_ns.splats.mcmc import McmcConfig
 
 
 @dataclass
@@ -76,6 +78,8 @@ class WillagsSettings(SplatfactoModelConfig):
     """The transient mask: EMA teacher, VGG16 threshold, cadence, SfM safeguard, health watch."""
     sky: SkyConfig = field(default_factory=SkyConfig)
     """Appearance-conditioned background bg(z, ray direction) behind the Gaussians (appearance/sky.py)."""
+    mcmc: McmcConfig = field(default_factory=McmcConfig)
+    """Densification as Markov chain Monte Carlo (splats/mcmc.py) in place of splatfacto's split / clone / prune."""
     rasterize_mode: Literal["classic", "antialiased"] = "antialiased"
     """gsplat's rasterisation mode. "antialiased" (opacity compensation for the 2D dilation) keeps renders consistent
     across the resolution schedule (a run trains at 1/4 and 1/2 resolution and is scored at full)."""

@@ -65,11 +65,13 @@ from willags_ns.splats.gaussians import (
     densification_strategy,
     initial_gauss_params,
     initial_points,
+    opacity_reset_period,
     rasterize_gaussians,
     sh_coeffs,
     sh_colors,
     strategy_absgrad,
 )
+from willags_ns.splats.mcmc import McmcDensification
 
 __all__ = ["WillagsModel", "WillagsModelConfig"]
 
@@ -349,7 +351,8 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
                 metrics_dict["mask_rejected"] = step_mask.rejected
             if self.training and "psnr" in metrics_dict:
                 # compared within one resolution and between opacity resets: both move the PSNR by themselves
-                regime = (self._get_downscale_factor(), self.step // self.strategy.reset_every)
+                resets = opacity_reset_period(self.strategy)
+                regime = (self._get_downscale_factor(), self.step // resets if resets else 0)
                 warning = self.mask_health.observe(
                     self.step, metrics_dict["masked_fraction"], metrics_dict["psnr"], regime
                 )
@@ -358,7 +361,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
 
         # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (objective/regularizers.py)
         vae = self.appearance_nets.vae if self.appearance_nets is not None else None
-        args = (cfg, vae, outputs, gt_img, mask, self.scales, self.step, self.training)
+        args = (cfg, vae, outputs, gt_img, mask, self.scales, self.opacities, self.step, self.training)
         terms, term_metrics, recon = regularization_terms(*args)
         loss_dict.update(terms)
         if metrics_dict is not None:
@@ -389,6 +392,15 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_teacher))
         cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.end_step))
         return cbs
+
+    def step_post_backward(self, step):
+        """After the optimiser's step: gsplat's densification (splatfacto's), or MCMC's relocation, growth and
+        position noise, whose noise follows the means' current learning rate."""
+        if not isinstance(self.strategy, McmcDensification):
+            return super().step_post_backward(step)
+        assert step == self.step
+        lr = self.optimizers["means"].param_groups[0]["lr"]
+        self.strategy.step_post_backward(self.gauss_params, self.optimizers, self.strategy_state, step, self.info, lr)
 
     def end_step(self, step: int) -> None:
         self._train_batch = None

@@ -27,6 +27,8 @@
 #   bash benchmarks/remote/solo.sh queues wait $OUT 540   # again until done; each call copies scenes that arrived
 # `queues wait OUT SECONDS` gives every queue the scenes in SOLO_DATA, returns once every queue is done or after
 # SECONDS, and packs every queue's records and logs and the region maps ($WILLAGS_BENCH_REGIONS) into OUT/queues.tgz.
+# On a machine of several GPUs the queues are spread over them, queue i on the i-th (round robin; QUEUE_GPUS="0 2"
+# picks the list); `queues add QUEUE...` starts more queues beside the running ones.
 set -u
 S=${SOLO_DIR:-/tmp/solo}  # (tests point it elsewhere)
 export SOLO_DIR=$S
@@ -114,16 +116,32 @@ loop() {
   touch "$S/done"
 }
 
-queues() {  # start RUNS... | wait OUT [SECONDS]: several queues side by side
-  local Q=${QUEUES_DIR:-/tmp/queues} self=${BASH_SOURCE[0]} out limit end left regions i d runs
+queue_gpus() {  # the GPUs queues are spread over: $QUEUE_GPUS, else every GPU nvidia-smi lists, else none
+  if [ -n "${QUEUE_GPUS:-}" ]; then echo "$QUEUE_GPUS"; return; fi
+  command -v nvidia-smi > /dev/null 2>&1 && nvidia-smi -L 2> /dev/null | awk '{print NR - 1}' | tr '\n' ' '
+}
+
+queues() {  # start RUNS... | add RUNS... | wait OUT [SECONDS]: several queues side by side
+  local Q=${QUEUES_DIR:-/tmp/queues} self=${BASH_SOURCE[0]} out limit end left regions i d runs gpus gpu
   case "${1:-}" in
-    start)
+    start | add)
+      # queue i runs on GPU number i of the list, round robin (CUDA_VISIBLE_DEVICES); `add` appends queues to the
+      # running ones (scenes that travel in a later call) and goes on round the list from where it stood
+      [ "$1" = start ] && rm -rf "$Q"
       shift
-      rm -rf "$Q" && mkdir -p "$Q"
-      i=0
+      mkdir -p "$Q"
+      read -r -a gpus <<< "$(queue_gpus)"
+      i=$(find "$Q" -mindepth 1 -maxdepth 1 -name 'q*' -type d | wc -l)
       for runs in "$@"; do
         i=$((i + 1))
-        SOLO_DIR=$Q/q$i bash "$self" start "$runs"
+        gpu=""
+        [ ${#gpus[@]} -gt 0 ] && gpu=${gpus[$(( (i - 1) % ${#gpus[@]} ))]}
+        if [ -n "$gpu" ]; then
+          CUDA_VISIBLE_DEVICES=$gpu SOLO_DIR=$Q/q$i bash "$self" start "$runs"
+          echo "$gpu" > "$Q/q$i/gpu"
+        else
+          SOLO_DIR=$Q/q$i bash "$self" start "$runs"
+        fi
       done
       ;;
     wait)
@@ -142,14 +160,14 @@ queues() {  # start RUNS... | wait OUT [SECONDS]: several queues side by side
       tar czf "$out/queues.tgz" -C / $(cd / && ls -d "${Q#/}"/q*/rec "${Q#/}"/q*/queue.log) \
         $( [ -n "$regions" ] && [ -d "$regions" ] && echo "${regions#/}")
       for d in "$Q"/q*; do
-        echo "== $(basename "$d"): $(tr -d '\n' < "$d/queue" 2>/dev/null)"
+        echo "== $(basename "$d")$( [ -f "$d/gpu" ] && echo " (GPU $(cat "$d/gpu"))"): $(tr -d '\n' < "$d/queue" 2>/dev/null)"
         grep "gpu_solo:\|long_run:\|Traceback\|Error" "$d/queue.log" | tail -n 6
       done
       left=0
       for d in "$Q"/q*; do [ -e "$d/done" ] || left=$((left + 1)); done
       echo "gpu_queues: $left queue(s) still running"
       ;;
-    *) echo "usage: solo.sh queues start RUNS... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
+    *) echo "usage: solo.sh queues start RUNS... | queues add RUNS... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
   esac
 }
 
@@ -181,5 +199,5 @@ case "${1:-}" in
     grep "gpu_solo:\|long_run:\|time budget\|Traceback\|Error" "$S/queue.log" | tail -n 60
     [ -e "$S/done" ] && echo "gpu_solo: all done" || echo "gpu_solo: still running"
     ;;
-  *) echo "usage: solo.sh start QUEUE | wait OUT [SECONDS] | queues start QUEUE... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
+  *) echo "usage: solo.sh start QUEUE | wait OUT [SECONDS] | queues start|add QUEUE... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
 esac

@@ -5,6 +5,7 @@
          + sky.alpha_penalty * mean alpha   where the sky alone explains the photo  appearance/sky.py
          + modulation.local_penalty * mean(s^2 + o^2)   the per-Gaussian residual   appearance/modulation.py
          + splatfacto's scale penalty (every 10th step)                              losses.py
+         + mcmc.opacity_reg * mean opacity + mcmc.scale_reg * mean scale (MCMC)     splats/mcmc.py
 
 Each term is computed where its component lives; this module only says when a term applies and how much it
 weighs. It sits above `losses.py`, which the NeRF-W protocol (and through it the SPEC parser) imports: the pure
@@ -19,6 +20,7 @@ from willags_ns.appearance.modulation import local_penalty
 from willags_ns.appearance.sky import background_alpha_penalty
 from willags_ns.appearance.vae import AppearanceVAE
 from willags_ns.objective.losses import scale_regularization
+from willags_ns.splats.mcmc import mcmc_penalty
 
 
 def regularization_terms(
@@ -28,6 +30,7 @@ def regularization_terms(
     gt_img: Float[Tensor, "H W 3"],
     mask: Float[Tensor, "H W"] | None,
     log_scales: Float[Tensor, "N 3"],
+    logit_opacities: Float[Tensor, "N 1"],
     step: int,
     training: bool,
 ) -> tuple[dict[str, Tensor], dict[str, Tensor], Tensor | None]:
@@ -41,7 +44,8 @@ def regularization_terms(
     - ``vae_loss``: latent.vae.weight * L_VAE of the step's photo (training with the VAE; metrics ``vae_kl``, ``vae_recon``);
     - ``sky_alpha``: sky.alpha_penalty * the mean alpha over pixels the sky alone reproduces (training with a sky);
     - ``appearance_local``: modulation.local_penalty * mean(s^2 + o^2) of the student's local residual (training);
-    - ``scale_reg``: splatfacto's needle penalty on every 10th step (use_scale_regularization, training or not).
+    - ``scale_reg``: splatfacto's needle penalty on every 10th step (use_scale_regularization, training or not);
+    - ``mcmc_reg``: MCMC densification's opacity and scale penalties (mcmc.enabled, training).
     """
     terms: dict[str, Tensor] = {}
     metrics: dict[str, Tensor] = {}
@@ -64,4 +68,6 @@ def regularization_terms(
         terms["appearance_local"] = cfg.modulation.local_penalty * pen
     if cfg.use_scale_regularization and step % 10 == 0:
         terms["scale_reg"] = scale_regularization(log_scales, cfg.max_gauss_ratio)
+    if training and cfg.mcmc.enabled:
+        terms["mcmc_reg"] = mcmc_penalty(cfg, logit_opacities, log_scales)
     return terms, metrics, recon

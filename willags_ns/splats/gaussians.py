@@ -12,6 +12,7 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from willags_ns.render import rasterize
+from willags_ns.splats.mcmc import initial_opacity_and_scale, mcmc_strategy
 
 
 def initial_points(cfg, seed_points) -> tuple[Tensor, Tensor | None]:
@@ -36,11 +37,12 @@ def initial_gauss_params(cfg, means: Tensor, seed_rgb: Tensor | None, avg_dist: 
     `avg_dist` [N, 1] to the 3 nearest points, random rotations, opacity 0.1), and their colour parameters:
     SH for appearance='sh' and color_mode='modulated' (plus f_s of the local residual), f_s for the decoder."""
     n = means.shape[0]
+    opacity, scale = initial_opacity_and_scale(cfg, avg_dist)  # splatfacto's, or MCMC's (cfg.mcmc)
     params = {
         "means": Parameter(means),
-        "scales": Parameter(torch.log(avg_dist.repeat(1, 3))),
+        "scales": Parameter(torch.log(scale.repeat(1, 3))),
         "quats": Parameter(random_quat_tensor(n)),
-        "opacities": Parameter(torch.logit(0.1 * torch.ones(n, 1))),
+        "opacities": Parameter(torch.logit(opacity * torch.ones(n, 1))),
     }
     if cfg.appearance == "sh" or cfg.color_mode == "modulated":  # 3DGS colours (modulated: the base colour)
         dim_sh = num_sh_bases(cfg.sh_degree)
@@ -66,8 +68,12 @@ def initial_gauss_params(cfg, means: Tensor, seed_rgb: Tensor | None, avg_dist: 
 
 
 def densification_strategy(cfg, num_train: int):
-    """gsplat's DefaultStrategy with splatfacto's settings (cfg: the model config)."""
+    """gsplat's DefaultStrategy with splatfacto's settings (cfg: the model config), or with cfg.mcmc.enabled the
+    MCMC densification of splats/mcmc.py over the same refinement window."""
     from gsplat.strategy import DefaultStrategy
+
+    if cfg.mcmc.enabled:
+        return mcmc_strategy(cfg)
 
     return DefaultStrategy(
         prune_opa=cfg.cull_alpha_thresh,
@@ -86,6 +92,11 @@ def densification_strategy(cfg, num_train: int):
         revised_opacity=False,
         verbose=False,
     )
+
+
+def opacity_reset_period(strategy) -> int:
+    """Steps between the strategy's opacity resets (0: it never resets them, as MCMC)."""
+    return int(getattr(strategy, "reset_every", 0) or 0)
 
 
 def uses_gsplat(backend: str, means: Tensor) -> bool:

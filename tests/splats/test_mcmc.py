@@ -1,0 +1,166 @@
+import math
+
+import pytest
+import torch
+
+from willags_ns.splats.mcmc import (
+    McmcDensification,
+    add_sampled,
+    covariances,
+    position_noise,
+    relocate_dead,
+    relocation,
+)
+
+
+def _eq9(o: float, s: float, n: int) -> tuple[float, float]:
+    """The paper's Eq. 9 as written (double sum), in Python floats."""
+    o_new = 1.0 - (1.0 - o) ** (1.0 / n)
+    denom = sum(
+        math.comb(i - 1, k) * (-1.0) ** k / math.sqrt(k + 1) * o_new ** (k + 1)
+        for i in range(1, n + 1)
+        for k in range(i)
+    )
+    return o_new, s * o / denom
+
+
+def test_relocation_matches_the_papers_double_sum():
+    g = torch.Generator().manual_seed(0)
+    o = torch.rand(64, generator=g, dtype=torch.float64) * 0.98 + 0.01
+    s = torch.rand(64, 3, generator=g, dtype=torch.float64) + 0.1
+    n = torch.randint(1, 12, (64,), generator=g)
+    o_new, s_new = relocation(o, s, n)
+    for i in range(64):
+        want_o, want_s = _eq9(float(o[i]), float(s[i, 0]), int(n[i]))
+        assert float(o_new[i]) == pytest.approx(want_o, rel=1e-9)
+        assert float(s_new[i, 0]) == pytest.approx(want_s, rel=1e-6)
+
+
+def test_one_copy_is_the_gaussian_itself_and_copies_share_its_opacity():
+    o = torch.tensor([0.3, 0.9])
+    s = torch.tensor([[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]])
+    o1, s1 = relocation(o, s, torch.tensor([1, 1]))
+    assert torch.allclose(o1, o) and torch.allclose(s1, s)
+    o4, _ = relocation(o, s, torch.tensor([4, 4]))
+    # four copies of opacity o' stacked let through as much light as the one: (1 - o')^4 = 1 - o
+    assert torch.allclose((1 - o4) ** 4, 1 - o, atol=1e-6)
+    assert (o4 < o).all()
+
+
+def test_covariances_are_rotated_squared_scales():
+    q = torch.tensor([[1.0, 0.0, 0.0, 0.0], [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]])
+    s = torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
+    c = covariances(q, s)
+    assert torch.allclose(c[0], torch.diag(torch.tensor([1.0, 4.0, 9.0])))
+    # 90 degrees about z swaps the x and y variances
+    assert torch.allclose(c[1], torch.diag(torch.tensor([4.0, 1.0, 9.0])), atol=1e-6)
+
+
+def _params(n=200, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    params = torch.nn.ParameterDict(
+        {
+            "means": torch.nn.Parameter(torch.randn(n, 3, generator=g)),
+            "scales": torch.nn.Parameter(torch.randn(n, 3, generator=g) - 3),
+            "quats": torch.nn.Parameter(torch.randn(n, 4, generator=g)),
+            "opacities": torch.nn.Parameter(torch.randn(n, 1, generator=g)),
+            "features_dc": torch.nn.Parameter(torch.randn(n, 3, generator=g)),
+        }
+    )
+    optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in params.items()}
+    loss = sum((p**2).sum() for p in params.values())
+    loss.backward()
+    for o in optimizers.values():
+        o.step()
+    return params, optimizers
+
+
+def test_dead_gaussians_move_onto_live_ones_and_the_count_stays():
+    params, optimizers = _params()
+    with torch.no_grad():
+        params["opacities"][:50] = -10.0  # dead
+    before = {k: v.detach().clone() for k, v in params.items()}
+    moved = relocate_dead(params, optimizers, min_opacity=0.005)
+    assert moved == 50
+    assert len(params["means"]) == 200
+    assert (torch.sigmoid(params["opacities"]) > 0.005).all()
+    # each moved Gaussian sits on a live one's mean
+    live_means = before["means"][50:]
+    d = (
+        torch.cdist(params["means"][:50].detach(), live_means, compute_mode="donot_use_mm_for_euclid_dist")
+        .min(dim=1)
+        .values
+    )
+    assert (d == 0).all()
+    # the optimisers follow the new tensors, with the moved ones' moments cleared
+    for k, p in params.items():
+        state = optimizers[k].state[p]
+        assert state["exp_avg"].shape == p.shape
+        assert (state["exp_avg"][:50] == 0).all()
+
+
+def test_growth_adds_copies_that_split_their_source():
+    params, optimizers = _params()
+    n0 = len(params["means"])
+    add_sampled(params, optimizers, 20, min_opacity=0.005)
+    assert len(params["means"]) == n0 + 20
+    for k, p in params.items():
+        assert optimizers[k].state[p]["exp_avg_sq"].shape == p.shape
+        assert optimizers[k].param_groups[0]["params"][0] is p
+    # a new Gaussian is a copy: its mean equals an old one's
+    d = (
+        torch.cdist(
+            params["means"][n0:].detach(), params["means"][:n0].detach(), compute_mode="donot_use_mm_for_euclid_dist"
+        )
+        .min(dim=1)
+        .values
+    )
+    assert (d == 0).all()
+
+
+def test_noise_moves_only_nearly_transparent_gaussians():
+    params, _ = _params()
+    with torch.no_grad():
+        params["opacities"][:100] = 5.0  # opaque
+        params["opacities"][100:] = -10.0  # transparent
+    before = params["means"].detach().clone()
+    position_noise(params, scaler=1.0)
+    moved = (params["means"].detach() - before).norm(dim=1)
+    assert (moved[:100] < 1e-6).all()
+    assert (moved[100:] > 0).all()
+
+
+def test_strategy_grows_to_its_cap_within_the_window_and_never_resets_opacity():
+    params, optimizers = _params(n=100)
+    s = McmcDensification(cap_max=130, refine_start_iter=0, refine_stop_iter=1000, refine_every=10, noise_lr=0.0)
+    for step in range(1, 200):
+        s.step_post_backward(params, optimizers, {}, step, {}, lr=1e-4)
+    assert len(params["means"]) == 130
+    assert s.reset_every == 0
+    s2 = McmcDensification(cap_max=10_000, refine_start_iter=50, refine_stop_iter=60, refine_every=5, noise_lr=0.0)
+    p2, o2 = _params(n=100)
+    for step in range(1, 200):
+        s2.step_post_backward(p2, o2, {}, step, {}, lr=1e-4)
+    assert len(p2["means"]) == int(1.05 * 100)  # one refinement step (55) inside (50, 60)
+
+
+def test_a_model_trains_with_mcmc_up_to_its_cap_and_pays_the_penalties(tmp_path, monkeypatch):
+    import willags_ns.model as model_module
+    from tests.test_train import _train
+
+    seen: list[set[str]] = []
+    terms_of = model_module.regularization_terms
+
+    def spy(*args):
+        out = terms_of(*args)
+        seen.append(set(out[0]))
+        return out
+
+    monkeypatch.setattr(model_module, "regularization_terms", spy)
+    torch.manual_seed(0)
+    _, trainer, losses = _train(tmp_path, "willags", steps=30, **{"mcmc.enabled": True, "mcmc.cap_max": 8400})
+    model = trainer.pipeline.model
+    assert isinstance(model.strategy, McmcDensification)
+    assert model.num_points == 8400  # the built-in scene's 8000 points grown by 5 % per refinement to the cap
+    assert all(math.isfinite(v) for v, _ in losses)
+    assert seen and all("mcmc_reg" in keys for keys in seen)

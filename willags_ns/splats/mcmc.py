@@ -1,0 +1,236 @@
+"""Densification as Markov chain Monte Carlo (3DGS-MCMC, Kheradmand et al. 2024), on any device.
+
+In place of splatfacto's clone / split / prune heuristics (gsplat's DefaultStrategy), the Gaussians are treated as
+samples of a distribution whose density is their opacity:
+
+- every `refine_every` steps between `warmup_length` and `stop_split_at`, the dead Gaussians (opacity at or below
+  `min_opacity`) are moved onto live ones drawn in proportion to their opacity, and 5 % more are added the same way
+  until `cap_max`; a Gaussian drawn k times shares its place with its k - 1 copies under an opacity and scale that
+  keep the rendered sum unchanged (`relocation`, the paper's Eq. 9);
+- after every step, the means of nearly transparent Gaussians get noise shaped by their own covariance, scaled by
+  the means' learning rate (`noise_lr`): they explore instead of sitting where they do not help;
+- the loss pays `opacity_reg` x mean opacity and `scale_reg` x mean scale (objective/regularizers.py), so that
+  Gaussians that do not earn their opacity die and are moved where they are needed.
+
+The number of Gaussians is capped (`cap_max`): the cost of a step is chosen, not grown by the gradients. gsplat
+ships the same algorithm with a CUDA kernel for the relocation; the functions here are plain torch so that the CPU
+backend trains the same way, and the parameter and optimiser surgery is gsplat's (`_update_param_with_optimizer`,
+the routine its DefaultStrategy uses too).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from gsplat.strategy import MCMCStrategy
+from gsplat.strategy.ops import _update_param_with_optimizer
+from torch import Tensor
+
+N_MAX = 51
+"""Largest number of copies one Gaussian is split into at one relocation (gsplat's table size)."""
+
+
+@dataclass
+class McmcConfig:
+    """Densification as Markov chain Monte Carlo (splats/mcmc.py) instead of splatfacto's split / clone / prune."""
+
+    enabled: bool = False
+    """Use MCMC densification (relocation of dead Gaussians, sampled growth up to cap_max, position noise, opacity
+    and scale penalties). Off: splatfacto's densification (gsplat's DefaultStrategy and its thresholds). The
+    refinement window and period are splatfacto's warmup_length, stop_split_at and refine_every."""
+    cap_max: int = 300_000
+    """Most Gaussians: growth stops here (5 % more per refinement until then)."""
+    noise_lr: float = 5e5
+    """Position noise of a step = noise_lr x the means' current learning rate x the Gaussian's covariance applied to
+    a standard normal draw, gated to Gaussians of opacity below ~0.005."""
+    opacity_reg: float = 0.01
+    """Weight of the mean opacity in the loss."""
+    scale_reg: float = 0.01
+    """Weight of the mean scale (exp of the log scales, all three axes) in the loss."""
+    min_opacity: float = 0.005
+    """A Gaussian at or below this opacity is dead: it is moved at the next refinement."""
+    init_opacity: float = 0.5
+    """Opacity of the initial Gaussians (splatfacto's: 0.1)."""
+    init_scale: float = 0.1
+    """Initial scale as a fraction of the mean distance to the 3 nearest points (splatfacto's: 1)."""
+
+
+def relocation(opacities: Tensor, scales: Tensor, ratios: Tensor, n_max: int = N_MAX) -> tuple[Tensor, Tensor]:
+    """Opacity [M] and scales [M, 3] of each of the `ratios` [M] copies that replace a Gaussian of opacity
+    `opacities` [M] and scales `scales` [M, 3] (the paper's Eq. 9):
+
+        o' = 1 - (1 - o)^(1 / n)
+        s' = s * o / sum_{k=0}^{n-1} C(n, k+1) (-1)^k o'^(k+1) / sqrt(k+1)
+
+    (the paper's double sum over i <= n and k < i, summed over i with the hockey-stick identity). n is clamped to
+    [1, n_max]. Computed in float64: the alternating sum cancels."""
+    n = ratios.clamp(1, n_max).to(torch.float64)
+    o = opacities.to(torch.float64)
+    o_new = 1.0 - torch.pow(1.0 - o, 1.0 / n)
+    k = torch.arange(n_max, dtype=torch.float64, device=o.device)  # [n_max]: k = 0 .. n_max - 1
+    # C(n, k+1) through lgamma, zero where k + 1 > n
+    log_c = torch.lgamma(n[:, None] + 1) - torch.lgamma(k + 2) - torch.lgamma((n[:, None] - k - 1).clamp_min(0) + 1)
+    c = torch.where(k[None] + 1 <= n[:, None], torch.exp(log_c), torch.zeros((), dtype=torch.float64))
+    terms = c * torch.pow(-1.0, k) / torch.sqrt(k + 1) * torch.pow(o_new[:, None], k + 1)
+    coeff = o / terms.sum(dim=1)
+    return o_new.to(opacities.dtype), scales * coeff.to(scales.dtype)[:, None]
+
+
+def covariances(quats: Tensor, scales: Tensor) -> Tensor:
+    """Covariance matrices [N, 3, 3] = R diag(scales^2) R^T of Gaussians with (unnormalised) quaternions `quats`
+    [N, 4] (w, x, y, z) and scales [N, 3]."""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    rot = torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+    m = rot * scales[:, None, :]
+    return m @ m.transpose(1, 2)
+
+
+def _sampled_copies(params, n: int, candidates: Tensor | None, min_opacity: float):
+    """Draw `n` Gaussians (among `candidates`, default all) in proportion to their opacity, with replacement; return
+    (their indices, the logit opacity and log scales each copy gets)."""
+    opacities = torch.sigmoid(params["opacities"]).flatten()
+    probs = opacities if candidates is None else opacities[candidates]
+    drawn = torch.multinomial(probs, n, replacement=True)
+    idx = drawn if candidates is None else candidates[drawn]
+    ratios = torch.bincount(idx)[idx] + 1
+    new_o, new_s = relocation(opacities[idx], torch.exp(params["scales"])[idx], ratios)
+    eps = torch.finfo(torch.float32).eps
+    new_o = new_o.clamp(min=min_opacity, max=1.0 - eps)
+    return idx, torch.logit(new_o), torch.log(new_s)
+
+
+@torch.no_grad()
+def relocate_dead(params, optimizers, min_opacity: float) -> int:
+    """Move every Gaussian at or below `min_opacity` onto a live one drawn by opacity; returns how many moved."""
+    dead = torch.sigmoid(params["opacities"]).flatten() <= min_opacity
+    n = int(dead.sum())
+    alive = (~dead).nonzero(as_tuple=True)[0]
+    if n == 0 or alive.numel() == 0:
+        return 0
+    idx, logit_o, log_s = _sampled_copies(params, n, alive, min_opacity)
+    dead_idx = dead.nonzero(as_tuple=True)[0]
+    shape = params["opacities"].shape[1:]
+
+    def param_fn(name: str, p: Tensor) -> Tensor:
+        if name == "opacities":
+            p[idx] = logit_o.reshape(-1, *shape)
+        elif name == "scales":
+            p[idx] = log_s
+        p[dead_idx] = p[idx]
+        return torch.nn.Parameter(p)
+
+    def optimizer_fn(key: str, v: Tensor) -> Tensor:
+        v[idx] = 0  # the sources and their copies start with fresh moments
+        v[dead_idx] = 0
+        return v
+
+    _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
+    return n
+
+
+@torch.no_grad()
+def add_sampled(params, optimizers, n: int, min_opacity: float) -> int:
+    """Add `n` Gaussians, each a copy of one drawn by opacity (its opacity and scale shared with it, Eq. 9)."""
+    if n <= 0:
+        return 0
+    idx, logit_o, log_s = _sampled_copies(params, n, None, min_opacity)
+    shape = params["opacities"].shape[1:]
+
+    def param_fn(name: str, p: Tensor) -> Tensor:
+        if name == "opacities":
+            p[idx] = logit_o.reshape(-1, *shape)
+        elif name == "scales":
+            p[idx] = log_s
+        return torch.nn.Parameter(torch.cat([p, p[idx]]))
+
+    def optimizer_fn(key: str, v: Tensor) -> Tensor:
+        return torch.cat([v, torch.zeros((n, *v.shape[1:]), device=v.device, dtype=v.dtype)])
+
+    _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
+    return n
+
+
+@torch.no_grad()
+def position_noise(params, scaler: float) -> None:
+    """Add noise to the means, shaped by each Gaussian's covariance and gated to the nearly transparent ones (a
+    sigmoid of steepness 100 centred at opacity 0.005), `scaler` x a standard normal draw."""
+    opacities = torch.sigmoid(params["opacities"]).flatten()
+    gate = torch.sigmoid(100.0 * ((1.0 - opacities) - 0.995))
+    noise = torch.randn_like(params["means"]) * gate[:, None] * scaler
+    cov = covariances(params["quats"], torch.exp(params["scales"]))
+    params["means"].add_(torch.einsum("bij,bj->bi", cov, noise))
+
+
+@dataclass
+class McmcDensification(MCMCStrategy):
+    """gsplat's MCMCStrategy settings, stepped with this module's device-independent functions. `reset_every` 0:
+    MCMC never resets opacities (read by the mask's health watch, which compares steps between resets)."""
+
+    reset_every: int = 0
+    absgrad: bool = False
+
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+        return {}
+
+    def step_post_backward(self, params, optimizers, state, step: int, info, lr: float) -> None:  # type: ignore[override]
+        """After the optimiser's step: relocate and grow on refinement steps, then the position noise."""
+        if self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0:
+            relocate_dead(params, optimizers, self.min_opacity)
+            current = len(params["means"])
+            add_sampled(params, optimizers, max(0, min(self.cap_max, int(1.05 * current)) - current), self.min_opacity)
+        position_noise(params, lr * self.noise_lr)
+
+
+def mcmc_strategy(cfg) -> McmcDensification:
+    """The MCMC strategy of a model config (`cfg.mcmc` and splatfacto's refinement window)."""
+    m = cfg.mcmc
+    return McmcDensification(
+        cap_max=m.cap_max,
+        noise_lr=m.noise_lr,
+        refine_start_iter=cfg.warmup_length,
+        refine_stop_iter=cfg.stop_split_at,
+        refine_every=cfg.refine_every,
+        min_opacity=m.min_opacity,
+    )
+
+
+def mcmc_penalty(cfg, logit_opacities: Tensor, log_scales: Tensor) -> Tensor:
+    """opacity_reg x mean opacity + scale_reg x mean scale of the Gaussians (`cfg`: the model config)."""
+    m = cfg.mcmc
+    return m.opacity_reg * torch.sigmoid(logit_opacities).mean() + m.scale_reg * torch.exp(log_scales).mean()
+
+
+def initial_opacity_and_scale(cfg, avg_dist: Tensor) -> tuple[float, Tensor]:
+    """(initial opacity, initial scale [N, 1]) of the Gaussians: splatfacto's (0.1, mean distance) or MCMC's."""
+    if cfg.mcmc.enabled:
+        return cfg.mcmc.init_opacity, avg_dist * cfg.mcmc.init_scale
+    return 0.1, avg_dist
+
+
+__all__ = [
+    "McmcConfig",
+    "McmcDensification",
+    "add_sampled",
+    "covariances",
+    "initial_opacity_and_scale",
+    "mcmc_penalty",
+    "mcmc_strategy",
+    "position_noise",
+    "relocate_dead",
+    "relocation",
+]
