@@ -17,8 +17,10 @@ reuse=0
   && { [ -f /tmp/gsplat_cuda.so ] || [ -f /tmp/tex/gsplat_cuda/gsplat_cuda.so ]; } && reuse=1
 [ $reuse = 1 ] || python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site \
   .whl-gpu/*.whl >/dev/null 2>&1 || { echo "gpu_env: wheel install failed (needs .whl-gpu/*.whl from ../shared/gpu/prepare_wheels.sh)"; return 1; }
-export PYTHONPATH=/tmp/site:$PWD/.whl-gpu/stub:$PWD MAX_JOBS=16 PYTHONUNBUFFERED=1 TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 \
-  TORCH_EXTENSIONS_DIR=/tmp/tex
+# MAX_JOBS: the JIT build's compile jobs (every core by default); OMP_NUM_THREADS: each training process's CPU threads
+# (runs side by side on a machine of many cores would otherwise each start a thread per core)
+export PYTHONPATH=/tmp/site:$PWD/.whl-gpu/stub:$PWD MAX_JOBS=${MAX_JOBS:-$(nproc)} PYTHONUNBUFFERED=1 \
+  TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 TORCH_EXTENSIONS_DIR=/tmp/tex OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 if [ $reuse = 1 ]; then
   [ -f /tmp/gsplat_cuda.so ] && export WILLAGS_GSPLAT_SO=/tmp/gsplat_cuda.so
 elif [ -f .gpu-cache/gsplat_cuda.so.gz ]; then

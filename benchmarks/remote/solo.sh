@@ -26,7 +26,8 @@
 #   bash benchmarks/remote/solo.sh queues start "reichstag:peer-full:15000" "reichstag:willags:15000 liberty:willags:15000"
 #   bash benchmarks/remote/solo.sh queues wait $OUT 540   # again until done; each call copies scenes that arrived
 # `queues wait OUT SECONDS` gives every queue the scenes in SOLO_DATA, returns once every queue is done or after
-# SECONDS, and packs every queue's records and logs and the region maps ($WILLAGS_BENCH_REGIONS) into OUT/queues.tgz.
+# SECONDS, and packs every queue's records and logs into OUT/queues.tgz, the region maps ($WILLAGS_BENCH_REGIONS) into
+# OUT/regions.tgz.
 # On a machine of several GPUs the queues are spread over them, queue i on the i-th (round robin; QUEUE_GPUS="0 2"
 # picks the list); `queues add QUEUE...` starts more queues beside the running ones.
 set -u
@@ -157,8 +158,9 @@ queues() {  # start RUNS... | add RUNS... | wait OUT [SECONDS]: several queues s
       done
       mkdir -p "$out"
       regions=${WILLAGS_BENCH_REGIONS:-}
-      tar czf "$out/queues.tgz" -C / $(cd / && ls -d "${Q#/}"/q*/rec "${Q#/}"/q*/queue.log) \
-        $( [ -n "$regions" ] && [ -d "$regions" ] && echo "${regions#/}")
+      tar czf "$out/queues.tgz" -C / $(cd / && ls -d "${Q#/}"/q*/rec "${Q#/}"/q*/queue.log)
+      # the region maps apart (they are the bulk, and each file that comes back has a size limit)
+      [ -n "$regions" ] && [ -d "$regions" ] && tar czf "$out/regions.tgz" -C / "${regions#/}"
       for d in "$Q"/q*; do
         echo "== $(basename "$d")$( [ -f "$d/gpu" ] && echo " (GPU $(cat "$d/gpu"))"): $(tr -d '\n' < "$d/queue" 2>/dev/null)"
         grep "gpu_solo:\|long_run:\|Traceback\|Error" "$d/queue.log" | tail -n 6
