@@ -37,7 +37,7 @@ from torch.nn import Parameter
 from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.appearance.sky import background, pixel_directions, sky_for_scene
+from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
 from willags_ns.appearance.triplane import robust_bounds
 from willags_ns.config import WillagsSettings, check_settings
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
@@ -61,7 +61,6 @@ from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
 from willags_ns.splats.export import SplatExport
 from willags_ns.splats.gaussians import (
     active_sh_degree,
-    composite,
     densification_strategy,
     initial_gauss_params,
     initial_points,

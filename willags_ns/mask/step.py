@@ -4,7 +4,7 @@ threshold, and the static-scene safeguard.
     teacher latent (teacher VAE mean of the photo, or its embedding row)              teacher_latent
     teacher colours (the student's Gaussians and SH colours, detached)                teacher_colors
     teacher render (fused into the student's rasterisation as 3 extra channels, or a second one: teacher_render),
-        both composited like the student's render (gaussians.composite)
+        both composited like the student's render (sky.composite)
     D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/mask/transient.py)
         or, with mask.distance "residual", D = mean_c |photo - teacher render| (willags_ns/mask/residual.py)
     transient = D > threshold(step)   (rejected when it would drop more than mask.max_masked_fraction of the image;
@@ -14,7 +14,8 @@ threshold, and the static-scene safeguard.
 :func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
 image's last mask, its visit count, its support grid and the scene's SfM observations) and reads the model's config;
 the teacher networks, the VGG features and the step arrive as arguments. The teacher's functions are plain: the
-student's colours, rasterisation and compositing are the same functions (appearance/color_path.py, gaussians.py).
+student's colours, rasterisation and compositing are the same functions (appearance/color_path.py, gaussians.py,
+sky.py).
 """
 
 from typing import TYPE_CHECKING, Any, NamedTuple, cast
@@ -25,11 +26,12 @@ from torch import Tensor
 
 from willags_ns.appearance.color_path import ColorContext, field_features, gaussian_colors
 from willags_ns.appearance.networks import AppearanceNetworks
+from willags_ns.appearance.sky import composite
 from willags_ns.mask.residual import colour_residual, residual_transient
 from willags_ns.mask.static_support import apply_support, support_map
 from willags_ns.mask.teacher import ema_update_, make_teacher
 from willags_ns.mask.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
-from willags_ns.splats.gaussians import composite, rasterize_gaussians, sh_coeffs
+from willags_ns.splats.gaussians import rasterize_gaussians, sh_coeffs
 
 
 def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | None, PerceptualFeatures | None]:
