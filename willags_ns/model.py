@@ -34,7 +34,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
-from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors
+from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors, teacher_colors
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
@@ -51,7 +51,6 @@ from willags_ns.mask.step import (
     fused_teacher_rgb,
     log_step_images,
     mask_networks,
-    teacher_colors,
     teacher_latent,
 )
 from willags_ns.mask.transient import PerceptualFeatures

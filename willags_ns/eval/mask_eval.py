@@ -182,8 +182,9 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     fixed colour (training draws a random one per step, which only shows where alpha < 1). Without a teacher
     (teacher disabled) the student's networks are used.
     """
+    from willags_ns.appearance.color_path import teacher_colors
     from willags_ns.appearance.sky import background, pixel_directions
-    from willags_ns.mask.step import teacher_colors, teacher_latent, teacher_render
+    from willags_ns.mask.step import teacher_latent, teacher_render
 
     nets = model.teacher if model.teacher is not None else model.appearance_nets
     z = teacher_latent(nets, image.permute(2, 0, 1).float().to(model.device), image_idx)

@@ -2,7 +2,7 @@
 threshold, and the static-scene safeguard.
 
     teacher latent (teacher VAE mean of the photo, or its embedding row)              teacher_latent
-    teacher colours (the student's Gaussians and SH colours, detached)                teacher_colors
+    teacher colours (the student's Gaussians and SH colours, detached)    appearance/color_path.teacher_colors
     teacher render (fused into the student's rasterisation as 3 extra channels, or a second one: teacher_render),
         both composited like the student's render (sky.composite)
     D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/mask/transient.py)
@@ -24,14 +24,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from willags_ns.appearance.color_path import ColorContext, field_features, gaussian_colors
+from willags_ns.appearance.color_path import ColorContext, teacher_colors
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.sky import composite
 from willags_ns.mask.residual import colour_residual, residual_transient
 from willags_ns.mask.static_support import apply_support, support_map
 from willags_ns.mask.teacher import ema_update_, make_teacher
 from willags_ns.mask.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
-from willags_ns.splats.gaussians import rasterize_gaussians, sh_coeffs
+from willags_ns.splats.gaussians import rasterize_gaussians
 
 
 def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | None, PerceptualFeatures | None]:
@@ -151,32 +151,12 @@ class MaskStep:
         return self.support_cache[idx]
 
 
-def teacher_latent(teacher: AppearanceNetworks, vae_in: Tensor | None, image_idx: int) -> Tensor:
-    """The EMA teacher's z [D] for training image `image_idx`: its VAE's mean of the photo (`vae_in` [3, H, W], the
-    encoder's input), or its row of the teacher's table."""
-    if teacher.vae is not None:
-        assert vae_in is not None
-        mu, _ = teacher.vae.encode(vae_in[None])
-        return mu[0]
-    assert teacher.embeddings is not None
-    return teacher.embeddings.weight[image_idx]
-
-
 @torch.no_grad()
-def teacher_colors(
-    teacher: AppearanceNetworks, z: Tensor, gp, cam_center: Tensor, ctx: ColorContext, sh_base: Tensor | None
-) -> Tensor:
-    """Per-Gaussian RGB [N, 3] of the EMA teacher networks under z (no grad) for the student's current Gaussians
-    `gp`, seen from `cam_center`. `sh_base`: the student's SH colours of this step (same Gaussians, same camera),
-    reused; None: evaluated from the Gaussians' SH."""
-    means = gp["means"].detach()
-    f_s = gp["features"].detach() if "features" in gp else None
-    sh = None
-    if sh_base is None:
-        sh = sh_coeffs(gp)
-        sh = sh.detach() if sh is not None else None
-    f_d = field_features(teacher, z, means, ctx)
-    return gaussian_colors(teacher, z, means, f_s, f_d, cam_center, ctx.sh_degree, sh, sh_base).rgb
+def teacher_latent(teacher: AppearanceNetworks, vae_in: Tensor | None, image_idx: int) -> Tensor:
+    """The EMA teacher's z [D] for training image `image_idx` (no grad): the mean of its latent source, as the
+    student's (AppearanceNetworks.latent_stats): its VAE's mean of the photo (`vae_in` [3, H, W], the encoder's
+    input), or its row of the teacher's table."""
+    return teacher.latent_stats(vae_in, image_idx)[0]
 
 
 def fused_teacher_rgb(render: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
