@@ -3,11 +3,17 @@ perceptual transient mask (WilLaGS). Runs on any device; rasterises through `wil
 
 Per training step (the pipeline hands the model the training image first):
 
+    camera --camera optimiser, render scale--> View                      render/camera.py
     image --table row or VAE encoder--> z [D]                           appearance/latents.py
-    z, Gaussians, camera --> colours [N, 3]                             appearance/color_path.py, networks.py
-    colours (+ the EMA teacher's, fused) --rasterize--> render          splats/gaussians.py, render/
+        (a mask step: the EMA teacher's z too, and how it renders)      mask/step.py
+    z, Gaussians, camera --> colours [N, 3] (+ the teacher's)           appearance/color_path.py, networks.py
+    colours (+ the teacher's, fused) --rasterize--> render              splats/gaussians.py, render/
+    render over the background (the sky of z) --> rgb (+ pseudo-GT)     appearance/sky.py
     VGG16(GT) vs VGG16(teacher render) --> D; static mask = D < 0.85    mask/step.py
     loss = 0.8 L1 + 0.2 D-SSIM on static pixels + the regularisers      objective/losses.py, objective/regularizers.py
+
+get_outputs is that sequence of stage calls, each into one room; the teacher goes through the same functions as the
+student (its colours fused as 3 more channels of the one rasterisation, or rasterised on their own).
 
 The step's intermediates travel in `get_outputs`' dictionary (nerfstudio's habit) to `get_metrics_dict` and
 `get_loss_dict`: the image index, the latent (and the VAE's posterior and input), the modulation's residual, the
@@ -34,10 +40,10 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
-from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors
+from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors, teacher_colors
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.appearance.sky import background, pixel_directions, sky_for_scene
+from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
 from willags_ns.appearance.triplane import robust_bounds
 from willags_ns.config import WillagsSettings, check_settings
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
@@ -48,20 +54,18 @@ from willags_ns.mask.step import (
     MaskFace,
     MaskStep,
     StepMask,
-    fused_teacher_rgb,
+    TeacherPass,
     log_step_images,
     mask_networks,
-    teacher_colors,
     teacher_latent,
 )
 from willags_ns.mask.transient import PerceptualFeatures
 from willags_ns.objective.losses import reconstruction_loss
 from willags_ns.objective.regularizers import regularization_terms
-from willags_ns.render.camera import intrinsics_at, viewmat_from_c2w
+from willags_ns.render.camera import View, camera_view
 from willags_ns.splats.export import SplatExport
 from willags_ns.splats.gaussians import (
     active_sh_degree,
-    composite,
     densification_strategy,
     initial_gauss_params,
     initial_points,
@@ -200,112 +204,174 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
             sh = self.sh_coeffs()
         return self.color_path.cached_colors(nets, z, means, f_s, cam_center, self.color_context(), cacheable, sh, base)
 
-    # ------------------------------------------------------------------ rendering
-    def _rasterize(self, means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree=None):
-        absgrad = strategy_absgrad(self.strategy, self.config, means)  # |grad| only where the backend writes it
-        args = (means, quats, scales, opacities, colors, viewmat, K, W, H, render_mode, sh_degree, absgrad)
-        return rasterize_gaussians(self.config, *args)
-
+    # ------------------------------------------------------------------ rendering: one forward pass, stage by stage
     def get_outputs(self, camera: Cameras) -> dict[str, Union[torch.Tensor, list]]:
+        """One forward pass, top-down: the camera, this view's latent, the Gaussians' colours, the rasterisation, the
+        background and the composite. On a step that renders the pseudo-GT, the EMA teacher joins each stage through
+        the same functions: its latent, its colours (channels 3:6 of the one rasterisation, or their own), its
+        background and composite. The step's intermediates travel in the returned dictionary."""
         if not isinstance(camera, Cameras):
             raise TypeError(f"WillagsModel.get_outputs expects nerfstudio Cameras, got {type(camera).__name__}")
+        gp = self._gaussians_in_crop()
+        if gp is None:  # the viewer's crop box holds no Gaussian
+            return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+        view = self._view(camera)  # render/camera.py
+        z, teacher, outputs = self._latents(camera)  # appearance/latents.py; the teacher's pass: mask/step.py
+        colors, sh_degree, teacher_colors = self._colors(camera, gp, view, z, teacher, outputs)  # color_path.py
+        render, alpha = self._rasterize(gp, colors, view, sh_degree)  # splats/gaussians.py
+        teacher_raster = self._teacher_raster(teacher, render, alpha, gp, teacher_colors, view)
+        outputs.update(self._composite(view, render, alpha, z, teacher_raster, outputs))  # appearance/sky.py
+        return outputs
+
+    def _gaussians_in_crop(self) -> dict | None:
+        """gauss_params (the same tensors) inside the viewer's crop box when rendering with one, else all of them;
+        None when the box holds none."""
+        if self.crop_box is None or self.training:
+            return dict(self.gauss_params.items())
+        crop_ids = self.crop_box.within(self.means).squeeze()
+        if crop_ids.sum() == 0:
+            return None
+        return {k: v[crop_ids] for k, v in self.gauss_params.items()}
+
+    def _view(self, camera: Cameras) -> View:
+        """The camera at the render's scale (render/camera.py); while training (one camera at a time), after the
+        camera optimiser."""
+        if self.training and camera.shape[0] != 1:
+            raise ValueError("willags trains on one camera at a time")
+        c2w = self.camera_optimizer.apply_to_camera(camera) if self.training else camera.camera_to_worlds
+        view = camera_view(camera, c2w, self._get_downscale_factor(), self.device)
+        self.last_size = (view.height, view.width)
+        return view
+
+    def _latents(self, camera: Cameras) -> tuple[Tensor | None, TeacherPass | None, dict]:
+        """(z [D] of this view, None for appearance "sh"; how this training step renders the pseudo-GT, None on a step
+        without; the step's intermediates): the training image's latent (appearance/latents.py) with its index and
+        the VAE's posterior and input, and on a step where the teacher renders, the teacher's latent (mask/step.py).
+        Outside training z is no output: the viewer offers every output as an image."""
+        if self.config.appearance == "sh":
+            return None, None, {}
+        if not self.training:
+            return self.forward_latent(camera), None, {}
+        lat = self.step_latent(camera)
+        outputs: dict = {"image_idx": lat.image_idx, "latent": lat.z, "latent_mu": lat.mu}
+        outputs.update({k: v for k, v in (("latent_logvar", lat.logvar), ("vae_in", lat.vae_in)) if v is not None})
+        teacher = self.mask_step.teacher_pass(self.step, lat.image_idx, self.teacher is not None)
+        if teacher in ("fused", "second"):
+            assert self.teacher is not None
+            outputs["teacher_latent"] = teacher_latent(self.teacher, lat.vae_in, lat.image_idx)
+        return lat.z, teacher, outputs
+
+    def _colors(
+        self, camera: Cameras, gp: dict, view: View, z: Tensor | None, teacher: TeacherPass | None, outputs: dict
+    ) -> tuple[Tensor, int | None, Tensor | None]:
+        """(the colours to rasterise, the SH degree the rasteriser evaluates them at or None for RGB, the teacher's
+        colours for its own rasterisation or None): appearance "sh": the Gaussians' SH (splats/gaussians.sh_colors);
+        training: the student's colours under this step's latent (`appearance_colors`; the modulation's residual
+        goes to `outputs`), the teacher's (appearance/color_path.teacher_colors) as channels 3:6 when fused; a fixed
+        appearance (no gradient): its baked SH (ColorPath.frame_sh) from its second frame on."""
         cfg = self.config
-        if self.training:
-            if camera.shape[0] != 1:
-                raise ValueError("willags trains on one camera at a time")
-            c2w = self.camera_optimizer.apply_to_camera(camera)
-        else:
-            c2w = camera.camera_to_worlds
-        crop_ids = None
-        if self.crop_box is not None and not self.training:
-            crop_ids = self.crop_box.within(self.means).squeeze()
-            if crop_ids.sum() == 0:
-                w, h = int(camera.width.item()), int(camera.height.item())
-                return self.get_empty_outputs(w, h, self.background_color)
-        gp = {k: (v[crop_ids] if crop_ids is not None else v) for k, v in self.gauss_params.items()}
-
-        viewmat = viewmat_from_c2w(c2w)
-        K, W, H = intrinsics_at(camera, self._get_downscale_factor(), self.device)
-        self.last_size = (H, W)
-        render_mode = "RGB+ED" if (cfg.output_depth_during_training or not self.training) else "RGB"
-        cam_center = c2w[0, :3, 3]
-
-        # the Gaussians' colours: 3DGS SH, the training image's latent, or a chosen appearance
-        outputs: dict[str, Union[Tensor, list]] = {}
-        z = lat = student = None
-        if cfg.appearance == "sh":
+        if z is None:
             colors, sh_degree = sh_colors(cfg, gp, self.step)
-        elif self.training:
-            lat = self.step_latent(camera)
-            z = lat.z
-            student = self.appearance_colors(z, gp["means"], gp.get("features"), cam_center, sh=sh_coeffs(gp))
-            colors, sh_degree = student.rgb, None
-            step_data = {"image_idx": lat.image_idx, "latent": z, "latent_mu": lat.mu, "latent_logvar": lat.logvar}
-            step_data.update(vae_in=lat.vae_in, local_residual=student.residual)
-            outputs.update({k: v for k, v in step_data.items() if v is not None})  # type: ignore[misc]
-        else:  # a fixed appearance (no gradient) renders its baked SH (render_sh_degree) once it is cached
-            z = self.forward_latent(camera)
-            colors, fixed, sh_degree = None, not torch.is_grad_enabled(), cfg.render_sh_degree
-            if fixed and sh_degree >= 0 and "appearance_latent" not in (camera.metadata or {}):
-                ctx, f_s = self.color_context(), gp.get("features")
-                colors = self.color_path.frame_sh(self.appearance_nets, z, gp["means"], f_s, sh_degree, ctx, gp)
-            if colors is None:
-                args = (z, gp["means"], gp.get("features"), cam_center)
-                colors, sh_degree = self.appearance_colors(*args, cacheable=fixed, sh=sh_coeffs(gp)).rgb, None
+            return colors, sh_degree, None
+        means, f_s, center = gp["means"], gp.get("features"), view.center
+        if not self.training:
+            fixed, degree = not torch.is_grad_enabled(), cfg.render_sh_degree
+            if fixed and degree >= 0 and "appearance_latent" not in (camera.metadata or {}):
+                baked = self.color_path.frame_sh(self.appearance_nets, z, means, f_s, degree, self.color_context(), gp)
+                if baked is not None:
+                    return baked, degree, None
+            return self.appearance_colors(z, means, f_s, center, cacheable=fixed, sh=sh_coeffs(gp)).rgb, None, None
+        student = self.appearance_colors(z, means, f_s, center, sh=sh_coeffs(gp))
+        if student.residual is not None:
+            outputs["local_residual"] = student.residual
+        if teacher not in ("fused", "second"):
+            return student.rgb, None, None
+        assert self.teacher is not None
+        sh_base = student.sh_base.detach() if student.sh_base is not None else None
+        t_colors = teacher_colors(self.teacher, outputs["teacher_latent"], gp, center, self.color_context(), sh_base)
+        if teacher == "fused":  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
+            return torch.cat([student.rgb, t_colors], dim=-1), None, None
+        return student.rgb, None, t_colors
 
-        idx = lat.image_idx if lat is not None else -1
-        teacher_needed = self.training and self.mask_step.teacher_needed(self.step, idx)
-        fused = teacher_needed and cfg.mask.teacher.fused and self.teacher is not None
-        sh_base = student.sh_base.detach() if student is not None and student.sh_base is not None else None
-        z_t = None
-        if fused:  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
-            assert self.teacher is not None and lat is not None
-            with torch.no_grad():
-                z_t = teacher_latent(self.teacher, lat.vae_in, idx)
-            t_colors = teacher_colors(self.teacher, z_t, gp, cam_center, self.color_context(), sh_base)
-            colors = torch.cat([colors, t_colors], dim=-1)
-        render, alpha, self.info = self._rasterize(
-            gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, viewmat, K, W, H, render_mode, sh_degree
+    def _render_mode(self) -> str:
+        """gsplat's render mode: the expected depth after the colours while rendering (or when asked to train)."""
+        return "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+
+    def _rasterize(self, gp: dict, colors: Tensor, view: View, sh_degree: int | None = None) -> tuple[Tensor, Tensor]:
+        """The student's rasterisation (splats/gaussians.rasterize_gaussians): render [1, H, W, ch] (the colour
+        channels, then the expected depth with RGB+ED) and alpha [1, H, W, 1]. Its `info` is what densification
+        reads; while training, gsplat's strategy keeps the 2D means' gradients (step_pre_backward)."""
+        absgrad = strategy_absgrad(self.strategy, self.config, gp["means"])  # |grad| only where the backend writes it
+        args = (gp["means"], gp["quats"], gp["scales"], gp["opacities"], colors, view.viewmat, view.K)
+        render, alpha, self.info = rasterize_gaussians(
+            self.config, *args, view.width, view.height, self._render_mode(), sh_degree, absgrad
         )
         if self.training:
             self.strategy.step_pre_backward(
                 self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info
             )
+        return render, alpha
+
+    @torch.no_grad()
+    def render_teacher(self, gp: dict, colors: Tensor, view: View) -> tuple[Tensor, Tensor]:
+        """The teacher's own rasterisation (without mask.teacher.fused; the fused channels are the same image): its
+        `colors` [N, 3] on the student's current Gaussians, detached, through the student's rasteriser function:
+        (render [1, H, W, 3], alpha [1, H, W, 1])."""
+        means, quats, scales, opacities = (gp[k].detach() for k in ("means", "quats", "scales", "opacities"))
+        args = (means, quats, scales, opacities, colors, view.viewmat.detach(), view.K, view.width, view.height)
+        render, alpha, _ = rasterize_gaussians(self.config, *args, "RGB", None, False)
+        return render, alpha
+
+    def _teacher_raster(
+        self, teacher: TeacherPass | None, render: Tensor, alpha: Tensor, gp: dict, colors: Tensor | None, view: View
+    ) -> tuple[Tensor, Tensor] | None:
+        """The pseudo-GT's pixels and alpha before compositing: the fused channels 3:6, the teacher's own
+        rasterisation of its `colors`, or the student's channels (no teacher); None on a step without."""
+        if teacher == "second":
+            assert colors is not None
+            return self.render_teacher(gp, colors, view)
+        if teacher is None:
+            return None
+        return (render[..., 3:6] if teacher == "fused" else render[..., :3]), alpha
+
+    def _composite(
+        self,
+        view: View,
+        render: Tensor,
+        alpha: Tensor,
+        z: Tensor | None,
+        teacher_raster: tuple[Tensor, Tensor] | None,
+        outputs: dict,
+    ) -> dict:
+        """nerfstudio's outputs of the rasterisation: rgb over what shows behind the Gaussians (appearance/sky.py
+        through `_background`, and its `composite`), depth, accumulation, background; on a step that renders
+        it, the pseudo-GT teacher_rgb (`teacher_raster` over the teacher's own background, or the student's without
+        a teacher); while training, the photo at the render's resolution over the same background."""
+        idx, nets = outputs.get("image_idx", -1), self.appearance_nets
         dirs = None
-        if z is not None and self.appearance_nets is not None and self.appearance_nets.sky is not None:
-            dirs = pixel_directions(c2w[0], K[0], W, H)
+        if z is not None and nets is not None and nets.sky is not None:
+            dirs = pixel_directions(view.c2w[0], view.K[0], view.width, view.height)
         fallback = self._get_background_color()  # random while training: one colour for student and teacher
-        background = self._background(self.appearance_nets, z, dirs, fallback, idx)
+        background = self._background(nets, z, dirs, fallback, idx)
         rgb = composite(render[..., :3], alpha, background)
-
-        if fused:  # over the teacher's own sky, under the teacher's latent
-            teacher_bg = self._background(self.teacher, z_t, dirs, fallback, idx)
-            outputs["teacher_rgb"] = fused_teacher_rgb(render, alpha, teacher_bg)
-        elif teacher_needed and self.teacher is None:  # teacher.enabled=False: the student's own render
-            outputs["teacher_rgb"] = rgb.detach().squeeze(0)
-        elif teacher_needed:
-            assert lat is not None
+        out: dict[str, Tensor | None] = {}
+        if teacher_raster is not None:
             with torch.no_grad():
-                z_t = teacher_latent(self.teacher, lat.vae_in, idx)
-                teacher_bg = self._background(self.teacher, z_t, dirs, fallback, idx)
-            view = (cam_center, viewmat, K, W, H)
-            outputs["teacher_rgb"] = self.render_teacher(gp, z_t, *view, teacher_bg, sh_base)
-        if z_t is not None:
-            outputs["teacher_latent"] = z_t
-
-        depth_im = None
-        if render_mode == "RGB+ED":
-            depth_im = render[..., -1:]  # gsplat appends expected depth after the colour channels
-            depth_im = torch.where(alpha > 0, depth_im, depth_im.detach().max()).squeeze(0)
+                z_t = outputs.get("teacher_latent")
+                t_bg = background if z_t is None else self._background(self.teacher, z_t, dirs, fallback, idx)
+                out["teacher_rgb"] = composite(*teacher_raster, t_bg).squeeze(0)
+        depth = None
+        if self._render_mode() == "RGB+ED":
+            depth = render[..., -1:]  # gsplat appends expected depth after the colour channels
+            depth = torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
         if background.dim() == 1 and not self.training:
-            background = background.expand(H, W, 3)
+            background = background.expand(view.height, view.width, 3)
         elif background.dim() == 4:  # the sky: [1, H, W, 3]
             background = background.squeeze(0)
-        outputs.update({"rgb": rgb.squeeze(0), "depth": depth_im, "accumulation": alpha.squeeze(0)})  # type: ignore[dict-item]
-        outputs["background"] = background
+        out.update({"rgb": rgb.squeeze(0), "depth": depth, "accumulation": alpha.squeeze(0), "background": background})
         if self.training and self._train_batch is not None:  # the ground truth, once per step (metrics and loss)
-            outputs["gt_rgb"] = self.composite_with_background(self.get_gt_img(self._train_batch["image"]), background)
-        return outputs
+            out["gt_rgb"] = self.composite_with_background(self.get_gt_img(self._train_batch["image"]), background)
+        return out
 
     def _background(self, nets, z: Tensor | None, dirs: Tensor | None, fallback: Tensor, idx: int = -1) -> Tensor:
         """What shows behind the Gaussians rendered with `nets` (appearance/sky.py's `background`): their sky under z,

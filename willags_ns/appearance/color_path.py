@@ -7,7 +7,8 @@
     per frame like 3DGS; exact for the affine modulation, a least-squares fit over view directions otherwise.
 
 The two colour modes are the two implementations behind `AppearanceNetworks.gaussian_rgb`; this module adds what depends
-on the camera and the caches. :class:`ColorPath` holds the caches and nothing else: the networks, the Gaussians'
+on the camera and the caches. The student's colours and the EMA teacher's (:func:`teacher_colors`) are the same
+:func:`gaussian_colors`. :class:`ColorPath` holds the caches and nothing else: the networks, the Gaussians'
 tensors and the model's step arrive as arguments (:class:`ColorContext` for what every call shares).
 """
 
@@ -95,6 +96,23 @@ def gaussian_colors(
             raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
         base = sh_color(sh_degree, dirs, sh)
     return GaussianColors(nets.gaussian_rgb(z, f_d, f_s, dirs, residual=residual, base=base), residual, base)
+
+
+@torch.no_grad()
+def teacher_colors(
+    teacher: AppearanceNetworks, z: Tensor, gp, cam_center: Tensor, ctx: ColorContext, sh_base: Tensor | None
+) -> Tensor:
+    """Per-Gaussian RGB [N, 3] of the EMA teacher networks under z (no grad) for the student's current Gaussians
+    `gp`, seen from `cam_center`: :func:`gaussian_colors`, as the student's, on the detached Gaussians. `sh_base`:
+    the student's SH colours of this step (same Gaussians, same camera), reused; None: evaluated from their SH."""
+    means = gp["means"].detach()
+    f_s = gp["features"].detach() if "features" in gp else None
+    sh = None
+    if sh_base is None:
+        sh = sh_coeffs(gp)
+        sh = sh.detach() if sh is not None else None
+    f_d = field_features(teacher, z, means, ctx)
+    return gaussian_colors(teacher, z, means, f_s, f_d, cam_center, ctx.sh_degree, sh, sh_base).rgb
 
 
 def modulated_sh(

@@ -18,7 +18,8 @@ as blobs. Here the background is a smooth function at infinity whose colour foll
   pixels pay ``alpha_penalty * mean(alpha)`` there, so the sky stays background instead of being painted over.
 
 Pure functions: :func:`pixel_directions` (camera -> world ray directions), :func:`background_alpha_penalty`,
-:func:`background` (what shows behind the Gaussians of a render: the sky, or splatfacto's colour).
+:func:`background` (what shows behind the Gaussians of a render: the sky, or splatfacto's colour), :func:`composite`
+(a render over it: the student's and the EMA teacher's alike).
 """
 
 from dataclasses import dataclass
@@ -185,3 +186,9 @@ def background(
         H, W = dirs.shape[:2]
         bg = composite_background(bg, fallback, open_regions.at(image_idx, H, W, bg.device))
     return bg
+
+
+def composite(rgb: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
+    """What a photo shows: rendered colours `rgb` [..., 3] over `background` ([3], or per pixel) where the
+    accumulated `alpha` [..., 1] is below 1, clamped to [0, 1]."""
+    return torch.clamp(rgb + (1 - alpha) * background, 0.0, 1.0)

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from willags_ns.mask.residual import colour_residual, residual_transient
 from willags_ns.mask.transient import image_distance, mask_threshold, transient_mask
-from willags_ns.render.camera import viewmat_from_c2w
+from willags_ns.render.camera import View, viewmat_from_c2w
 
 
 @dataclass
@@ -176,14 +176,16 @@ def training_view(train_dataset, idx: int, extra: np.ndarray | None = None):
 def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     """The EMA teacher's render [H, W, 3] of `camera` for the training image `image` [H, W, 3] in [0, 1].
 
-    Through training's functions (willags_ns/mask/step.py): the teacher's latent (VAE mean of the image, or its
-    embedding row), its colours on the student's current Gaussians, the camera after the camera optimiser, the
-    second rasterisation. Background: the teacher's sky behind every pixel when the model has one, else the model's
-    fixed colour (training draws a random one per step, which only shows where alpha < 1). Without a teacher
-    (teacher disabled) the student's networks are used.
+    Through training's functions: the teacher's latent (VAE mean of the image, or its embedding row;
+    willags_ns/mask/step.py), its colours on the student's current Gaussians (appearance/color_path.py), the camera
+    after the camera optimiser, the teacher's own rasterisation (`model.render_teacher`) and the composite.
+    Background: the teacher's sky behind every pixel when the model has one, else the model's fixed colour (training
+    draws a random one per step, which only shows where alpha < 1). Without a teacher (teacher disabled) the
+    student's networks are used.
     """
-    from willags_ns.appearance.sky import background, pixel_directions
-    from willags_ns.mask.step import teacher_colors, teacher_latent, teacher_render
+    from willags_ns.appearance.color_path import teacher_colors
+    from willags_ns.appearance.sky import background, composite, pixel_directions
+    from willags_ns.mask.step import teacher_latent
 
     nets = model.teacher if model.teacher is not None else model.appearance_nets
     z = teacher_latent(nets, image.permute(2, 0, 1).float().to(model.device), image_idx)
@@ -192,12 +194,13 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
     cam.metadata["cam_idx"] = image_idx
     c2w = model.camera_optimizer.apply_to_camera(cam)
     K = cam.get_intrinsics_matrices().to(model.device)
-    W, H = int(cam.width.item()), int(cam.height.item())
+    view = View(c2w, viewmat_from_c2w(c2w), K, int(cam.width.item()), int(cam.height.item()))
     gp = model.gauss_params
-    colors = teacher_colors(nets, z, gp, c2w[0, :3, 3], model.color_context(), None)
-    dirs = pixel_directions(c2w[0], K[0], W, H) if nets.sky is not None else None
+    colors = teacher_colors(nets, z, gp, view.center, model.color_context(), None)
+    dirs = pixel_directions(c2w[0], K[0], view.width, view.height) if nets.sky is not None else None
     bg = background(nets.sky, z, dirs, model.background_color.to(model.device))
-    return teacher_render(model.config, colors, gp, viewmat_from_c2w(c2w), K, W, H, bg)
+    render, alpha = model.render_teacher(gp, colors, view)
+    return composite(render, alpha, bg).squeeze(0)
 
 
 def mask_scores(

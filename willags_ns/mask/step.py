@@ -1,10 +1,10 @@
-"""The transient mask of one training step: the EMA teacher's render, its perceptual distance to the photo, the
-threshold, and the static-scene safeguard.
+"""The transient mask of one training step: whose render is the pseudo-GT, the EMA teacher's latent, the perceptual
+distance to the photo, the threshold, and the static-scene safeguard.
 
-    teacher latent (teacher VAE mean of the photo, or its embedding row)              teacher_latent
-    teacher colours (the student's Gaussians and SH colours, detached)                teacher_colors
-    teacher render (fused into the student's rasterisation as 3 extra channels, or a second one: teacher_render),
-        both composited like the student's render (gaussians.composite)
+    which steps render the teacher, and how (fused, a second rasterisation, the student's own)  MaskStep.teacher_pass
+    teacher latent (teacher VAE mean of the photo, or its embedding row)                       teacher_latent
+    teacher colours, rasterisation, background and composite: the student's functions, in the model's forward
+        (appearance/color_path.teacher_colors, splats/gaussians.py, appearance/sky.py)
     D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/mask/transient.py)
         or, with mask.distance "residual", D = mean_c |photo - teacher render| (willags_ns/mask/residual.py)
     transient = D > threshold(step)   (rejected when it would drop more than mask.max_masked_fraction of the image;
@@ -13,23 +13,20 @@ threshold, and the static-scene safeguard.
 
 :func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
 image's last mask, its visit count, its support grid and the scene's SfM observations) and reads the model's config;
-the teacher networks, the VGG features and the step arrive as arguments. The teacher's functions are plain: the
-student's colours, rasterisation and compositing are the same functions (appearance/color_path.py, gaussians.py).
+the teacher networks, the VGG features and the step arrive as arguments.
 """
 
-from typing import TYPE_CHECKING, Any, NamedTuple, cast
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from willags_ns.appearance.color_path import ColorContext, field_features, gaussian_colors
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.mask.residual import colour_residual, residual_transient
 from willags_ns.mask.static_support import apply_support, support_map
 from willags_ns.mask.teacher import ema_update_, make_teacher
 from willags_ns.mask.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
-from willags_ns.splats.gaussians import composite, rasterize_gaussians, sh_coeffs
 
 
 def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | None, PerceptualFeatures | None]:
@@ -80,6 +77,12 @@ class StepMask(NamedTuple):
     supervised), None on a step that reused a mask."""
 
 
+TeacherPass = Literal["fused", "second", "student"]
+"""How a training step renders its pseudo-GT: the EMA teacher's colours as channels 3:6 of the student's
+rasterisation ("fused", mask.teacher.fused), the teacher's own second rasterisation ("second"), or the student's
+render (no teacher: mask.teacher.enabled False)."""
+
+
 class MaskStep:
     """Which steps render the teacher, and the static mask [H, W] those steps (and the ones between) supervise."""
 
@@ -106,6 +109,15 @@ class MaskStep:
         visits = self.visits.get(idx, 0)
         self.visits[idx] = visits + 1
         return idx not in self.masks or visits % max(1, self.cfg.mask.every) == 0
+
+    def teacher_pass(self, step: int, idx: int, has_teacher: bool) -> TeacherPass | None:
+        """How this training step renders image `idx`'s pseudo-GT (:data:`TeacherPass`; counts the visit), None on a
+        step that reuses the image's mask (teacher_needed). `has_teacher`: the model has an EMA teacher."""
+        if not self.teacher_needed(step, idx):
+            return None
+        if not has_teacher:
+            return "student"
+        return "fused" if self.cfg.mask.teacher.fused else "second"
 
     def static_mask(
         self,
@@ -149,48 +161,12 @@ class MaskStep:
         return self.support_cache[idx]
 
 
+@torch.no_grad()
 def teacher_latent(teacher: AppearanceNetworks, vae_in: Tensor | None, image_idx: int) -> Tensor:
-    """The EMA teacher's z [D] for training image `image_idx`: its VAE's mean of the photo (`vae_in` [3, H, W], the
-    encoder's input), or its row of the teacher's table."""
-    if teacher.vae is not None:
-        assert vae_in is not None
-        mu, _ = teacher.vae.encode(vae_in[None])
-        return mu[0]
-    assert teacher.embeddings is not None
-    return teacher.embeddings.weight[image_idx]
-
-
-@torch.no_grad()
-def teacher_colors(
-    teacher: AppearanceNetworks, z: Tensor, gp, cam_center: Tensor, ctx: ColorContext, sh_base: Tensor | None
-) -> Tensor:
-    """Per-Gaussian RGB [N, 3] of the EMA teacher networks under z (no grad) for the student's current Gaussians
-    `gp`, seen from `cam_center`. `sh_base`: the student's SH colours of this step (same Gaussians, same camera),
-    reused; None: evaluated from the Gaussians' SH."""
-    means = gp["means"].detach()
-    f_s = gp["features"].detach() if "features" in gp else None
-    sh = None
-    if sh_base is None:
-        sh = sh_coeffs(gp)
-        sh = sh.detach() if sh is not None else None
-    f_d = field_features(teacher, z, means, ctx)
-    return gaussian_colors(teacher, z, means, f_s, f_d, cam_center, ctx.sh_degree, sh, sh_base).rgb
-
-
-def fused_teacher_rgb(render: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
-    """Pseudo-GT [H, W, 3] from the fused rasterisation (mask.teacher.fused): the teacher's channels 3:6 of
-    `render` [1, H, W, >=6] composited on `background` (the teacher's sky, or the student's colour), all detached."""
-    return composite(render[..., 3:6].detach(), alpha.detach(), background.detach()).squeeze(0)
-
-
-@torch.no_grad()
-def teacher_render(cfg, colors: Tensor, gp, viewmat: Tensor, K, W: int, H: int, background) -> Tensor:
-    """Pseudo-GT [H, W, 3]: the teacher's `colors` on the student's current Gaussians (detached), rasterised with
-    the model's settings (`cfg`) and composited on `background`: the unfused path (without mask.teacher.fused)."""
-    means, quats, scales, opacities = (gp[k].detach() for k in ("means", "quats", "scales", "opacities"))
-    args = (means, quats, scales, opacities, colors, viewmat.detach(), K, W, H, "RGB", None, False)
-    render, alpha, _ = rasterize_gaussians(cfg, *args)
-    return composite(render[..., :3], alpha, background).squeeze(0)
+    """The EMA teacher's z [D] for training image `image_idx` (no grad): the mean of its latent source, as the
+    student's (AppearanceNetworks.latent_stats): its VAE's mean of the photo (`vae_in` [3, H, W], the encoder's
+    input), or its row of the teacher's table."""
+    return teacher.latent_stats(vae_in, image_idx)[0]
 
 
 def log_step_images(
@@ -213,8 +189,8 @@ def log_step_images(
 
 
 class MaskFace:
-    """WillagsModel's mask methods (a mixin): the EMA update, the teacher's second rasterisation, the step's static
-    mask, and the safeguard's SfM observations and support grids (what the benchmarks and the viewer read)."""
+    """WillagsModel's mask methods (a mixin): the EMA update, the step's static mask, and the safeguard's SfM
+    observations and support grids (what the benchmarks and the viewer read)."""
 
     if TYPE_CHECKING:  # provided by WillagsModel (nn.Module attributes and populate_modules)
         config: Any
@@ -225,21 +201,10 @@ class MaskFace:
         perceptual: PerceptualFeatures | None
         mask_step: MaskStep
 
-        def color_context(self) -> ColorContext: ...
-
     def update_teacher(self, step: int) -> None:
         """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
         assert self.teacher is not None and self.appearance_nets is not None
         ema_update_(self.teacher, self.appearance_nets, self.config.mask.teacher.tau)
-
-    @torch.no_grad()
-    def render_teacher(self, gp, z_t: Tensor, cam_center, viewmat, K, W, H, bg: Tensor, sh_base=None) -> Tensor:
-        """The pseudo-GT [H, W, 3] under the teacher's latent `z_t` from the EMA teacher networks with the student's
-        current Gaussians, over `bg` (the teacher's own sky when there is one): a second rasterisation (without
-        mask.teacher.fused; the fused path renders the same image)."""
-        assert self.teacher is not None
-        colors = teacher_colors(self.teacher, z_t, gp, cam_center, self.color_context(), sh_base)
-        return teacher_render(self.config, colors, gp, viewmat, K, W, H, bg)
 
     def step_static_mask(self, outputs, gt_img: Tensor) -> StepMask:
         """This step's static mask (MaskStep.static_mask) of the image get_outputs rendered (`outputs`)."""

@@ -1,4 +1,7 @@
-"""Camera conventions between nerfstudio and the rasteriser: the view matrix, the intrinsics at a render scale."""
+"""Camera conventions between nerfstudio and the rasteriser: the view matrix, the intrinsics at a render scale, and
+the two together as the `View` a forward pass renders."""
+
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -29,3 +32,28 @@ def intrinsics_at(camera, scale_factor: float, device) -> tuple[Tensor, int, int
     W, H = int(camera.width.item()), int(camera.height.item())
     camera.rescale_output_resolution(scale_factor)
     return K, W, H
+
+
+class View(NamedTuple):
+    """A camera at the render's scale in the rasteriser's terms: what every stage of a forward pass reads of it."""
+
+    c2w: Tensor
+    """[C, 3, 4] nerfstudio camera-to-world (OpenGL axes), after the camera optimiser while training."""
+    viewmat: Tensor
+    """[C, 4, 4] the rasteriser's world-to-camera (viewmat_from_c2w)."""
+    K: Tensor
+    """[C, 3, 3] intrinsics at the render's scale."""
+    width: int
+    height: int
+
+    @property
+    def center(self) -> Tensor:
+        """[3] the first camera's centre in world space (where the Gaussians' view directions start)."""
+        return self.c2w[0, :3, 3]
+
+
+def camera_view(camera, c2w: Tensor, scale_factor: float, device) -> View:
+    """The `View` of a nerfstudio `Cameras` posed at `c2w` [C, 3, 4], rendered at 1 / scale_factor of its
+    resolution (intrinsics_at)."""
+    K, W, H = intrinsics_at(camera, scale_factor, device)
+    return View(c2w, viewmat_from_c2w(c2w), K, W, H)

@@ -145,12 +145,6 @@ def rasterize_gaussians(
     )
 
 
-def composite(rgb: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
-    """What a photo shows: rendered colours `rgb` [..., 3] over `background` ([3], or per pixel) where the
-    accumulated `alpha` [..., 1] is below 1, clamped to [0, 1]."""
-    return torch.clamp(rgb + (1 - alpha) * background, 0.0, 1.0)
-
-
 def active_sh_degree(cfg, step: int) -> int:
     """SH degree in use at `step`: splatfacto's schedule, one more degree every cfg.sh_degree_interval steps up to
     cfg.sh_degree (the 3DGS colours of appearance='sh' and the base colour of color_mode='modulated' alike)."""
