@@ -40,7 +40,7 @@ from benchmarks.methods import configuration
 from benchmarks.records import merge_records
 
 REPO = Path(__file__).resolve().parents[1]
-CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer", "splatfacto")
+CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer-full", "peer", "splatfacto")
 """The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
 benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`)."""
 CROSSING_METHODS = ("willags-lite", "willags", "willags-paper", "peer", "splatfacto")

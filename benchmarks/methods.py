@@ -117,16 +117,21 @@ METHODS: dict[str, MethodSpec] = {
     # candidates for the default, each the default (the scene inspected first) with one change
     "willags-residual": MethodSpec(
         "willags",
-        (("auto_config", True), ("mask.enabled", True), ("mask.distance", "residual")),
-        note="default with the transient mask on every scene, by the weight-free colour residual against the "
-        "teacher's render (mask.distance residual)",
+        (("auto_config", True), ("mask.enabled", True), ("mask.distance", "residual"), ("mcmc.enabled", False)),
+        note="willags-splitclone with the transient mask on every scene, by the weight-free colour residual against "
+        "the teacher's render (mask.distance residual)",
         keep=("mask.enabled",),
     ),
     "willags-mcmc": MethodSpec(
         "willags",
         (("auto_config", True), ("mcmc.enabled", True)),
-        note="default with MCMC densification (relocation, growth to 300k, position noise, opacity and scale "
-        "penalties) in place of splatfacto's split / clone / prune",
+        note="the default's configuration named in full: MCMC densification (relocation, growth to 300k, position "
+        "noise, opacity and scale penalties)",
+    ),
+    "willags-splitclone": MethodSpec(
+        "willags",
+        (("auto_config", True), ("mcmc.enabled", False)),
+        note="default with splatfacto's densification (split / clone / prune, opacity resets) in place of MCMC",
     ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
     "peer": MethodSpec(
@@ -328,18 +333,28 @@ AUTO_DEFAULT_SINCE = "2026-11-25T20:05:00"
 
 AUTO_SAME_SINCE = "2026-11-25T15:26:40"
 """From here on (commit 7bf8eff: the full model's sky and safeguard, the inspector's transient threshold 0.12)
-`willags-auto` runs exactly today's `willags`; benchmarks/generalisation.py dates "today's" records from it too."""
+`willags-auto` ran the default of its time; benchmarks/generalisation.py dates its records from it too."""
+
+
+MCMC_DEFAULT_SINCE = "2026-11-27T16:30:00"
+"""From here on `willags` densifies by MCMC (splats/mcmc.py); its earlier records since AUTO_DEFAULT_SINCE are of
+the configuration now named `willags-splitclone`, and `willags-mcmc` records are today's `willags`. (`willags-full`
+and the ablations of the default recorded before it densified as splatfacto does.)"""
 
 
 def configuration(rec: dict[str, Any]) -> str:
     """The method name of the configuration a record measured: its own, except `willags` records from before
-    AUTO_DEFAULT_SINCE, which are `willags-full`, and `willags-auto` records since AUTO_SAME_SINCE, which are today's
-    `willags`. Undated records keep their name."""
+    AUTO_DEFAULT_SINCE, which are `willags-full`, and from before MCMC_DEFAULT_SINCE, which are
+    `willags-splitclone`; `willags-mcmc` records, which are today's `willags`. Undated records keep their name."""
     method = str(rec.get("method"))
     date = str(rec.get("date") or "")
     if method == "willags" and date and date < AUTO_DEFAULT_SINCE:
         return "willags-full"
+    if method == "willags" and date and date < MCMC_DEFAULT_SINCE:
+        return "willags-splitclone"
     if method == "willags-auto" and date >= AUTO_SAME_SINCE:
+        return "willags-splitclone"
+    if method == "willags-mcmc":
         return "willags"
     return method
 

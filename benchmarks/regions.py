@@ -278,8 +278,20 @@ class RegionDump:
 # ------------------------------------------------------------------------------------------------ the report
 
 
-NAME = re.compile(r"^(?P<scene>.+?)-(?P<method>willags|peer-full|peer|splatfacto)(?:-(?P<tag>.+))?\.npz$")
-"""<scene>-<method>[-<tag>].npz (the methods the table compares)."""
+def dump_name(filename: str) -> tuple[str, str] | None:
+    """(scene, method) of a dump named <scene>-<method>[-<tag>].npz, the method one of benchmarks/methods.py's (the
+    longest that fits: `willags-mcmc` is not `willags` with a tag); None for any other file."""
+    from benchmarks.methods import METHODS
+
+    if not filename.endswith(".npz"):
+        return None
+    stem = filename[: -len(".npz")]
+    for method in sorted(METHODS, key=len, reverse=True):
+        m = re.match(rf"^(?P<scene>.+?)-{re.escape(method)}(?:-(?P<tag>.+))?$", stem)
+        if m:
+            return m["scene"], method
+    return None
+
 
 REFERENCE = "willags"
 """The method whose geometry defines the regions of a scene."""
@@ -289,11 +301,12 @@ def load_dumps(folder: Path) -> dict[str, dict[str, list[dict[str, np.ndarray]]]
     """scene -> method -> the runs' arrays (one dict per npz; several seeds or tags each)."""
     out: dict[str, dict[str, list[dict[str, np.ndarray]]]] = {}
     for f in sorted(Path(folder).glob("*.npz")):
-        m = NAME.match(f.name)
-        if not m:
+        named = dump_name(f.name)
+        if named is None:
             continue
+        scene, method = named
         with np.load(f) as z:
-            out.setdefault(m["scene"], {}).setdefault(m["method"], []).append({k: z[k] for k in z.files})
+            out.setdefault(scene, {}).setdefault(method, []).append({k: z[k] for k in z.files})
     return out
 
 
@@ -309,10 +322,17 @@ def read_errors(run: dict[str, np.ndarray]) -> list[np.ndarray]:
     return [run[f"rms_{i}"].astype(np.float64) ** 2 for i in range(n) if f"rms_{i}" in run]
 
 
+def reference_run(runs: dict[str, list[dict[str, np.ndarray]]]) -> dict[str, np.ndarray] | None:
+    """The run whose geometry defines a scene's regions: REFERENCE's first run with geometry, else the first run of
+    any method that has it (a `willags` run scored under another name, e.g. a candidate that became the default)."""
+    ordered = [*runs.get(REFERENCE, []), *(r for m, rs in sorted(runs.items()) if m != REFERENCE for r in rs)]
+    return next((r for r in ordered if "covis_0" in r), None)
+
+
 def scene_regions(runs: dict[str, list[dict[str, np.ndarray]]]) -> tuple[list[np.ndarray], dict[str, Any]] | None:
     """The labels of a scene's test images (the reference run's geometry, every method's errors for outliers) and
     each method's region scores (its runs averaged: PSNR of the mean of their per-region PSNRs)."""
-    ref = next((r for r in runs.get(REFERENCE, []) if "covis_0" in r), None)
+    ref = reference_run(runs)
     if ref is None:
         return None
     covis, acc = _images(ref, "covis"), _images(ref, "acc")
@@ -371,6 +391,14 @@ def region_picture(path: Path, thumbs: Sequence[np.ndarray], labels: Sequence[np
     return path
 
 
+TABLE_ORDER = ("willags", "peer-full", "peer", "splatfacto")
+"""Methods listed first in the table, in this order; the others (candidates of the default) follow by name."""
+
+
+def _table_order(method: str) -> tuple[int, str]:
+    return (TABLE_ORDER.index(method) if method in TABLE_ORDER else len(TABLE_ORDER), method)
+
+
 def report(folder: Path, out: Path | None, pictures: Path | None, json_out: Path | None = None) -> str:
     """The markdown table of every scene's regions (a picture per scene when ``pictures`` is given; the scores as
     JSON, scene -> method -> region -> share / psnr / runs, when ``json_out`` is)."""
@@ -385,14 +413,13 @@ def report(folder: Path, out: Path | None, pictures: Path | None, json_out: Path
             continue
         labels, scores = got
         every[scene] = scores
-        for method in ("willags", "peer-full", "peer", "splatfacto"):
-            if method not in scores:
-                continue
+        for method in sorted(scores, key=_table_order):
             s = scores[method]
             cells = [f"{s[k]['psnr']:.2f} ({100 * s[k]['share']:.0f} %)" for k in ("all", *REGIONS)]
             lines.append(f"| {scene} | {method} | {s['all']['runs']} | " + " | ".join(cells) + " |")
         if pictures is not None:
-            ref = next(r for r in runs[REFERENCE] if "covis_0" in r)
+            ref = reference_run(runs)
+            assert ref is not None
             region_picture(pictures / f"{scene}.png", _images(ref, "gt"), labels)
     text = "\n".join(lines) + "\n"
     if json_out is not None:

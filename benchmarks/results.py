@@ -16,8 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.curves import grid_descriptions, scene_points, step_curve, step_time
-from benchmarks.every_scene import GOAL_DB, REAL_SCENES, goal_cell, today_records
-from benchmarks.generalisation import SCENES, _cell, _diff, _grid, default_records
+from benchmarks.every_scene import GOAL_DB, REAL_SCENES, goal_cell
+from benchmarks.generalisation import SCENES, _cell, _diff
+from benchmarks.methods import configuration
 from benchmarks.records import RECORDS, REPO, load_records
 
 RESULTS_MD = REPO / "docs" / "results.md"
@@ -30,28 +31,38 @@ SYNTHETIC = ("fox-clean", "fox-appearance-only", "fox-transient-only", "fox-wild
 """Rendered scenes (willags_ns/data/synthetic.py's generator): known transients and appearance changes."""
 ALL_SCENES = tuple(dict.fromkeys((*REAL_SCENES, *SCENES)))
 """The real collections first, then the synthetic ones."""
-PRESET_COLUMNS = ("splatfacto", "peer", "willags-paper", "willags-full", "willags")
-STEP_METHODS = ("willags", "willags-full", "peer-full", "peer", "splatfacto")
+STEP_METHODS = ("willags", "peer-full", "peer", "splatfacto")
 """Methods of the step-count table (the curves' methods a user compares)."""
 STEP_COUNTS = (1000, 2000, 5000, 10000, 15000, 30000)
 
 COMMANDS = [
-    "# on a GPU machine: 5000-step runs, seeds 42 and 43, several sharing the GPU",
-    "export WILLAGS_COMMIT=<sha>; source benchmarks/remote/env.sh",
-    'GRID=configs/benchmark_gpu_fidelity.json bash benchmarks/remote/grid.sh start "reichstag:willags:<tag>:42 ..."',
-    "bash benchmarks/remote/grid.sh wait $OUT 540          # again until done: brings back what finished",
-    "# runs alone on the GPU, scored at 1k, 2k, 5k, 10k, 15k and 30k steps (the step-count table)",
-    'SOLO_DATA=.gpu-data bash benchmarks/remote/solo.sh start "reichstag:willags:15000 reichstag:peer:15000 ..."',
-    "bash benchmarks/remote/solo.sh wait $OUT 560",
-    "# every method of a scene to 15k, side by side in queues, with region maps (the region table)",
-    'export WILLAGS_BENCH_REGIONS=/tmp/regions SOLO_MILESTONES="5000 10000 15000" SOLO_DATA=".gpu-r .gpu-lib"',
-    'bash benchmarks/remote/solo.sh queues start "reichstag:peer-full:15000" "reichstag:willags:15000" ...',
-    "bash benchmarks/remote/solo.sh queues wait $OUT 540           # packs records and region maps in queues.tgz",
+    "# on a machine of 4 GPUs: the side-by-side grid, one scene's methods per GPU (queue i on GPU i mod 4)",
+    "export WILLAGS_COMMIT=<sha>; source benchmarks/remote/env.sh        # wheels, gsplat's build",
+    "nvidia-cuda-mps-control -d   # optional: the queues of a GPU run their kernels side by side",
+    'export WILLAGS_BENCH_REGIONS=/tmp/regions SOLO_MILESTONES="5000 10000 15000" SOLO_DATA=/tmp/gpudata',
+    'bash benchmarks/remote/solo.sh queues start "reichstag:peer-full:15000:42" ... "reichstag:willags:15000:42 '
+    'reichstag:willags:15000:43" ...',
+    "bash benchmarks/remote/solo.sh queues add ...     # more queues beside the running ones (scenes that came later)",
+    "bash benchmarks/remote/solo.sh queues wait $OUT 540   # again until done: records and logs in queues.tgz, region "
+    "maps in regions.tgz",
     "# here: merge the records brought back, then regenerate every generated page",
     "python -m benchmarks merge <records.json ...>   # into benchmarks/records/benchmarks.json",
     "python -m benchmarks regions report <maps> --pictures docs/regions --json benchmarks/records/regions/<n>.json",
     "python -m benchmarks report                     # every generated page: benchmarks.md, results.md, curves.md",
 ]
+
+
+SIDE_BY_SIDE_TAGS = ("h200x4",)
+"""Tags (a prefix; `-s43` follows for the second seed) of the side-by-side grid the default was decided on: every
+real collection to 15000 steps and two fox scenes to 5000, seeds 42 and 43, the default, its candidates and both
+peers in one lease (benchmarks/remote/solo.sh queues, one scene's methods on one GPU)."""
+SIDE_BY_SIDE_STEPS = {"fox-clean": 5000, "fox-wild": 5000}
+"""Steps each scene of the side-by-side grid was scored at (15000 where not named)."""
+HEADLINE = ("peer", "peer-full", "willags")
+"""The headline's columns: both peers and the default."""
+CANDIDATES = (("willags", None), ("willags-splitclone", "willags"), ("willags-residual", "willags-splitclone"))
+"""The default and the alternatives it was chosen over, from the same runs: (method, the method its difference is
+taken to: the configuration it changes one thing of)."""
 
 
 def _scene_label(scene: str, recs: list[dict[str, Any]]) -> str:
@@ -64,40 +75,118 @@ def _scene_label(scene: str, recs: list[dict[str, Any]]) -> str:
     return f"{scene} ({kind})"
 
 
+def side_by_side(records: list[dict[str, Any]]) -> dict[tuple[str, str], list[dict[str, Any]]]:
+    """(scene, configuration) -> the side-by-side grid's runs, each as a record scored at the scene's step count
+    (a milestone of a longer run counts as the run at that count)."""
+    by: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in records:
+        if r.get("status", "ok") != "ok" or not str(r.get("tag") or "").startswith(SIDE_BY_SIDE_TAGS):
+            continue
+        steps = SIDE_BY_SIDE_STEPS.get(r["scene"], 15000)
+        ms = (r.get("milestones") or {}).get(str(steps))
+        if ms is None or ms.get("psnr") is None:
+            continue
+        by.setdefault((r["scene"], configuration(r)), []).append({**r, "psnr": ms["psnr"], "steps": steps})
+    return by
+
+
+def _stronger(by, scene: str) -> list[dict[str, Any]]:
+    """The runs of the peer (light or full) with the higher mean on `scene`."""
+    peers = [by.get((scene, m), []) for m in ("peer", "peer-full")]
+    peers = [p for p in peers if p]
+    return max(peers, key=lambda rs: sum(r["psnr"] for r in rs) / len(rs)) if peers else []
+
+
+def _scenes(by) -> list[str]:
+    return [sc for sc in ALL_SCENES if any(k[0] == sc for k in by)]
+
+
 def headline_rows(records: list[dict[str, Any]]) -> list[str]:
-    """Every real collection at 5000 steps: splatfacto, the peer and the default `willags`, its margin over the peer
-    and the goal (the peer + GOAL_DB dB)."""
-    by = _grid(records)
+    """Every scene of the side-by-side grid: both peers, the default, its margin over the stronger peer and the goal
+    (that peer + GOAL_DB dB)."""
+    by = side_by_side(records)
     out = [
-        f"| scene | splatfacto | peer | **willags** | willags − peer | goal (peer + {GOAL_DB:g} dB) |",
-        "|---|---|---|---|---|---|",
+        "| scene | steps | peer | peer-full | **willags** | willags − stronger peer | goal (stronger peer "
+        f"+ {GOAL_DB:g} dB) |",
+        "|---|---|---|---|---|---|---|",
     ]
+    for sc in _scenes(by):
+        cols = [by.get((sc, m), []) for m in HEADLINE]
+        today, strong = cols[-1], _stronger(by, sc)
+        label = _scene_label(sc, [r for c in cols for r in c])
+        cells = [_cell(c) for c in cols] + [_diff(today, strong), goal_cell(today, strong) if strong else "–"]
+        out.append(f"| {label} | {SIDE_BY_SIDE_STEPS.get(sc, 15000) // 1000}k | " + " | ".join(cells) + " |")
+    return out if len(out) > 2 else []
+
+
+def candidate_rows(records: list[dict[str, Any]]) -> list[str]:
+    """The default beside the alternatives it was chosen over, from the same runs: each alternative's mean and its
+    difference to the default."""
+    by = side_by_side(records)
+    names = [f"**{m}**" if base is None else f"{m} (− {base})" for m, base in CANDIDATES]
+    out = ["| scene | " + " | ".join(names) + " |", "|---|" + "---|" * len(CANDIDATES)]
+    for sc in _scenes(by):
+        cells = []
+        for m, base in CANDIDATES:
+            recs = by.get((sc, m), [])
+            if base is None or not recs:
+                cells.append(_cell(recs))
+            else:
+                cells.append(f"{_cell(recs)}, {_diff(recs, by.get((sc, base), []))}")
+        out.append(f"| {sc} | " + " | ".join(cells) + " |")
+    return out if len(out) > 2 else []
+
+
+def _psnr_at(points: list[tuple[float, float, int]], t: float) -> tuple[float, int] | None:
+    """(PSNR, steps) of a run at train time `t` by linear interpolation between its milestones (time, PSNR, steps),
+    the steps rounded; None when `t` is outside the milestones' times."""
+    pts = sorted(points)
+    for (t0, p0, s0), (t1, p1, s1) in zip(pts, pts[1:], strict=False):
+        if t0 <= t <= t1:
+            w = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+            return p0 + w * (p1 - p0), round(s0 + w * (s1 - s0))
+    if pts and abs(t - pts[-1][0]) < 1e-9:
+        return pts[-1][1], pts[-1][2]
+    return None
+
+
+def equal_time_rows(records: list[dict[str, Any]]) -> list[str]:
+    """Per real scene of the side-by-side grid: each method's PSNR at the training time the default needed for 15000
+    steps (mean over seeds of its milestones interpolated at that time; a method that had not reached its first
+    milestone, or had stopped before, shows –), with the steps it had reached. Times are those of the runs sharing
+    one GPU: comparable within a scene, not between scenes or with runs alone."""
+    out = [
+        "| scene | willags' time for 15k (shared GPU) | " + " | ".join(HEADLINE) + " |",
+        "|---|---|" + "---|" * len(HEADLINE),
+    ]
+    runs: dict[tuple[str, str], list[list[tuple[float, float, int]]]] = {}
+    for r in records:
+        if r.get("status", "ok") != "ok" or not str(r.get("tag") or "").startswith(SIDE_BY_SIDE_TAGS):
+            continue
+        pts = [
+            (float(v["train_s"]), float(v["psnr"]), int(k))
+            for k, v in (r.get("milestones") or {}).items()
+            if v.get("train_s") is not None and v.get("psnr") is not None
+        ]
+        if pts:
+            runs.setdefault((r["scene"], configuration(r)), []).append(pts)
     for sc in REAL_SCENES:
-        peer, today = by.get((sc, "peer"), []), today_records(by, sc)
-        if not today and not peer:
+        ref = [next((t for t, _, s in pts if s == 15000), None) for pts in runs.get((sc, "willags"), [])]
+        ref = [t for t in ref if t is not None]
+        if not ref:
             continue
-        label = _scene_label(sc, today + peer)
-        cells = [_cell(by.get((sc, "splatfacto"), [])), _cell(peer), _cell(today), _diff(today, peer)]
-        out.append(f"| {label} | " + " | ".join(cells) + f" | {goal_cell(today, peer)} |")
-    return out
-
-
-def preset_rows(records: list[dict[str, Any]]) -> list[str]:
-    """Every scene at 5000 steps: the baselines and each willags preset that has runs there."""
-    by = _grid(records)
-    out = [
-        "| scene | " + " | ".join(PRESET_COLUMNS) + " | willags − peer |",
-        "|---|" + "---|" * (len(PRESET_COLUMNS) + 1),
-    ]
-    for sc in ALL_SCENES:
-        cols = {m: by.get((sc, m), []) for m in PRESET_COLUMNS}
-        cols["willags-full"] = default_records(by, sc)
-        cols["willags"] = today_records(by, sc)
-        if not any(cols.values()):
-            continue
-        cells = [_cell(cols[m]) for m in PRESET_COLUMNS]
-        out.append(f"| {sc} | " + " | ".join(cells) + f" | {_diff(cols['willags'], cols['peer'])} |")
-    return out
+        t = sum(ref) / len(ref)
+        cells = []
+        for m in HEADLINE:
+            at = [_psnr_at(pts, t) for pts in runs.get((sc, m), [])]
+            at = [a for a in at if a is not None]
+            if not at:
+                cells.append("–")
+                continue
+            psnr, steps = sum(a[0] for a in at) / len(at), sum(a[1] for a in at) / len(at)
+            cells.append(f"{psnr:.2f} ({steps / 1000:.1f}k steps, n={len(at)})")
+        out.append(f"| {sc} | {t:.0f} s | " + " | ".join(cells) + " |")
+    return out if len(out) > 2 else []
 
 
 def _step_cell(s) -> str:
@@ -151,7 +240,7 @@ def region_rows(folder: Path = REGION_RECORDS) -> list[str]:
 
 
 def render_markdown(records: list[dict[str, Any]]) -> str:
-    by = _grid(records)
+    by = side_by_side(records)
     protocol = sorted({int(r["protocol_steps"]) for rs in by.values() for r in rs if r.get("protocol_steps")})
     seeds = sorted({int(r.get("seed") or 42) for rs in by.values() for r in rs})
     out = [
@@ -161,55 +250,56 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "number is the right-half PSNR (dB) of the test photos under the NeRF-W protocol: the scene is frozen, the "
         f"appearance latent is fitted on the left half of each test photo ({'/'.join(map(str, protocol))} Adam "
         "steps) and the right half is scored. Cells: mean ±half the range over runs (n runs; seeds "
-        f"{', '.join(map(str, seeds))}). **splatfacto** is nerfstudio's; **peer** is Splatfacto-W (light), trained "
-        "and scored by the same harness from its own source (`benchmarks/peer.py`). **willags** is the default "
-        "method, which inspects each scene and trains only what it needs (docs/inspect.md).",
+        f"{', '.join(map(str, seeds))}). **peer** is Splatfacto-W's light preset and **peer-full** Splatfacto-W "
+        "itself (background model, alpha loss, robust mask from step 6000), both trained and scored by the same "
+        "harness from the peer's own source and configs (`benchmarks/peer.py`: our data parser and nerfstudio's "
+        "full-image data manager, no test pixel trained on). **willags** is the default method, which inspects each "
+        "scene and trains only what it needs (docs/inspect.md).",
         "",
-        "## Every real photo collection, 5000 steps",
+        "## Every collection, side by side",
         "",
-        "splatfacto's stock schedule (1/4 resolution to step 3000, 1/2 to 5000, scored at full resolution); runs "
-        "shared one GPU. The same table is in README.md.",
+        "One lease, every method of a scene on one GPU at the same time, splatfacto's stock schedule (1/4 resolution "
+        "to step 3000, 1/2 to 6000, full after), the real collections to 15000 steps, the fox scenes (rendered: "
+        "their transients and appearance changes are known) to 5000. The same table is in README.md.",
         "",
         *headline_rows(records),
         "",
-        "Pictures of the test photos' right halves (ground truth, peer, willags) and of the transient mask: "
-        + ", ".join(
-            f"[{sc}](pictures_{sc}.png)" for sc in REAL_SCENES if (REPO / "docs" / f"pictures_{sc}.png").exists()
-        )
-        + ".",
+        "## What the default was chosen over",
         "",
-        "## Every scene and preset, 5000 steps",
+        "The same runs: **willags-splitclone** is the default with splatfacto's densification (split / clone / prune "
+        "with opacity resets) instead of MCMC's; **willags-residual** is willags-splitclone with the transient mask "
+        "on every scene, comparing the photo with the EMA teacher's render by colour residual (no downloaded "
+        "weights). Each cell: the mean, then its difference to the configuration it changes one thing of (named in "
+        "the column). Why the default is what it is: [design.md](design.md).",
         "",
-        "As above, with the synthetic fox scenes (rendered: their transients and appearance changes are known) and "
-        "the other presets: **willags-paper** (the paper's configuration), **willags-full** (every component, no "
-        "inspection). Where a scene has no COLMAP keypoints (the fox scenes) the default's sky and mask safeguard "
-        "are off.",
+        *candidate_rows(records),
         "",
-        *preset_rows(records),
+        "## At equal training time",
+        "",
+        *equal_time_rows(records),
+        "",
+        "Each method's score once it had trained as long as the default needed for 15000 steps, read off its 5k, "
+        "10k and 15k milestones (linear between them). The runs of a scene shared one GPU throughout, so their times "
+        "compare within a scene; alone on an H100, 3000 steps of reichstag took splatfacto 37 s, peer 47 s, willags "
+        "(splatfacto's densification) 49 s and peer-full 75 s (docs/benchmarks.md, speed suite).",
         "",
         "## Longer training: PSNR at each step count",
         "",
         "Mean PSNR over the runs at each step count and the median training time of the runs alone on one GPU "
-        "(set-up and evaluation excluded; different GPU models and machines differ in speed). Every run of the "
-        "method at that step count counts, from the grids above and from longer runs scored at milestones, so a "
-        "5k cell can differ from the tables above. Plots, crossings and every run: [curves.md](curves.md).",
+        "(`shared GPU`: only shared-GPU times). Every run of the method at that step count counts, from the grid "
+        "above and from longer runs scored at milestones. Plots, crossings and every run: [curves.md](curves.md).",
         "",
         *step_rows(records),
         "",
-        "**peer-full** is Splatfacto-W itself (background model, alpha loss, robust mask from step 6000: the peer's "
-        "`splatfacto-w` config with our parser and nerfstudio's FullImageDatamanager, no test pixel trained on; "
-        "`benchmarks/peer.py`); **peer** is its light preset, which switches those three off. A step-count cell "
-        "appears once a record of it exists.",
-        "",
         "## Where the remaining error lives",
         "",
-        "The right half of each test photo split into regions by willags' geometry of the scene "
+        "The right half of each test photo split into regions by the default's geometry of the scene "
         "(`benchmarks/regions.py`): **covisible**, a surface seen by at least 3 training photos (the rendered depth "
         "reprojected into every training camera, occlusion-tested against that camera's own depth); **few** (1-2) "
         "and **unseen** (0); **sky**, open sky and far background; **outlier**, blocks where every method of the "
         "scene errs by more than 0.04 in squared error over a 3x3 neighbourhood (people and other transients of the "
         "test photo, and anything no static model explains). PSNR is pooled over the right halves (one mean squared "
-        "error per region), so its `all` column differs from the per-photo mean above. Pictures (right halves "
+        "error per region), so its `all` column differs from the per-photo means above. Pictures (right halves "
         "above, regions below: green co-visible, yellow few, magenta unseen, blue sky, red outlier): "
         + ", ".join(f"[{f.stem}](regions/{f.name})" for f in sorted((REPO / "docs" / "regions").glob("*.png")))
         + ".",
@@ -225,7 +315,7 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "## Where the rest is",
         "",
         "- [benchmarks.md](benchmarks.md): every table generated from the records (every candidate, ablation, "
-        "per-view score, the speed suite, the CPU runs).",
+        "per-view score, the speed suite, the CPU runs), the earlier 5000-step grids among them.",
         "- [curves.md](curves.md): PSNR against training time per scene.",
         "- [design.md](design.md): why the default is what it is, each choice with the measurement behind it.",
         "- [inspect.md](inspect.md): what `willags-inspect` measures and how it decides.",

@@ -69,7 +69,7 @@ def train_and_record(local_rank: int, world_size: int, config, global_rank: int 
     record = {
         "initial": tensors(model),
         "refine_seed": getattr(model.strategy, "refine_seed", None),
-        "pause_refine_after_reset": model.strategy.pause_refine_after_reset,
+        "pause_refine_after_reset": getattr(model.strategy, "pause_refine_after_reset", None),
         "strategy": type(model.strategy).__name__,
         "wrapped": type(pipeline._model).__name__,
         "images": [],

@@ -139,9 +139,11 @@ def test_the_default_inspects_and_its_ablations_change_the_full_model(tmp_path):
     "rec, name",
     [
         ({"method": "willags", "date": "2026-11-25T19:00:00"}, "willags-full"),  # before the default inspected
-        ({"method": "willags", "date": "2026-11-26T09:00:00"}, "willags"),
+        ({"method": "willags", "date": "2026-11-26T09:00:00"}, "willags-splitclone"),  # before it densified by MCMC
+        ({"method": "willags", "date": "2026-11-28T09:00:00"}, "willags"),
+        ({"method": "willags-mcmc", "date": "2026-11-27T16:00:00"}, "willags"),  # the default named in full
         ({"method": "willags"}, "willags"),  # undated: its own name
-        ({"method": "willags-auto", "date": "2026-11-25T16:00:00"}, "willags"),  # since 7bf8eff: today's default
+        ({"method": "willags-auto", "date": "2026-11-25T16:00:00"}, "willags-splitclone"),  # the default of its time
         ({"method": "willags-auto", "date": "2026-11-24T16:00:00"}, "willags-auto"),  # an older full model under it
         ({"method": "peer", "date": "2026-11-25T19:00:00"}, "peer"),
     ],

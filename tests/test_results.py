@@ -5,15 +5,17 @@ import pytest
 from benchmarks import results
 
 
-def _rec(scene: str, method: str, psnr: float, seed: int, **kw) -> dict:
+def _rec(scene: str, method: str, psnr: float, seed: int, steps: int = 15000, **kw) -> dict:
+    """A record of the side-by-side grid: a run scored at `steps` (its milestone)."""
     rec = {
         "scene": scene,
         "method": method,
         "device": "cuda",
-        "steps": 5000,
-        "tag": f"h100-r{seed}",
+        "steps": steps,
+        "tag": "h200x4" if seed == 42 else f"h200x4-s{seed}",
         "seed": seed,
         "psnr": psnr,
+        "milestones": {str(steps): {"psnr": psnr, "train_s": 100.0}},
         "status": "ok",
         "date": "2030-01-01T00:00:00",  # after every cut-off date of the selections: today's default
         "protocol_steps": 128,
@@ -23,27 +25,43 @@ def _rec(scene: str, method: str, psnr: float, seed: int, **kw) -> dict:
     return {**rec, **kw}
 
 
-def test_headline_row_means_margin_and_goal():
+def test_headline_row_means_margin_over_the_stronger_peer_and_goal():
     records = [
         _rec("reichstag", "peer", 19.0, 42),
         _rec("reichstag", "peer", 19.4, 43),
+        _rec("reichstag", "peer-full", 18.0, 42),
         _rec("reichstag", "willags", 20.0, 42),
         _rec("reichstag", "willags", 20.6, 43),
-        _rec("reichstag", "splatfacto", 15.0, 42),
+        _rec("reichstag", "willags", 25.0, 44, tag="h100-r44"),  # another grid: not side by side
     ]
     head, rule, row = results.headline_rows(records)
-    assert head.startswith("| scene | splatfacto | peer | **willags** |") and rule.startswith("|---|")
+    assert head.startswith("| scene | steps | peer | peer-full | **willags** |") and rule.startswith("|---|")
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells == [
         "reichstag (real photos: 54 train / 8 test)",
-        "15.00 (n=1)",
+        "15k",
         "19.20 ±0.20 (n=2)",
+        "18.00 (n=1)",
         "20.30 ±0.30 (n=2)",
         "+1.10",
         "met",
     ]
-    records[2]["psnr"] = 19.4  # willags' mean 20.0: 0.2 short of the peer + 1 dB
+    records[3]["milestones"]["15000"]["psnr"] = 19.4  # willags' mean 20.0: 0.2 short of the stronger peer + 1 dB
     assert results.headline_rows(records)[2].endswith("| +0.80 | missed by 0.20 |")
+    records += [_rec("reichstag", "peer-full", 21.0, 43)]  # now the full peer is the stronger one (19.5 vs 19.2)
+    assert results.headline_rows(records)[2].endswith("| +0.50 | missed by 0.50 |")
+
+
+def test_equal_time_reads_each_method_at_the_defaults_time():
+    ms = lambda *pts: {str(s): {"psnr": p, "train_s": t} for s, t, p in pts}  # noqa: E731
+    records = [
+        _rec("reichstag", "willags", 19.0, 42, milestones=ms((5000, 100.0, 18.0), (15000, 300.0, 19.0))),
+        _rec("reichstag", "peer-full", 18.0, 42, milestones=ms((5000, 200.0, 17.0), (10000, 400.0, 18.0))),
+        _rec("reichstag", "peer", 18.0, 42, milestones=ms((5000, 400.0, 18.0))),  # not at 300 s yet
+    ]
+    rows = results.equal_time_rows(records)
+    cells = [c.strip() for c in rows[2].strip("|").split("|")]
+    assert cells == ["reichstag", "300 s", "–", "17.50 (7.5k steps, n=1)", "19.00 (15.0k steps, n=1)"]
 
 
 def test_readme_block_is_replaced_between_its_markers():

@@ -125,8 +125,11 @@ class WillagsSettings(SplatfactoModelConfig):
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         """Unpickling and YAML loading (config.yml): fields of the flat layout move to their places in the groups
-        (`migrate_state`), and fields a file lacks get their defaults."""
-        self.__dict__.update(migrate_state(dict(state)))
+        (`migrate_state`), and fields a file lacks get their defaults, except the densification: a file without the
+        `mcmc` group trained with splatfacto's, and resumes with it."""
+        state = migrate_state(dict(state))
+        state.setdefault("mcmc", McmcConfig(enabled=False))
+        self.__dict__.update(state)
         fill_defaults(self)
 
 

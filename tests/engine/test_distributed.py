@@ -321,6 +321,26 @@ def test_synced_strategy_keeps_the_settings():
     assert (s.refine_every, s.grow_grad2d, s.refine_start_iter, s.refine_seed, s.world_size) == (7, 0.123, 3, 11, 2)
 
 
+def test_mcmc_densification_is_seeded_alike_on_every_rank():
+    """MCMC's moves (relocation, growth, position noise) need no statistics from the other ranks: every rank holds
+    the same Gaussians, and synced_strategy seeds each step's draws alike, so two ranks move them identically."""
+    from tests.splats.test_mcmc import _params
+    from willags_ns.splats.mcmc import McmcDensification
+
+    base = McmcDensification(cap_max=150, refine_start_iter=0, refine_stop_iter=100, refine_every=5)
+    synced = synced_strategy(base, refine_seed=1234, world_size=2)
+    assert isinstance(synced, McmcDensification) and synced.seed == 1234 and base.seed is None
+    assert (synced.cap_max, synced.refine_every) == (150, 5)
+    ranks = [_params(n=100, seed=0) for _ in range(2)]
+    for step in range(1, 30):
+        for params, optimizers in ranks:
+            synced.step_post_backward(params, optimizers, {}, step, {}, lr=1e-3)
+    (p0, _), (p1, _) = ranks
+    assert len(p0["means"]) > 100
+    for k in p0:
+        assert torch.equal(p0[k], p1[k]), k
+
+
 def test_willags_pipeline_refuses_several_devices_without_a_process_group():
     from willags_ns import method_configs
 
@@ -345,6 +365,7 @@ def _tiny_config(tmp_path: Path, scene: Path):
     m = config.pipeline.model
     m.warmup_length = 2
     m.reset_alpha_every = 100
+    m.mcmc.enabled = False  # splatfacto's densification, whose statistics the ranks all-reduce (MCMC: below)
     m.densify_grad_thresh = 2e-5  # grow many Gaussians (split: random offsets) in a few steps
     m.background_color = "black"  # "random" draws per rank; the single-process reference must draw the same
     m.mask.warmup_steps = 4

@@ -463,3 +463,16 @@ def test_the_time_estimate_follows_the_resolution_schedule_the_run_trains_with()
     assert first < full
     want = (3000 * first + 3000 * full / 4 + 24000 * full) / 3600
     assert abs(hours - want) < 0.1 and first * 30000 / 3600 < hours < full * 30000 / 3600
+
+
+def test_the_resource_estimate_stops_at_the_defaults_gaussian_cap():
+    import numpy as np
+
+    from willags_ns.splats.mcmc import McmcConfig
+    from willags_ns.tools.inspect import InspectConfig, resource_estimate
+
+    cfg = InspectConfig()
+    assert cfg.max_gaussians == McmcConfig().cap_max
+    sizes = np.array([[800, 600]] * 10)
+    assert resource_estimate(10, sizes, 1_000_000, cfg)["expected_gaussians"] == cfg.max_gaussians
+    assert resource_estimate(10, sizes, 12_000, cfg)["expected_gaussians"] == 120_000

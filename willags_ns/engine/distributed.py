@@ -37,7 +37,7 @@ Every function here is a no-op or a plain computation for world_size == 1; the s
 import itertools
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any, Literal
 
 import torch
@@ -554,8 +554,11 @@ class RankSyncedStrategy(DefaultStrategy):
         return n_pruned
 
 
-def synced_strategy(strategy: DefaultStrategy, refine_seed: int, world_size: int) -> RankSyncedStrategy:
-    """`strategy`'s settings in a RankSyncedStrategy."""
+def synced_strategy(strategy, refine_seed: int, world_size: int):
+    """`strategy`'s settings in a RankSyncedStrategy; a strategy whose draws take a seed (MCMC densification:
+    splats/mcmc.py, a `seed` field) gets `refine_seed`: its every move is then drawn alike on every rank."""
+    if "seed" in {f.name for f in fields(strategy)} and not isinstance(strategy, DefaultStrategy):
+        return replace(strategy, seed=refine_seed)
     if type(strategy) is not DefaultStrategy and not isinstance(strategy, RankSyncedStrategy):
         raise DataParallelError(
             f"willags: data-parallel training synchronises gsplat's DefaultStrategy, got {type(strategy).__name__}"

@@ -360,7 +360,8 @@ class WillagsPipeline(VanillaPipeline):
         strategy = synced_strategy(self.model.strategy, draw_refine_seed(), world_size)
         # after an opacity reset gsplat waits one epoch (splatfacto: num_train_data + refine_every steps) before
         # refining again, so that every image is seen once; with one image per rank an epoch is N times shorter
-        strategy.pause_refine_after_reset -= num_images - math.ceil(num_images / world_size)
+        if hasattr(strategy, "pause_refine_after_reset"):  # (MCMC densification never resets opacities)
+            strategy.pause_refine_after_reset -= num_images - math.ceil(num_images / world_size)
         self.model.strategy = strategy
         if rank == 0:
             CONSOLE.log(

@@ -36,9 +36,10 @@ N_MAX = 51
 class McmcConfig:
     """Densification as Markov chain Monte Carlo (splats/mcmc.py) instead of splatfacto's split / clone / prune."""
 
-    enabled: bool = False
+    enabled: bool = True
     """Use MCMC densification (relocation of dead Gaussians, sampled growth up to cap_max, position noise, opacity
-    and scale penalties). Off: splatfacto's densification (gsplat's DefaultStrategy and its thresholds). The
+    and scale penalties; measured against splatfacto's on every shared scene: docs/design.md). Off: splatfacto's
+    densification (gsplat's DefaultStrategy and its thresholds: willags-paper, willags-lite, willags-3dgs). The
     refinement window and period are splatfacto's warmup_length, stop_split_at and refine_every."""
     cap_max: int = 300_000
     """Most Gaussians: growth stops here (5 % more per refinement until then)."""
@@ -100,12 +101,12 @@ def covariances(quats: Tensor, scales: Tensor) -> Tensor:
     return m @ m.transpose(1, 2)
 
 
-def _sampled_copies(params, n: int, candidates: Tensor | None, min_opacity: float):
+def _sampled_copies(params, n: int, candidates: Tensor | None, min_opacity: float, generator=None):
     """Draw `n` Gaussians (among `candidates`, default all) in proportion to their opacity, with replacement; return
     (their indices, the logit opacity and log scales each copy gets)."""
     opacities = torch.sigmoid(params["opacities"]).flatten()
     probs = opacities if candidates is None else opacities[candidates]
-    drawn = torch.multinomial(probs, n, replacement=True)
+    drawn = torch.multinomial(probs, n, replacement=True, generator=generator)
     idx = drawn if candidates is None else candidates[drawn]
     ratios = torch.bincount(idx)[idx] + 1
     new_o, new_s = relocation(opacities[idx], torch.exp(params["scales"])[idx], ratios)
@@ -115,14 +116,15 @@ def _sampled_copies(params, n: int, candidates: Tensor | None, min_opacity: floa
 
 
 @torch.no_grad()
-def relocate_dead(params, optimizers, min_opacity: float) -> int:
-    """Move every Gaussian at or below `min_opacity` onto a live one drawn by opacity; returns how many moved."""
+def relocate_dead(params, optimizers, min_opacity: float, generator=None) -> int:
+    """Move every Gaussian at or below `min_opacity` onto a live one drawn by opacity (from `generator`, default
+    torch's); returns how many moved."""
     dead = torch.sigmoid(params["opacities"]).flatten() <= min_opacity
     n = int(dead.sum())
     alive = (~dead).nonzero(as_tuple=True)[0]
     if n == 0 or alive.numel() == 0:
         return 0
-    idx, logit_o, log_s = _sampled_copies(params, n, alive, min_opacity)
+    idx, logit_o, log_s = _sampled_copies(params, n, alive, min_opacity, generator)
     dead_idx = dead.nonzero(as_tuple=True)[0]
     shape = params["opacities"].shape[1:]
 
@@ -144,11 +146,11 @@ def relocate_dead(params, optimizers, min_opacity: float) -> int:
 
 
 @torch.no_grad()
-def add_sampled(params, optimizers, n: int, min_opacity: float) -> int:
+def add_sampled(params, optimizers, n: int, min_opacity: float, generator=None) -> int:
     """Add `n` Gaussians, each a copy of one drawn by opacity (its opacity and scale shared with it, Eq. 9)."""
     if n <= 0:
         return 0
-    idx, logit_o, log_s = _sampled_copies(params, n, None, min_opacity)
+    idx, logit_o, log_s = _sampled_copies(params, n, None, min_opacity, generator)
     shape = params["opacities"].shape[1:]
 
     def param_fn(name: str, p: Tensor) -> Tensor:
@@ -166,12 +168,14 @@ def add_sampled(params, optimizers, n: int, min_opacity: float) -> int:
 
 
 @torch.no_grad()
-def position_noise(params, scaler: float) -> None:
+def position_noise(params, scaler: float, generator=None) -> None:
     """Add noise to the means, shaped by each Gaussian's covariance and gated to the nearly transparent ones (a
     sigmoid of steepness 100 centred at opacity 0.005), `scaler` x a standard normal draw."""
+    means = params["means"]
     opacities = torch.sigmoid(params["opacities"]).flatten()
     gate = torch.sigmoid(100.0 * ((1.0 - opacities) - 0.995))
-    noise = torch.randn_like(params["means"]) * gate[:, None] * scaler
+    draw = torch.randn(means.shape, generator=generator, device=means.device, dtype=means.dtype)
+    noise = draw * gate[:, None] * scaler
     cov = covariances(params["quats"], torch.exp(params["scales"]))
     params["means"].add_(torch.einsum("bij,bj->bi", cov, noise))
 
@@ -183,17 +187,27 @@ class McmcDensification(MCMCStrategy):
 
     reset_every: int = 0
     absgrad: bool = False
+    seed: int | None = None
+    """None: the draws come from torch's global generators. A seed: each step's draws come from a generator seeded
+    with seed + step, so that ranks of a data-parallel run, which hold the same Gaussians, move them alike."""
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         return {}
 
+    def _generator(self, step: int, device: torch.device) -> torch.Generator | None:
+        if self.seed is None:
+            return None
+        return torch.Generator(device=device).manual_seed(self.seed + step)
+
     def step_post_backward(self, params, optimizers, state, step: int, info, lr: float) -> None:  # type: ignore[override]
         """After the optimiser's step: relocate and grow on refinement steps, then the position noise."""
+        gen = self._generator(step, params["means"].device)
         if self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0:
-            relocate_dead(params, optimizers, self.min_opacity)
+            relocate_dead(params, optimizers, self.min_opacity, gen)
             current = len(params["means"])
-            add_sampled(params, optimizers, max(0, min(self.cap_max, int(1.05 * current)) - current), self.min_opacity)
-        position_noise(params, lr * self.noise_lr)
+            grow = max(0, min(self.cap_max, int(1.05 * current)) - current)
+            add_sampled(params, optimizers, grow, self.min_opacity, gen)
+        position_noise(params, lr * self.noise_lr, gen)
 
 
 def mcmc_strategy(cfg) -> McmcDensification:

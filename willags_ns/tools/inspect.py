@@ -163,6 +163,9 @@ class InspectConfig:
     gives every shared scene's value)."""
     gaussians_per_point: float = 10.0
     """Resource estimate: expected final Gaussians per SfM point (clipped to [1e5, 1.5e6])."""
+    max_gaussians: int = 300_000
+    """Resource estimate: the most Gaussians the default grows (its MCMC densification's mcmc.cap_max; kept here so
+    that the inspector starts without importing torch, and checked against it by the tests)."""
     steps: int = 30000
     """Resource estimate: training steps (the willags preset's 30k)."""
     seed: int = 0
@@ -698,7 +701,8 @@ CPU_STEP_S, CPU_STEP_MPX = 0.8, 0.13
 def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: InspectConfig) -> dict[str, Any]:
     """Rough memory and time (module docstring, evidence 3)."""
     mpx = float(np.mean(sizes[:, 0] * sizes[:, 1])) / 1e6
-    gaussians = int(np.clip(cfg.gaussians_per_point * n_points, 1e5, 1.5e6))
+    cap = cfg.max_gaussians
+    gaussians = int(min(np.clip(cfg.gaussians_per_point * n_points, 1e5, 1.5e6), cap))
     images_gb = n_images * mpx * 1e6 * 3 / 1e9
     gpu_gb = GPU_FIXED_GB + images_gb + gaussians * BYTES_PER_GAUSSIAN / 1e9
 
@@ -711,7 +715,8 @@ def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: Insp
     first = max(resolution_spans(cfg.steps))
     return {
         "rough": True,
-        "how": f"Gaussians ~ gaussians_per_point x points (clipped to [1e5, 1.5e6]); GPU memory = {GPU_FIXED_GB} GB + "
+        "how": f"Gaussians ~ gaussians_per_point x points (clipped to [1e5, 1.5e6], at most the default's "
+        f"mcmc.cap_max {cap:,}); GPU memory = {GPU_FIXED_GB} GB + "
         f"images as uint8 + {BYTES_PER_GAUSSIAN / 1e3:g} KB per Gaussian; step time scaled by pixels per image from "
         f"{GPU_STEP_S * 1e3:g} ms at {GPU_STEP_MPX} Mpx (H100) and {CPU_STEP_S:g} s at {CPU_STEP_MPX} Mpx (2 CPU "
         "cores), both measured in docs/benchmarks.md, at the size each step trains (splatfacto's resolution schedule: "
