@@ -117,20 +117,20 @@ METHODS: dict[str, MethodSpec] = {
     # candidates for the default, each the default (the scene inspected first) with one change
     "willags-residual": MethodSpec(
         "willags",
-        (("auto_config", True), ("mask.enabled", True), ("mask.distance", "residual"), ("mcmc.enabled", False)),
+        (("auto_config", True), ("mask.enabled", True), ("mask.distance", "residual"), ("densification", "splatfacto")),
         note="willags-splitclone with the transient mask on every scene, by the weight-free colour residual against "
         "the teacher's render (mask.distance residual)",
         keep=("mask.enabled",),
     ),
     "willags-mcmc": MethodSpec(
         "willags",
-        (("auto_config", True), ("mcmc.enabled", True)),
+        (("auto_config", True), ("densification", "mcmc")),
         note="the default's configuration named in full: MCMC densification (relocation, growth to 300k, position "
         "noise, opacity and scale penalties)",
     ),
     "willags-splitclone": MethodSpec(
         "willags",
-        (("auto_config", True), ("mcmc.enabled", False)),
+        (("auto_config", True), ("densification", "splatfacto")),
         note="default with splatfacto's densification (split / clone / prune, opacity resets) in place of MCMC",
     ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),

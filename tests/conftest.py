@@ -36,9 +36,7 @@ def appearance_run(tmp_path_factory):
     from tests.test_train import _look_trained, _train
 
     tmp = tmp_path_factory.mktemp("appearance_run")
-    # splatfacto's densification and initial scales: in 6 steps MCMC's tenth-size Gaussians leave most pixels to
-    # the background, and the appearances would differ only there
-    config, trainer, _ = _train(tmp, "willags", steps=6, **{"mcmc.enabled": False})
+    config, trainer, _ = _train(tmp, "willags", steps=6)
     model = trainer.pipeline.model
     _look_trained(trainer)  # a latent-dependent colour transform, as after training; saves the checkpoint
     seen = model.image_latents()[1].nonzero().flatten().tolist()  # the training images with a known latent

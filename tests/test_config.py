@@ -26,10 +26,9 @@ def test_the_dataclass_defaults_are_the_method_willags():
 
 def test_a_config_yml_of_the_flat_layout_loads_into_the_groups():
     old = yaml.load(FLAT_LAYOUT.read_text(), Loader=yaml.Loader)
-    # a file written before the MCMC group trained with splatfacto's densification, and loads with it
-    assert all(not cfg.mcmc.enabled for cfg in old.values())
-    now = mc.willags_config().pipeline.model
-    assert old["willags"] == dataclasses.replace(now, mcmc=dataclasses.replace(now.mcmc, enabled=False))
+    # a file written before the densification setting trained with splatfacto's, and loads with it
+    assert all(cfg.densification == "splatfacto" for cfg in old.values())
+    assert old["willags"] == dataclasses.replace(mc.willags_config().pipeline.model, densification="splatfacto")
     paper_now = mc.willags_paper_config().pipeline.model
     assert not paper_now.sky.enabled  # the file's sky region ("everywhere", its default then) does nothing here
     assert old["willags-paper"] == dataclasses.replace(
@@ -92,7 +91,8 @@ def test_presets_set_only_fields_that_act():
 
     default = vars(WillagsModelConfig())
     plain = vars(mc.willags_3dgs_config().pipeline.model)
-    assert {k for k in default if default[k] != plain[k]} == {"appearance", "rasterize_mode", "mcmc", "auto_config"}
-    assert plain["mcmc"] == dataclasses.replace(default["mcmc"], enabled=False)  # splatfacto's densification
+    diff = {k for k in default if default[k] != plain[k]}
+    assert diff == {"appearance", "rasterize_mode", "densification", "auto_config"}
+    assert plain["densification"] == "splatfacto"
     lite = mc.willags_lite_config().pipeline.model
     assert not lite.use_field and lite.triplane == TriplaneConfig() and lite.sky == SkyConfig(enabled=False)

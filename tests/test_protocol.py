@@ -79,7 +79,6 @@ def _tiny_model(use_vae: bool = True, **overrides):
     from willags_ns.appearance.triplane import TriplaneConfig
     from willags_ns.appearance.vae import VAEConfig
     from willags_ns.model import WillagsModelConfig
-    from willags_ns.splats.mcmc import McmcConfig
 
     g = torch.Generator().manual_seed(0)
     xyz = (torch.rand(300, 3, generator=g) - 0.5) * torch.tensor([2.0, 1.5, 0.5])
@@ -92,8 +91,6 @@ def _tiny_model(use_vae: bool = True, **overrides):
         backend="torch",
         background_color="black",
         num_downscales=0,
-        # splatfacto's initial scales (MCMC starts at a tenth): the tiny scene's 300 points then cover the view
-        mcmc=McmcConfig(enabled=False),
     )
     kw.update(overrides)
     torch.manual_seed(0)

@@ -6,7 +6,7 @@ as it is: docs/design.md). Settings come in groups, one flag prefix each:
     --pipeline.model.latent.*     the appearance latent z: kind (per-image embedding or beta-VAE), dim
     --pipeline.model.mask.*       the transient mask: teacher, threshold, cadence (every), safeguard, health
     --pipeline.model.sky.*        the appearance-conditioned background
-    --pipeline.model.mcmc.*       densification as Markov chain Monte Carlo instead of splatfacto's
+    --pipeline.model.mcmc.*       the MCMC densification (`densification`: auto, mcmc or splatfacto)
     --pipeline.model.modulation.* / decoder.* / triplane.*   how z makes a Gaussian's colour
 
 No field is rewritten while the model is built: what a scene lacks (a skyline without SfM keypoints) is decided
@@ -29,7 +29,7 @@ from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.mask.teacher import TeacherConfig
 from willags_ns.mask.transient import MaskConfig
-from willags_ns.splats.mcmc import McmcConfig
+from willags_ns.splats.mcmc import Densification, McmcConfig
 
 
 @dataclass
@@ -78,8 +78,14 @@ class WillagsSettings(SplatfactoModelConfig):
     """The transient mask: EMA teacher, VGG16 threshold, cadence, SfM safeguard, health watch."""
     sky: SkyConfig = field(default_factory=SkyConfig)
     """Appearance-conditioned background bg(z, ray direction) behind the Gaussians (appearance/sky.py)."""
+    densification: Densification = "auto"
+    """How Gaussians are added and removed. "mcmc": as 3DGS-MCMC (splats/mcmc.py: dead Gaussians relocated, growth
+    by sampling up to mcmc.cap_max, position noise, opacity and scale penalties). "splatfacto": splatfacto's split /
+    clone / prune with opacity resets (gsplat's DefaultStrategy and its thresholds). "auto": MCMC on a GPU, where it
+    was measured better on every scene's long runs, splatfacto's on the CPU, whose short runs MCMC's gradual growth
+    leaves with too few Gaussians (docs/design.md)."""
     mcmc: McmcConfig = field(default_factory=McmcConfig)
-    """Densification as Markov chain Monte Carlo (splats/mcmc.py) in place of splatfacto's split / clone / prune."""
+    """Settings of the MCMC densification (cap, noise, penalties, initial Gaussians)."""
     rasterize_mode: Literal["classic", "antialiased"] = "antialiased"
     """gsplat's rasterisation mode. "antialiased" (opacity compensation for the 2D dilation) keeps renders consistent
     across the resolution schedule (a run trains at 1/4 and 1/2 resolution and is scored at full)."""
@@ -125,10 +131,10 @@ class WillagsSettings(SplatfactoModelConfig):
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         """Unpickling and YAML loading (config.yml): fields of the flat layout move to their places in the groups
-        (`migrate_state`), and fields a file lacks get their defaults, except the densification: a file without the
-        `mcmc` group trained with splatfacto's, and resumes with it."""
+        (`migrate_state`), and fields a file lacks get their defaults, except the densification: a file without
+        `densification` trained with splatfacto's, and resumes with it."""
         state = migrate_state(dict(state))
-        state.setdefault("mcmc", McmcConfig(enabled=False))
+        state.setdefault("densification", "splatfacto")
         self.__dict__.update(state)
         fill_defaults(self)
 

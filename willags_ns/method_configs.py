@@ -27,7 +27,6 @@ from willags_ns.engine.trainer import PRESET_CONFIGS, WillagsTrainerConfig
 from willags_ns.mask.static_support import StaticSupportConfig
 from willags_ns.mask.transient import MaskConfig
 from willags_ns.model import WillagsModelConfig
-from willags_ns.splats.mcmc import McmcConfig
 
 quick_external_method_check()  # nerfstudio loads these configs before it lists its installable methods
 
@@ -148,7 +147,7 @@ def willags_paper_model_config() -> WillagsModelConfig:
         mask=MaskConfig(every=1, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
         sky=SkyConfig(enabled=False),
         rasterize_mode="classic",
-        mcmc=McmcConfig(enabled=False),
+        densification="splatfacto",
         auto_config=False,
     )
 
@@ -164,8 +163,8 @@ def willags_lite_config() -> WillagsTrainerConfig:
     splatfacto's densification (split / clone / prune) every 100 steps until step 5000, 7k steps.
 
     Cheaper than `willags` per step on a small CPU, which is where the time budget picks it
-    (willags_ns/engine/time_budget.py). The MCMC densification of `willags` was measured on the GPU only, so this
-    CPU preset keeps splatfacto's. A tri-plane field made its CPU step slower for no measured gain
+    (willags_ns/engine/time_budget.py); splatfacto's densification on every device (MCMC's gradual growth suits long
+    runs). A tri-plane field made its CPU step slower for no measured gain
     (docs/design.md, "The fast preset without a tri-plane field"); `--pipeline.model.use-field True` adds it. On the
     GPU it is neither better nor faster than `willags`: it runs the beta-VAE encoder on every step's photo and VGG at
     512 px (docs/design.md).
@@ -177,7 +176,7 @@ def willags_lite_config() -> WillagsTrainerConfig:
         refine_every=100,
         warmup_length=300,
         stop_split_at=5000,
-        mcmc=McmcConfig(enabled=False),
+        densification="splatfacto",
         auto_config=False,
     )
     return _trainer("willags-lite", model, 7000)
@@ -186,9 +185,7 @@ def willags_lite_config() -> WillagsTrainerConfig:
 def willags_3dgs_config() -> WillagsTrainerConfig:
     """Plain 3DGS (splatfacto's colours, losses and densification) through our rasteriser: no appearance
     model, no mask. Use it as the splatfacto baseline where splatfacto's CUDA-only code cannot run."""
-    model = WillagsModelConfig(
-        appearance="sh", rasterize_mode="classic", mcmc=McmcConfig(enabled=False), auto_config=False
-    )
+    model = WillagsModelConfig(appearance="sh", rasterize_mode="classic", densification="splatfacto", auto_config=False)
     return _trainer("willags-3dgs", model, 30000)
 
 

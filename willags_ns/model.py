@@ -75,7 +75,7 @@ from willags_ns.splats.gaussians import (
     sh_colors,
     strategy_absgrad,
 )
-from willags_ns.splats.mcmc import McmcDensification
+from willags_ns.splats.mcmc import McmcDensification, uses_mcmc
 
 __all__ = ["WillagsModel", "WillagsModelConfig"]
 
@@ -109,7 +109,9 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         means, seed_rgb = initial_points(cfg, self.seed_points)
         distances, _ = self.k_nearest_sklearn(means, 3)
         avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True).clamp_min(1e-7)
-        self.gauss_params = nn.ParameterDict(initial_gauss_params(cfg, means, seed_rgb, avg_dist))
+        # the densification ("auto": MCMC on a GPU) sets the initial Gaussians and the strategy below
+        self.mcmc_on = uses_mcmc(cfg.densification, self.kwargs.get("device") or "cpu")
+        self.gauss_params = nn.ParameterDict(initial_gauss_params(cfg, means, seed_rgb, avg_dist, self.mcmc_on))
 
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         from pytorch_msssim import SSIM
@@ -126,7 +128,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
             from nerfstudio.utils.colors import get_color
 
             self.background_color = get_color(cfg.background_color)
-        self.strategy = densification_strategy(cfg, self.num_train_data)
+        self.strategy = densification_strategy(cfg, self.num_train_data, self.mcmc_on)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
 
         # --- the appearance model (absent for appearance="sh")
@@ -427,7 +429,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
 
         # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (objective/regularizers.py)
         vae = self.appearance_nets.vae if self.appearance_nets is not None else None
-        args = (cfg, vae, outputs, gt_img, mask, self.scales, self.opacities, self.step, self.training)
+        args = (cfg, vae, outputs, gt_img, mask, self.scales, self.opacities, self.mcmc_on, self.step, self.training)
         terms, term_metrics, recon = regularization_terms(*args)
         loss_dict.update(terms)
         if metrics_dict is not None:

@@ -365,7 +365,7 @@ def _tiny_config(tmp_path: Path, scene: Path):
     m = config.pipeline.model
     m.warmup_length = 2
     m.reset_alpha_every = 100
-    m.mcmc.enabled = False  # splatfacto's densification, whose statistics the ranks all-reduce (MCMC: below)
+    m.densification = "splatfacto"  # its statistics the ranks all-reduce (MCMC's draws: below)
     m.densify_grad_thresh = 2e-5  # grow many Gaussians (split: random offsets) in a few steps
     m.background_color = "black"  # "random" draws per rank; the single-process reference must draw the same
     m.mask.warmup_steps = 4

@@ -158,9 +158,30 @@ def test_a_model_trains_with_mcmc_up_to_its_cap_and_pays_the_penalties(tmp_path,
 
     monkeypatch.setattr(model_module, "regularization_terms", spy)
     torch.manual_seed(0)
-    _, trainer, losses = _train(tmp_path, "willags", steps=30, **{"mcmc.enabled": True, "mcmc.cap_max": 8400})
+    _, trainer, losses = _train(tmp_path, "willags", steps=30, **{"densification": "mcmc", "mcmc.cap_max": 8400})
     model = trainer.pipeline.model
     assert isinstance(model.strategy, McmcDensification)
     assert model.num_points == 8400  # the built-in scene's 8000 points grown by 5 % per refinement to the cap
     assert all(math.isfinite(v) for v, _ in losses)
     assert seen and all("mcmc_reg" in keys for keys in seen)
+
+
+def test_auto_densifies_by_mcmc_on_a_gpu_and_as_splatfacto_on_the_cpu():
+    from willags_ns.splats.mcmc import uses_mcmc
+
+    assert uses_mcmc("auto", "cuda") and uses_mcmc("auto", torch.device("cuda", 1))
+    assert not uses_mcmc("auto", "cpu")
+    assert uses_mcmc("mcmc", "cpu") and not uses_mcmc("splatfacto", "cuda")
+    with pytest.raises(ValueError, match="auto, mcmc or splatfacto"):
+        uses_mcmc("default", "cpu")
+
+
+def test_the_default_model_on_the_cpu_densifies_as_splatfacto(tmp_path):
+    from gsplat.strategy import DefaultStrategy
+
+    from tests.test_train import _train
+
+    _, trainer, _ = _train(tmp_path, "willags", steps=2)
+    model = trainer.pipeline.model
+    assert model.config.densification == "auto" and not model.mcmc_on
+    assert type(model.strategy) is DefaultStrategy

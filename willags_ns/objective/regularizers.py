@@ -31,6 +31,7 @@ def regularization_terms(
     mask: Float[Tensor, "H W"] | None,
     log_scales: Float[Tensor, "N 3"],
     logit_opacities: Float[Tensor, "N 1"],
+    mcmc: bool,
     step: int,
     training: bool,
 ) -> tuple[dict[str, Tensor], dict[str, Tensor], Tensor | None]:
@@ -45,7 +46,7 @@ def regularization_terms(
     - ``sky_alpha``: sky.alpha_penalty * the mean alpha over pixels the sky alone reproduces (training with a sky);
     - ``appearance_local``: modulation.local_penalty * mean(s^2 + o^2) of the student's local residual (training);
     - ``scale_reg``: splatfacto's needle penalty on every 10th step (use_scale_regularization, training or not);
-    - ``mcmc_reg``: MCMC densification's opacity and scale penalties (mcmc.enabled, training).
+    - ``mcmc_reg``: MCMC densification's opacity and scale penalties (``mcmc``: the model densifies by MCMC; training).
     """
     terms: dict[str, Tensor] = {}
     metrics: dict[str, Tensor] = {}
@@ -68,6 +69,6 @@ def regularization_terms(
         terms["appearance_local"] = cfg.modulation.local_penalty * pen
     if cfg.use_scale_regularization and step % 10 == 0:
         terms["scale_reg"] = scale_regularization(log_scales, cfg.max_gauss_ratio)
-    if training and cfg.mcmc.enabled:
+    if training and mcmc:
         terms["mcmc_reg"] = mcmc_penalty(cfg, logit_opacities, log_scales)
     return terms, metrics, recon

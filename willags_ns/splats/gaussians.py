@@ -32,12 +32,14 @@ def initial_points(cfg, seed_points) -> tuple[Tensor, Tensor | None]:
     return means, seed_rgb
 
 
-def initial_gauss_params(cfg, means: Tensor, seed_rgb: Tensor | None, avg_dist: Tensor) -> dict[str, Parameter]:
+def initial_gauss_params(
+    cfg, means: Tensor, seed_rgb: Tensor | None, avg_dist: Tensor, mcmc: bool = False
+) -> dict[str, Parameter]:
     """The Gaussians' parameters at initialisation (splatfacto's rule: isotropic scales from the mean distance
     `avg_dist` [N, 1] to the 3 nearest points, random rotations, opacity 0.1), and their colour parameters:
     SH for appearance='sh' and color_mode='modulated' (plus f_s of the local residual), f_s for the decoder."""
     n = means.shape[0]
-    opacity, scale = initial_opacity_and_scale(cfg, avg_dist)  # splatfacto's, or MCMC's (cfg.mcmc)
+    opacity, scale = initial_opacity_and_scale(cfg, avg_dist, mcmc)  # splatfacto's, or MCMC's (cfg.mcmc)
     params = {
         "means": Parameter(means),
         "scales": Parameter(torch.log(scale.repeat(1, 3))),
@@ -67,12 +69,12 @@ def initial_gauss_params(cfg, means: Tensor, seed_rgb: Tensor | None, avg_dist: 
     return params
 
 
-def densification_strategy(cfg, num_train: int):
-    """gsplat's DefaultStrategy with splatfacto's settings (cfg: the model config), or with cfg.mcmc.enabled the
-    MCMC densification of splats/mcmc.py over the same refinement window."""
+def densification_strategy(cfg, num_train: int, mcmc: bool = False):
+    """gsplat's DefaultStrategy with splatfacto's settings (cfg: the model config), or with `mcmc` the MCMC
+    densification of splats/mcmc.py over the same refinement window."""
     from gsplat.strategy import DefaultStrategy
 
-    if cfg.mcmc.enabled:
+    if mcmc:
         return mcmc_strategy(cfg)
 
     return DefaultStrategy(

@@ -21,7 +21,7 @@ the routine its DefaultStrategy uses too).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from gsplat.strategy import MCMCStrategy
@@ -32,15 +32,23 @@ N_MAX = 51
 """Largest number of copies one Gaussian is split into at one relocation (gsplat's table size)."""
 
 
+Densification = Literal["auto", "mcmc", "splatfacto"]
+"""How Gaussians are added and removed (the model setting `densification`)."""
+
+
+def uses_mcmc(densification: str, device: torch.device | str) -> bool:
+    """Whether a model densifies by MCMC: "mcmc", or "auto" on a CUDA device (where it was measured better; on the
+    CPU, whose runs are short, splatfacto's: docs/design.md)."""
+    if densification not in ("auto", "mcmc", "splatfacto"):
+        raise ValueError(f"willags: densification must be auto, mcmc or splatfacto, got {densification!r}")
+    return densification == "mcmc" or (densification == "auto" and torch.device(device).type == "cuda")
+
+
 @dataclass
 class McmcConfig:
-    """Densification as Markov chain Monte Carlo (splats/mcmc.py) instead of splatfacto's split / clone / prune."""
-
-    enabled: bool = True
-    """Use MCMC densification (relocation of dead Gaussians, sampled growth up to cap_max, position noise, opacity
-    and scale penalties; measured against splatfacto's on every shared scene: docs/design.md). Off: splatfacto's
-    densification (gsplat's DefaultStrategy and its thresholds: willags-paper, willags-lite, willags-3dgs). The
+    """Settings of the MCMC densification (splats/mcmc.py), used where `densification` resolves to MCMC. The
     refinement window and period are splatfacto's warmup_length, stop_split_at and refine_every."""
+
     cap_max: int = 300_000
     """Most Gaussians: growth stops here (5 % more per refinement until then)."""
     noise_lr: float = 5e5
@@ -229,14 +237,16 @@ def mcmc_penalty(cfg, logit_opacities: Tensor, log_scales: Tensor) -> Tensor:
     return m.opacity_reg * torch.sigmoid(logit_opacities).mean() + m.scale_reg * torch.exp(log_scales).mean()
 
 
-def initial_opacity_and_scale(cfg, avg_dist: Tensor) -> tuple[float, Tensor]:
-    """(initial opacity, initial scale [N, 1]) of the Gaussians: splatfacto's (0.1, mean distance) or MCMC's."""
-    if cfg.mcmc.enabled:
+def initial_opacity_and_scale(cfg, avg_dist: Tensor, mcmc: bool) -> tuple[float, Tensor]:
+    """(initial opacity, initial scale [N, 1]) of the Gaussians: splatfacto's (0.1, mean distance) or, with `mcmc`,
+    MCMC's (cfg.mcmc)."""
+    if mcmc:
         return cfg.mcmc.init_opacity, avg_dist * cfg.mcmc.init_scale
     return 0.1, avg_dist
 
 
 __all__ = [
+    "Densification",
     "McmcConfig",
     "McmcDensification",
     "add_sampled",
@@ -247,4 +257,5 @@ __all__ = [
     "position_noise",
     "relocate_dead",
     "relocation",
+    "uses_mcmc",
 ]
