@@ -25,15 +25,9 @@ VERBS: dict[str, tuple[str, str]] = {
     "curves": ("curves_report", "regenerate docs/curves.md and its plots"),
     "regions": ("regions", "PSNR per region of the test views (the region maps of runs; the region table)"),
     "long-run": ("long_run", "one long run under the time budget, scored at milestones"),
-    "train-eval": ("train_eval", "train several methods on one scene in one process and score them"),
     "speed": ("gpu_suite", "the speed suite: rasterizer, render, step and model timings (GPU)"),
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
-    "multi-gpu": ("multi_gpu", "runs on several GPUs and their per-step breakdown"),
-    "rasterize": ("bench_rasterize", "forward and backward time of the rasterizer per backend"),
     "stability": ("stability_run", "a real scene with anomaly checks (docs/reliability.md, row 19)"),
-    "ceiling": ("appearance_ceiling", "what the evaluation protocol allows on a scene with clean test images"),
-    "pictures": ("real_scene_picture", "a real scene's picture sheet from the runs' render sheets"),
-    "tb-scalars": ("tb_scalars", "windowed means of scalars from tensorboard event files"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
 }
 """verb -> (module under benchmarks/ whose ``main`` it runs, what it does)."""
