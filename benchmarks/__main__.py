@@ -27,7 +27,6 @@ VERBS: dict[str, tuple[str, str]] = {
     "long-run": ("long_run", "one long run under the time budget, scored at milestones"),
     "speed": ("gpu_suite", "the speed suite: rasterizer, render, step and model timings (GPU)"),
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
-    "stability": ("stability_run", "a real scene with anomaly checks (docs/reliability.md, row 19)"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
 }
 """verb -> (module under benchmarks/ whose ``main`` it runs, what it does)."""

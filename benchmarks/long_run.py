@@ -218,6 +218,13 @@ def train(args) -> int:
 
     def after_step(step: int) -> None:
         last[0] = step
+        if args.check_finite:  # every parameter and gradient finite after every step (docs/reliability.md, row 19)
+            named = trainer.pipeline.model.named_parameters()
+            bad = [
+                n for n, p in named if not p.isfinite().all() or (p.grad is not None and not p.grad.isfinite().all())
+            ]
+            if bad:
+                raise RuntimeError(f"long_run: non-finite at step {step}: {bad[:20]}")
         knob_end = budget is not None and budget.stopped_after == step  # the knob ends the run after this step
         if step in milestones or step == args.steps - 1 or knob_end:
             if torch.cuda.is_available():
@@ -240,7 +247,8 @@ def train(args) -> int:
     t0[0] = time.perf_counter()
     stopped = False
     try:
-        trainer.train()
+        with torch.autograd.set_detect_anomaly(args.check_finite):  # a NaN made in a backward op raises at that op
+            trainer.train()
     except Stop:
         stopped = True
     if torch.cuda.is_available():
@@ -387,6 +395,7 @@ def main(argv=None) -> int:
         default=None,
         help="train under willags' time budget (--pipeline.time-budget-minutes); --steps is the cap",
     )
+    t.add_argument("--check-finite", action="store_true", help="anomaly mode; stop at a non-finite parameter or grad")
     sub.choices["eval"].add_argument("--train-views", type=int, default=8)
     r = sub.choices["record"]
     r.add_argument("--tag", required=True)
