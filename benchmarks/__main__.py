@@ -16,11 +16,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 VERBS: dict[str, tuple[str, str]] = {
-    "run": ("run_benchmark", "train and score a grid of methods x scenes x steps; merge its records"),
-    "merge": ("run_benchmark", "merge record files into benchmarks/records/benchmarks.json (= run --merge FILES)"),
-    "merge-gpu": ("merge_gpu_records", "merge the train-eval and speed-suite JSON under benchmarks/records/gpu_runs"),
+    "run": ("grid", "train and score a grid of methods x scenes x steps; merge its records"),
+    "merge": ("grid", "merge record files into benchmarks/records/benchmarks.json (= run --merge FILES)"),
     "report": ("", "regenerate every generated page: docs/benchmarks.md, docs/results.md + README, docs/curves.md"),
-    "tables": ("run_benchmark", "regenerate docs/benchmarks.md from the records (= run --render-only)"),
+    "tables": ("grid", "regenerate docs/benchmarks.md from the records (= run --render-only)"),
     "results": ("results", "regenerate docs/results.md and README.md's results table"),
     "curves": ("curves_report", "regenerate docs/curves.md and its plots"),
     "regions": ("regions", "PSNR per region of the test views (the region maps of runs; the region table)"),

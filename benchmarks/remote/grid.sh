@@ -27,7 +27,7 @@ run_grid() {  # OUT PAIRS...
   names=$(for pair in "$@"; do IFS=: read -r scene method tag seed <<< "$pair"; echo "$scene-$method${tag:+-$tag}"; done)
   dups=$(echo "$names" | sort | uniq -d)
   [ -n "$dups" ] && { echo "gpu_grid: pairs share a record name (give each repeat its own tag): $dups" >&2; exit 2; }
-  python3 -c "from benchmarks.harness import _warm_gsplat; _warm_gsplat()" || exit 1
+  python3 -c "from benchmarks.grid import warm_gsplat; warm_gsplat()" || exit 1
   for pair in "$@"; do
     IFS=: read -r scene method tag seed <<< "$pair"
     name="$scene-$method${tag:+-$tag}"

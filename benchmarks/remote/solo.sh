@@ -88,7 +88,7 @@ run_one() {
 loop() {
   cd "$S/wrk" || exit 1
   export PYTHONPATH=/tmp/site:$S/wrk/.whl-gpu/stub:$S/wrk
-  python3 -c "from benchmarks.harness import _warm_gsplat; _warm_gsplat()" || { touch "$S/done"; exit 1; }
+  python3 -c "from benchmarks.grid import warm_gsplat; warm_gsplat()" || { touch "$S/done"; exit 1; }
   local t0 todo=() left=() waited=0 run scene m steps seed bm
   t0=$(cat "$S/t0")
   read -r -a todo < "$S/queue"
