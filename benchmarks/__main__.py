@@ -21,7 +21,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "report": ("", "regenerate every generated page: docs/benchmarks.md, docs/results.md + README, docs/curves.md"),
     "tables": ("grid", "regenerate docs/benchmarks.md from the records (= run --render-only)"),
     "results": ("results", "regenerate docs/results.md and README.md's results table"),
-    "curves": ("curves_report", "regenerate docs/curves.md and its plots"),
+    "curves": ("curves", "regenerate docs/curves.md and its plots"),
     "regions": ("regions", "PSNR per region of the test views (the region maps of runs; the region table)"),
     "long-run": ("long_run", "one long run under the time budget, scored at milestones"),
     "speed": ("gpu_suite", "the speed suite: rasterizer, render, step and model timings (GPU)"),
