@@ -1,12 +1,13 @@
 """The benchmarks as one tool: ``python -m benchmarks <verb> [its options]`` (``<verb> --help`` for each).
 
     python -m benchmarks run --grid configs/benchmark_cpu.json     # train and score a grid; records + benchmarks.md
-    python -m benchmarks merge gpu_out/benchmarks.json             # merge fetched records, regenerate benchmarks.md
+    python -m benchmarks merge gpu_out/records.json                # merge fetched records, regenerate benchmarks.md
     python -m benchmarks report                                    # every generated page from the records
-    python -m benchmarks speed --out gpu_suite.json                # the speed suite (GPU)
-    python -m benchmarks profile --scene ../shared/data/reichstag  # one window of training steps under the profiler
+    python -m benchmarks speed --out speed.json                    # the speed suite (GPU)
+    python -m benchmarks profile --method willags --data ../shared/data/reichstag --out p.json
 
-Each verb runs one module's ``main`` with the rest of the command line; the modules stay importable on their own.
+Each verb runs one module's ``main`` with the rest of the command line; the GPU machine's side is
+benchmarks/remote/ (its README).
 """
 
 import importlib
@@ -23,8 +24,8 @@ VERBS: dict[str, tuple[str, str]] = {
     "results": ("results", "regenerate docs/results.md and README.md's results table"),
     "curves": ("curves", "regenerate docs/curves.md and its plots"),
     "regions": ("regions", "PSNR per region of the test views (the region maps of runs; the region table)"),
-    "long-run": ("long_run", "one long run under the time budget, scored at milestones"),
-    "speed": ("gpu_suite", "the speed suite: rasterizer, render, step and model timings (GPU)"),
+    "long-run": ("long_run", "one long run: train (in segments, or under the time budget), score milestones, record"),
+    "speed": ("speed", "the speed suite: train step, memory and render timings per variant (GPU)"),
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
 }
@@ -40,23 +41,10 @@ def usage() -> str:
     return "\n".join(lines)
 
 
-def _call(verb: str, module: str, args: list[str]) -> int:
-    """Run benchmarks.<module>.main with ``args`` as its command line (argparse reads sys.argv)."""
-    sys.argv = [f"benchmarks {verb}", *args]
-    rc = importlib.import_module(f"benchmarks.{module}").main()
-    return int(rc or 0)
-
-
-def report(args: list[str]) -> int:
-    """Every generated page, in the order each reads the last: benchmarks.md, results.md (+ README), curves.md."""
-    if args:
-        print(f"benchmarks report: takes no options, got {' '.join(args)}", file=sys.stderr)
-        return 2
-    for verb in ("tables", "results", "curves"):
-        rc = _call(verb, VERBS[verb][0], _FIXED_ARGS.get(verb, []))
-        if rc:
-            return rc
-    return 0
+def _call(verb: str, args: list[str]) -> int:
+    """Run the verb's module's main with ``args`` as its command line (argparse reads sys.argv)."""
+    sys.argv = [f"benchmarks {verb}", *_FIXED_ARGS.get(verb, []), *args]
+    return int(importlib.import_module(f"benchmarks.{VERBS[verb][0]}").main() or 0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -70,9 +58,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if str(REPO) not in sys.path:
         sys.path.insert(0, str(REPO))
-    if verb == "report":
-        return report(rest)
-    return _call(verb, VERBS[verb][0], _FIXED_ARGS.get(verb, []) + rest)
+    if verb != "report":
+        return _call(verb, rest)
+    if rest:
+        print(f"benchmarks report: takes no options, got {' '.join(rest)}", file=sys.stderr)
+        return 2
+    # in the order each reads the last: benchmarks.md, results.md (+ README), curves.md
+    return next((rc for rc in (_call(v, []) for v in ("tables", "results", "curves")) if rc), 0)
 
 
 if __name__ == "__main__":
