@@ -66,11 +66,6 @@ def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, floa
     return {"render_ms": ms, "fps": 1e3 / ms}
 
 
-def _peak_rss_gb() -> float:
-    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
-    return kb / 1024**2
-
-
 def patch_stock_splatfacto() -> list[str]:
     """Stock splatfacto offline: LPIPS would download AlexNet weights (unused here: the protocol scores LPIPS
     through the model's own metric, which splatfacto lacks); get_viewmat's torch.compile is replaced by the same
@@ -269,7 +264,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         rec["mask_status"] = "n/a (no transient mask in this method)"
 
     if device != "cuda":
-        rec["peak_mem_gb"] = _peak_rss_gb()
+        rec["peak_mem_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2  # kilobytes on Linux
         rec["peak_mem_kind"] = "process max RSS (training + evaluation)"
     img0 = dm.cached_train[0]["image"]
     rec.update(

@@ -32,6 +32,7 @@ from typing import Any
 
 from benchmarks.methods import configuration
 from benchmarks.records import RECORDS, merge_records
+from benchmarks.records import load_records as records_in
 
 REPO = Path(__file__).resolve().parents[1]
 CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer-full", "peer", "splatfacto")
@@ -40,14 +41,8 @@ benchmarks.methods.configuration: `willags` records from before the default insp
 REAL_SCENES = ("reichstag", "sacre-coeur-mini", "south-building")
 SCENES = (*REAL_SCENES, "fox-wild")
 """The curves' scenes: the real photo collections and fox-wild, in this order."""
-COLORS = {
-    "willags": "C0",
-    "willags-full": "C9",
-    "willags-lite": "C2",
-    "willags-paper": "C4",
-    "peer": "C1",
-    "splatfacto": "C7",
-}
+COLORS = {"willags": "C0", "willags-full": "C9", "willags-lite": "C2", "willags-paper": "C4"}
+COLORS.update({"peer": "C1", "splatfacto": "C7"})  # any other method (peer-full) in black
 
 
 # ---------------------------------------------------------------------------------------------- GPU sharing
@@ -233,10 +228,8 @@ def pareto_flags(points: Sequence[Point]) -> list[bool]:
     optimal."""
     timed = [i for i, p in enumerate(points) if p.train_s is not None]
     flags = pareto_optimal([(points[i].train_s, points[i].psnr) for i in timed])  # type: ignore[misc]
-    out = [False] * len(points)
-    for i, f in zip(timed, flags, strict=True):
-        out[i] = f
-    return out
+    optimal = dict(zip(timed, flags, strict=True))
+    return [optimal.get(i, False) for i in range(len(points))]
 
 
 @dataclass(frozen=True)
@@ -372,8 +365,7 @@ def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
     replaces an earlier one (benchmarks.records.merge_records)."""
     records: list[dict[str, Any]] = []
     for p in paths:
-        data = json.loads(Path(p).read_text())
-        records = merge_records(records, data if isinstance(data, list) else [data])
+        records = merge_records(records, records_in(Path(p)))
     return records
 
 

@@ -19,6 +19,7 @@ name looked up in ``data_roots``, $WILLAGS_BENCH_DATA, ../shared/data next to th
 """
 
 import argparse
+import contextlib
 import dataclasses
 import datetime as _dt
 import hashlib
@@ -186,13 +187,11 @@ def machine_description(device: str) -> str:
     if device == "cuda":
         return f"{torch.cuda.get_device_name(0)} ({os.cpu_count()} CPU cores)"
     model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    with contextlib.suppress(OSError):
+        names = [
+            ln.split(":", 1)[1] for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("model n")
+        ]
+        model = names[0].strip() if names else model
     return f"{os.cpu_count()} CPU cores ({model}), no GPU"
 
 

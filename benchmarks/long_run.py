@@ -316,12 +316,11 @@ def record(args) -> int:
     milestone."""
     import datetime as _dt
 
-    from benchmarks.grid import git_commit, machine_description
-
-    run_dir = Path(args.run_dir)
-    state = _state(run_dir)
     import torch
 
+    from benchmarks.grid import git_commit, machine_description
+
+    state = _state(Path(args.run_dir))
     segs = state["segments"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
     times = state.get("milestone_train_s", {})

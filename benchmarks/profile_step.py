@@ -121,18 +121,17 @@ def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str
         return float(getattr(r, "self_device_time_total", getattr(r, "self_cuda_time_total", 0.0)) or 0.0)
 
     device_total = sum(device_us(r) for r in rows) if on_cuda else 0.0
-    by_host = sorted(rows, key=lambda r: r.self_cpu_time_total, reverse=True)[:top]
-    by_device = sorted(rows, key=device_us, reverse=True)[:top] if on_cuda else []
+
+    def top_by(us) -> list[dict[str, Any]]:
+        best = sorted(rows, key=us, reverse=True)[:top]
+        return [{"op": r.key, "calls": r.count / steps, "self_ms": us(r) / 1000.0 / steps} for r in best]
+
     return {
         "device_ms": device_total / 1000.0 / steps,
         "launches": (launches if on_cuda else aten) / steps,
         "aten_ops": aten / steps,
-        "top_host": [
-            {"op": r.key, "calls": r.count / steps, "self_ms": r.self_cpu_time_total / 1000.0 / steps} for r in by_host
-        ],
-        "top_device": [
-            {"op": r.key, "calls": r.count / steps, "self_ms": device_us(r) / 1000.0 / steps} for r in by_device
-        ],
+        "top_host": top_by(lambda r: r.self_cpu_time_total),
+        "top_device": top_by(device_us) if on_cuda else [],
     }
 
 

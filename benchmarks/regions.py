@@ -342,17 +342,12 @@ def region_picture(path: Path, thumbs: Sequence[np.ndarray], labels: Sequence[np
     """Each test image's right half above its regions (overlaid at half strength), side by side."""
     from PIL import Image
 
-    cols = []
-    height = 160
+    cols, height = [], 160
     for t, lab in zip(thumbs, labels, strict=False):
-        h, w = lab.shape
-        img = t[:h, :w].astype(np.float32)
-        over = 0.5 * img + 0.5 * COLOURS[lab]
-        col = np.concatenate([img, over], axis=0).astype(np.uint8)
-        im = Image.fromarray(col)
+        img = t[: lab.shape[0], : lab.shape[1]].astype(np.float32)
+        im = Image.fromarray(np.concatenate([img, 0.5 * img + 0.5 * COLOURS[lab]], axis=0).astype(np.uint8))
         cols.append(im.resize((max(1, round(im.width * 2 * height / im.height)), 2 * height)))
-    sheet = Image.new("RGB", (sum(c.width for c in cols), 2 * height), "white")
-    x = 0
+    sheet, x = Image.new("RGB", (sum(c.width for c in cols), 2 * height), "white"), 0
     for c in cols:
         sheet.paste(c, (x, 0))
         x += c.width
