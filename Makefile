@@ -59,8 +59,9 @@ lint: $(STAMP)
 	$(BIN)/ruff check willags_ns tests benchmarks
 	$(BIN)/ruff format --check willags_ns tests benchmarks
 
+# the speed suite on this machine's GPU (python -m benchmarks speed --help); BENCH_ARGS=--quick: a CPU smoke test
 bench: $(STAMP)
-	$(BIN)/python -m benchmarks rasterize
+	$(BIN)/python -m benchmarks speed $(BENCH_ARGS)
 
 clean-venv:
 	rm -rf $(VENV)

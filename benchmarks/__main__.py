@@ -1,12 +1,13 @@
 """The benchmarks as one tool: ``python -m benchmarks <verb> [its options]`` (``<verb> --help`` for each).
 
     python -m benchmarks run --grid configs/benchmark_cpu.json     # train and score a grid; records + benchmarks.md
-    python -m benchmarks merge gpu_out/benchmarks.json             # merge fetched records, regenerate benchmarks.md
+    python -m benchmarks merge gpu_out/records.json                # merge fetched records, regenerate benchmarks.md
     python -m benchmarks report                                    # every generated page from the records
-    python -m benchmarks speed --out gpu_suite.json                # the speed suite (GPU)
-    python -m benchmarks profile --scene ../shared/data/reichstag  # one window of training steps under the profiler
+    python -m benchmarks speed --out speed.json                    # the speed suite (GPU)
+    python -m benchmarks profile --method willags --data ../shared/data/reichstag --out p.json
 
-Each verb runs one module's ``main`` with the rest of the command line; the modules stay importable on their own.
+Each verb runs one module's ``main`` with the rest of the command line; the GPU machine's side is
+benchmarks/remote/ (its README).
 """
 
 import importlib
@@ -16,24 +17,16 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 VERBS: dict[str, tuple[str, str]] = {
-    "run": ("run_benchmark", "train and score a grid of methods x scenes x steps; merge its records"),
-    "merge": ("run_benchmark", "merge record files into benchmarks/records/benchmarks.json (= run --merge FILES)"),
-    "merge-gpu": ("merge_gpu_records", "merge the train-eval and speed-suite JSON under benchmarks/records/gpu_runs"),
+    "run": ("grid", "train and score a grid of methods x scenes x steps; merge its records"),
+    "merge": ("grid", "merge record files into benchmarks/records/benchmarks.json (= run --merge FILES)"),
     "report": ("", "regenerate every generated page: docs/benchmarks.md, docs/results.md + README, docs/curves.md"),
-    "tables": ("run_benchmark", "regenerate docs/benchmarks.md from the records (= run --render-only)"),
+    "tables": ("grid", "regenerate docs/benchmarks.md from the records (= run --render-only)"),
     "results": ("results", "regenerate docs/results.md and README.md's results table"),
-    "curves": ("curves_report", "regenerate docs/curves.md and its plots"),
+    "curves": ("curves", "regenerate docs/curves.md and its plots"),
     "regions": ("regions", "PSNR per region of the test views (the region maps of runs; the region table)"),
-    "long-run": ("long_run", "one long run under the time budget, scored at milestones"),
-    "train-eval": ("train_eval", "train several methods on one scene in one process and score them"),
-    "speed": ("gpu_suite", "the speed suite: rasterizer, render, step and model timings (GPU)"),
+    "long-run": ("long_run", "one long run: train (in segments, or under the time budget), score milestones, record"),
+    "speed": ("speed", "the speed suite: train step, memory and render timings per variant (GPU)"),
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
-    "multi-gpu": ("multi_gpu", "runs on several GPUs and their per-step breakdown"),
-    "rasterize": ("bench_rasterize", "forward and backward time of the rasterizer per backend"),
-    "stability": ("stability_run", "a real scene with anomaly checks (docs/reliability.md, row 19)"),
-    "ceiling": ("appearance_ceiling", "what the evaluation protocol allows on a scene with clean test images"),
-    "pictures": ("real_scene_picture", "a real scene's picture sheet from the runs' render sheets"),
-    "tb-scalars": ("tb_scalars", "windowed means of scalars from tensorboard event files"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
 }
 """verb -> (module under benchmarks/ whose ``main`` it runs, what it does)."""
@@ -48,23 +41,10 @@ def usage() -> str:
     return "\n".join(lines)
 
 
-def _call(verb: str, module: str, args: list[str]) -> int:
-    """Run benchmarks.<module>.main with ``args`` as its command line (argparse reads sys.argv)."""
-    sys.argv = [f"benchmarks {verb}", *args]
-    rc = importlib.import_module(f"benchmarks.{module}").main()
-    return int(rc or 0)
-
-
-def report(args: list[str]) -> int:
-    """Every generated page, in the order each reads the last: benchmarks.md, results.md (+ README), curves.md."""
-    if args:
-        print(f"benchmarks report: takes no options, got {' '.join(args)}", file=sys.stderr)
-        return 2
-    for verb in ("tables", "results", "curves"):
-        rc = _call(verb, VERBS[verb][0], _FIXED_ARGS.get(verb, []))
-        if rc:
-            return rc
-    return 0
+def _call(verb: str, args: list[str]) -> int:
+    """Run the verb's module's main with ``args`` as its command line (argparse reads sys.argv)."""
+    sys.argv = [f"benchmarks {verb}", *_FIXED_ARGS.get(verb, []), *args]
+    return int(importlib.import_module(f"benchmarks.{VERBS[verb][0]}").main() or 0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,9 +58,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if str(REPO) not in sys.path:
         sys.path.insert(0, str(REPO))
-    if verb == "report":
-        return report(rest)
-    return _call(verb, VERBS[verb][0], _FIXED_ARGS.get(verb, []) + rest)
+    if verb != "report":
+        return _call(verb, rest)
+    if rest:
+        print(f"benchmarks report: takes no options, got {' '.join(rest)}", file=sys.stderr)
+        return 2
+    # in the order each reads the last: benchmarks.md, results.md (+ README), curves.md
+    return next((rc for rc in (_call(v, []) for v in ("tables", "results", "curves")) if rc), 0)
 
 
 if __name__ == "__main__":

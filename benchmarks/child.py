@@ -1,20 +1,33 @@
-"""One benchmark run inside its child process: ``python -m benchmarks.harness child SPEC RESULT``.
+"""One benchmark run inside its child process: ``python -m benchmarks.child SPEC RESULT`` (started by
+:mod:`benchmarks.grid`).
 
-:func:`run_child` trains in-process exactly as ``ns-train`` does, then measures on the test split (the NeRF-W
-protocol, render FPS, memory, transient-mask scores; see :mod:`benchmarks.runner`) and returns the result
-record. With ``WILLAGS_BENCH_RENDERS`` set, a run also writes its pictures (test right halves, training masks).
+:func:`run_child` trains in-process exactly as ``ns-train`` does (``config.setup() -> trainer.setup() ->
+trainer.train()``, vis tensorboard, no viewer, no evaluation during training), then measures on the test split and
+returns the result record:
+
+- the NeRF-W protocol (:func:`protocol_scores`, also what long runs score their milestones with): PSNR / SSIM /
+  LPIPS of the right half with the latent fitted on the left half; ``encoder_*`` (encoder latent, no fit) and
+  ``full_*`` (whole image); with ``$WILLAGS_BENCH_REGIONS`` the error maps and geometry of :mod:`benchmarks.regions`;
+- render FPS: median wall time of ``model.get_outputs`` per test view (eval mode, no grad, one fixed latent);
+- number of Gaussians, training wall time (``trainer.train()`` only: data loading is ``setup_s``), peak memory
+  (CUDA: ``torch.cuda.max_memory_allocated`` during training; CPU: the child's peak RSS);
+- transient-mask scores against ``masks_gt/`` when the scene has one (:mod:`willags_ns.eval.mask_eval`).
+
+With ``$WILLAGS_BENCH_RENDERS`` set to a folder, a run also writes <scene>-<method>[-<tag>].png there: the right
+halves of its test images (ground truth above, the protocol's render below, PSNR on each).
 """
 
 import json
 import os
 import resource
 import statistics
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from benchmarks.methods import METHODS, build_config, is_peer
-from benchmarks.records import _json_default
+from benchmarks.records import json_default
 from benchmarks.regions import REFERENCE, REGIONS_ENV, RegionDump
 
 
@@ -53,15 +66,10 @@ def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, floa
     return {"render_ms": ms, "fps": 1e3 / ms}
 
 
-def _peak_rss_gb() -> float:
-    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
-    return kb / 1024**2
-
-
-def _patch_stock_splatfacto() -> list[str]:
+def patch_stock_splatfacto() -> list[str]:
     """Stock splatfacto offline: LPIPS would download AlexNet weights (unused here: the protocol scores LPIPS
     through the model's own metric, which splatfacto lacks); get_viewmat's torch.compile is replaced by the same
-    maths (benchmarks/gpu_suite.py does the same)."""
+    maths."""
     import torch
     import torchmetrics.image.lpip as tm_lpip
     from nerfstudio.models import splatfacto as sf
@@ -107,18 +115,13 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         oracle=bool(spec.get("oracle", False)),
     )
     shown: list[tuple[Any, Any]] = []
-    renders_dir = os.environ.get(RENDERS_ENV)
-
-    def keep(i, pred, gt):
-        w = pred.shape[1]
-        shown.append((gt[:, w // 2 :].cpu(), pred[:, w // 2 :].cpu()))
-
-    regions_dir = os.environ.get(REGIONS_ENV)
+    renders_dir, regions_dir = os.environ.get(RENDERS_ENV), os.environ.get(REGIONS_ENV)
     dump = RegionDump() if regions_dir and spec.get("regions", True) else None
 
     def seen(i, pred, gt):
         if renders_dir:
-            keep(i, pred, gt)
+            w = pred.shape[1]
+            shown.append((gt[:, w // 2 :].cpu(), pred[:, w // 2 :].cpu()))
         if dump is not None:
             dump.on_prediction(i, pred, gt)
 
@@ -151,20 +154,17 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
 
 
 RENDERS_ENV = "WILLAGS_BENCH_RENDERS"
-"""When set to a folder, each run writes <scene>-<method>[-<tag>].png there: the right halves of its test images
-(ground truth above, the protocol's render below, PSNR on each), for looking at what a number means."""
+"""Folder where each run writes the picture of its test images' right halves (unset: none)."""
 
 
 def _run_name(spec: dict[str, Any]) -> str:
-    """<scene>-<method>[-<tag>]: how a run's pictures are named."""
+    """<scene>-<method>[-<tag>]: how a run's pictures and region maps are named."""
     return f"{spec['scene_name']}-{spec['method']}{('-' + spec['tag']) if spec.get('tag') else ''}"
 
 
-def save_two_row_sheet(
-    path: Path, columns: list[tuple[Any, Any]], labels: list[str] | None = None, height: int = 200
-) -> Path:
-    """A contact sheet of image pairs [H, W, 3] in [0, 1]: one column per pair (first above, second below), each
-    scaled to `height` pixels; `labels[i]` written on column i's lower image."""
+def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[float], height: int = 200) -> Path:
+    """(ground truth, render) right halves [H, W, 3] in [0, 1]: one column per test image, each scaled to `height`
+    pixels, ground truth above and the render below with its PSNR written on it."""
     import numpy as np
     from PIL import Image, ImageDraw
 
@@ -172,100 +172,17 @@ def save_two_row_sheet(
         im = Image.fromarray((t.clamp(0, 1).numpy() * 255).astype(np.uint8))
         return im.resize((max(1, round(im.width * height / im.height)), height), Image.Resampling.BILINEAR)
 
-    tiles = [(tile(a), tile(b)) for a, b in columns]
+    tiles = [(tile(a), tile(b)) for a, b in pairs]
     sheet = Image.new("RGB", (sum(a.width for a, _ in tiles), 2 * height), "white")
-    draw = ImageDraw.Draw(sheet)
-    x = 0
-    for i, (a, b) in enumerate(tiles):
+    draw, x = ImageDraw.Draw(sheet), 0
+    for (a, b), psnr in zip(tiles, psnrs, strict=True):
         sheet.paste(a, (x, 0))
         sheet.paste(b, (x, height))
-        if labels is not None and i < len(labels):
-            draw.text((x + 4, height + 4), labels[i], fill=(255, 255, 0))
+        draw.text((x + 4, height + 4), f"{psnr:.2f} dB", fill=(255, 255, 0))
         x += a.width
     path.parent.mkdir(parents=True, exist_ok=True)
     sheet.save(path)
     return path
-
-
-def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[float], height: int = 200) -> Path:
-    """(ground truth, render) right halves [H, W, 3], one column per test image, the render's PSNR on it."""
-    return save_two_row_sheet(path, pairs, [f"{v:.2f} dB" for v in psnrs], height)
-
-
-def save_masks(path: Path, pairs: list[tuple[Any, Any]], height: int = 200) -> Path:
-    """Training images [H, W, 3] in [0, 1] above the same images with their transient pixels (mask [h, w] bool,
-    True = static, any resolution) tinted red: what the model was not taught from."""
-    import torch.nn.functional as F
-
-    columns = []
-    for img, static in pairs:
-        m = F.interpolate(static[None, None].float(), size=img.shape[:2], mode="nearest")[0, 0, ..., None]
-        columns.append((img, img * m + (0.35 * img + 0.65 * img.new_tensor([1.0, 0.0, 0.0])) * (1 - m)))
-    return save_two_row_sheet(path, columns, height=height)
-
-
-def training_mask(model, idx: int):
-    """Training image `idx`'s last mask as training used it (True = supervised): the perceptual mask with the SfM
-    safeguard applied."""
-    from willags_ns.mask.static_support import apply_support
-
-    raw = model.last_masks[idx]
-    return apply_support(raw, model.static_support(idx, *raw.shape))
-
-
-def static_observation_scores(model) -> dict[str, Any]:
-    """ "Static observations masked": the share of the training images' observations of SfM points with a track of
-    >= 5 training images that the last mask of each image flags as transient (each of them shows static scene, so
-    0 is right), for the mask as training used it and for the perceptual mask alone (before the safeguard)."""
-    from willags_ns.mask.static_support import masked_share, observations_masked
-
-    used, raw = [], []
-    for idx, mask in model.last_masks.items():
-        obs = model.sfm_observations[idx]
-        raw.append(observations_masked(mask, obs, 5))
-        used.append(observations_masked(training_mask(model, idx), obs, 5))
-    return {
-        "static_obs_masked": masked_share(used),
-        "static_obs_masked_perceptual": masked_share(raw),
-        "static_obs_count": sum(t for _, t in used),
-        "static_obs_images": len(used),
-    }
-
-
-SUBJECT_MASKS_DIR = "masks_subject"
-"""A scene's per-photo outline of its subject (<stem>.png, nonzero = subject), for evaluation only (liberty): never read
-by a loader or by training."""
-
-
-def subject_masked_scores(model, train_dataset, masks_dir: Path) -> dict[str, Any]:
-    """ "Subject masked": the share of the subject's pixels (``masks_dir/<stem>.png``) that each training image's last
-    transient mask flags, pooled over the images with a mask, for the mask as training used it (with the safeguard)
-    and for the perceptual mask alone. The subject is static by construction, so 0 is right."""
-    import numpy as np
-    from PIL import Image
-
-    from willags_ns.eval.mask_eval import resize_mask
-
-    flagged_used = flagged_raw = total = images = 0
-    for idx, raw in model.last_masks.items():
-        path = masks_dir / f"{Path(train_dataset.image_filenames[idx]).stem}.png"
-        if not path.is_file():
-            continue
-        subject = resize_mask(np.asarray(Image.open(path).convert("L")) > 0, *raw.shape)
-        if not subject.any():
-            continue
-        used = training_mask(model, idx).cpu().numpy()
-        flagged_used += int((~used & subject).sum())
-        flagged_raw += int((~raw.cpu().numpy() & subject).sum())
-        total += int(subject.sum())
-        images += 1
-    if total == 0:
-        return {}
-    return {
-        "subject_masked": flagged_used / total,
-        "subject_masked_perceptual": flagged_raw / total,
-        "subject_masked_images": images,
-    }
 
 
 def run_child(spec: dict[str, Any]) -> dict[str, Any]:
@@ -281,7 +198,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     device = spec["device"]
     rec: dict[str, Any] = {}
     base = METHODS[spec["method"]].base
-    patches = _patch_stock_splatfacto() if base == "splatfacto" or is_peer(base) else []
+    patches = patch_stock_splatfacto() if base == "splatfacto" or is_peer(base) else []
     if is_peer(base):
         from benchmarks.peer import patch_peer
 
@@ -306,7 +223,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     _ = dm.cached_train  # load + undistort now, not inside the timed loop
     setup_s = time.perf_counter() - t0
     auto = getattr(trainer.pipeline, "auto_config_summary", None)
-    if auto is not None:  # willags-auto: what the inspector chose (its time is part of setup_s)
+    if auto is not None:  # what the inspector chose (its time is part of setup_s)
         rec["auto_config"] = {k: auto.get(k) for k in ("applied", "settings", "switches", "error")}
         rec["auto_inspect_s"] = (auto.get("report") or {}).get("wall_s")
     if device == "cuda":
@@ -330,22 +247,6 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     model = trainer.pipeline.model
     rec.update(protocol_scores(trainer, spec))
     rec.update(render_fps(model, dm.eval_dataset.cameras, spec["fps_views"]))
-    masks = getattr(model, "last_masks", None)
-    if masks and getattr(model, "sfm_observations", None) is not None:
-        rec.update(static_observation_scores(model))
-    subject_dir = Path(spec["data"]) / SUBJECT_MASKS_DIR if spec.get("data") else None
-    if masks and subject_dir is not None and subject_dir.is_dir():
-        rec.update(subject_masked_scores(model, dm.train_dataset, subject_dir))
-    if os.environ.get(RENDERS_ENV) and masks:
-        from willags_ns.appearance.latents import image_as_float
-
-        picks = sorted(masks)[:: max(1, len(masks) // 4)][:4]
-        imgs = [image_as_float(dm.cached_train[i]["image"]) for i in picks]
-        save_masks(
-            Path(os.environ[RENDERS_ENV]) / f"{_run_name(spec)}-masks.png",
-            [(im[..., :3].cpu(), training_mask(model, i).cpu()) for im, i in zip(imgs, picks, strict=True)],
-        )
-
     masks_dir = dm.train_dataset.metadata.get("masks_gt_dir")
     if masks_dir is None and dm.train_dataset.image_filenames:
         guess = Path(dm.train_dataset.image_filenames[0]).parent.parent / "masks_gt"
@@ -363,7 +264,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         rec["mask_status"] = "n/a (no transient mask in this method)"
 
     if device != "cuda":
-        rec["peak_mem_gb"] = _peak_rss_gb()
+        rec["peak_mem_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2  # kilobytes on Linux
         rec["peak_mem_kind"] = "process max RSS (training + evaluation)"
     img0 = dm.cached_train[0]["image"]
     rec.update(
@@ -381,8 +282,8 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     return rec
 
 
-def _child_main(spec_path: str, result_path: str) -> int:
-    spec = json.loads(Path(spec_path).read_text())
-    rec = run_child(spec)
-    Path(result_path).write_text(json.dumps(rec, default=_json_default))
-    return 0
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        sys.exit("usage: python -m benchmarks.child SPEC.json RESULT.json (started by python -m benchmarks run)")
+    result = run_child(json.loads(Path(sys.argv[1]).read_text()))
+    Path(sys.argv[2]).write_text(json.dumps(result, default=json_default))

@@ -1,67 +1,48 @@
-"""Speed vs accuracy per scene: right-half PSNR against training wall time, from the run records. The command that
-writes docs/curves.md and the PNGs is benchmarks/curves_report.py:
+"""Speed vs accuracy per scene: right-half PSNR against training wall time, from the run records; docs/curves.md and
+its PNGs:
 
     python -m benchmarks curves          # benchmarks/records/benchmarks.json -> docs/curves.md + PNGs
     python -m benchmarks curves --records benchmarks/records/benchmarks.json $OUT/long-*.json \
         --scenes reichstag south-building
 
-Points (one per run and step count) come from two kinds of record:
+Points (one per run and step count) come from long runs (benchmarks/long_run.py), one per scored milestone, and from
+grid runs (benchmarks/grid.py), one per record. A milestone's time is its own ``train_s``, or the summed segments
+where a segment ended there; a milestone inside a segment of a record without its own time is listed with "time not
+recorded" and left out of the plot and the Pareto marks.
 
-- long runs (``kind: long_run``, benchmarks/long_run.py): one point per scored milestone. Its time is the
-  milestone's own ``train_s`` (recorded since long_run measures it) or, in older records, the summed segments when
-  the milestone is where a segment ended; a milestone inside an older segment has no measured time: it is listed
-  with "time not recorded" and left out of the plot, the Pareto marks and the time-to-quality table;
-- grid runs (benchmarks/run_benchmark.py): one point per record (5000 or 15000 steps, a few 1000/2000).
+Each point says whether its time was measured alone on the GPU or shared with other runs (:func:`gpu_sharing`);
+shared-GPU times are longer than the method's own cost, so they are drawn hollow and labelled. Records with a
+``tree_note`` (not a clean record of their method) and failed runs are left out (and counted). Runs trained under
+willags' time budget (``time_budget_minutes``: the knob chose the preset and the last step and compressed the
+learning-rate schedules to it) are no point of their method's curve (docs/benchmarks.md lists them with the long runs).
 
-Each point says whether its time was measured alone on the GPU or shared with other runs (:func:`gpu_sharing`,
-from the record's ``concurrent_runs``, its segments' ``shared_with`` / ``concurrent_runs``, its notes, and the grid
-file's description); shared-GPU times are longer than the method's own cost, so they are drawn hollow and labelled.
-Records with a ``tree_note`` (not a clean record of their method) and failed runs are left out (and counted).
-Runs trained under willags' time budget (``time_budget_minutes``: the knob chose the preset and the last step and
-compressed the learning-rate schedules to it) are no point of their method's curve: they are :class:`KnobRun` s, a star
-on the plot and a row of the knob's table (benchmarks/curves_report.py), against the best run timed alone within the
-budget (:func:`best_within`).
-
-Writes, per scene with a curve (a method timed at two step counts or more), ``<out-dir>/curves_<scene>.png`` (PSNR vs
-minutes, log time axis, a line per method through the mean PSNR at each step count, every run a marker, Pareto-optimal
-runs ringed; matplotlib, Agg backend) and one markdown file with a table per scene and the time each method needs to
-reach the peer's 15000-step PSNR (the markdown: benchmarks/curves_report.py).
+Writes a plot per scene with a curve (a method timed at two step counts or more; :func:`plot_scene`) and docs/curves.md:
+what the records hold and every run per scene. PSNR at each step count and at equal training time: docs/results.md.
 """
 
+import argparse
 import json
 import re
 import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from benchmarks.methods import configuration
-from benchmarks.records import merge_records
+from benchmarks.records import RECORDS, merge_records
+from benchmarks.records import load_records as records_in
 
 REPO = Path(__file__).resolve().parents[1]
 CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer-full", "peer", "splatfacto")
 """The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
 benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`)."""
-CROSSING_METHODS = ("willags-lite", "willags", "willags-paper", "peer", "splatfacto")
-"""The methods compared by the curves (willags-full, every component without inspection, is drawn but not one of
-them): where two of these cross, a second seed is wanted."""
 REAL_SCENES = ("reichstag", "sacre-coeur-mini", "south-building")
 SCENES = (*REAL_SCENES, "fox-wild")
-"""The curves' scenes: the real ones and fox-wild, in this order."""
-"""Scenes of real photo collections (the fox scenes are rendered); the default scenes of the curves."""
-TARGET_METHOD, TARGET_STEPS = "peer", 15000
-"""The quality bar of the time-to-quality table: the peer's mean right-half PSNR at 15000 steps."""
-REACHING = ("willags", "willags-full", "willags-lite", "splatfacto", "willags-paper")
-"""Methods whose time to that bar the table reports (willags first: the question the table answers)."""
-COLORS = {
-    "willags": "C0",
-    "willags-full": "C9",
-    "willags-lite": "C2",
-    "willags-paper": "C4",
-    "peer": "C1",
-    "splatfacto": "C7",
-}
+"""The curves' scenes: the real photo collections and fox-wild, in this order."""
+COLORS = {"willags": "C0", "willags-full": "C9", "willags-lite": "C2", "willags-paper": "C4"}
+COLORS.update({"peer": "C1", "splatfacto": "C7"})  # any other method (peer-full) in black
 
 
 # ---------------------------------------------------------------------------------------------- GPU sharing
@@ -206,62 +187,36 @@ def scene_points(
     grids: dict[str, str] | None = None,
 ) -> list[Point]:
     """Every measured (method, steps, train time, PSNR) of ``scene`` on the GPU, one per run and step count. Runs
-    under the time budget are left out (:func:`knob_runs`)."""
+    under the time budget are left out (:func:`is_knob_run`)."""
     grids = grid_descriptions() if grids is None else grids
     out, seen = [], set()
     for r in records:
         method = configuration(r)
         if r.get("scene") != scene or method not in methods or r.get("device") != "cuda" or not _usable(r):
             continue
-        if is_knob_run(r):  # a compressed schedule: not its method's curve (knob_runs)
+        if is_knob_run(r):  # a compressed schedule: not its method's curve
             continue
-        share, gpu, tag = gpu_sharing(r, grids), _gpu(r), str(r.get("tag") or "")
+        tag = str(r.get("tag") or "")
+        point = partial(Point, scene, method, tag=tag, gpu=_gpu(r), sharing=gpu_sharing(r, grids), seed=_seed(r))
         if r.get("kind") == "long_run":
             for k, ms in (r.get("milestones") or {}).items():
                 if ms.get("psnr") is None:
                     continue
-                key = (method, int(k), tag)
-                seen.add(key)
-                out.append(
-                    Point(
-                        scene,
-                        method,
-                        int(k),
-                        float(ms["psnr"]),
-                        milestone_train_s(r, k),
-                        "long run",
-                        tag,
-                        gpu,
-                        share,
-                        _seed(r),
-                    )
-                )
+                seen.add((method, int(k), tag))
+                out.append(point(int(k), float(ms["psnr"]), milestone_train_s(r, k), "long run"))
         elif r.get("psnr") is not None and int(r.get("steps") or 0) > 0:
             key = (method, int(r["steps"]), tag)
             if key in seen:  # the same run merged twice (a long run's final milestone and its grid copy)
                 continue
             seen.add(key)
             t = r.get("train_s")
-            out.append(
-                Point(
-                    scene,
-                    method,
-                    int(r["steps"]),
-                    float(r["psnr"]),
-                    None if t is None else float(t),
-                    "grid",
-                    tag,
-                    gpu,
-                    share,
-                    _seed(r),
-                )
-            )
+            out.append(point(int(r["steps"]), float(r["psnr"]), None if t is None else float(t), "grid"))
     return sorted(out, key=lambda p: (methods.index(p.method), p.steps, p.train_s or 0.0))
 
 
 def pareto_optimal(points: Sequence[tuple[float, float]]) -> list[bool]:
     """For each (seconds, psnr), whether no other point is at least as fast and at least as good, and strictly
-    better in one of the two. The one dominance rule of the curves and of docs/benchmarks.md's Pareto table."""
+    better in one of the two: the one dominance rule of the curves."""
     return [
         not any(j != i and t2 <= t and q2 >= q and (t2 < t or q2 > q) for j, (t2, q2) in enumerate(points))
         for i, (t, q) in enumerate(points)
@@ -273,10 +228,8 @@ def pareto_flags(points: Sequence[Point]) -> list[bool]:
     optimal."""
     timed = [i for i, p in enumerate(points) if p.train_s is not None]
     flags = pareto_optimal([(points[i].train_s, points[i].psnr) for i in timed])  # type: ignore[misc]
-    out = [False] * len(points)
-    for i, f in zip(timed, flags, strict=True):
-        out[i] = f
-    return out
+    optimal = dict(zip(timed, flags, strict=True))
+    return [optimal.get(i, False) for i in range(len(points))]
 
 
 @dataclass(frozen=True)
@@ -330,60 +283,6 @@ def step_time(s: StepPoint) -> StepTime | None:
     return None
 
 
-def time_ratio(hit: StepPoint, ref: StepPoint) -> float | None:
-    """``hit``'s time over ``ref``'s when both were timed alone on the GPU (medians, :func:`step_time`); None:
-    one of them has no alone time (a shared-GPU time is no method's own cost)."""
-    a, b = step_time(hit), step_time(ref)
-    if a is None or b is None or not (a.alone and b.alone):
-        return None
-    return a.seconds / b.seconds
-
-
-def first_reaching(curve: Sequence[StepPoint], target: float) -> StepPoint | None:
-    """The first step count (in steps) whose mean PSNR reaches ``target``; None: not reached."""
-    return next((s for s in curve if s.psnr >= target), None)
-
-
-@dataclass(frozen=True)
-class Crossing:
-    """Two methods' mean curves changing order between two step counts both were scored at."""
-
-    first: str
-    second: str
-    steps: tuple[int, int]
-    """The step counts between which the order changes."""
-    leader: tuple[str, str]
-    """The method ahead at each of the two step counts."""
-    seeds: dict[str, int]
-    """Per method, the fewest distinct seeds it has at either of the two step counts."""
-
-    @property
-    def needs_seed(self) -> bool:
-        """Two seeds are wanted where curves cross: True while a side has one."""
-        return min(self.seeds.values()) < 2
-
-
-def crossings(points: Sequence[Point], methods: Sequence[str] = CROSSING_METHODS) -> list[Crossing]:
-    """Where two methods' curves (mean PSNR per step count, :func:`step_curve`) cross: consecutive step counts that
-    both methods were scored at, with the other method ahead at each. Ties (equal means) are no order."""
-    out = []
-    curve = {m: {s.steps: s.psnr for s in step_curve(points, m)} for m in methods}  # each method's, once
-    for i, a in enumerate(methods):
-        for b in methods[i + 1 :]:
-            ca, cb = curve[a], curve[b]
-            common = [k for k in sorted(ca) if k in cb and ca[k] != cb[k]]
-            for lo, hi in zip(common, common[1:], strict=False):
-                if (ca[lo] > cb[lo]) == (ca[hi] > cb[hi]):
-                    continue
-                seeds = {
-                    m: min(len({p.seed for p in points if p.method == m and p.steps == k}) for k in (lo, hi))
-                    for m in (a, b)
-                }
-                leader = (a if ca[lo] > cb[lo] else b, a if ca[hi] > cb[hi] else b)
-                out.append(Crossing(a, b, (lo, hi), leader, seeds))
-    return out
-
-
 def has_curve(points: Sequence[Point]) -> bool:
     """A method timed at two step counts or more: something to draw as a curve."""
     by: dict[str, set[int]] = {}
@@ -393,83 +292,18 @@ def has_curve(points: Sequence[Point]) -> bool:
     return any(len(s) >= 2 for s in by.values())
 
 
-# ---------------------------------------------------------------------------------------------- the time-budget knob
-
-
-@dataclass(frozen=True)
-class KnobRun:
-    """A run under willags' time budget (``--pipeline.time-budget-minutes``): the knob chose the preset and the last
-    step and compressed the learning-rate schedules to it, so it is no point of its method's curve."""
-
-    scene: str
-    budget_minutes: float
-    preset: str
-    """The preset the knob chose."""
-    steps: int | None
-    """Steps trained (where the knob stopped: the record's ``end_step``)."""
-    psnr: float | None
-    """Right-half PSNR where it stopped (None: not scored)."""
-    train_s: float | None
-    gpu: str
-    sharing: Sharing
-    tag: str
-
-
 def is_knob_run(rec: dict[str, Any]) -> bool:
     """Whether ``rec`` was trained under the time budget (benchmarks/long_run.py ``--budget-minutes``)."""
     return rec.get("time_budget_minutes") is not None or rec.get("time_budget") is not None
 
 
-def knob_runs(records: Sequence[dict[str, Any]], scene: str, grids: dict[str, str] | None = None) -> list[KnobRun]:
-    """The time-budget runs of ``scene`` on the GPU, by budget: PSNR and train time where the knob stopped."""
-    grids = grid_descriptions() if grids is None else grids
-    out = []
-    for r in records:
-        if r.get("scene") != scene or r.get("device") != "cuda" or not _usable(r) or not is_knob_run(r):
-            continue
-        tb = r.get("time_budget") or {}
-        minutes = r.get("time_budget_minutes", tb.get("budget_minutes"))
-        end = r.get("end_step") or (tb.get("run") or {}).get("steps_trained")
-        at_end = (r.get("milestones") or {}).get(str(end), {}) if end else {}
-        psnr = at_end.get("psnr", r.get("psnr"))
-        t = milestone_train_s(r, str(end)) if end else None
-        if t is None and r.get("train_s") is not None:
-            t = float(r["train_s"])
-        out.append(
-            KnobRun(
-                scene,
-                float("nan") if minutes is None else float(minutes),
-                configuration({**r, "method": (tb.get("choice") or {}).get("preset") or r.get("method")}),
-                None if end is None else int(end),
-                None if psnr is None else float(psnr),
-                t,
-                _gpu(r),
-                gpu_sharing(r, grids),
-                str(r.get("tag") or ""),
-            )
-        )
-    return sorted(out, key=lambda k: (k.budget_minutes, k.tag))
-
-
-def best_within(points: Sequence[Point], seconds: float) -> Point | None:
-    """The best run (highest PSNR, then the faster) of the curves' methods timed alone on the GPU in at most
-    ``seconds`` of training; None: no such run."""
-    fit = [
-        p
-        for p in points
-        if p.method in CURVE_METHODS and p.sharing.state == "alone" and p.train_s is not None and p.train_s <= seconds
-    ]
-    return max(fit, key=lambda p: (p.psnr, -(p.train_s or 0.0)), default=None)
-
-
 # ---------------------------------------------------------------------------------------------- outputs
 
 
-def plot_scene(points: Sequence[Point], path: Path, knobs: Sequence[KnobRun] = ()) -> Path:
+def plot_scene(points: Sequence[Point], path: Path) -> Path:
     """PSNR vs minutes (log axis) for one scene: a line per method through its mean PSNR at each step count (at the
     median time of its runs timed alone; dashed through shared-GPU times where fewer than two step counts were timed
-    alone), every run a marker (hollow: shared-GPU time), Pareto-optimal runs ringed; each timed
-    and scored time-budget run a star in the colour of the preset it chose."""
+    alone), every run a marker (hollow: shared-GPU time), Pareto-optimal runs ringed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -500,25 +334,6 @@ def plot_scene(points: Sequence[Point], path: Path, knobs: Sequence[KnobRun] = (
             ax.plot(p.train_s / 60, p.psnr, shapes.get(p.gpu, "o"), ms=5, color=color, mfc=color if alone else "none")
             if pareto:
                 ax.plot(p.train_s / 60, p.psnr, "o", ms=12, mfc="none", mec="k", mew=1.0)
-    knob_labels: set[str] = set()
-    for k in knobs:
-        if k.train_s is None or k.psnr is None:
-            continue
-        label = f"willags knob, {k.budget_minutes:g} min" + (f" ({k.preset})" if k.preset != "willags" else "")
-        color = COLORS.get(k.preset, "k")
-        alone = k.sharing.state == "alone"
-        ax.plot(
-            k.train_s / 60,
-            k.psnr,
-            "*",
-            ms=14,
-            color=color,
-            mfc=color if alone else "none",
-            mec="k" if alone else color,
-            mew=0.7,
-            label=None if label in knob_labels else label,
-        )
-        knob_labels.add(label)
     for g in gpus:
         ax.plot([], [], shapes[g], color="0.4", label=f"run on {g} (filled: alone)")
     ax.plot([], [], "o", color="0.4", mfc="none", label="hollow: shared-GPU time")
@@ -547,9 +362,130 @@ def plot_scene(points: Sequence[Point], path: Path, knobs: Sequence[KnobRun] = (
 
 def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
     """Records of several files (each a JSON list); a later record with the same (scene, method, device, steps, tag)
-    replaces an earlier one, as benchmarks/harness.py merges them."""
+    replaces an earlier one (benchmarks.records.merge_records)."""
     records: list[dict[str, Any]] = []
     for p in paths:
-        data = json.loads(Path(p).read_text())
-        records = merge_records(records, data if isinstance(data, list) else [data])
+        records = merge_records(records, records_in(Path(p)))
     return records
+
+
+# ---------------------------------------------------------------------------------------------- docs/curves.md
+
+
+MEASURE = (
+    "How the points alone on the GPU are measured (`benchmarks/remote/solo.sh`): a queue of runs trained one after "
+    "another on one GPU, each scored at its milestones (1k, 2k, 5k, 10k, 15k, 30k up to its steps) right after it "
+    "trained, detached, so `wait` can be called again until it is done: `export WILLAGS_COMMIT=<sha>; source benchmarks/remote/env.sh; "
+    'SOLO_DATA=.gpu-data bash benchmarks/remote/solo.sh start "reichstag:peer:15000 reichstag:willags:30000 '
+    'reichstag:willags:30000:42:5"` then `bash benchmarks/remote/solo.sh wait $OUT 570` in that call and each next '
+    "one (`scene:method:steps[:seed[:budget minutes]]`; the last form trains under the time budget: no point of a "
+    "curve, docs/benchmarks.md lists it with the long runs), then "
+    "`python -m benchmarks merge <the long-*.json, as one list>` and "
+    "`python -m benchmarks curves`."
+)
+"""How the missing points get measured (printed in the markdown)."""
+
+
+def scene_table(points: Sequence[Point]) -> list[str]:
+    """Markdown rows: every run, its time, GPU, sharing and Pareto mark."""
+    flags = pareto_flags(points)
+    out = [
+        "| method | steps | train s | PSNR | GPU | GPU shared | from | tag | Pareto |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for p, pareto in zip(points, flags, strict=True):
+        t = "not recorded" if p.train_s is None else f"{p.train_s:.0f}"
+        share = p.sharing.label() + (f" ({p.sharing.why})" if p.sharing.why else "")
+        out.append(
+            f"| {p.method} | {p.steps} | {t} | {p.psnr:.2f} | {p.gpu} | {share} | {p.source} | {p.tag or '–'} "
+            f"| {'*' if pareto else ''} |"
+        )
+    return out
+
+
+def render_markdown(
+    by_scene: dict[str, list[Point]],
+    pngs: dict[str, Path],
+    skipped: dict[str, int],
+    sources: Sequence[str],
+) -> str:
+    out = [
+        "# Speed vs accuracy: PSNR against training time",
+        "",
+        f"Generated by `python -m benchmarks curves` from {', '.join(f'`{s}`' for s in sources)}; do not edit by hand. "
+        "Right-half PSNR under the NeRF-W protocol (latent fitted on the left half of each test image). **train s**: "
+        "training wall time (set-up and evaluation excluded). **GPU shared**: runs on the GPU at once while this one "
+        "trained (`alone`: measured alone; `shared`: a shared-GPU time, longer than the method's own cost; the source "
+        "in brackets). Long runs contribute one point per scored milestone; a milestone inside a segment of an older "
+        "record has no measured time (`not recorded`) and stays out of the plot and the Pareto marks. `*`: "
+        "Pareto-optimal among the timed runs of the scene (no run is both faster and better); shared and alone "
+        "times are compared as recorded. Each method's PSNR at each step count and at equal training time: "
+        "[results.md](results.md).",
+        "",
+        "## What the records hold",
+        "",
+        "| scene | runs × step counts (timed) | methods: step counts | plot |",
+        "|---|---|---|---|",
+    ]
+    for scene, points in by_scene.items():
+        timed = sum(p.train_s is not None for p in points)
+        methods = "; ".join(
+            f"{m}: {', '.join(str(s) for s in sorted({p.steps for p in points if p.method == m}))}"
+            for m in CURVE_METHODS
+            if any(p.method == m for p in points)
+        )
+        plot = (
+            f"[curves_{scene}.png]({pngs[scene].name})" if scene in pngs else "none (no method timed at 2 step counts)"
+        )
+        out.append(f"| {scene} | {len(points)} ({timed}) | {methods or '–'} | {plot} |")
+    missing = [m for m in CURVE_METHODS if not any(p.method == m for ps in by_scene.values() for p in ps)]
+    if missing:
+        out += ["", f"No records of {', '.join(missing)} on these scenes."]
+    out += ["", MEASURE]
+    if any(skipped.values()):
+        out += [
+            "",
+            "Left out: " + ", ".join(f"{n} {why}" for why, n in skipped.items() if n) + ".",
+        ]
+    for scene, points in by_scene.items():
+        out += [f"## {scene}", ""]
+        if scene in pngs:
+            out += [f"![{scene}: PSNR vs training time]({pngs[scene].name})", ""]
+        out += scene_table(points) + [""] if points else ["No records.", ""]
+    return "\n".join(out)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--records", nargs="+", default=[str(RECORDS)])
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES))
+    ap.add_argument("--out-dir", default=str(REPO / "docs"), help="where curves_<scene>.png go")
+    ap.add_argument("--md", default=None, help="markdown output (default: <out-dir>/curves.md)")
+    args = ap.parse_args(argv)
+    records = load_records([Path(p) for p in args.records])
+    grids = grid_descriptions()
+    skipped = {
+        "failed runs": sum(r.get("status", "ok") != "ok" for r in records if r.get("scene") in args.scenes),
+        "records with a tree_note (not a clean record of their method)": sum(
+            bool(r.get("tree_note")) for r in records if r.get("scene") in args.scenes
+        ),
+    }
+    by_scene = {s: scene_points(records, s, grids=grids) for s in args.scenes}
+    out_dir = Path(args.out_dir)
+    pngs = {s: plot_scene(pts, out_dir / f"curves_{s}.png") for s, pts in by_scene.items() if has_curve(pts)}
+    md = Path(args.md) if args.md else out_dir / "curves.md"
+    sources = [
+        str(Path(p).resolve().relative_to(REPO)) if Path(p).resolve().is_relative_to(REPO) else p for p in args.records
+    ]
+    md.write_text(render_markdown(by_scene, pngs, skipped, sources) + "\n")
+    for s, pts in by_scene.items():
+        print(
+            f"curves: {s}: {len(pts)} points ({sum(p.train_s is not None for p in pts)} timed)"
+            + (f" -> {pngs[s]}" if s in pngs else " (no plot)")
+        )
+    print(f"curves: {md}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,13 +1,11 @@
-"""A full-length training run (30k steps by default) in time-limited segments, scored at milestones.
+"""A full-length training run (30k steps by default), trained in time-limited segments, scored at milestones.
 
-For machines whose commands are time-limited, a 30k-step run is trained in segments: each `train` call resumes from
-the run's newest checkpoint (nerfstudio's --load-dir mechanism: parameters, optimiser and scheduler states), trains
-until its time budget, writes a checkpoint at the end of the last step it finished and stops. Milestone checkpoints
-(--milestones) are kept, with the train seconds from the run's first step to the end of each milestone's step
-(measured, so a milestone inside a segment has its own time); `eval` scores each milestone under the NeRF-W protocol
-once. Everything it learns goes into RUN_DIR/state.json (train seconds per segment and per milestone, runs sharing
-the GPU per segment, steps, scores), which `record` turns into a benchmarks/records/benchmarks.json record
-(benchmarks/curves.py draws PSNR vs time from the milestones).
+Each `train` call resumes from the run's newest checkpoint (nerfstudio's --load-dir: parameters, optimiser and
+scheduler states), trains until its time budget (--budget-s), writes a checkpoint at the last step it finished and
+stops. Milestone checkpoints (--milestones) are kept with the train seconds to the end of each milestone's step;
+`eval` scores each milestone under the NeRF-W protocol once. RUN_DIR/state.json holds what the run learns (train
+seconds per segment and milestone, runs sharing the GPU, scores); `record` makes it a record of
+benchmarks/records/benchmarks.json (benchmarks/curves.py draws PSNR vs time from its milestones).
 
     python -m benchmarks long-run train  --method willags --data .gpu-data/reichstag --run-dir /tmp/lr/willags --budget-s 480
     python -m benchmarks long-run eval   --run-dir /tmp/lr/willags
@@ -78,21 +76,6 @@ def _patch_resume(model_cls) -> None:
     model_cls.load_state_dict = load_state_dict
 
 
-def _patch_splatfacto_resume() -> None:
-    from nerfstudio.models.splatfacto import SplatfactoModel
-
-    _patch_resume(SplatfactoModel)
-
-
-def _patch_peer_resume() -> None:
-    from benchmarks.peer import patch_peer
-
-    patch_peer()  # offline, as in the grid runs; puts the peer's package on the path
-    import splatfactow.splatfactow_model as pm  # type: ignore[import-not-found]
-
-    _patch_resume(pm.SplatfactoWModel)
-
-
 def _setup(
     method: str,
     data: Path,
@@ -111,16 +94,23 @@ def _setup(
     import numpy as np
     import torch
 
-    from benchmarks.child import _patch_stock_splatfacto
+    from benchmarks.child import patch_stock_splatfacto
     from benchmarks.methods import METHODS, build_config, is_peer
 
     base = METHODS[method].base
     if base == "splatfacto" or is_peer(base):
-        _patch_stock_splatfacto()  # as the grid runs do (offline LPIPS)
+        patch_stock_splatfacto()  # as the grid runs do (offline LPIPS)
     if base == "splatfacto":
-        _patch_splatfacto_resume()
+        from nerfstudio.models.splatfacto import SplatfactoModel
+
+        _patch_resume(SplatfactoModel)
     elif is_peer(base):
-        _patch_peer_resume()
+        from benchmarks.peer import patch_peer
+
+        patch_peer()  # offline, as in the grid runs; puts the peer's package on the path
+        import splatfactow.splatfactow_model as pm  # type: ignore[import-not-found]
+
+        _patch_resume(pm.SplatfactoWModel)
     config = build_config(
         method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
     )
@@ -218,6 +208,13 @@ def train(args) -> int:
 
     def after_step(step: int) -> None:
         last[0] = step
+        if args.check_finite:  # every parameter and gradient finite after every step (docs/reliability.md, row 19)
+            named = trainer.pipeline.model.named_parameters()
+            bad = [
+                n for n, p in named if not p.isfinite().all() or (p.grad is not None and not p.grad.isfinite().all())
+            ]
+            if bad:
+                raise RuntimeError(f"long_run: non-finite at step {step}: {bad[:20]}")
         knob_end = budget is not None and budget.stopped_after == step  # the knob ends the run after this step
         if step in milestones or step == args.steps - 1 or knob_end:
             if torch.cuda.is_available():
@@ -240,7 +237,8 @@ def train(args) -> int:
     t0[0] = time.perf_counter()
     stopped = False
     try:
-        trainer.train()
+        with torch.autograd.set_detect_anomaly(args.check_finite):  # a NaN made in a backward op raises at that op
+            trainer.train()
     except Stop:
         stopped = True
     if torch.cuda.is_available():
@@ -318,12 +316,11 @@ def record(args) -> int:
     milestone."""
     import datetime as _dt
 
-    from benchmarks.runner import _git_commit, machine_description
-
-    run_dir = Path(args.run_dir)
-    state = _state(run_dir)
     import torch
 
+    from benchmarks.grid import git_commit, machine_description
+
+    state = _state(Path(args.run_dir))
     segs = state["segments"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
     times = state.get("milestone_train_s", {})
@@ -351,7 +348,7 @@ def record(args) -> int:
         },
         "date": _dt.datetime.now().isoformat(timespec="seconds"),
         "machine": machine_description(device),
-        "commit": _git_commit(),
+        "commit": git_commit(),
         "status": "ok",
     }
     if state.get("time_budget") is not None:
@@ -387,6 +384,7 @@ def main(argv=None) -> int:
         default=None,
         help="train under willags' time budget (--pipeline.time-budget-minutes); --steps is the cap",
     )
+    t.add_argument("--check-finite", action="store_true", help="anomaly mode; stop at a non-finite parameter or grad")
     sub.choices["eval"].add_argument("--train-views", type=int, default=8)
     r = sub.choices["record"]
     r.add_argument("--tag", required=True)

@@ -1,30 +1,16 @@
 """Where a training step's time goes: one method on one scene, a window of steps under torch.profiler.
 
-A whole run of the default takes longer than splatfacto's even where it has fewer Gaussians (docs/design.md, Speed):
-the difference is outside the rasteriser.
-This splits a step into what the profiler sees, for willags and splatfacto alike, so the next change is chosen from
-a measurement:
+    python -m benchmarks profile --method willags --data .gpu-r/reichstag --warmup 3000 --steps 50 --out $OUT/p.json
 
-- ``wall_ms``: wall time per step over ``--steps`` steps without the profiler (the device synchronised at both ends);
-  the next ``--steps`` steps run under it (``profiled_wall_ms``: their wall time, the profiler's own cost included);
-- ``device_ms``: kernel time per step on the GPU (0 on the CPU); wall minus it is time the GPU waited on the host;
-- ``launches``: kernel launches per step (CUDA), or aten operators per step on the CPU;
-- ``syncs`` / ``sync_sites``: host-device synchronisations per step and the willags_ns / nerfstudio / gsplat line
-  that forced each (``torch.cuda.set_sync_debug_mode``; CUDA only: on the CPU nothing waits);
-- ``top_host`` / ``top_device``: the operators with the most self CPU / device time per step.
-- ``components``: per step, host ms, device ms, launches (CUDA; aten operators on the CPU) and calls of the parts
-  of a step that both methods share by name (the model's get_outputs, get_metrics_dict, get_loss_dict; the
-  densification strategy; the optimisers; the next photo) and willags' own (its colours, rasterisation, background), each timed
-  under a ``torch.profiler.record_function`` label. Inclusive and nested (a step's colours are inside its
-  get_outputs); the backward pass is what the labels leave out. The default's step launches more kernels than
-  splatfacto's (docs/design.md, Speed); this says which part owns them.
-
-    python -m benchmarks profile --method willags --data .gpu-r/reichstag --warmup 3000 --steps 50 \\
-        --out $OUT/profile-reichstag-willags.json
-
-Steps are splatfacto's stock schedule (as `ns-train <method>`); ``--warmup`` puts the window past the resolution
-schedule's switches (1/4 resolution to step 3000, 1/2 to 6000) where the runs spend most of their time. The run
-trains in a scratch directory (``--run-dir``) and is not kept.
+Trains ``--warmup`` steps with splatfacto's stock schedule (as `ns-train <method>`; 3000 puts the window past the
+resolution schedule's first switch), times the next ``--steps`` without the profiler (``wall_ms``) and profiles the
+``--steps`` after them, in a scratch directory that is not kept. Per step: ``device_ms`` (kernel time; wall minus it is
+time the GPU waited on the host), ``launches`` (kernel launches on CUDA, aten operators on the CPU), ``syncs`` and
+``sync_sites`` (host-device synchronisations and the willags_ns / nerfstudio / gsplat line that forced each, CUDA
+only), ``top_host`` / ``top_device`` (the operators with the most self time) and ``components``: host ms, device ms,
+launches and calls of the parts of a step (the model's get_outputs, colours, rasterisation, background, metrics and
+loss; the densification strategy; the optimisers; the next photo), each under a ``record_function`` label, inclusive
+and nested (the colours are inside get_outputs; the backward pass is what the labels leave out).
 """
 
 import argparse
@@ -135,18 +121,17 @@ def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str
         return float(getattr(r, "self_device_time_total", getattr(r, "self_cuda_time_total", 0.0)) or 0.0)
 
     device_total = sum(device_us(r) for r in rows) if on_cuda else 0.0
-    by_host = sorted(rows, key=lambda r: r.self_cpu_time_total, reverse=True)[:top]
-    by_device = sorted(rows, key=device_us, reverse=True)[:top] if on_cuda else []
+
+    def top_by(us) -> list[dict[str, Any]]:
+        best = sorted(rows, key=us, reverse=True)[:top]
+        return [{"op": r.key, "calls": r.count / steps, "self_ms": us(r) / 1000.0 / steps} for r in best]
+
     return {
         "device_ms": device_total / 1000.0 / steps,
         "launches": (launches if on_cuda else aten) / steps,
         "aten_ops": aten / steps,
-        "top_host": [
-            {"op": r.key, "calls": r.count / steps, "self_ms": r.self_cpu_time_total / 1000.0 / steps} for r in by_host
-        ],
-        "top_device": [
-            {"op": r.key, "calls": r.count / steps, "self_ms": device_us(r) / 1000.0 / steps} for r in by_device
-        ],
+        "top_host": top_by(lambda r: r.self_cpu_time_total),
+        "top_device": top_by(device_us) if on_cuda else [],
     }
 
 

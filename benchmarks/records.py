@@ -1,9 +1,8 @@
 """The records: where they are, a record's key, merging new records into old ones, reading and writing the JSON.
 
-Every run record lives under ``benchmarks/records/``: ``benchmarks.json`` holds the merged records every table and
-curve is generated from (docs/benchmarks.md, docs/curves.md, docs/results.md); ``gpu_runs/`` and ``cpu_runs/`` hold
-the files runs brought back as they wrote them (``*_details.json``: per-case details the merged records leave out).
-The markdown is written by :func:`benchmarks.tables.write_outputs`."""
+``benchmarks/records/benchmarks.json`` holds the merged records every generated page comes from (docs/benchmarks.md,
+docs/curves.md, docs/results.md); ``gpu_runs/`` and ``cpu_runs/`` the files runs brought back, as they wrote them;
+``regions/`` the region scores (:mod:`benchmarks.regions`)."""
 
 import json
 from pathlib import Path
@@ -14,8 +13,6 @@ RECORDS_DIR = REPO / "benchmarks" / "records"
 """The one place for run records (outside the package and outside docs/)."""
 RECORDS = RECORDS_DIR / "benchmarks.json"
 """The merged records."""
-GPU_RUNS = RECORDS_DIR / "gpu_runs"
-"""Records as GPU runs (and a few CPU runs of the time budget) brought them back, before merging."""
 
 
 def record_key(rec: dict[str, Any]) -> tuple:
@@ -47,11 +44,11 @@ def write_records(records: list[dict[str, Any]], path: Path) -> Path:
     """Write the records to `path` in file order (:func:`sort_records`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(sort_records(records), indent=1, sort_keys=True, default=_json_default) + "\n")
+    path.write_text(json.dumps(sort_records(records), indent=1, sort_keys=True, default=json_default) + "\n")
     return path
 
 
-def _json_default(o):
+def json_default(o):
     if isinstance(o, Path):
         return str(o)
     if hasattr(o, "item"):

@@ -178,15 +178,10 @@ def region_scores(errors: Sequence[np.ndarray], labels: Sequence[np.ndarray]) ->
 
 
 def _camera_params(cameras, i: int) -> dict[str, Any]:
-    return {
-        "c2w": cameras.camera_to_worlds[i].detach().cpu().numpy().astype(np.float64),
-        "fx": float(cameras.fx[i]),
-        "fy": float(cameras.fy[i]),
-        "cx": float(cameras.cx[i]),
-        "cy": float(cameras.cy[i]),
-        "w": int(cameras.width[i]),
-        "h": int(cameras.height[i]),
-    }
+    """c2w [3, 4], fx, fy, cx, cy, w, h of camera ``i`` as numpy and Python numbers."""
+    p = {k: float(getattr(cameras, k)[i]) for k in ("fx", "fy", "cx", "cy")}
+    p.update(w=int(cameras.width[i]), h=int(cameras.height[i]))
+    return {"c2w": cameras.camera_to_worlds[i].detach().cpu().numpy().astype(np.float64), **p}
 
 
 def _render_geometry(model, cameras, i: int, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -211,16 +206,8 @@ def training_views(model, cameras, max_side: int = 200) -> list[dict[str, Any]]:
         scale = min(1.0, max_side / max(p["w"], p["h"]))
         depth, _ = _render_geometry(model, cameras, i, scale)
         sy, sx = depth.shape[0] / p["h"], depth.shape[1] / p["w"]
-        views.append(
-            {
-                "c2w": p["c2w"],
-                "fx": p["fx"] * sx,
-                "fy": p["fy"] * sy,
-                "cx": p["cx"] * sx,
-                "cy": p["cy"] * sy,
-                "depth": depth,
-            }
-        )
+        scaled = {"fx": p["fx"] * sx, "fy": p["fy"] * sy, "cx": p["cx"] * sx, "cy": p["cy"] * sy}
+        views.append({"c2w": p["c2w"], **scaled, "depth": depth})
     return views
 
 
@@ -241,9 +228,8 @@ class RegionDump:
     def save(
         self, path: Path, names: Sequence[str], model=None, train_cameras=None, test_cameras=None, points=None
     ) -> Path:
-        """Writes the error maps (as root mean squares in float16: :func:`read_errors` squares them back); with a
-        ``model`` and its cameras also the geometry and the photos' right halves (the picture's); with the SfM
-        ``points`` [N, 3] (the model's world) each test view's far depth."""
+        """Writes the error maps (as root mean squares in float16); with a ``model`` and its cameras also the geometry
+        and the photos' right halves (the picture's); with the SfM ``points`` [N, 3] each test view's far depth."""
         arrays: dict[str, Any] = {"names": np.array(list(names)[: len(self.errors)])}
         for i, e in enumerate(self.errors):
             arrays[f"rms_{i}"] = np.sqrt(e).astype(np.float16)
@@ -258,18 +244,7 @@ class RegionDump:
                 arrays[f"acc_{i}"] = block_mean(right_half(acc)).astype(np.float32)
                 arrays[f"depth_{i}"] = block_mean(right_half(depth)).astype(np.float32)
                 if points is not None:
-                    arrays[f"far_{i}"] = np.float64(
-                        far_depth(
-                            np.asarray(points, dtype=np.float64),
-                            p["c2w"],
-                            p["fx"],
-                            p["fy"],
-                            p["cx"],
-                            p["cy"],
-                            p["w"],
-                            p["h"],
-                        )
-                    )
+                    arrays[f"far_{i}"] = np.float64(far_depth(np.asarray(points, dtype=np.float64), **p))
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(path, **arrays)
         return path
@@ -311,15 +286,10 @@ def load_dumps(folder: Path) -> dict[str, dict[str, list[dict[str, np.ndarray]]]
 
 
 def _images(run: dict[str, np.ndarray], key: str) -> list[np.ndarray]:
+    """A dump's maps of one kind, in test-image order; "err": the squared errors (stored as their square roots)."""
     if key == "err":
-        return read_errors(run)
+        return [x.astype(np.float64) ** 2 for x in _images(run, "rms")]
     return [run[f"{key}_{i}"] for i in range(len(run["names"])) if f"{key}_{i}" in run]
-
-
-def read_errors(run: dict[str, np.ndarray]) -> list[np.ndarray]:
-    """The squared-error maps of a dump (stored as their square roots)."""
-    n = len(run["names"])
-    return [run[f"rms_{i}"].astype(np.float64) ** 2 for i in range(n) if f"rms_{i}" in run]
 
 
 def reference_run(runs: dict[str, list[dict[str, np.ndarray]]]) -> dict[str, np.ndarray] | None:
@@ -372,17 +342,12 @@ def region_picture(path: Path, thumbs: Sequence[np.ndarray], labels: Sequence[np
     """Each test image's right half above its regions (overlaid at half strength), side by side."""
     from PIL import Image
 
-    cols = []
-    height = 160
+    cols, height = [], 160
     for t, lab in zip(thumbs, labels, strict=False):
-        h, w = lab.shape
-        img = t[:h, :w].astype(np.float32)
-        over = 0.5 * img + 0.5 * COLOURS[lab]
-        col = np.concatenate([img, over], axis=0).astype(np.uint8)
-        im = Image.fromarray(col)
+        img = t[: lab.shape[0], : lab.shape[1]].astype(np.float32)
+        im = Image.fromarray(np.concatenate([img, 0.5 * img + 0.5 * COLOURS[lab]], axis=0).astype(np.uint8))
         cols.append(im.resize((max(1, round(im.width * 2 * height / im.height)), 2 * height)))
-    sheet = Image.new("RGB", (sum(c.width for c in cols), 2 * height), "white")
-    x = 0
+    sheet, x = Image.new("RGB", (sum(c.width for c in cols), 2 * height), "white"), 0
     for c in cols:
         sheet.paste(c, (x, 0))
         x += c.width

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
 FAKE_PYTHON = """#!/usr/bin/env bash
 # a stand-in for python3: `-c` code runs in the real interpreter; benchmarks.long_run commands are logged and faked
 if [ "$1" = "-c" ]; then
-  case "$2" in *_warm_gsplat*) exit 0;; esac
+  case "$2" in *warm_gsplat*) exit 0;; esac
   exec {real} "$@"
 fi
 shift 2; cmd=$1; shift

@@ -86,7 +86,7 @@ def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_i
     data = small_scene(tmp_path / "appearance", appearance=1.0, transients=0.0)
     run = tmp_path / "run"
     args = ["train", "--method", "willags", "--data", str(data), "--run-dir", str(run), "--steps", "4"]
-    assert long_run.main([*args, "--milestones", "2,4", "--budget-s", "1000"]) == 0
+    assert long_run.main([*args, "--milestones", "2,4", "--budget-s", "1000", "--check-finite"]) == 0
     state = json.loads((run / long_run.STATE).read_text())
     assert sorted(state["milestone_train_s"], key=int) == ["2", "4"]
 
@@ -129,3 +129,29 @@ def test_a_run_killed_after_a_milestone_keeps_its_time_and_is_scored_there(tmp_p
     (seg,) = state["segments"]
     assert seg["end_step"] == 2 and seg["train_s"] == state["milestone_train_s"]["3"]
     assert long_run._ckpt_steps(run) == [2]
+
+
+def test_check_finite_stops_at_the_first_non_finite_parameter(tmp_path, monkeypatch):
+    """docs/reliability.md, row 19: with --check-finite a run stops at the step after which a parameter is not finite,
+    naming it."""
+    import pytest
+    import torch
+
+    from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
+    from willags_ns.engine.trainer import WillagsTrainer
+
+    cfg = SyntheticSceneConfig(num_train=8, num_test=2, width=32, height=24, num_points=400, supersample=1)
+    scene = write_scene(make_scene(cfg), tmp_path / "scene")
+    train_iteration = WillagsTrainer.train_iteration
+
+    def poisoned_at_step_2(self, step):
+        out = train_iteration(self, step)
+        if step == 2:
+            with torch.no_grad():
+                self.pipeline.model.gauss_params["opacities"][0] = float("nan")
+        return out
+
+    monkeypatch.setattr(WillagsTrainer, "train_iteration", poisoned_at_step_2)
+    argv = ["train", "--run-dir", str(tmp_path / "run"), "--method", "willags-3dgs", "--data", str(scene)]
+    with pytest.raises(RuntimeError, match=r"non-finite at step 2: \['gauss_params.opacities'\]"):
+        long_run.main([*argv, "--steps", "8", "--milestones", "8", "--budget-s", "1e9", "--check-finite"])

@@ -1,20 +1,14 @@
 #!/usr/bin/env bash
-# (scene, method[, tag, seed]) pairs of a grid (configs/benchmark_gpu_*.json) on one GPU, one harness process per
-# pair, at most $JOBS at once (the runs are mostly launch/Python-bound at ~100k-300k Gaussians, so they share a
-# large GPU well; train times are then shared-GPU times). Source benchmarks/remote/env.sh first.
+# (scene, method[, tag, seed]) pairs of a grid (configs/benchmark_gpu_*.json) on one GPU, one `python -m benchmarks
+# run` per pair, at most $JOBS at once (train times are then shared-GPU times). Source benchmarks/remote/env.sh first.
 #
 #   GRID=configs/benchmark_gpu_fidelity.json JOBS=12 bash benchmarks/remote/grid.sh run OUT scene:method[:tag[:seed]] ...
-#   SHARED_DATA=".gpu-lib .gpu-r" GRID=configs/benchmark_gpu_fidelity.json JOBS=12 \
-#     bash benchmarks/remote/grid.sh start "liberty:peer:h200-l1:42 liberty:willags:h200-l1:42 ..."
+#   SHARED_DATA=".gpu-lib .gpu-r" GRID=... bash benchmarks/remote/grid.sh start "liberty:peer:h200-l1:42 ..."
 #   bash benchmarks/remote/grid.sh wait $OUT 540      # again until done: each brings back what finished
 #
-# `run OUT PAIRS...` runs them in the foreground. Records: OUT/<scene>-<method>-<tag>.json; the tail of each log:
-# OUT/logs.txt.
-# `start PAIRS` runs them detached (setsid), so they outlive the shell that started them: it copies the tree to
-# $SHARED_DIR/wrk (/tmp/shared; a later copy of the tree changes nothing under a running run) and the scenes of the
-# folders in SHARED_DATA to its .gpu-data, then `run`s there.
-# `wait OUT SECONDS` returns once every pair finished or after SECONDS, and tars the records, the logs and the
-# pictures (WILLAGS_BENCH_RENDERS) to OUT/shared-records.tgz.
+# `run` runs them in the foreground (records: OUT/<scene>-<method>-<tag>.json, log tails: OUT/logs.txt); `start`
+# detached (setsid) from a copy of the tree and of the SHARED_DATA scenes in $SHARED_DIR/wrk (/tmp/shared); `wait`
+# returns once every pair finished or after SECONDS and tars the records, logs and pictures to OUT/shared-records.tgz.
 set -u
 run_grid() {  # OUT PAIRS...
   local out=$1; shift
@@ -27,7 +21,7 @@ run_grid() {  # OUT PAIRS...
   names=$(for pair in "$@"; do IFS=: read -r scene method tag seed <<< "$pair"; echo "$scene-$method${tag:+-$tag}"; done)
   dups=$(echo "$names" | sort | uniq -d)
   [ -n "$dups" ] && { echo "gpu_grid: pairs share a record name (give each repeat its own tag): $dups" >&2; exit 2; }
-  python3 -c "from benchmarks.harness import _warm_gsplat; _warm_gsplat()" || exit 1
+  python3 -c "from benchmarks.grid import warm_gsplat; warm_gsplat()" || exit 1
   for pair in "$@"; do
     IFS=: read -r scene method tag seed <<< "$pair"
     name="$scene-$method${tag:+-$tag}"

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A queue of runs ALONE on the GPU, one after another (their train times are the methods' own), each scored at its
-# milestones right after it trained (one evaluation process per milestone, nothing training meanwhile). The curves
-# (benchmarks/curves.py) and the time budget's check come from it. Source benchmarks/remote/env.sh first.
+# milestones right after it trained (one evaluation process per milestone, nothing training meanwhile): the curves
+# (benchmarks/curves.py) come from it. Source benchmarks/remote/env.sh first.
 #
 #   SOLO_DATA=".gpu-data" bash benchmarks/remote/solo.sh start "reichstag:peer:15000 reichstag:willags:30000 ..."
 #   SOLO_DATA=".gpu-sb" bash benchmarks/remote/solo.sh wait $OUT 560   # copies new scenes, brings back the records
@@ -9,27 +9,17 @@
 # A run is scene:method:steps[:seed[:budget_minutes]]: a benchmarks/methods.py method trained to `steps` with
 # splatfacto's stock schedule (the learning-rate schedules do not depend on the step count, so the 15k point of a
 # 30k run is a 15k run), scored at 1000, 2000, 5000, 10000, 15000 and 30000 up to `steps` (SOLO_MILESTONES: another
-# list; SOLO_SCORE: only these). With budget_minutes it is `--pipeline.time-budget-minutes` instead (the budget
-# chooses the preset and when to stop; `steps` is the cap), scored where it stopped. The seed defaults to 42.
+# list; SOLO_SCORE: only these); with budget_minutes under `--pipeline.time-budget-minutes`, scored where it stopped.
+# The queue runs detached (setsid) from a copy of the tree in $SOLO_DIR (/tmp/solo). Scenes are copied from the folders
+# in SOLO_DATA by `start` and by every `wait`; runs whose scene is missing wait at the back of the queue (up to
+# SOLO_WAIT_S, 900 s); no run starts after SOLO_DEADLINE_S (1560 s). Records: $SOLO_DIR/rec/long-<run>.json (tag
+# SOLO_TAG, default h200-curve; -s<seed> for other seeds, -knob<min> for budget runs), tarred by `wait` to
+# OUT/solo-records.tgz with the logs.
 #
-# The queue runs detached (setsid) from a copy of the tree in $SOLO_DIR (/tmp/solo), so it outlives the shell that
-# started it, and a later copy of the tree changes nothing under a running run. Scenes are copied to $SOLO_DIR/data
-# from the folders in SOLO_DATA by `start` and by every `wait`: a scene that arrives later is trained once it is
-# there; runs whose scene is missing wait at the back of the queue (up to SOLO_WAIT_S, 900 s). No run starts after
-# SOLO_DEADLINE_S (1560 s) from `start`. Records: $SOLO_DIR/rec/long-<run>.json (tag SOLO_TAG, default h200-curve;
-# -s<seed> for other seeds, -knob<min> for budget runs), which `wait` tars to OUT/solo-records.tgz with the logs.
-#
-# Several queues side by side on one GPU (`queues`): the runs of a queue one after another, the queues at the same
-# time (their train times are then shared-GPU times; scores do not depend on them), for grids too long to run one at
-# a time, e.g. every method of a scene trained to 15k for the region table:
-#   export WILLAGS_BENCH_REGIONS=/tmp/regions SOLO_MILESTONES="5000 10000 15000" SOLO_DATA=".gpu-r .gpu-lib"
-#   bash benchmarks/remote/solo.sh queues start "reichstag:peer-full:15000" "reichstag:willags:15000 liberty:willags:15000"
-#   bash benchmarks/remote/solo.sh queues wait $OUT 540   # again until done; each call copies scenes that arrived
-# `queues wait OUT SECONDS` gives every queue the scenes in SOLO_DATA, returns once every queue is done or after
-# SECONDS, and packs every queue's records and logs into OUT/queues.tgz, the region maps ($WILLAGS_BENCH_REGIONS) into
-# OUT/regions.tgz.
-# On a machine of several GPUs the queues are spread over them, queue i on the i-th (round robin; QUEUE_GPUS="0 2"
-# picks the list); `queues add QUEUE...` starts more queues beside the running ones.
+# `queues start|add QUEUE...` runs several queues side by side (their train times are then shared-GPU times; scores
+# do not depend on them), queue i on GPU i of QUEUE_GPUS (default: every GPU, round robin); `queues wait OUT SECONDS`
+# packs every queue's records and logs into OUT/queues.tgz and the region maps ($WILLAGS_BENCH_REGIONS) into
+# OUT/regions.tgz: the side-by-side grid of docs/results.md ("How the records were made").
 set -u
 S=${SOLO_DIR:-/tmp/solo}  # (tests point it elsewhere)
 export SOLO_DIR=$S
@@ -88,7 +78,7 @@ run_one() {
 loop() {
   cd "$S/wrk" || exit 1
   export PYTHONPATH=/tmp/site:$S/wrk/.whl-gpu/stub:$S/wrk
-  python3 -c "from benchmarks.harness import _warm_gsplat; _warm_gsplat()" || { touch "$S/done"; exit 1; }
+  python3 -c "from benchmarks.grid import warm_gsplat; warm_gsplat()" || { touch "$S/done"; exit 1; }
   local t0 todo=() left=() waited=0 run scene m steps seed bm
   t0=$(cat "$S/t0")
   read -r -a todo < "$S/queue"

@@ -289,11 +289,11 @@ def test_training_keeps_a_switch_the_user_changed_from_the_preset(tmp_path, scen
 
 
 def test_on_liberty_the_default_resolves_to_the_measured_surround_sky_without_mask(shared_data):
-    """The default's model on liberty, after inspection, is exactly `willags-skyalpha-nomask`'s (the configuration
-    whose records stand for it in docs/benchmarks.md, benchmarks/every_scene.py)."""
+    """The default's model on liberty, after inspection, is exactly the measured `willags-skyalpha-nomask`'s: the
+    full model without the mask, with the sky behind every pixel and its alpha penalty."""
     import dataclasses
 
-    from benchmarks.methods import METHODS, set_nested
+    from benchmarks.methods import set_nested
 
     resolved = willags_model_config()
     summary = apply_auto_config(resolved, shared_data / "liberty")
@@ -303,6 +303,7 @@ def test_on_liberty_the_default_resolves_to_the_measured_surround_sky_without_ma
         "sky.alpha_penalty": [0.0, 0.1],
     }
     measured = willags_model_config()
-    for key, value in METHODS["willags-skyalpha-nomask"].overrides:
+    skyalpha_nomask = (("sky.enabled", True), ("sky.region", "everywhere"), ("sky.alpha_penalty", 0.1))
+    for key, value in (*skyalpha_nomask, ("mask.enabled", False)):
         set_nested(measured, key, value)
     assert dataclasses.asdict(resolved) == dataclasses.asdict(measured)

@@ -1,37 +1,25 @@
-"""The harness's runner: read a grid of methods x scenes x step budgets, run each in a child process, keep the
-records.
+"""Train and score a grid of methods x scenes x step budgets, each run in a child process; merge the records into
+benchmarks/records/benchmarks.json and regenerate docs/benchmarks.md.
 
-    python -m benchmarks run --grid configs/benchmark_cpu.json
+    python -m benchmarks run --grid configs/benchmark_cpu.json             # --dry-run lists the runs
+    python -m benchmarks run --grid configs/benchmark_cpu.json --out /tmp/b   # /tmp/b.json, /tmp/b.md
+    python -m benchmarks merge gpu_out/records.json                        # records fetched from a GPU machine
 
-Each (scene, method, steps) run is a *subprocess* (``python -m benchmarks.harness child SPEC RESULT``, run from the
-repository root; its side is :mod:`benchmarks.child`), so peak memory and the global state nerfstudio keeps
-(writers, compiled kernels) belong to that run alone. The child trains in-process exactly as ``ns-train`` does
-(``config.setup() -> trainer.setup() -> trainer.train()``, vis tensorboard, no viewer, no evaluation during
-training), then measures on the test split:
-
-- the NeRF-W protocol (:func:`willags_ns.eval.protocol.evaluate_model`): PSNR / SSIM / LPIPS of the right half
-  with the latent fitted on the left half; also ``encoder_*`` (encoder latent, no fit) and ``full_*`` (whole image);
-- render FPS: median wall time of ``model.get_outputs`` per test view (eval mode, no grad, one fixed latent);
-- number of Gaussians, training wall time (``trainer.train()`` only: data loading is ``setup_s``), peak memory
-  (CUDA: ``torch.cuda.max_memory_allocated`` during training; CPU: the child's peak RSS);
-- transient-mask scores against ``masks_gt/`` when the scene has one (:mod:`willags_ns.eval.mask_eval`).
-
-The parent merges each result into ``<out>.json`` (records keyed by (scene, method, device, steps, tag); a new
-record replaces the old one with the same key, the others are kept; :mod:`benchmarks.records`) and regenerates
-``<out>.md`` from the whole file after every run, so an interrupted grid keeps what it finished.
-
-Grid file (JSON)::
+Each run is a subprocess (``python -m benchmarks.child SPEC RESULT``), so peak memory and the global state nerfstudio
+keeps belong to that run alone. Records merge into the existing JSON (:mod:`benchmarks.records`) and the markdown is
+regenerated after every run, so an interrupted grid keeps what it finished. A grid file (JSON) holds
+:data:`GRID_KEYS`, a run (one of its ``runs``) :data:`RUN_KEYS`, which override the grid's::
 
     {"device": "auto", "steps": [300], "downscale": 2, "protocol_steps": 32, "max_test_images": 4,
-     "schedule": "short", "runs": [{"scene": "../shared/data/fox-wild", "methods": ["willags", "willags-3dgs"],
-                                    "steps": [150, 300]}]}
+     "runs": [{"scene": "../shared/data/fox-wild", "methods": ["willags", "willags-3dgs"], "steps": [150, 300]}]}
 
-Run-level keys override the grid-level ones. ``scene`` is ``"default"`` (the embedded synthetic scene), a path
-(relative to the repository root) or a bare scene name looked up in ``data_roots`` (default: ../shared/data next
-to the repository, then ./data). ``downscale`` > 1 applies to path scenes: the images are resampled once into a
-mirror of the scene in the cache (``images_<k>/``, the layout nerfstudio's parsers read with ``downscale_factor``).
+``scene`` is ``"default"`` (the embedded synthetic scene), a path (relative to the repository root) or a bare scene
+name looked up in ``data_roots``, $WILLAGS_BENCH_DATA, ../shared/data next to the repository and ./data.
+``downscale`` > 1 resamples a path scene's images once into a mirror in the cache (:func:`downscaled_scene`).
 """
 
+import argparse
+import contextlib
 import dataclasses
 import datetime as _dt
 import hashlib
@@ -47,86 +35,47 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.methods import METHODS
-from benchmarks.records import load_records, merge_records
+from benchmarks.records import RECORDS, REPO, load_records, merge_records
 from benchmarks.tables import write_outputs
 
-REPO = Path(__file__).resolve().parents[1]
 
-# ---------------------------------------------------------------------------------------------- grid
-
-
-GRID_KEYS = {
-    "device": "auto",
-    "steps": [300],
-    "downscale": 1,
-    "protocol_steps": 32,
-    "protocol_lr": 0.01,
-    "max_test_images": -1,
-    "mask_max_images": -1,
-    "fps_views": 3,
-    "schedule": "short",
-    "tag": None,
-    "seed": 42,
-    "oracle": False,
-    "train_views": 8,
-    "threads": 0,
-    "timeout_s": 0,
-    "data_roots": None,
-    "description": "",
-    "runs": [],
-}
-"""Grid-level keys and defaults. threads 0: all cores; timeout_s 0: none; tag None: "ds<k>" when downscaled."""
-RUN_KEYS = {
-    "scene",
-    "methods",
-    "steps",
-    "downscale",
-    "protocol_steps",
-    "protocol_lr",
-    "max_test_images",
-    "mask_max_images",
-    "fps_views",
-    "schedule",
-    "tag",
-    "seed",
-    "oracle",
-    "train_views",
-    "timeout_s",
-}
+def scene_name(scene: str) -> str:
+    """The scene as records name it: "default" or the folder's name."""
+    return "default" if scene in ("default", "", ".") else Path(scene).name
 
 
 @dataclasses.dataclass
 class RunSpec:
-    """One (scene, method, steps) run of a grid."""
+    """One (scene, method, steps) run of a grid; every other field is a key of the grid file (grid or run level)."""
 
     scene: str
-    """As written in the grid ("default", a path, or a bare name)."""
-    scene_name: str
-    """Short name used in the records ("default", "fox-wild", ...)."""
+    """"default", a path or a bare name, as the grid writes it."""
     method: str
     steps: int
-    tag: str
-    downscale: int
-    protocol_steps: int
-    protocol_lr: float
-    max_test_images: int
-    mask_max_images: int
-    fps_views: int
-    schedule: str
-    timeout_s: float
+    tag: str = ""
+    downscale: int = 1
+    protocol_steps: int = 32
+    protocol_lr: float = 0.01
+    max_test_images: int = -1
+    mask_max_images: int = -1
+    fps_views: int = 3
+    schedule: str = "short"
+    timeout_s: float = 0.0
     seed: int = 42
-    """nerfstudio's machine.seed (repeats use different seeds and tags)."""
     oracle: bool = False
     """Also score the right half with the latent fitted on the whole test image (oracle_* keys)."""
     train_views: int = 8
     """Training views scored with their own latents (train_* keys: fitting capacity); 0 = none."""
 
-    def key(self, device: str) -> tuple:
-        return (self.scene_name, self.method, device, self.steps, self.tag)
+    @property
+    def scene_name(self) -> str:
+        return scene_name(self.scene)
 
 
-def scene_name(scene: str) -> str:
-    return "default" if scene in ("default", "", ".") else Path(scene).name
+RUN_KEYS = {f.name for f in dataclasses.fields(RunSpec)} - {"method"} | {"methods"}
+GRID_KEYS = {f.name: f.default for f in dataclasses.fields(RunSpec)[3:]}
+GRID_KEYS.update(steps=[300], tag=None, device="auto", threads=0, data_roots=None, description="", runs=[])
+"""Grid-level keys and defaults. threads 0: all cores; timeout_s 0: none; tag None: "ds<k>" when downscaled."""
 
 
 def parse_grid(grid: dict[str, Any]) -> tuple[dict[str, Any], list[RunSpec]]:
@@ -147,38 +96,16 @@ def parse_grid(grid: dict[str, Any]) -> tuple[dict[str, Any], list[RunSpec]]:
         if "scene" not in run or "methods" not in run:
             raise ValueError(f"runs[{i}] needs 'scene' and 'methods'")
         r = {k: run.get(k, settings.get(k)) for k in RUN_KEYS}
-        steps = r["steps"] if isinstance(r["steps"], list) else [r["steps"]]
+        steps = r.pop("steps") if isinstance(r["steps"], list) else [r.pop("steps")]
         if not steps or any(int(s) < 1 for s in steps):
             raise ValueError(f"runs[{i}]: steps must be positive integers, got {steps}")
-        methods = r["methods"] if isinstance(r["methods"], list) else [r["methods"]]
+        methods = r.pop("methods") if isinstance(r["methods"], list) else [r.pop("methods")]
         for m in methods:
             if m not in METHODS:
                 raise ValueError(f"runs[{i}]: unknown method {m!r}; known: {sorted(METHODS)}")
-        name = scene_name(str(run["scene"]))
-        downscale = 1 if name == "default" else int(r["downscale"] or 1)
-        tag = r["tag"] if r["tag"] is not None else (f"ds{downscale}" if downscale > 1 else "")
-        for m in methods:
-            for s in steps:
-                specs.append(
-                    RunSpec(
-                        scene=str(run["scene"]),
-                        scene_name=name,
-                        method=m,
-                        steps=int(s),
-                        tag=str(tag),
-                        downscale=downscale,
-                        protocol_steps=int(r["protocol_steps"]),
-                        protocol_lr=float(r["protocol_lr"]),
-                        max_test_images=int(r["max_test_images"]),
-                        mask_max_images=int(r["mask_max_images"]),
-                        fps_views=int(r["fps_views"]),
-                        schedule=str(r["schedule"]),
-                        timeout_s=float(r["timeout_s"] or 0),
-                        seed=int(r["seed"]),
-                        oracle=bool(r["oracle"]),
-                        train_views=int(r["train_views"]),
-                    )
-                )
+        r["downscale"] = 1 if scene_name(r["scene"]) == "default" else int(r["downscale"] or 1)
+        r["tag"] = r["tag"] if r["tag"] is not None else (f"ds{r['downscale']}" if r["downscale"] > 1 else "")
+        specs += [RunSpec(method=m, steps=int(s), **r) for m in methods for s in steps]
     return settings, specs
 
 
@@ -214,11 +141,6 @@ IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG"}
 MIRROR_MARKER = ".willags-mirror-complete"
 
 
-def bench_cache_root() -> Path:
-    base = os.environ.get("WILLAGS_CACHE")
-    return (Path(base).expanduser() if base else Path.home() / ".cache" / "willags") / "bench-scenes"
-
-
 def downscaled_scene(src: Path, factor: int, cache_root: Path | None = None) -> Path:
     """A mirror of scene `src` with `images_<factor>/` beside `images/` (the layout nerfstudio's parsers read
     with ``downscale_factor``). Everything else is symlinked; the source is never written. Images are resampled
@@ -228,12 +150,13 @@ def downscaled_scene(src: Path, factor: int, cache_root: Path | None = None) -> 
     src = Path(src).resolve()
     if factor <= 1:
         return src
-    root = Path(cache_root) if cache_root is not None else bench_cache_root()
-    h = hashlib.sha256(str(src).encode()).hexdigest()[:8]
-    dst = root / f"{src.name}-{h}-ds{factor}"
+    if cache_root is None:
+        base = os.environ.get("WILLAGS_CACHE")
+        cache_root = (Path(base).expanduser() if base else Path.home() / ".cache" / "willags") / "bench-scenes"
+    dst = Path(cache_root) / f"{src.name}-{hashlib.sha256(str(src).encode()).hexdigest()[:8]}-ds{factor}"
     if (dst / MIRROR_MARKER).is_file():
         return dst
-    tmp = root / f".{dst.name}.tmp{os.getpid()}"
+    tmp = Path(cache_root) / f".{dst.name}.tmp{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     for entry in src.iterdir():
@@ -246,8 +169,7 @@ def downscaled_scene(src: Path, factor: int, cache_root: Path | None = None) -> 
                     continue
                 im = Image.open(f)
                 im.load()
-                size = (im.width // factor, im.height // factor)
-                small = im.resize(size, resample=Image.Resampling.BOX)
+                small = im.resize((im.width // factor, im.height // factor), resample=Image.Resampling.BOX)
                 if f.suffix.lower() in (".jpg", ".jpeg"):
                     small.convert("RGB").save(out / f.name, quality=95, subsampling=0)
                 else:
@@ -259,42 +181,29 @@ def downscaled_scene(src: Path, factor: int, cache_root: Path | None = None) -> 
     return dst
 
 
-# ---------------------------------------------------------------------------------------------- parent
-
-
 def machine_description(device: str) -> str:
     import torch
 
     if device == "cuda":
         return f"{torch.cuda.get_device_name(0)} ({os.cpu_count()} CPU cores)"
     model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    with contextlib.suppress(OSError):
+        names = [
+            ln.split(":", 1)[1] for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("model n")
+        ]
+        model = names[0].strip() if names else model
     return f"{os.cpu_count()} CPU cores ({model}), no GPU"
 
 
-def _git_commit(repo: Path = REPO) -> str | None:
+def git_commit(repo: Path = REPO) -> str | None:
     """Short HEAD (+dirty) of the checkout, or $WILLAGS_COMMIT when set: a remote GPU machine may run a copy of the
-    working tree whose git metadata is not the source's (it can report another commit), so GPU commands pass the
-    commit they were written at."""
+    working tree whose git metadata is not the source's, so GPU commands pass the commit they were written at."""
     if os.environ.get("WILLAGS_COMMIT"):
         return os.environ["WILLAGS_COMMIT"]
     try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=repo,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        ).stdout.strip()
+        git = {"cwd": repo, "capture_output": True, "text": True, "timeout": 10}
+        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], **git).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], **git).stdout.strip()
         return (sha + ("+dirty" if dirty else "")) or None
     except (OSError, subprocess.SubprocessError):
         return None
@@ -319,14 +228,14 @@ def run_one(
 ) -> dict[str, Any]:
     """Run one spec in a child process; returns its record (status "ok" or "failed: ...")."""
     data = resolve_scene(spec.scene, settings.get("data_roots"))
-    downscale = spec.downscale
-    if data is not None and downscale > 1:
-        data = downscaled_scene(data, downscale)
+    if data is not None and spec.downscale > 1:
+        data = downscaled_scene(data, spec.downscale)
     run_dir = work_root / f"{spec.scene_name}-{spec.method}-{spec.steps}{('-' + spec.tag) if spec.tag else ''}-{device}"
     shutil.rmtree(run_dir, ignore_errors=True)
     run_dir.mkdir(parents=True)
     child_spec = {
         **dataclasses.asdict(spec),
+        "scene_name": spec.scene_name,
         "device": device,
         "data": str(data) if data is not None else None,
         "work_dir": str(run_dir / "out"),
@@ -334,33 +243,24 @@ def run_one(
     }
     spec_path, result_path, log_path = run_dir / "spec.json", run_dir / "result.json", run_dir / "log.txt"
     spec_path.write_text(json.dumps(child_spec, indent=1))
-    cmd = [sys.executable, "-m", "benchmarks.harness", "child", str(spec_path), str(result_path)]
+    kept = ("method", "steps", "tag", "downscale", "schedule", "seed", "protocol_steps", "max_test_images")
     rec: dict[str, Any] = {
+        **{k: getattr(spec, k) for k in kept},
         "scene": spec.scene_name,
-        "method": spec.method,
         "device": device,
-        "steps": spec.steps,
-        "tag": spec.tag,
-        "downscale": downscale,
-        "schedule": spec.schedule,
-        "protocol_steps": spec.protocol_steps,
-        "max_test_images": spec.max_test_images,
-        "seed": spec.seed,
         "method_note": METHODS[spec.method].note,
         "scene_path": spec.scene,
         "date": _dt.datetime.now().isoformat(timespec="seconds"),
         "command": command,
         "machine": machine,
-        "commit": _git_commit(),
+        "commit": git_commit(),
     }
     t = time.perf_counter()
-    timeout = spec.timeout_s or None
     with open(log_path, "w") as logf:
         try:
-            proc = subprocess.run(
-                cmd, cwd=REPO, env=_child_env(), stdout=logf, stderr=subprocess.STDOUT, timeout=timeout
-            )
-            rc = proc.returncode
+            cmd = [sys.executable, "-m", "benchmarks.child", str(spec_path), str(result_path)]
+            kw = {"cwd": REPO, "env": _child_env(), "stdout": logf, "stderr": subprocess.STDOUT}
+            rc = subprocess.run(cmd, timeout=spec.timeout_s or None, **kw).returncode
         except subprocess.TimeoutExpired:
             rc = None
     rec["wall_s"] = time.perf_counter() - t
@@ -373,8 +273,7 @@ def run_one(
         rec["status"] = f"failed ({reason})"
         rec["error_tail"] = tail
         log(f"  FAILED ({reason}); log: {log_path}\n    " + "\n    ".join(tail))
-    if rec.get("lpips") is None:
-        rec["lpips"] = None
+    rec.setdefault("lpips", None)
     if not keep_runs:
         shutil.rmtree(run_dir / "out", ignore_errors=True)
     return rec
@@ -391,30 +290,20 @@ def run_grid(
     command: str | None = None,
     log=print,
     stop_after_s: float = 0.0,
-    only_steps: Sequence[int] | None = None,
     overrides: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Run every spec of the grid (sequentially), merging each record into `<out>.json` as it finishes.
 
-    overrides: RunSpec fields set on every run (e.g. {"tag": "r2", "seed": 43} for a repeat).
-
-    stop_after_s > 0: start no new run once that many seconds have passed (for machines lent for a limited time: the
-    records of the finished runs are already written; rerun with --methods / --scenes for the rest)."""
-    grid = json.loads(Path(grid_path).read_text())
-    settings, specs = parse_grid(grid)
+    overrides: RunSpec fields set on every run (e.g. {"tag": "r2", "seed": 43} for a repeat). stop_after_s > 0:
+    start no new run once that many seconds have passed (machines lent for a limited time)."""
+    settings, specs = parse_grid(json.loads(Path(grid_path).read_text()))
     device = resolve_device(settings["device"])
-    if only_methods:
-        specs = [s for s in specs if s.method in only_methods]
-    if only_scenes:
-        specs = [s for s in specs if s.scene_name in only_scenes]
-    if only_steps:
-        specs = [s for s in specs if s.steps in set(int(x) for x in only_steps)]
-    if overrides:
-        specs = [dataclasses.replace(s, **overrides) for s in specs]
-    skipped = [s for s in specs if METHODS[s.method].needs_cuda and device != "cuda"]
-    specs = [s for s in specs if s not in skipped]
-    for s in skipped:
+    specs = [s for s in specs if (not only_methods or s.method in only_methods)]
+    specs = [s for s in specs if (not only_scenes or s.scene_name in only_scenes)]
+    specs = [dataclasses.replace(s, **(overrides or {})) for s in specs]
+    for s in [s for s in specs if METHODS[s.method].needs_cuda and device != "cuda"]:
         log(f"skip {s.scene_name}/{s.method}/{s.steps}: needs CUDA (device is {device})")
+        specs.remove(s)
     command = command or " ".join(["python"] + [str(a) for a in sys.argv])
     machine = machine_description(device)
     log(f"{len(specs)} runs on {device} ({machine}); records -> {Path(out_prefix).with_suffix('.json')}")
@@ -423,36 +312,24 @@ def run_grid(
             log(f"  {s.scene_name:22s} {s.method:16s} steps={s.steps:<6d} tag={s.tag!r} downscale={s.downscale}")
         return []
     if device == "cuda":
-        _warm_gsplat(log)
-    jpath = Path(out_prefix).with_suffix(".json")
+        warm_gsplat(log)
     done: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for i, s in enumerate(specs):
         if stop_after_s > 0 and time.perf_counter() - t0 > stop_after_s:
             log(f"stop_after_s={stop_after_s:.0f} reached: {len(specs) - i} runs not started")
             break
-        log(
-            f"[{i + 1}/{len(specs)}] {s.scene_name} {s.method} steps={s.steps} tag={s.tag!r} "
-            f"(elapsed {time.perf_counter() - t0:.0f} s)"
-        )
+        log(f"[{i + 1}/{len(specs)}] {s.scene_name} {s.method} steps={s.steps} tag={s.tag!r}")
         rec = run_one(s, device, settings, Path(work_root), command, machine, keep_runs, log)
         if rec["status"] == "ok":
-            log(
-                f"  psnr {rec.get('psnr', float('nan')):.2f}  full {rec.get('full_psnr', float('nan')):.2f}  "
-                f"train {rec['train_s']:.0f} s  N {rec['num_gaussians']}  fps {rec['fps']:.1f}"
-                + (
-                    f"  mask IoU {rec['mask_iou']:.2f} FP {rec['mask_fp_rate']:.3f}"
-                    if rec.get("mask_iou") is not None
-                    else ""
-                )
-            )
+            log(f"  psnr {rec.get('psnr', float('nan')):.2f}  train {rec['train_s']:.0f} s  N {rec['num_gaussians']}")
         done.append(rec)
-        write_outputs(merge_records(load_records(jpath), [rec]), out_prefix)
+        write_outputs(merge_records(load_records(Path(out_prefix).with_suffix(".json")), [rec]), out_prefix)
     log(f"grid done in {time.perf_counter() - t0:.0f} s")
     return done
 
 
-def _warm_gsplat(log=print) -> None:
+def warm_gsplat(log=print) -> None:
     """Build gsplat's CUDA extension once (JIT, minutes) before any timed run, so no train_s includes it."""
     code = (
         "import torch; from gsplat.rendering import rasterization as r; d='cuda'; "
@@ -463,3 +340,54 @@ def _warm_gsplat(log=print) -> None:
     t = time.perf_counter()
     subprocess.run([sys.executable, "-c", code], cwd=REPO, env=_child_env(), check=False)
     log(f"gsplat warm-up (JIT build if not cached): {time.perf_counter() - t:.0f} s")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--grid", type=Path, help="grid JSON (configs/benchmark_*.json)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=RECORDS.with_suffix(""),
+        help="writes <out>.json and its markdown (default: the project's records and docs/benchmarks.md)",
+    )
+    ap.add_argument("--work-dir", type=Path, default=Path("/tmp/willags-bench"), help="per-run folders")
+    ap.add_argument("--methods", nargs="*", help="only these methods of the grid")
+    ap.add_argument("--scenes", nargs="*", help="only these scenes of the grid (short names: default, fox-wild, ...)")
+    ap.add_argument("--dry-run", action="store_true", help="list the runs and exit")
+    ap.add_argument("--keep-runs", action="store_true", help="keep each run's checkpoint and config.yml")
+    ap.add_argument("--stop-after-s", type=float, default=0.0, help="start no new run after this many seconds")
+    ap.add_argument("--tag", help="override every run's tag (repeats: r1, r2, ...)")
+    ap.add_argument("--seed", type=int, help="override every run's seed")
+    ap.add_argument("--render-only", action="store_true", help="regenerate the markdown from <out>.json and exit")
+    ap.add_argument("--merge", nargs="*", type=Path, default=[], help="merge these record files into <out>.json")
+    args = ap.parse_args(argv)
+    out = args.out if args.out.is_absolute() else Path.cwd() / args.out
+    if args.merge or args.render_only:
+        recs = load_records(out.with_suffix(".json"))
+        for f in args.merge:
+            recs = merge_records(recs, load_records(f))
+        j, m = write_outputs(recs, out)
+        print(f"{len(recs)} records -> {j}, {m}")
+        return 0
+    if args.grid is None:
+        ap.error("--grid is required (unless --merge or --render-only)")
+    overrides = {k: v for k, v in (("tag", args.tag), ("seed", args.seed)) if v is not None}
+    command = "python -m benchmarks run " + " ".join(sys.argv[1:] if argv is None else argv)
+    run_grid(
+        args.grid,
+        out,
+        args.work_dir,
+        args.methods,
+        args.scenes,
+        args.dry_run,
+        args.keep_runs,
+        command,
+        stop_after_s=args.stop_after_s,
+        overrides=overrides,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
