@@ -38,8 +38,8 @@ class ColorModulationConfig:
     gamma: bool = False
     """A per-channel gamma g(z) on the base colour before the 3x3 transform (base^g, g in [1/3, 3], 1 at
     initialisation). Why: cameras' tone curves are not affine, and on a perfect reconstruction a log-linear transform
-    (exposure, white balance, gamma) fitted on the left half scores higher than the best affine one
-    (`benchmarks/appearance_ceiling.py`). Off by default: on the benchmark scenes it changed nothing beyond the seed
+    (exposure, white balance, gamma) fitted on the left half scores higher than the best affine one (docs/design.md).
+    Off by default: on the benchmark scenes it changed nothing beyond the seed
     spread (docs/design.md), and with it the SH bake (viewer, export) is a least-squares fit instead of exact."""
     local: bool = True
     """Per-Gaussian residual scale/offset (s_i, o_i) on top of the global transform. Off: global transform only."""

@@ -19,7 +19,7 @@ reduce_start), ``pack`` (reduce_start -> collective_start), ``collective``, ``un
 reduce_end), ``optimizer``, ``callbacks``, and ``iteration`` (start -> the next step's start: the trainer's logging,
 evaluation images and checkpoints included). A step without a reduction (one device) has no collective marks; its
 ``reduce`` span is then empty. Across ranks of one step, ``d_collective`` minus the smallest ``d_collective`` of
-that step is the rank's wait for the others (benchmarks/multi_gpu.py does that sum).
+that step is the rank's wait for the others.
 
 Files, per global rank r, under ``<run>/step_profile/``: ``rank<r>.jsonl`` (one JSON object per step) and
 ``rank<r>.json`` (rank, world size, device, CPU count and torch's threads, and the start-up phases as Unix times:

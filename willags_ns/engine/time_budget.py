@@ -373,7 +373,7 @@ def schedule_warmups(optimizers: Mapping[str, Mapping[str, Any]]) -> dict[str, i
 def end_schedules_at(
     optimizers: Mapping[str, Mapping[str, Any]], end_step: int, warmups: Mapping[str, int] | None = None
 ) -> None:
-    """Make every learning-rate schedule with a ``max_steps`` end at ``end_step`` (what benchmarks/harness.py's short
+    """Make every learning-rate schedule with a ``max_steps`` end at ``end_step`` (what the benchmarks' short
     schedule does, here also during the run: nerfstudio's schedulers read their config at every step). A warm-up
     (``warmups``: the schedules' own, default their current one) that would not end before ``end_step`` is shortened
     to a tenth of the run.

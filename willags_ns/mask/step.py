@@ -227,5 +227,5 @@ class MaskFace:
 
     @property
     def last_masks(self) -> dict[int, Tensor]:
-        """Each image's last perceptual mask (MaskStep.masks; read by benchmarks/harness.py)."""
+        """Each image's last perceptual mask (MaskStep.masks), for looking at what the mask did."""
         return self.mask_step.masks
