@@ -511,6 +511,36 @@ def test_fit_schedules_keeps_each_schedules_share_of_a_shorter_run():
     assert tb.fit_schedules({**own, "refine_every": 4}, 600, 30000)["refine_every"] == 4  # below the floor: kept
 
 
+@pytest.mark.parametrize("mcmc", [True, False], ids=["mcmc", "splatfacto"])
+def test_the_schedules_are_fitted_into_either_densification(mcmc):
+    """A budget fits the refinement window and period into the strategy of either densification: MCMC's (the
+    default `willags`), which has no screen-size splits and never resets opacities, and splatfacto's (gsplat's
+    DefaultStrategy: willags-lite, willags-paper, willags-3dgs), whose resets keep their period in steps."""
+    from types import SimpleNamespace
+
+    from willags_ns.engine.trainer import WillagsTrainer
+    from willags_ns.model import WillagsModelConfig
+    from willags_ns.splats.gaussians import densification_strategy
+    from willags_ns.splats.mcmc import McmcConfig, McmcDensification
+
+    cfg = WillagsModelConfig(mcmc=McmcConfig(enabled=mcmc))  # 30000-step schedules: warm-up 500, every 100, to 15000
+    strategy = densification_strategy(cfg, num_train=12)
+    trainer = SimpleNamespace(pipeline=SimpleNamespace(model=SimpleNamespace(config=cfg, strategy=strategy)))
+    fit = WillagsTrainer._schedule_fitter(trainer, 30000)  # type: ignore[arg-type]
+    fit(600)  # the fit_schedules docstring's example
+    assert isinstance(strategy, McmcDensification) == mcmc
+    assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (10, 10, 300)
+    assert (cfg.warmup_length, cfg.refine_every, cfg.stop_split_at) == (10, 10, 300)
+    if mcmc:
+        assert strategy.reset_every == 0  # never resets opacities, however short the run
+    else:
+        assert strategy.reset_every == 60 and strategy.refine_scale2d_stop_iter == 80
+        assert strategy.pause_refine_after_reset == 10
+    fit(30000)  # a plan of the preset's own length gives the schedules back
+    assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (500, 100, 15000)
+    assert strategy.reset_every == (0 if mcmc else 3000)
+
+
 @pytest.mark.slow
 def test_ns_train_prints_one_line_for_a_bad_budget(tmp_path):
     exe = Path(sys.executable).with_name("ns-train")

@@ -431,7 +431,10 @@ class WillagsTrainer(Trainer):
     def _schedule_fitter(self, preset_steps: int) -> Callable[[int], None]:
         """A function of the run's planned steps that fits the model's step schedules into them
         (time_budget.fit_schedules, from the values the run started with): the config (what config.yml says and
-        what the model reads at each step) and gsplat's densification strategy, which copied them when it was built."""
+        what the model reads at each step) and the densification strategy, which copied them when it was built.
+        Both strategies have the refinement window and period; splatfacto's (gsplat's DefaultStrategy) also stops
+        its screen-size splits and resets opacities (its period and the pause after each reset), which MCMC's never
+        does (its reset_every stays 0)."""
         model = self.pipeline.model
         cfg = model.config
 
@@ -455,18 +458,22 @@ class WillagsTrainer(Trainer):
                 for part in parents:
                     target = getattr(target, part)
                 setattr(target, last, value)
-            if strategy is not None and hasattr(strategy, "refine_start_iter"):
-                strategy.refine_start_iter = values.get("warmup_length", strategy.refine_start_iter)
-                strategy.refine_stop_iter = values.get("stop_split_at", strategy.refine_stop_iter)
-                strategy.refine_scale2d_stop_iter = values.get("stop_screen_size_at", strategy.refine_scale2d_stop_iter)
-                if "refine_every" in values:
-                    strategy.refine_every = values["refine_every"]
-                    strategy.reset_every = values.get("reset_alpha_every", 0) * values["refine_every"]
-                    if base_pause is not None:  # an epoch after each reset; in a shorter run, one refinement
-                        pause = base_pause - own["refine_every"] + values["refine_every"]
-                        if values != own:
-                            pause = min(pause, values["refine_every"])
-                        strategy.pause_refine_after_reset = pause
+            if strategy is None or not hasattr(strategy, "refine_start_iter"):
+                return
+            strategy.refine_start_iter = values.get("warmup_length", strategy.refine_start_iter)
+            strategy.refine_stop_iter = values.get("stop_split_at", strategy.refine_stop_iter)
+            if "refine_every" in values:
+                strategy.refine_every = values["refine_every"]
+            if base_pause is None:  # MCMC's densification: no screen-size splits, no opacity resets
+                return
+            strategy.refine_scale2d_stop_iter = values.get("stop_screen_size_at", strategy.refine_scale2d_stop_iter)
+            if "refine_every" in values:
+                strategy.reset_every = values.get("reset_alpha_every", 0) * values["refine_every"]
+                # an epoch after each reset; in a shorter run, one refinement
+                pause = base_pause - own["refine_every"] + values["refine_every"]
+                if values != own:
+                    pause = min(pause, values["refine_every"])
+                strategy.pause_refine_after_reset = pause
 
         return fit
 
