@@ -484,6 +484,21 @@ class WillagsTrainer(Trainer):
         self.planned_end = self.step + 1  # finished (the budget may end it early): nothing left to resume
         super()._after_train()
 
+    def _train_complete_viewer(self) -> None:
+        """After training nerfstudio keeps the viewer open until Ctrl-C ("Use ctrl+c to quit"). That Ctrl-C is how
+        ns-train ends there, not a failure: one line saying the run is complete (nerfstudio would print the
+        KeyboardInterrupt's traceback), the viewer stopped, exit status 0."""
+        try:
+            super()._train_complete_viewer()
+        except KeyboardInterrupt:
+            self.shutdown()
+            CONSOLE.print(
+                f"willags: viewer closed (Ctrl-C); the run is complete: {Path(self.base_dir) / 'config.yml'}",
+                soft_wrap=True,
+                markup=False,
+                highlight=False,
+            )
+
     def _budget_done(self, step: int) -> None:
         budget = self.time_budget
         assert budget is not None
