@@ -165,6 +165,27 @@ def test_row_u7_dataset_render_of_the_test_split_downscaled(appearance_run, tmp_
     captured = capsys.readouterr().out
     assert "{}" not in captured and "test" in captured
 
+    # a run that trained at 1/2 of its photos' size (photos above 1600 px, or its own --downscale-factor 2): the
+    # factor still counts from the training size, as for the trajectory renders (the photos are read at 1/4)
+    copy = tmp_path / "run-at-half"
+    shutil.copytree(cfg.parent, copy)
+    yml.pipeline.datamanager.dataparser.downscale_factor = 2
+    (copy / "config.yml").write_text(yaml.dump(yml), "utf8")
+    for factor, want in ((None, h // 2), (2, h // 4)):
+        out = tmp_path / f"half-{factor}"
+        render.DatasetRender(
+            load_config=copy / "config.yml",
+            output_path=out,
+            split="test",
+            downscale_factor=factor,
+            rendered_output_names=["rgb"],
+        ).main()
+        with Image.open(sorted(out.rglob("*.jpg"))[0]) as im:
+            assert im.height == want, (factor, im.size, h)
+    assert "1/2 of the training size (the run trained at 1/2 of its photos' size: they are read at 1/4)" in (
+        capsys.readouterr().out
+    )
+
 
 def test_row_u8_export_needs_only_the_run_not_the_photos(project, tmp_path, monkeypatch):
     from nerfstudio.utils.eval_utils import eval_setup
