@@ -392,7 +392,10 @@ class WillagsTrainer(Trainer):
         optimizers = self.config.optimizers  # the schedulers read these configs at every step
         warmups = self._warmups
 
-        fit = self._schedule_fitter(choice.max_steps)
+        # the step schedules are the preset's, for its own run: their shares are of that run, not of a lower cap
+        # (--max-num-iterations 5000 would keep a 30000-step run's last split at 3 times the planned run)
+        own_steps = preset_defaults(choice.preset)[1] if choice.preset in PRESET_CONFIGS else choice.max_steps
+        fit = self._schedule_fitter(own_steps)
 
         def on_plan(end_step: int) -> None:
             end_schedules_at(optimizers, end_step, warmups)
