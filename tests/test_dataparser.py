@@ -369,3 +369,6 @@ def test_colmap_downscale_without_images_n_writes_it(shared_data, tmp_path, monk
     _, out = _outputs(auto)
     assert out["train"].image_filenames[0].parent == auto / "images_4"
     assert max(int(out["train"].cameras.width[0]), int(out["train"].cameras.height[0])) <= 300
+    # the factor it read them at, as willags-render dataset asks for it (a fresh parser, before parsing)
+    assert WillagsDataParserConfig(data=auto).setup().image_downscale_factor() == 4
+    assert WillagsDataParserConfig(data=auto, downscale_factor=2).setup().image_downscale_factor() == 2

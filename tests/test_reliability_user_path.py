@@ -165,6 +165,27 @@ def test_row_u7_dataset_render_of_the_test_split_downscaled(appearance_run, tmp_
     captured = capsys.readouterr().out
     assert "{}" not in captured and "test" in captured
 
+    # a run that trained at 1/2 of its photos' size (photos above 1600 px, or its own --downscale-factor 2): the
+    # factor still counts from the training size, as for the trajectory renders (the photos are read at 1/4)
+    copy = tmp_path / "run-at-half"
+    shutil.copytree(cfg.parent, copy)
+    yml.pipeline.datamanager.dataparser.downscale_factor = 2
+    (copy / "config.yml").write_text(yaml.dump(yml), "utf8")
+    for factor, want in ((None, h // 2), (2, h // 4)):
+        out = tmp_path / f"half-{factor}"
+        render.DatasetRender(
+            load_config=copy / "config.yml",
+            output_path=out,
+            split="test",
+            downscale_factor=factor,
+            rendered_output_names=["rgb"],
+        ).main()
+        with Image.open(sorted(out.rglob("*.jpg"))[0]) as im:
+            assert im.height == want, (factor, im.size, h)
+    assert "1/2 of the training size (the run trained at 1/2 of its photos' size: they are read at 1/4)" in (
+        capsys.readouterr().out
+    )
+
 
 def test_row_u8_export_needs_only_the_run_not_the_photos(project, tmp_path, monkeypatch):
     from nerfstudio.utils.eval_utils import eval_setup
@@ -265,3 +286,53 @@ def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path)
             proc.kill()
     assert "Traceback" not in out + err, err[-3000:]
     assert proc.returncode == 130 and "willags: stopped (Ctrl-C)" in err, (proc.returncode, err[-3000:])
+
+
+@pytest.mark.timing
+def test_row_u9_ctrl_c_after_training_closes_the_viewer_in_one_line(scene, tmp_path):  # noqa: F811
+    """ns-train with the viewer waits after training ("Use ctrl+c to quit"); that Ctrl-C ends it with one line and
+    exit status 0, the run complete, no traceback."""
+    import os
+    import signal
+    import socket
+    import subprocess
+
+    from tests.test_reliability import _ns_train
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "outputs"
+    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--viewer.websocket-port", str(port)]
+    args += ["--max-num-iterations", "2", "--pipeline.model.mask.vgg-weights", "seeded"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # Ctrl-C as in a terminal (see test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback)
+    proc = subprocess.Popen(
+        _ns_train(args),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    lines: list[str] = []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # the run ends, then the viewer waits
+            lines.append(line)
+            if "Use ctrl+c to quit" in line:
+                break
+        assert any("Use ctrl+c to quit" in ln for ln in lines), "".join(lines)[-3000:]
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=600)  # bounds a hang only
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = "".join(lines) + rest
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]
+    assert proc.returncode == 0, (proc.returncode, text[-3000:])
+    closed = [ln for ln in rest.splitlines() if ln.startswith("willags: viewer closed (Ctrl-C); the run is complete:")]
+    assert len(closed) == 1, rest[-3000:]
+    (cfg,) = out.rglob("config.yml")
+    assert closed[0].endswith(str(cfg)) and list((cfg.parent / "nerfstudio_models").glob("step-000000001.ckpt"))

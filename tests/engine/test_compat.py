@@ -77,5 +77,7 @@ def test_willags_own_warnings_print_as_one_line_and_library_noise_is_hidden():
 
         silence_library_noise()
         warnings.warn("`torch.cuda.amp.GradScaler(args...)` is deprecated. Please use x", FutureWarning, stacklevel=2)
+        copy = "To copy construct from a tensor, it is recommended to use sourceTensor.detach().clone() or x"
+        warnings.warn(copy, UserWarning, stacklevel=2)  # nerfstudio's interpolated camera path (willags-render)
         warnings.warn("a warning a user can act on", FutureWarning, stacklevel=2)
     assert [str(w.message) for w in caught] == ["a warning a user can act on"]

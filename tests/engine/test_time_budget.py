@@ -415,42 +415,50 @@ def test_switching_preset_keeps_the_users_settings():
 
 @pytest.mark.timing
 @pytest.mark.slow
-def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize(
+    "minutes, step_s, preset",
+    [(0.2, 1.0, "willags-lite"), (1.0, 5.0, "willags")],
+    ids=["lite-splatfacto-densification", "willags-mcmc"],
+)
+def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch, capsys, minutes, step_s, preset):
+    """`ns-train willags` under a budget on the CPU, in either preset the table picks there: willags-lite (12 s,
+    splatfacto's densification) and willags (60 s, MCMC's)."""
     from tests.test_train import _train
     from willags_ns import method_configs
     from willags_ns.engine.trainer import WillagsTrainer
+    from willags_ns.splats.mcmc import McmcDensification
 
     monkeypatch.setattr(tb, "WARMUP_STEPS", 3)
     monkeypatch.setattr(tb, "WINDOW_STEPS", 5)
-    # the trainer's clock advances one second per training step, whatever the machine's speed: the budget of 12 s
-    # measures 1 s/step and plans about 12 steps
+    # the trainer's clock advances step_s seconds per training step, whatever the machine's speed: the budget
+    # measures step_s and plans about 12 steps
     clock = FakeClock()
     train_iteration = WillagsTrainer.train_iteration
 
-    def one_second_steps(self, step):
+    def fixed_time_steps(self, step):
         out = train_iteration(self, step)
-        clock.t += 1.0
+        clock.t += step_s
         return out
 
     monkeypatch.setattr(WillagsTrainer, "clock", staticmethod(clock))
-    monkeypatch.setattr(WillagsTrainer, "train_iteration", one_second_steps)
+    monkeypatch.setattr(WillagsTrainer, "train_iteration", fixed_time_steps)
     real_config = method_configs.willags_config
 
     def budgeted():
         config = real_config()
-        config.pipeline.time_budget_minutes = 0.2  # 12 s of training steps
+        config.pipeline.time_budget_minutes = minutes
         return config
 
     monkeypatch.setattr(method_configs, "willags_config", budgeted)
     config, trainer, losses = _train(tmp_path, "willags", steps=5000)
     out = capsys.readouterr().out
-    assert "willags time budget: 0.2 min" in out and "preset:" in out and "schedule:" in out
+    assert f"willags time budget: {minutes:g} min" in out and "preset:" in out and "schedule:" in out
     assert "stopped after step" in out
     record = json.loads((config.get_base_dir() / "time_budget.json").read_text())
     steps = record["run"]["steps_trained"]
     assert 8 < steps <= 13 and len(losses) == steps  # past the measurement window, within the budget
-    assert record["run"]["elapsed_s"] <= 12.0 + 1.0  # at most one step past the budget
-    assert record["choice"]["preset"] in ("willags-lite", "willags")
+    assert record["run"]["elapsed_s"] <= minutes * 60 + step_s  # at most one step past the budget
+    assert record["choice"]["preset"] == preset
     saved = (config.get_base_dir() / "config.yml").read_text()
     assert f"max_num_iterations: {steps}" in saved  # config.yml says what was trained
     assert list((config.get_base_dir() / "nerfstudio_models").glob(f"step-{steps - 1:09d}.ckpt"))
@@ -461,15 +469,20 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
     if last_plan is not None:
         assert writer.GLOBAL_BUFFER["max_iter"] == last_plan
         strategy = trainer.pipeline.model.strategy
+        assert isinstance(strategy, McmcDensification) == (preset == "willags")
         assert strategy.refine_start_iter + strategy.refine_every < last_plan  # it densifies within the run
         assert strategy.refine_start_iter < strategy.refine_stop_iter <= last_plan
-        # a densification step that is not in the pause after an opacity reset, before the splits stop
-        refines = [
-            s
-            for s in range(strategy.refine_start_iter + 1, strategy.refine_stop_iter)
-            if s % strategy.refine_every == 0 and s % strategy.reset_every >= strategy.pause_refine_after_reset
-        ]
-        assert refines, (strategy.refine_every, strategy.reset_every, strategy.pause_refine_after_reset)
+        window = range(strategy.refine_start_iter + 1, strategy.refine_stop_iter)
+        if isinstance(strategy, McmcDensification):  # MCMC never resets opacities: every refinement step counts
+            assert strategy.reset_every == 0
+            refines = [s for s in window if s % strategy.refine_every == 0]
+        else:  # a densification step that is not in the pause after an opacity reset, before the splits stop
+            refines = [
+                s
+                for s in window
+                if s % strategy.refine_every == 0 and s % strategy.reset_every >= strategy.pause_refine_after_reset
+            ]
+        assert refines, (strategy.refine_every, strategy.reset_every, getattr(strategy, "pause_refine_after_reset", 0))
         assert trainer.pipeline.model.config.mask.warmup_steps < last_plan
 
 
@@ -509,6 +522,36 @@ def test_fit_schedules_keeps_each_schedules_share_of_a_shorter_run():
     assert all(v >= 1 for k, v in tiny.items() if own[k] > 0) and tiny["refine_every"] == tb.MIN_REFINE_EVERY
     assert tiny["reset_alpha_every"] == tb.MIN_RESET_REFINES  # densifications between two resets
     assert tb.fit_schedules({**own, "refine_every": 4}, 600, 30000)["refine_every"] == 4  # below the floor: kept
+
+
+@pytest.mark.parametrize("mcmc", [True, False], ids=["mcmc", "splatfacto"])
+def test_the_schedules_are_fitted_into_either_densification(mcmc):
+    """A budget fits the refinement window and period into the strategy of either densification: MCMC's (the
+    default `willags`), which has no screen-size splits and never resets opacities, and splatfacto's (gsplat's
+    DefaultStrategy: willags-lite, willags-paper, willags-3dgs), whose resets keep their period in steps."""
+    from types import SimpleNamespace
+
+    from willags_ns.engine.trainer import WillagsTrainer
+    from willags_ns.model import WillagsModelConfig
+    from willags_ns.splats.gaussians import densification_strategy
+    from willags_ns.splats.mcmc import McmcConfig, McmcDensification
+
+    cfg = WillagsModelConfig(mcmc=McmcConfig(enabled=mcmc))  # 30000-step schedules: warm-up 500, every 100, to 15000
+    strategy = densification_strategy(cfg, num_train=12)
+    trainer = SimpleNamespace(pipeline=SimpleNamespace(model=SimpleNamespace(config=cfg, strategy=strategy)))
+    fit = WillagsTrainer._schedule_fitter(trainer, 30000)  # type: ignore[arg-type]
+    fit(600)  # the fit_schedules docstring's example
+    assert isinstance(strategy, McmcDensification) == mcmc
+    assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (10, 10, 300)
+    assert (cfg.warmup_length, cfg.refine_every, cfg.stop_split_at) == (10, 10, 300)
+    if mcmc:
+        assert strategy.reset_every == 0  # never resets opacities, however short the run
+    else:
+        assert strategy.reset_every == 60 and strategy.refine_scale2d_stop_iter == 80
+        assert strategy.pause_refine_after_reset == 10
+    fit(30000)  # a plan of the preset's own length gives the schedules back
+    assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (500, 100, 15000)
+    assert strategy.reset_every == (0 if mcmc else 3000)
 
 
 @pytest.mark.slow

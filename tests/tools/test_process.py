@@ -233,6 +233,26 @@ def test_database_made_with_other_options_is_refused(processed, tmp_path):
         proc.run(other, log=lambda msg: None)
 
 
+def test_a_big_photo_added_to_the_folder_extends_the_database(processed, tmp_path):
+    """A database made when no photo was resized holds every photo at full size: a big photo added since (resized
+    now) extends it, with no other option changed; a photo it already holds at full size, resized now (a lower cap),
+    is refused, naming the cap."""
+    cfg, _, _, _ = processed
+    out = tmp_path / "out"
+    (out / "colmap").mkdir(parents=True)
+    for name in ("database.db", "database_options.json"):
+        shutil.copy(cfg.output / "colmap" / name, out / "colmap" / name)
+    assert "max_image_size" not in json.loads((out / "colmap" / "database_options.json").read_text())
+    again = dataclasses.replace(cfg, output=out)
+    proc._check_database_options(again, resized=["IMG_8000x6000.jpg"])  # a photo the database does not hold yet
+    assert json.loads((out / "colmap" / "database_options.json").read_text())["max_image_size"] == cfg.max_image_size
+    for name in ("database.db", "database_options.json"):  # the stamp as the first run left it
+        shutil.copy(cfg.output / "colmap" / name, out / "colmap" / name)
+    held = sorted(p.name for p in cfg.images.iterdir())[0]
+    with pytest.raises(ProcessError, match="max_image_size"):
+        proc._check_database_options(again, resized=[held])
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # bad inputs, through the command line (exit status and message, no traceback)
 

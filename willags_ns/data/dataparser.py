@@ -318,6 +318,20 @@ class WillagsDataParser(DataParser):
             self._delegate = self._colmap_parser(data, model)
         return self._delegate
 
+    def image_downscale_factor(self) -> int:
+        """The factor N at which this parser reads the scene's images (1/N of their width and height): the configured
+        one, else the one resolved for the scene as training resolves it (COLMAP: MAX_AUTO_SIDE; transforms.json:
+        nerfstudio's own rule, known once the scene is parsed)."""
+        delegate = self._resolve()
+        own = getattr(delegate.config, "downscale_factor", None)
+        if own:
+            return int(own)
+        if isinstance(delegate, Nerfstudio):
+            if getattr(delegate, "downscale_factor", None) is None:
+                delegate.get_dataparser_outputs("train")
+            return int(delegate.downscale_factor or 1)
+        return 1
+
     def _find_tsv(self, root: Path) -> Path | None:
         if self.config.split_tsv is not None:
             tsv = self.config.split_tsv if self.config.split_tsv.is_absolute() else root / self.config.split_tsv

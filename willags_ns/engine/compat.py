@@ -95,10 +95,12 @@ def register_config_yml_classes(loader: type) -> None:
 LIBRARY_NOISE = (
     (FutureWarning, r"`torch\.cuda\.amp\.(GradScaler|custom_fwd|custom_bwd)\(args\.\.\.\)` is deprecated"),
     (UserWarning, r"Converting a tensor with requires_grad=True to a scalar"),
+    (UserWarning, r"To copy construct from a tensor, it is recommended to use sourceTensor\.detach\(\)\.clone\(\)"),
 )
 """(category, message pattern) of warnings nerfstudio 1.1.5's own calls raise under current torch on every run: the
-deprecated torch.cuda.amp spellings in its trainer and field components, and its tensorboard writer's float() of a
-loss. Nothing a user can change; hidden from the terminal."""
+deprecated torch.cuda.amp spellings in its trainer and field components, its tensorboard writer's float() of a
+loss, and the torch.tensor() of a tensor in its interpolated camera path (`willags-render interpolate`). Nothing a
+user can change; hidden from the terminal."""
 
 
 def silence_library_noise() -> None:

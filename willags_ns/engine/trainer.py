@@ -392,7 +392,10 @@ class WillagsTrainer(Trainer):
         optimizers = self.config.optimizers  # the schedulers read these configs at every step
         warmups = self._warmups
 
-        fit = self._schedule_fitter(choice.max_steps)
+        # the step schedules are the preset's, for its own run: their shares are of that run, not of a lower cap
+        # (--max-num-iterations 5000 would keep a 30000-step run's last split at 3 times the planned run)
+        own_steps = preset_defaults(choice.preset)[1] if choice.preset in PRESET_CONFIGS else choice.max_steps
+        fit = self._schedule_fitter(own_steps)
 
         def on_plan(end_step: int) -> None:
             end_schedules_at(optimizers, end_step, warmups)
@@ -431,7 +434,10 @@ class WillagsTrainer(Trainer):
     def _schedule_fitter(self, preset_steps: int) -> Callable[[int], None]:
         """A function of the run's planned steps that fits the model's step schedules into them
         (time_budget.fit_schedules, from the values the run started with): the config (what config.yml says and
-        what the model reads at each step) and gsplat's densification strategy, which copied them when it was built."""
+        what the model reads at each step) and the densification strategy, which copied them when it was built.
+        Both strategies have the refinement window and period; splatfacto's (gsplat's DefaultStrategy) also stops
+        its screen-size splits and resets opacities (its period and the pause after each reset), which MCMC's never
+        does (its reset_every stays 0)."""
         model = self.pipeline.model
         cfg = model.config
 
@@ -455,18 +461,22 @@ class WillagsTrainer(Trainer):
                 for part in parents:
                     target = getattr(target, part)
                 setattr(target, last, value)
-            if strategy is not None and hasattr(strategy, "refine_start_iter"):
-                strategy.refine_start_iter = values.get("warmup_length", strategy.refine_start_iter)
-                strategy.refine_stop_iter = values.get("stop_split_at", strategy.refine_stop_iter)
-                strategy.refine_scale2d_stop_iter = values.get("stop_screen_size_at", strategy.refine_scale2d_stop_iter)
-                if "refine_every" in values:
-                    strategy.refine_every = values["refine_every"]
-                    strategy.reset_every = values.get("reset_alpha_every", 0) * values["refine_every"]
-                    if base_pause is not None:  # an epoch after each reset; in a shorter run, one refinement
-                        pause = base_pause - own["refine_every"] + values["refine_every"]
-                        if values != own:
-                            pause = min(pause, values["refine_every"])
-                        strategy.pause_refine_after_reset = pause
+            if strategy is None or not hasattr(strategy, "refine_start_iter"):
+                return
+            strategy.refine_start_iter = values.get("warmup_length", strategy.refine_start_iter)
+            strategy.refine_stop_iter = values.get("stop_split_at", strategy.refine_stop_iter)
+            if "refine_every" in values:
+                strategy.refine_every = values["refine_every"]
+            if base_pause is None:  # MCMC's densification: no screen-size splits, no opacity resets
+                return
+            strategy.refine_scale2d_stop_iter = values.get("stop_screen_size_at", strategy.refine_scale2d_stop_iter)
+            if "refine_every" in values:
+                strategy.reset_every = values.get("reset_alpha_every", 0) * values["refine_every"]
+                # an epoch after each reset; in a shorter run, one refinement
+                pause = base_pause - own["refine_every"] + values["refine_every"]
+                if values != own:
+                    pause = min(pause, values["refine_every"])
+                strategy.pause_refine_after_reset = pause
 
         return fit
 
@@ -476,6 +486,21 @@ class WillagsTrainer(Trainer):
             self.step = self.time_budget.stopped_after
         self.planned_end = self.step + 1  # finished (the budget may end it early): nothing left to resume
         super()._after_train()
+
+    def _train_complete_viewer(self) -> None:
+        """After training nerfstudio keeps the viewer open until Ctrl-C ("Use ctrl+c to quit"). That Ctrl-C is how
+        ns-train ends there, not a failure: one line saying the run is complete (nerfstudio would print the
+        KeyboardInterrupt's traceback), the viewer stopped, exit status 0."""
+        try:
+            super()._train_complete_viewer()
+        except KeyboardInterrupt:
+            self.shutdown()
+            CONSOLE.print(
+                f"willags: viewer closed (Ctrl-C); the run is complete: {Path(self.base_dir) / 'config.yml'}",
+                soft_wrap=True,
+                markup=False,
+                highlight=False,
+            )
 
     def _budget_done(self, step: int) -> None:
         budget = self.time_budget

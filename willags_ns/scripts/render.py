@@ -18,6 +18,7 @@ and the path they wrote; frame progress is a bar on a terminal and a line every 
 import contextlib
 import dataclasses
 import shutil
+from pathlib import Path
 from typing import Annotated, Any, Union
 
 import torch
@@ -88,6 +89,8 @@ def with_appearance_options(cls: type, module: Any = ns_render) -> type:
         except AppearanceSpecError as e:
             raise SystemExit(f"error: {e}") from None
         check_render_options(self, module)  # before the checkpoint is loaded too
+        if isinstance(self, ns_render.DatasetRender) and self.downscale_factor is not None:
+            self.downscale_factor = dataset_downscale_factor(self.load_config, self.downscale_factor)
         with appearance_hooks(self, module) as state:
             cls.main(self)
         out = written_path(self)
@@ -130,6 +133,53 @@ def check_render_options(opts: Any, module: Any = ns_render) -> None:
         )
     if writes_video(opts) and shutil.which("ffmpeg") is None:
         raise SystemExit(f"error: writing a video needs ffmpeg, which is not on the PATH: {FFMPEG_HELP}")
+
+
+def training_downscale_factor(config: Any, config_path: Any) -> int:
+    """The factor N at which the run of `config` (loaded from `config_path`) read its photos when it trained: its
+    dataparser's own, else, for willags-data, the one that parser resolves for the scene (nerfstudio's rule: the
+    largest side at most 1600 px). 1 when the scene cannot be read (the render that needs it says why)."""
+    from willags_ns.data.dataparser import WillagsDataParserConfig
+    from willags_ns.engine.checkpoints import resolve_run_paths
+    from willags_ns.engine.checks import WillagsDataError
+
+    dm = config.pipeline.datamanager
+    dp = dm.dataparser
+    if getattr(dp, "downscale_factor", None):
+        return int(dp.downscale_factor)
+    if not isinstance(dp, WillagsDataParserConfig):
+        return 1
+    resolve_run_paths(config, config_path)  # a --data stored relative, from any working directory
+    data = getattr(dm, "data", None) or dp.data
+    try:
+        return dataclasses.replace(dp, data=data).setup().image_downscale_factor()
+    except (WillagsDataError, OSError):
+        return 1
+
+
+def dataset_downscale_factor(config_path: Any, factor: float) -> float:
+    """The image downscale factor a dataset render of ``--downscale-factor factor`` gives the dataparser, so that it
+    renders at 1/factor of the training size, as the trajectory renders do: nerfstudio passes the factor to the
+    dataparser, which reads the photos at 1/factor of *their* size; a run that trained at 1/N of its photos (photos
+    above 1600 px, or its own --downscale-factor N) reads them at 1/(N x factor). Refused in one line when that is
+    not a whole number (images are read at whole fractions of their size)."""
+    import yaml
+
+    config = yaml.load(Path(config_path).read_text(), Loader=yaml.Loader)
+    trained = training_downscale_factor(config, config_path)
+    total = trained * float(factor)
+    if not total.is_integer():
+        raise SystemExit(
+            f"error: --downscale-factor {factor:g}: the run trained at 1/{trained} of its photos' size, so a dataset "
+            f"render reads them at 1/{total:g}, which must be a whole fraction: use a factor that makes "
+            f"{trained} x factor a whole number"
+        )
+    if trained > 1:
+        _print_plain(
+            f"willags-render: --downscale-factor {factor:g}: 1/{factor:g} of the training size (the run trained at "
+            f"1/{trained} of its photos' size: they are read at 1/{int(total)})"
+        )
+    return int(total)
 
 
 def distinct_frames(cameras):

@@ -35,8 +35,8 @@ import shutil
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Collection, Iterator, Sequence
+from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -407,13 +407,27 @@ def _options_stamp(cfg: ProcessConfig, capped: bool = False) -> dict[str, Any]:
     return stamp
 
 
-def _check_database_options(cfg: ProcessConfig, capped: bool = False) -> None:
+def _database_names(db: Path) -> set[str]:
+    """The image names the database holds."""
+    import sqlite3
+
+    with closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True)) as con:
+        return {row[0] for row in con.execute("SELECT name FROM images")}
+
+
+def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = ()) -> None:
+    """Refuse a database made with options that change what it holds (_options_stamp), naming them. The size cap
+    counts only for the photos it resizes: a database made when no photo was resized holds every photo at full size,
+    so a photo added since and resized now (one big photo added to the folder) extends it; a resized photo the
+    database already holds at full size does not."""
     stamp = cfg.output / OPTIONS_STAMP
     db = cfg.output / DATABASE
-    want = _options_stamp(cfg, capped)
+    want = _options_stamp(cfg, capped=bool(resized))
     if db.exists() and stamp.is_file():
         have = json.loads(stamp.read_text())
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
+        if "max_image_size" in diff and "max_image_size" not in have and not set(resized) & _database_names(db):
+            del diff["max_image_size"]
         if diff:
             raise ProcessError(
                 f"{db} was made with other options {diff} (old, new): delete it (or use another --output) to start over"
@@ -883,7 +897,7 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         )
     cfg.output.mkdir(parents=True, exist_ok=True)
     photos, resized = cap_photos(cfg, readable)
-    _check_database_options(cfg, capped=bool(resized))
+    _check_database_options(cfg, resized=list(resized))
     for name, (w, h, w2, h2) in resized.items():
         log(f"{name}: {w}x{h} resized to {w2}x{h2} (--max-image-size {cfg.max_image_size}; 0 keeps full size)")
     given = cfg.images
