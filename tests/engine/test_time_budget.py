@@ -422,7 +422,7 @@ def test_switching_preset_keeps_the_users_settings():
 )
 def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch, capsys, minutes, step_s, preset):
     """`ns-train willags` under a budget on the CPU, in either preset the table picks there: willags-lite (12 s,
-    splatfacto's densification) and willags (60 s, MCMC's)."""
+    splatfacto's densification) and willags (60 s, asked for MCMC's densification)."""
     from tests.test_train import _train
     from willags_ns import method_configs
     from willags_ns.engine.trainer import WillagsTrainer
@@ -447,6 +447,8 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
     def budgeted():
         config = real_config()
         config.pipeline.time_budget_minutes = minutes
+        if preset == "willags":  # 'auto' densifies by splatfacto's on the CPU: ask for MCMC's to cover its schedule
+            config.pipeline.model.densification = "mcmc"
         return config
 
     monkeypatch.setattr(method_configs, "willags_config", budgeted)
@@ -534,10 +536,10 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
     from willags_ns.engine.trainer import WillagsTrainer
     from willags_ns.model import WillagsModelConfig
     from willags_ns.splats.gaussians import densification_strategy
-    from willags_ns.splats.mcmc import McmcConfig, McmcDensification
+    from willags_ns.splats.mcmc import McmcDensification
 
-    cfg = WillagsModelConfig(mcmc=McmcConfig(enabled=mcmc))  # 30000-step schedules: warm-up 500, every 100, to 15000
-    strategy = densification_strategy(cfg, num_train=12)
+    cfg = WillagsModelConfig(densification="mcmc" if mcmc else "splatfacto")  # 30000 steps: warm-up 500, every 100
+    strategy = densification_strategy(cfg, num_train=12, mcmc=mcmc)
     trainer = SimpleNamespace(pipeline=SimpleNamespace(model=SimpleNamespace(config=cfg, strategy=strategy)))
     fit = WillagsTrainer._schedule_fitter(trainer, 30000)  # type: ignore[arg-type]
     fit(600)  # the fit_schedules docstring's example
