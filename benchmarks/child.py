@@ -11,7 +11,8 @@ returns the result record:
 - render FPS: median wall time of ``model.get_outputs`` per test view (eval mode, no grad, one fixed latent);
 - number of Gaussians, training wall time (``trainer.train()`` only: data loading is ``setup_s``), peak memory
   (CUDA: ``torch.cuda.max_memory_allocated`` during training; CPU: the child's peak RSS);
-- transient-mask scores against ``masks_gt/`` when the scene has one (:mod:`willags_ns.eval.mask_eval`).
+- the transient mask over the training photos (:func:`mask_record`): against ``masks_gt/`` where the scene has it,
+  the share of the subject (``masks_subject/``) or of every pixel dropped elsewhere.
 
 With ``$WILLAGS_BENCH_RENDERS`` set to a folder, a run also writes <scene>-<method>[-<tag>].png there: the right
 halves of its test images (ground truth above, the protocol's render below, PSNR on each).
@@ -36,6 +37,32 @@ def _sync(device: str) -> None:
         import torch
 
         torch.cuda.synchronize()
+
+
+def mask_record(model, train_dataset, max_images: int = -1) -> dict[str, Any]:
+    """The transient mask of a trained model over its training photos, by what the scene folder holds: against
+    ``masks_gt/`` (``mask_iou``, ``mask_recall``, ``mask_fp_rate``: static pixels dropped, ...); the share of the
+    subject dropped where it has ``masks_subject/`` (``subject_masked``; ``mask_fp_rate`` then counts the rest of
+    the photo); elsewhere the share of every pixel dropped (``mask_share``), at most what a static scene loses.
+    Empty for a model without the mask; ``mask_status`` says why nothing was measured."""
+    from willags_ns.eval.mask_eval import mask_scores
+
+    if getattr(model.config, "appearance", "sh") != "willags" or not model.config.mask.enabled:
+        return {}
+    scene = Path(train_dataset.image_filenames[0]).parent.parent if train_dataset.image_filenames else None
+    meta_dir = train_dataset.metadata.get("masks_gt_dir")
+    gt_dir = Path(meta_dir) if meta_dir else (scene / "masks_gt" if scene else None)
+    subject_dir = scene / "masks_subject" if scene else None
+    if gt_dir is not None and gt_dir.is_dir():
+        ms = mask_scores(model, train_dataset, gt_dir, max_images=max_images)
+        out = {"mask_status": ms.pop("status")}
+        out.update({f"mask_{k}": v for k, v in ms.items()})
+        return out
+    if subject_dir is not None and subject_dir.is_dir():
+        ms = mask_scores(model, train_dataset, subject_dir, max_images=max_images)
+        return {"mask_status": ms["status"], "subject_masked": ms.get("recall"), "mask_fp_rate": ms.get("fp_rate")}
+    ms = mask_scores(model, train_dataset, None, max_images=max_images)
+    return {"mask_status": ms["status"], "mask_share": ms.get("fp_rate"), "mask_rejected": ms.get("rejected")}
 
 
 def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, float]:
@@ -247,21 +274,11 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     model = trainer.pipeline.model
     rec.update(protocol_scores(trainer, spec))
     rec.update(render_fps(model, dm.eval_dataset.cameras, spec["fps_views"]))
-    masks_dir = dm.train_dataset.metadata.get("masks_gt_dir")
-    if masks_dir is None and dm.train_dataset.image_filenames:
-        guess = Path(dm.train_dataset.image_filenames[0]).parent.parent / "masks_gt"
-        masks_dir = guess if guess.is_dir() else None
-    if masks_dir is not None and getattr(model.config, "appearance", "sh") == "willags":
-        from willags_ns.eval.mask_eval import mask_scores
-
-        t3 = time.perf_counter()
-        ms = mask_scores(model, dm.train_dataset, Path(masks_dir), max_images=spec["mask_max_images"])
+    t3 = time.perf_counter()
+    masks = mask_record(model, dm.train_dataset, spec["mask_max_images"])
+    if masks:
+        rec.update(masks)
         rec["mask_eval_s"] = time.perf_counter() - t3
-        rec["mask_status"] = ms.pop("status")
-        for k, v in ms.items():
-            rec[f"mask_{k}"] = v
-    elif masks_dir is not None:
-        rec["mask_status"] = "n/a (no transient mask in this method)"
 
     if device != "cuda":
         rec["peak_mem_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2  # kilobytes on Linux

@@ -272,7 +272,7 @@ def evaluate(args) -> int:
 
     import torch
 
-    from benchmarks.child import protocol_scores
+    from benchmarks.child import mask_record, protocol_scores
 
     run_dir = Path(args.run_dir)
     state = _state(run_dir)
@@ -298,6 +298,8 @@ def evaluate(args) -> int:
         }
         rec = protocol_scores(trainer, spec)
         rec["num_gaussians"] = int(trainer.pipeline.model.num_points)
+        if m == state["steps"]:  # the transient mask the run ended with
+            rec.update(mask_record(trainer.pipeline.model, trainer.pipeline.datamanager.train_dataset))
         rec["eval_wall_s"] = time.perf_counter() - t
         _save_score(run_dir, str(m), rec)
         print(
@@ -358,6 +360,7 @@ def record(args) -> int:
     last = state["scores"].get(str(state.get("end_step") or state["steps"]))
     if last is not None:
         rec.update({k: last[k] for k in ("psnr", "ssim", "lpips") if k in last})
+        rec.update({k: v for k, v in last.items() if k.startswith("mask_") or k == "subject_masked"})
     Path(args.out).write_text(json.dumps([rec], indent=1, default=str) + "\n")
     print(json.dumps({k: rec[k] for k in ("method", "train_s", "steps_done", "milestones")}, default=str))
     return 0

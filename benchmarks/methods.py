@@ -56,6 +56,22 @@ METHODS: dict[str, MethodSpec] = {
         note="willags-splitclone with the transient mask on every scene, by the colour residual to the teacher",
         keep=("mask.enabled",),
     ),
+    "willags-mask": MethodSpec(
+        "willags",
+        (_AUTO, ("mask.enabled", True), ("mask.distance", "residual"), ("densification", "mcmc")),
+        note="the default with the transient mask on every scene, by the colour residual to the teacher",
+        keep=("mask.enabled",),
+    ),
+    "willags-cap150k": MethodSpec(
+        "willags",
+        (_AUTO, ("densification", "mcmc"), ("mcmc.cap_max", 150_000)),
+        note="the default, MCMC capped at 150k",
+    ),
+    "willags-cap1m": MethodSpec(
+        "willags",
+        (_AUTO, ("densification", "mcmc"), ("mcmc.cap_max", 1_000_000)),
+        note="the default, MCMC capped at 1M",
+    ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
     # antialiased: gsplat's opacity compensation for the 2D dilation, consistent renders across resolutions
     "splatfacto-aa": MethodSpec(

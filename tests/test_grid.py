@@ -365,7 +365,10 @@ def test_long_run_record_carries_the_seed_and_the_last_milestone(tmp_path):
             {"start_step": 0, "end_step": 149, "train_s": 2.0},
             {"start_step": 150, "end_step": 299, "train_s": 3.0},
         ],
-        "scores": {"300": {"psnr": 30.5, "ssim": 0.9, "train_psnr": 33.0}, "100": {"psnr": 20.0}},
+        "scores": {
+            "300": {"psnr": 30.5, "ssim": 0.9, "train_psnr": 33.0, "mask_iou": 0.7, "mask_fp_rate": 0.01},
+            "100": {"psnr": 20.0},
+        },
     }
     (run / long_run.STATE).write_text(json.dumps(state))
     out = tmp_path / "rec.json"
@@ -377,6 +380,7 @@ def test_long_run_record_carries_the_seed_and_the_last_milestone(tmp_path):
     assert (rec["scene"], rec["method"], rec["seed"], rec["tag"]) == ("fox-clean", "willags", 43, "h100-15k-s43")
     assert (rec["steps_done"], rec["train_s"], rec["psnr"]) == (300, 5.0, 30.5)
     assert list(rec["milestones"]) == ["100", "300"]
+    assert (rec["mask_iou"], rec["mask_fp_rate"]) == (0.7, 0.01)  # the transient mask the run ended with
 
 
 def test_long_run_resume_resizes_the_gaussians_in_place_so_the_optimisers_keep_them():

@@ -278,3 +278,17 @@ def test_residual_distance_scores_the_occluder_without_vgg(tmp_path):
     model.step = 0  # before the warm-up: nothing is transient
     out = mask_scores(model, ds, mdir)
     assert out["threshold"] == math.inf and out["recall"] == 0.0 and out["fp_rate"] == 0.0
+
+
+def test_without_ground_truth_fp_rate_is_the_share_dropped(tmp_path):
+    """A scene without masks_gt/: every pixel counts as static, so fp_rate is the share of all pixels the mask drops
+    (the occluder's 32 x 40 pixels of one of the two images)."""
+    model, ds, mdir, images, masks = _scene_with_occluder(tmp_path)
+    with_gt = mask_scores(model, ds, mdir, threshold=0.85)
+    out = mask_scores(model, ds, None, threshold=0.85)
+    assert out["status"] == "ok" and out["num_images"] == 2 and out["num_with_transients"] == 0
+    dropped = with_gt["recall"] * sum(int(m.sum()) for m in masks) + with_gt["fp_rate"] * sum(
+        int((~m).sum()) for m in masks
+    )
+    assert out["fp_rate"] == pytest.approx(dropped / sum(m.size for m in masks), abs=1e-6)
+    assert 0.5 * masks[0].sum() / (2 * masks[0].size) < out["fp_rate"] < 2 * masks[0].sum() / (2 * masks[0].size)

@@ -206,12 +206,15 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
 def mask_scores(
     model,
     train_dataset,
-    masks_gt_dir: Path,
+    masks_gt_dir: Path | None,
     max_images: int = -1,
     threshold: float | None = None,
     keep_per_image: bool = False,
 ) -> dict:
     """Scores of the model's transient mask against `masks_gt_dir/<stem>.png` over the training images.
+
+    `masks_gt_dir` None counts every pixel of every training image as static: ``fp_rate`` is then the share of all
+    pixels the mask drops (a scene without ground truth).
 
     `threshold` overrides the threshold the model would use at its current step (mask_threshold(step, ...)).
     Returns the dict of :func:`aggregate_counts` plus ``threshold``, ``d_median_transient`` /
@@ -220,7 +223,7 @@ def mask_scores(
     cfg = model.config
     if getattr(cfg, "appearance", "sh") != "willags" or not cfg.mask.enabled or model.perceptual is None:
         return {"status": "no perceptual mask in this model"}
-    masks_gt_dir = Path(masks_gt_dir)
+    masks_gt_dir = None if masks_gt_dir is None else Path(masks_gt_dir)
     residual = getattr(cfg.mask, "distance", "vgg") == "residual"
     thr = threshold  # distance "residual": the floor of the residual bar
     if thr is None:
@@ -239,11 +242,13 @@ def mask_scores(
         for i, fname in enumerate(train_dataset.image_filenames):
             if 0 <= max_images <= len(counts):
                 break
-            gt_path = masks_gt_dir / f"{Path(fname).stem}.png"
-            if not gt_path.is_file():
-                continue
-            raw = train_dataset.get_data(i, image_type="uint8")["image"]
-            gt_mask = load_gt_mask(gt_path, raw.shape[0], raw.shape[1])
+            gt_mask = None
+            if masks_gt_dir is not None:
+                gt_path = masks_gt_dir / f"{Path(fname).stem}.png"
+                if not gt_path.is_file():
+                    continue
+                raw = train_dataset.get_data(i, image_type="uint8")["image"]
+                gt_mask = load_gt_mask(gt_path, raw.shape[0], raw.shape[1])
             cam, image, gt_mask = training_view(train_dataset, i, gt_mask)
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
             render = teacher_render(model, cam, img, i)
@@ -255,7 +260,10 @@ def mask_scores(
                 pred, rejected, d = predicted_transient(
                     model.perceptual, img, render, thr, cfg.mask.max_masked_fraction, rule, k
                 )
-            gt_t = torch.from_numpy(gt_mask).to(pred.device)
+            if gt_mask is None:  # no ground truth: every pixel static
+                gt_t = torch.zeros_like(pred, dtype=torch.bool)
+            else:
+                gt_t = torch.from_numpy(gt_mask).to(pred.device)
             c = count_pixels(pred, gt_t, rejected)
             counts.append(c)
             # the paper's fixed rule on the same D, for comparison
@@ -276,7 +284,7 @@ def mask_scores(
     finally:
         model.train(was_training)
     if not counts:
-        return {"status": f"no training image has a mask in {masks_gt_dir}"}
+        return {"status": f"no training image has a mask in {masks_gt_dir}" if masks_gt_dir else "no training image"}
     out: dict = dict(aggregate_counts(counts))
     out["threshold"] = float(thr)
     out["rule"] = "residual" if residual else rule
