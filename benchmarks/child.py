@@ -60,9 +60,19 @@ def mask_record(model, train_dataset, max_images: int = -1) -> dict[str, Any]:
         return out
     if subject_dir is not None and subject_dir.is_dir():
         ms = mask_scores(model, train_dataset, subject_dir, max_images=max_images)
-        return {"mask_status": ms["status"], "subject_masked": ms.get("recall"), "mask_fp_rate": ms.get("fp_rate")}
+        return {
+            "mask_status": ms["status"],
+            "subject_masked": ms.get("recall"),
+            "mask_fp_rate": ms.get("fp_rate"),
+            "mask_rule": ms.get("rule"),
+        }
     ms = mask_scores(model, train_dataset, None, max_images=max_images)
-    return {"mask_status": ms["status"], "mask_share": ms.get("fp_rate"), "mask_rejected": ms.get("rejected")}
+    return {
+        "mask_status": ms["status"],
+        "mask_share": ms.get("fp_rate"),
+        "mask_rejected": ms.get("rejected"),
+        "mask_rule": ms.get("rule"),
+    }
 
 
 def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, float]:

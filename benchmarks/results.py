@@ -61,15 +61,27 @@ COMMANDS = [
 ]
 
 
-SIDE_BY_SIDE_TAGS = ("h200x4",)
+SIDE_BY_SIDE_TAGS = ("h200x4", "h100x4-b")
 """Tags (a prefix; `-s43` follows for the second seed) of the side-by-side grid the default was decided on: every
-real collection to 15000 steps and two fox scenes to 5000, seeds 42 and 43, the default, its candidates and both
-peers in one lease (benchmarks/remote/solo.sh queues, one scene's methods on one GPU)."""
+real collection to 15000 steps (milestones of 30000-step runs count) and two fox scenes to 5000, seeds 42 and 43, the
+default, its candidates and both peers, in two leases of 4 GPUs (benchmarks/remote/solo.sh queues, one scene's
+methods on one GPU at the same time): h200x4 (the default, its densification and the residual mask, both peers) and
+h100x4-b (the default and both peers to 30000 steps, the peer's second seeds, MCMC's cap and the residual mask on the
+default)."""
+EQUAL_TIME_TAGS = ("h200x4",)
+"""The lease whose times the equal-time table reads: times compare only between runs that shared one machine."""
 SIDE_BY_SIDE_STEPS = {"fox-clean": 5000, "fox-wild": 5000}
 """Steps each scene of the side-by-side grid was scored at (15000 where not named)."""
 HEADLINE = ("peer", "peer-full", "willags")
 """The headline's columns: both peers and the default."""
-CANDIDATES = (("willags", None), ("willags-splitclone", "willags"), ("willags-residual", "willags-splitclone"))
+CANDIDATES = (
+    ("willags", None),
+    ("willags-splitclone", "willags"),
+    ("willags-residual", "willags-splitclone"),
+    ("willags-mask", "willags"),
+    ("willags-cap150k", "willags"),
+    ("willags-cap1m", "willags"),
+)
 """The default and the alternatives it was chosen over, from the same runs: (method, the method its difference is
 taken to: the configuration it changes one thing of)."""
 
@@ -201,6 +213,36 @@ def candidate_rows(records: list[dict[str, Any]]) -> list[str]:
     return out if len(out) > 2 else []
 
 
+def _pct(vals: list[float]) -> str:
+    return "–" if not vals else f"{100 * sum(vals) / len(vals):.1f} % (n={len(vals)})"
+
+
+def mask_rows(records: list[dict[str, Any]]) -> list[str]:
+    """Per scene and configuration of the side-by-side grid whose runs scored their transient mask: the share of
+    static pixels dropped (fox: against masks_gt; elsewhere every pixel dropped), of the subject (liberty) and the
+    fox scenes' IoU, each the mean over runs."""
+    out = [
+        "| scene | method | mask | static (or all) pixels dropped | subject dropped | transient IoU |",
+        "|---|---|---|---|---|---|",
+    ]
+    for (sc, m), recs in sorted(side_by_side(records).items(), key=lambda kv: (ALL_SCENES.index(kv[0][0]), kv[0][1])):
+        recs = [r for r in recs if r.get("mask_status") == "ok"]
+        if not recs:
+            continue
+        static = [r["mask_fp_rate"] if "mask_iou" in r else r.get("mask_share") for r in recs]
+        if sc == "liberty":
+            static = [r.get("mask_fp_rate") for r in recs]
+        residual = any(r.get("mask_rule") == "residual" for r in recs) or m in ("willags-mask", "willags-residual")
+        cells = [
+            _pct([float(v) for v in static if v is not None]),
+            _pct([float(r["subject_masked"]) for r in recs if r.get("subject_masked") is not None]),
+            _cell([{"psnr": r["mask_iou"]} for r in recs if r.get("mask_iou") is not None]),
+        ]
+        kind = "colour residual" if residual else "VGG16 (seeded)"
+        out.append(f"| {sc} | {m} | {kind} | " + " | ".join(cells) + " |")
+    return out if len(out) > 2 else []
+
+
 def _psnr_at(points: list[tuple[float, float, int]], t: float) -> tuple[float, int] | None:
     """(PSNR, steps) of a run at train time `t` by linear interpolation between its milestones (time, PSNR, steps),
     the steps rounded; None when `t` is outside the milestones' times."""
@@ -225,7 +267,7 @@ def equal_time_rows(records: list[dict[str, Any]]) -> list[str]:
     ]
     runs: dict[tuple[str, str], list[list[tuple[float, float, int]]]] = {}
     for r in records:
-        if r.get("status", "ok") != "ok" or not str(r.get("tag") or "").startswith(SIDE_BY_SIDE_TAGS):
+        if r.get("status", "ok") != "ok" or not str(r.get("tag") or "").startswith(EQUAL_TIME_TAGS):
             continue
         pts = [
             (float(v["train_s"]), float(v["psnr"]), int(k))
@@ -322,10 +364,11 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "",
         "## Every collection, side by side",
         "",
-        "One lease, every method of a scene on one GPU at the same time, splatfacto's stock schedule (1/4 resolution "
+        "Every method of a scene on one GPU at the same time (two leases of 4 GPUs; the 15k point of a 30k run "
+        "counts: the schedules do not depend on the run's length), splatfacto's stock schedule (1/4 resolution "
         "to step 3000, 1/2 to 6000, full after), the real collections to 15000 steps, the fox scenes (rendered: "
         "their transients and appearance changes are known) to 5000. A cell marked * holds a method that was not in "
-        "that lease: its runs of the same step count from earlier grids (docs/benchmarks.md), counted for the "
+        "those leases: its runs of the same step count from earlier grids (docs/benchmarks.md), counted for the "
         "stronger peer too. The same table is in README.md.",
         "",
         *headline_rows(records),
@@ -335,10 +378,22 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "The same runs: **willags-splitclone** is the default with splatfacto's densification (split / clone / prune "
         "with opacity resets) instead of MCMC's; **willags-residual** is willags-splitclone with the transient mask "
         "on every scene, comparing the photo with the EMA teacher's render by colour residual (no downloaded "
-        "weights). Each cell: the mean, then its difference to the configuration it changes one thing of (named in "
+        "weights); **willags-mask** is the default with that mask on every scene; **willags-cap150k** and "
+        "**willags-cap1m** are the default with MCMC's cap on the number of Gaussians at 150,000 and 1,000,000 "
+        "instead of 300,000. Each cell: the mean, then its difference to the configuration it changes one thing of (named in "
         "the column). Why the default is what it is: [design.md](design.md).",
         "",
         *candidate_rows(records),
+        "",
+        "## The transient mask",
+        "",
+        "What the mask a run ended with drops from the training photos, over every training photo (the same rule as "
+        "training's last step): on the fox scenes against their ground-truth masks (IoU of the transients, share of "
+        "static pixels dropped); on liberty the share of the statue dropped (`masks_subject/`, evaluation only) and "
+        "of the rest; elsewhere the share of all pixels dropped, which bounds the static share from above (people "
+        "and clutter count in it). Runs of the grid above whose model had the mask on.",
+        "",
+        *mask_rows(records),
         "",
         "## At equal training time",
         "",

@@ -165,6 +165,20 @@ def test_queues_are_spread_over_the_gpus_and_added_queues_go_on_round_the_list(t
     gpus = {q: (queues / q / "gpus.log").read_text().split() for q in ("q1", "q2", "q3", "q4")}
     assert gpus == {"q1": ["0"], "q2": ["1"], "q3": ["0"], "q4": ["1"]}
     assert "== q4 (GPU 1): reichstag:peer-full:1000" in waited.stdout
+    # each record says the GPU was shared by the two queues pinned to it
+    for q in ("q1", "q2", "q3", "q4"):
+        records = [ln.split() for ln in (queues / q / "calls.log").read_text().splitlines() if ln.startswith("record ")]
+        assert [r[r.index("--concurrent") + 1] for r in records] == ["2"], q
+
+
+@pytest.mark.timing
+def test_a_run_shorter_than_every_milestone_is_scored_where_it_ends(tree, tmp_path):
+    root, env, solo = tree
+    assert _sh(root, env, "start", "reichstag:willags:500", SOLO_DATA=".data-a").returncode == 0
+    waited = _sh(root, env, "wait", str(tmp_path / "out"), "600")
+    assert "gpu_solo: all done" in waited.stdout
+    (train,) = [ln.split() for ln in (solo / "calls.log").read_text().splitlines() if ln.startswith("train ")]
+    assert train[train.index("--milestones") + 1] == "500"
 
 
 def test_an_unknown_command_prints_the_usage(tree):

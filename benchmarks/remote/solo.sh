@@ -36,9 +36,10 @@ copy_data() {
   done
 }
 
-milestones_for() {  # steps -> the milestones up to it (SOLO_MILESTONES: another list, e.g. "15000 30000")
-  local out="" m
+milestones_for() {  # steps -> the milestones up to it (SOLO_MILESTONES: another list, e.g. "15000 30000"), and the
+  local out="" m  # last step itself when no milestone lies below it
   for m in ${SOLO_MILESTONES:-1000 2000 5000 10000 15000 30000}; do [ "$m" -le "$1" ] && out="$out,$m"; done
+  [ -n "$out" ] || out=",$1"
   echo "${out#,}"
 }
 
@@ -51,9 +52,14 @@ run_one() {
   local ms
   ms=$(milestones_for "$steps")
   [ -n "$bm" ] && ms=$steps  # the knob's run: scored where it stops (and at the cap, were it reached)
+  # runs sharing the GPU: the queues pinned to this one (`queues`; counted when the run starts and when it is
+  # recorded, so queues added meanwhile count), 1 for a queue alone
+  local conc=1
+  [ -f "$S/gpu" ] && conc=$(grep -lx "$(cat "$S/gpu")" "$(dirname "$S")"/q*/gpu 2> /dev/null | wc -l)
   echo "gpu_solo: train $name ($(date +%T))"
   python3 -m benchmarks.long_run train --method "$m" --data "$S/data/$scene" --run-dir "$d" --budget-s 100000 \
-    --steps "$steps" --milestones "$ms" --seed "$seed" --concurrent 1 ${bm:+--budget-minutes "$bm"} >> "$d.log" 2>&1
+    --steps "$steps" --milestones "$ms" --seed "$seed" --concurrent "$conc" ${bm:+--budget-minutes "$bm"} \
+    >> "$d.log" 2>&1
   grep "long_run:\|time budget" "$d.log" | tail -n 4
   local timed
   timed=$(python3 -c "import json,sys; print(' '.join(json.load(open(sys.argv[1])).get('milestone_train_s', {})))" \
@@ -65,7 +71,8 @@ run_one() {
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$k" >> "$d.eval-$k.log" 2>&1 &
   done
   wait
-  python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent 1 --milestones all \
+  [ -f "$S/gpu" ] && conc=$(grep -lx "$(cat "$S/gpu")" "$(dirname "$S")"/q*/gpu 2> /dev/null | wc -l)
+  python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent "$conc" --milestones all \
     --out "$S/rec/long-$name.json" > /dev/null 2>> "$d.log"
   cat "$d".eval-*.log >> "$d.log" 2>/dev/null
   grep "long_run:" "$d.log" | tail -n 8
