@@ -10,8 +10,7 @@ import pytest
 import yaml
 
 from willags_ns import method_configs as mc
-from willags_ns.config import INERT_KNOBS, RENAMED, check_settings
-from willags_ns.model import WillagsModelConfig
+from willags_ns.config import INERT_KNOBS, RENAMED, WillagsModelConfig, check_settings
 
 FLAT_LAYOUT = Path(__file__).parent / "data" / "model_config_flat_layout.yml"
 """`willags` and `willags-paper` model configs as config.yml stored them with use_vae, use_mask, mask_every,

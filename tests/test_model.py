@@ -236,7 +236,7 @@ def test_embedding_row_lookup_matches_the_table_and_names_a_bad_index():
     """The per-image latent is the table's row (and its gradient reaches only that row); an index outside the table
     is refused with the index and the table size, not read from the end as a negative Python index would be."""
     from willags_ns.appearance.networks import AppearanceNetworks
-    from willags_ns.model import WillagsModelConfig
+    from willags_ns.config import WillagsModelConfig
 
     nets = AppearanceNetworks(WillagsModelConfig(use_field=False), num_train=5)  # the embedding table
     mu, logvar = nets.latent_stats(None, 3)

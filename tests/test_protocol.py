@@ -78,7 +78,7 @@ def _tiny_model(use_vae: bool = True, **overrides):
     from tests._configs import all_components, latent, mask
     from willags_ns.appearance.triplane import TriplaneConfig
     from willags_ns.appearance.vae import VAEConfig
-    from willags_ns.model import WillagsModelConfig
+    from willags_ns.config import WillagsModelConfig
 
     g = torch.Generator().manual_seed(0)
     xyz = (torch.rand(300, 3, generator=g) - 0.5) * torch.tensor([2.0, 1.5, 0.5])

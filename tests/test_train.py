@@ -176,7 +176,7 @@ def test_entry_points_resolve():
     methods, descriptions = discover_methods()
     for name in ("willags", "willags-lite", "willags-3dgs"):
         assert name in methods, f"{name} not registered through nerfstudio.method_configs"
-    from willags_ns.model import WillagsModelConfig
+    from willags_ns.config import WillagsModelConfig
 
     assert isinstance(methods["willags"].pipeline.model, WillagsModelConfig)
 

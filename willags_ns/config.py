@@ -13,7 +13,7 @@ No field is rewritten while the model is built: what a scene lacks (a skyline wi
 again from the same config and scene, so config.yml is what trains. Splatfacto's knobs that willags does not read are
 refused with a message (`check_settings`). config.yml files of the flat layout (`use_vae`,
 `use_mask`, `mask_every`, `teacher`, `static_support`, ... at the top: RENAMED) load through
-`WillagsSettings.__setstate__`, which moves each value to its place in the groups.
+`WillagsModelConfig.__setstate__`, which moves each value to its place in the groups.
 """
 
 import dataclasses
@@ -29,6 +29,7 @@ from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.mask.teacher import TeacherConfig
 from willags_ns.mask.transient import MaskConfig
+from willags_ns.model import WillagsModel
 from willags_ns.splats.mcmc import Densification, McmcConfig
 
 
@@ -50,9 +51,11 @@ class LatentConfig:
 
 
 @dataclass
-class WillagsSettings(SplatfactoModelConfig):
+class WillagsModelConfig(SplatfactoModelConfig):
     """WilLaGS: splatfacto + appearance latent + colour transform (or tri-plane field and decoder) + EMA teacher +
-    perceptual transient mask + sky."""
+    perceptual transient mask + sky. The defaults are the method `willags`."""
+
+    _target: type = field(default_factory=lambda: WillagsModel)
 
     appearance: Literal["willags", "sh"] = "willags"
     """'willags': the latent-conditioned appearance field (the method). 'sh': plain 3DGS colours (splatfacto's
@@ -111,6 +114,11 @@ class WillagsSettings(SplatfactoModelConfig):
     builds the trained model. Off: the configuration as given (method willags-full)."""
 
     def __post_init__(self) -> None:
+        check_settings(self)
+
+    def check(self) -> None:
+        """Refuse what the model cannot train (check_settings): the model calls it when it is built, so a field
+        set after construction is checked too."""
         check_settings(self)
 
     @property
@@ -250,7 +258,7 @@ INERT_KNOBS: dict[str, str] = {
 refused (`check_settings`) rather than silently ignored."""
 
 
-def check_settings(cfg: WillagsSettings) -> None:
+def check_settings(cfg: WillagsModelConfig) -> None:
     """Raise ValueError naming each inherited splatfacto knob (INERT_KNOBS) set to something willags would ignore.
     Runs when the config is made (the command line) and when the model is built (config.yml, later edits)."""
     defaults = {f.name: f for f in dataclasses.fields(SplatfactoModelConfig)}

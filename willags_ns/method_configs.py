@@ -19,14 +19,13 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from willags_ns.appearance.sky import SkyConfig
 from willags_ns.appearance.vae import VAEConfig
-from willags_ns.config import LatentConfig
+from willags_ns.config import LatentConfig, WillagsModelConfig
 from willags_ns.data.dataparser import WillagsDataParserConfig
 from willags_ns.engine.compat import quick_external_method_check
 from willags_ns.engine.pipeline import WillagsPipelineConfig
 from willags_ns.engine.trainer import PRESET_CONFIGS, WillagsTrainerConfig
 from willags_ns.mask.static_support import StaticSupportConfig
 from willags_ns.mask.transient import MaskConfig
-from willags_ns.model import WillagsModelConfig
 
 quick_external_method_check()  # nerfstudio loads these configs before it lists its installable methods
 

@@ -26,8 +26,7 @@ CUDA (`populate_modules`, `get_outputs`) or downloads weights (LPIPS). `appearan
 (method `willags-3dgs`).
 """
 
-from dataclasses import dataclass, field
-from typing import Union
+from typing import Any, Union
 
 import torch
 import torch.nn.functional as F
@@ -45,7 +44,6 @@ from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
 from willags_ns.appearance.triplane import robust_bounds
-from willags_ns.config import WillagsSettings, check_settings
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import make_lpips
@@ -77,15 +75,7 @@ from willags_ns.splats.gaussians import (
 )
 from willags_ns.splats.mcmc import McmcDensification, uses_mcmc
 
-__all__ = ["WillagsModel", "WillagsModelConfig"]
-
-
-@dataclass
-class WillagsModelConfig(WillagsSettings):
-    """WilLaGS: splatfacto + appearance latent + colour transform (or tri-plane field and decoder) + EMA teacher +
-    perceptual transient mask + sky. Every field and its group: willags_ns/config.py; the defaults are `willags`."""
-
-    _target: type = field(default_factory=lambda: WillagsModel)
+__all__ = ["WillagsModel"]
 
 
 class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
@@ -95,7 +85,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
     appearance/latents.LatentFace) and the mask's (`update_teacher`, `static_support`, `sfm_observations`, the
     teacher's second rasterisation, ...: mask.step.MaskFace)."""
 
-    config: WillagsModelConfig
+    config: Any  # willags_ns.config.WillagsModelConfig (which names this class as its _target)
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
     train_latents: Tensor
     train_latent_seen: Tensor
@@ -105,7 +95,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
     # ------------------------------------------------------------------ set-up
     def populate_modules(self):
         cfg = self.config
-        check_settings(cfg)
+        cfg.check()
         means, seed_rgb = initial_points(cfg, self.seed_points)
         distances, _ = self.k_nearest_sklearn(means, 3)
         avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True).clamp_min(1e-7)

@@ -51,6 +51,7 @@ def test_a_config_yml_naming_the_modules_before_the_rooms_loads_as_today():
             older = older.replace(f":{new}", f":{old}")
     assert "willags_ns.trainer.WillagsTrainerConfig" in older and "willags_ns.pipeline.WillagsPipeline ''" in older
     assert "willags_ns.transient.MaskConfig" in older and "willags_ns.engine." not in older
+    assert "willags_ns.model.WillagsModelConfig" in older  # the model's settings were declared in model.py
     loaded = yaml.load(older, Loader=yaml.Loader)
     assert type(loaded) is type(config) and loaded == config
 

@@ -533,8 +533,8 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
     DefaultStrategy: willags-lite, willags-paper, willags-3dgs), whose resets keep their period in steps."""
     from types import SimpleNamespace
 
+    from willags_ns.config import WillagsModelConfig
     from willags_ns.engine.trainer import WillagsTrainer
-    from willags_ns.model import WillagsModelConfig
     from willags_ns.splats.gaussians import densification_strategy
     from willags_ns.splats.mcmc import McmcDensification
 

@@ -70,6 +70,7 @@ CONFIG_YML_CLASSES: dict[str, str] = {
     "willags_ns.transient.PerceptualMaskConfig": "willags_ns.mask.transient.MaskConfig",
     "willags_ns.mask_health.MaskHealthConfig": "willags_ns.mask.health.MaskHealthConfig",
     "willags_ns.static_support.StaticSupportConfig": "willags_ns.mask.static_support.StaticSupportConfig",
+    "willags_ns.model.WillagsModelConfig": "willags_ns.config.WillagsModelConfig",
 }
 """The classes a config.yml names by the module that held them when it was written (its YAML tags
 `!!python/object:M.C` and `!!python/name:M.C`), and where each class is: runs trained before the package had its
