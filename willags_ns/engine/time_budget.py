@@ -12,8 +12,9 @@ Two decisions, both from measurements:
 2. **While training** (:class:`TimeBudget`), from the run's own clock: the wall time of steps 20-70 (after the first
    steps' warm-up: allocations, kernel caches) gives the step time on this machine and scene; the last step is set so
    that the run ends within the budget (never after the preset's own default, nor after ``--max-num-iterations``),
-   re-planned every 200 steps (steps get slower as densification adds Gaussians and the resolution schedule doubles
-   the image size), and every learning-rate schedule ends at that step. Should the clock run out first, training
+   re-planned every 200 steps and, on one device, every tenth of the budget (steps get slower as densification adds
+   Gaussians and the resolution schedule doubles the image size), and every learning-rate schedule ends at that
+   step. Should the clock run out first, training
    stops there.
 
 The budget is wall-clock time of the trainer's loop (its periodic evaluation and checkpoints, and any pause in the
@@ -77,6 +78,11 @@ WARMUP_STEPS, and the first plan comes after another such share (and at least EA
 WINDOW_STEPS: a run whose 70 steps would take half its budget replaces the table's step time by its own after about
 two such shares (a 180 s budget of 4.5 s steps: at 27 s, after 6 steps)."""
 EARLY_MIN_STEPS = 3
+REPLAN_SHARE = 0.1
+"""One device: after the first plan, the plan is also redone once this share of the budget has passed since the last
+measurement (and at least EARLY_MIN_STEPS steps), even before REPLAN_EVERY steps. Densification makes steps slower
+as it goes: planned from an earlier, cheaper span only every REPLAN_EVERY steps, a short budget is stopped by the
+clock far before its planned end, its learning rates never decayed and its progress showing half of the run done."""
 """Fewest steps a measurement spans (and fewest steps before it starts)."""
 AGREE_EVERY = 50
 """Several devices: steps between two readings of the clock against the budget (each one an exchange of the elapsed
@@ -483,6 +489,8 @@ class TimeBudget:
     agree_every: int = AGREE_EVERY
     early_share: float = EARLY_SHARE
     """See EARLY_SHARE; 0 measures only at the step counts."""
+    replan_share: float = REPLAN_SHARE
+    """See REPLAN_SHARE; 0 re-plans only every replan_every steps."""
     t0: float | None = None
     end_step: int | None = None
     """Planned end (exclusive step index): training stops after step end_step - 1. None until measured."""
@@ -525,6 +533,13 @@ class TimeBudget:
                 due = done >= EARLY_MIN_STEPS and self.clock() - t0 >= early
             else:
                 due = done - self._mark[0] >= EARLY_MIN_STEPS and self.clock() - self._mark[1] >= early
+        if not due and self.agree is None and self.end_step is not None and self._mark is not None:  # steps slow down
+            since = self.clock() - self._mark[1]
+            due = (
+                self.replan_share > 0
+                and done - self._mark[0] >= EARLY_MIN_STEPS
+                and since >= self.replan_share * self.budget_s
+            )
         # with several ranks the clock is held against the budget only where the ranks exchange it
         read = self.agree is None or due or done % self.agree_every == 0
         now = self._now() if due else self.clock()
