@@ -575,6 +575,7 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
     assert isinstance(strategy, McmcDensification) == mcmc
     assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (10, 10, 300)
     assert (cfg.warmup_length, cfg.refine_every, cfg.stop_split_at) == (10, 10, 300)
+    assert cfg.sh_degree_interval == 1000  # the SH degree keeps its steps: a short run stays at degree 0
     if mcmc:
         assert strategy.reset_every == 0  # never resets opacities, however short the run
     else:

@@ -401,13 +401,15 @@ STEP_SCHEDULES = (
     "stop_split_at",
     "stop_screen_size_at",
     "reset_alpha_every",
-    "sh_degree_interval",
     "mask.warmup_steps",
     "mask.ramp_steps",
 )
 """The model's schedules counted in steps (dotted: under pipeline.model) that :func:`fit_schedules` fits into a run
-shorter than its preset's. reset_alpha_every counts refinements, the others steps. The resolution schedule is not
-among them: each doubling makes a step four times dearer, and the plan is re-measured at the resolution trained."""
+shorter than its preset's. reset_alpha_every counts refinements, the others steps. Two step schedules are not among
+them: the resolution schedule (each doubling makes a step four times dearer, and the plan is re-measured at the
+resolution trained) and the SH degree's (``sh_degree_interval``): the higher bands are view-dependent colour that a
+few hundred steps cannot constrain, and raised within a short run they fit the training views and lose on new ones
+(docs/design.md, the time budget)."""
 MIN_REFINE_EVERY = 10
 """Fewest steps between two densifications in a fitted schedule (each one judges the gradients gathered since the
 last)."""
@@ -419,7 +421,7 @@ leave none outside the pause that follows each reset."""
 def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> dict[str, int]:
     """The step schedules ``own`` (STEP_SCHEDULES -> value, for a run of ``preset_steps``) fitted into a run of
     ``run_steps``: each keeps its share of the run (scaled by r = run_steps / preset_steps, never above 1), so that a
-    short budget still densifies, resets opacities, raises the SH degree and warms up the mask within it.
+    short budget still densifies, resets opacities and warms up the mask within it.
     refine_every is at least MIN_REFINE_EVERY (or its own value when smaller); the opacity reset keeps its period in
     steps (reset_alpha_every x refine_every x r), counted in the fitted refinements and at least MIN_RESET_REFINES of
     them; a schedule at 0 (off) stays 0.
