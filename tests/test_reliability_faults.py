@@ -175,6 +175,18 @@ def test_row22_a_full_disk_stops_training_naming_the_last_good_checkpoint_and_th
 # ---- row 23: a truncated / corrupt checkpoint given to --load-dir, ns-eval, willags-render ...
 
 
+def test_row23_the_reason_is_torchs_first_sentence_not_cut_at_a_colon(tmp_path):
+    """A checkpoint cut short of its zip directory: torch says `... failed reading zip archive: failed finding central
+    directory. This is an internal miniz error. ...`; the line quotes the first sentence whole."""
+    path = tmp_path / "step-000000001.ckpt"
+    torch.save({"step": 1, "pipeline": {"x": torch.zeros(300000)}}, path)
+    path.write_bytes(path.read_bytes()[:100000])
+    with pytest.raises(CheckpointError) as info:
+        read_checkpoint(path)
+    msg = str(info.value)
+    assert "failed reading zip archive: failed finding central directory.)" in msg and "miniz" not in msg, msg
+
+
 @pytest.mark.parametrize("damage", ["half", "tail", "empty", "garbage", "not-a-checkpoint"])
 def test_row23_every_kind_of_damage_is_one_line_naming_the_file(tmp_path, damage):
     path = save_atomic(_state(7), checkpoint_path(tmp_path, 7))
@@ -194,6 +206,7 @@ def test_row23_every_kind_of_damage_is_one_line_naming_the_file(tmp_path, damage
     msg = str(info.value)
     assert msg.startswith(f"checkpoint {path} ") and "\n" not in msg, msg
     assert ("truncated or corrupt" in msg) if damage != "not-a-checkpoint" else ("not a nerfstudio checkpoint" in msg)
+    assert not msg.endswith(":)"), msg  # torch's reason to the end of its first sentence, not cut at a colon
 
 
 @pytest.fixture(scope="module")

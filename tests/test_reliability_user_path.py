@@ -215,6 +215,29 @@ def test_row_u8_export_needs_only_the_run_not_the_photos(project, tmp_path, monk
         pipeline.get_average_eval_image_metrics()
 
 
+def test_row_u9_a_missing_scene_is_one_line_without_an_auto_config_note(tmp_path):
+    """`ns-train willags --data <a path that does not exist>`: the dataparser's line names the path; no line before it
+    says that training goes on with the method's own configuration."""
+    import os
+    import subprocess
+
+    from tests.test_reliability import _ns_train
+
+    nowhere = tmp_path / "scenes" / "nowhere"
+    bad = subprocess.run(
+        _ns_train(["willags", "--data", str(nowhere), "--output-dir", str(tmp_path / "out")]),
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        timeout=600,
+    )
+    text = bad.stdout + bad.stderr
+    assert bad.returncode == 1 and "Traceback" not in text
+    assert f"{nowhere} does not exist" in text
+    assert "auto-config" not in text and "training with the method's own configuration" not in text
+    assert not (tmp_path / "out").exists()
+
+
 def test_row_u9_ns_train_starts_readably_and_a_bad_scene_leaves_no_run_folder(scene, tmp_path):  # noqa: F811
     import os
     import subprocess

@@ -211,8 +211,8 @@ def test_ranks_plan_from_the_slowest_and_stop_together():
 
 def test_one_process_reads_the_clock_at_every_step():
     clock = FakeClock()
-    # measured at the step counts only (early_share 0), so that the clock, not a plan, ends it
-    budget = TimeBudget(60.0, max_steps=30000, clock=clock, log=lambda m: None, early_share=0)
+    # measured at the step counts only (early_share and replan_share 0), so that the clock, not a plan, ends it
+    budget = TimeBudget(60.0, max_steps=30000, clock=clock, log=lambda m: None, early_share=0, replan_share=0)
     last = _run(budget, clock, lambda s: 0.25 + (3.0 if s == 100 else 0.0))
     assert budget.agree is None
     assert last == 227 and budget.stop_reason.startswith("the clock")  # 228 * 0.25 + 3 = 60 s
@@ -244,6 +244,29 @@ def test_replans_when_steps_slow_down():
     assert len(ends) > 2 and ends[-1] < ends[0]
     assert budget.elapsed() <= 60.0 + 0.05
     assert last + 1 == ends[-1] or budget.stop_reason.startswith("the clock")
+
+
+def test_a_run_slowed_by_densification_ends_at_its_plan_not_by_the_clock():
+    """Densification adds Gaussians and later steps cost more: here steps of 0.17 s, 0.23 s after step 70 and 0.7 s
+    after step 270 (the shape of a 3-minute CPU run on sacre-coeur-mini, docs/design.md). Re-planned every tenth of
+    the budget, the run ends at its planned step within the budget, its schedules ended there; re-planned only every
+    200 steps, the clock stops it long before the plan its progress and schedules count against."""
+
+    def densifying(s: int) -> float:
+        return 0.17 if s < 70 else 0.23 if s < 270 else 0.7
+
+    def last_plan_and_steps(replan_share: float) -> tuple[int, int, str]:
+        clock, ends = FakeClock(), []
+        budget = TimeBudget(180.0, max_steps=30000, on_plan=ends.append, clock=clock, log=lambda m: None)
+        budget.replan_share = replan_share
+        last = _run(budget, clock, densifying)
+        assert budget.elapsed() <= 180.0 + densifying(last)  # at most one step past the budget
+        return ends[-1], last + 1, budget.stop_reason
+
+    end, trained, why = last_plan_and_steps(tb.REPLAN_SHARE)
+    assert trained == end and why.startswith("reached the planned last step")
+    end, trained, why = last_plan_and_steps(0.0)
+    assert why.startswith("the clock") and trained < 0.7 * end
 
 
 def test_never_past_the_cap():
@@ -461,6 +484,12 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
     assert 8 < steps <= 13 and len(losses) == steps  # past the measurement window, within the budget
     assert record["run"]["elapsed_s"] <= minutes * 60 + step_s  # at most one step past the budget
     assert record["choice"]["preset"] == preset
+    # the record says whether the run densified: the Gaussians it started from and ended with, and the window
+    assert record["gaussians_at_start"] > 0
+    assert record["gaussians_at_end"] == trainer.pipeline.model.means.shape[0]
+    strategy = trainer.pipeline.model.strategy
+    assert record["densification"]["refine_every"] == strategy.refine_every
+    assert record["densification"]["refine_stop_iter"] == strategy.refine_stop_iter
     saved = (config.get_base_dir() / "config.yml").read_text()
     assert f"max_num_iterations: {steps}" in saved  # config.yml says what was trained
     assert list((config.get_base_dir() / "nerfstudio_models").glob(f"step-{steps - 1:09d}.ckpt"))
@@ -546,6 +575,7 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
     assert isinstance(strategy, McmcDensification) == mcmc
     assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (10, 10, 300)
     assert (cfg.warmup_length, cfg.refine_every, cfg.stop_split_at) == (10, 10, 300)
+    assert cfg.sh_degree_interval == 1000  # the SH degree keeps its steps: a short run stays at degree 0
     if mcmc:
         assert strategy.reset_every == 0  # never resets opacities, however short the run
     else:

@@ -253,7 +253,7 @@ def write_text_atomic(path: Path, text: str) -> None:
 
 def _reason(e: BaseException) -> str:
     text = " ".join(str(e).split())
-    first = re.split(r"(?<=[.:])\s", text, maxsplit=1)[0] if text else ""
+    first = re.split(r"(?<=\.)\s", text, maxsplit=1)[0] if text else ""  # the first sentence, not a clause
     first = first[:120]
     return f"{type(e).__name__}: {first}" if first else type(e).__name__
 

@@ -296,7 +296,7 @@ class WillagsPipeline(VanillaPipeline):
                     for part in parents:
                         target = getattr(target, part)
                     setattr(target, last, value)
-            if inspected:
+            if inspected and not summary.get("missing"):  # a missing scene: the dataparser's one line follows
                 CONSOLE.print(format_summary(summary))
             # resolved either way (the recommended switches, or the method's own where nothing could be inspected):
             # config.yml is rewritten with it, so reloading builds the trained model without inspecting again

@@ -12,8 +12,9 @@ Two decisions, both from measurements:
 2. **While training** (:class:`TimeBudget`), from the run's own clock: the wall time of steps 20-70 (after the first
    steps' warm-up: allocations, kernel caches) gives the step time on this machine and scene; the last step is set so
    that the run ends within the budget (never after the preset's own default, nor after ``--max-num-iterations``),
-   re-planned every 200 steps (steps get slower as densification adds Gaussians and the resolution schedule doubles
-   the image size), and every learning-rate schedule ends at that step. Should the clock run out first, training
+   re-planned every 200 steps and, on one device, every tenth of the budget (steps get slower as densification adds
+   Gaussians and the resolution schedule doubles the image size), and every learning-rate schedule ends at that
+   step. Should the clock run out first, training
    stops there.
 
 The budget is wall-clock time of the trainer's loop (its periodic evaluation and checkpoints, and any pause in the
@@ -77,6 +78,11 @@ WARMUP_STEPS, and the first plan comes after another such share (and at least EA
 WINDOW_STEPS: a run whose 70 steps would take half its budget replaces the table's step time by its own after about
 two such shares (a 180 s budget of 4.5 s steps: at 27 s, after 6 steps)."""
 EARLY_MIN_STEPS = 3
+REPLAN_SHARE = 0.1
+"""One device: after the first plan, the plan is also redone once this share of the budget has passed since the last
+measurement (and at least EARLY_MIN_STEPS steps), even before REPLAN_EVERY steps. Densification makes steps slower
+as it goes: planned from an earlier, cheaper span only every REPLAN_EVERY steps, a short budget is stopped by the
+clock far before its planned end, its learning rates never decayed and its progress showing half of the run done."""
 """Fewest steps a measurement spans (and fewest steps before it starts)."""
 AGREE_EVERY = 50
 """Several devices: steps between two readings of the clock against the budget (each one an exchange of the elapsed
@@ -395,13 +401,15 @@ STEP_SCHEDULES = (
     "stop_split_at",
     "stop_screen_size_at",
     "reset_alpha_every",
-    "sh_degree_interval",
     "mask.warmup_steps",
     "mask.ramp_steps",
 )
 """The model's schedules counted in steps (dotted: under pipeline.model) that :func:`fit_schedules` fits into a run
-shorter than its preset's. reset_alpha_every counts refinements, the others steps. The resolution schedule is not
-among them: each doubling makes a step four times dearer, and the plan is re-measured at the resolution trained."""
+shorter than its preset's. reset_alpha_every counts refinements, the others steps. Two step schedules are not among
+them: the resolution schedule (each doubling makes a step four times dearer, and the plan is re-measured at the
+resolution trained) and the SH degree's (``sh_degree_interval``): the higher bands are view-dependent colour that a
+few hundred steps cannot constrain, and raised within a short run they fit the training views and lose on new ones
+(docs/design.md, the time budget)."""
 MIN_REFINE_EVERY = 10
 """Fewest steps between two densifications in a fitted schedule (each one judges the gradients gathered since the
 last)."""
@@ -413,7 +421,7 @@ leave none outside the pause that follows each reset."""
 def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> dict[str, int]:
     """The step schedules ``own`` (STEP_SCHEDULES -> value, for a run of ``preset_steps``) fitted into a run of
     ``run_steps``: each keeps its share of the run (scaled by r = run_steps / preset_steps, never above 1), so that a
-    short budget still densifies, resets opacities, raises the SH degree and warms up the mask within it.
+    short budget still densifies, resets opacities and warms up the mask within it.
     refine_every is at least MIN_REFINE_EVERY (or its own value when smaller); the opacity reset keeps its period in
     steps (reset_alpha_every x refine_every x r), counted in the fitted refinements and at least MIN_RESET_REFINES of
     them; a schedule at 0 (off) stays 0.
@@ -483,6 +491,8 @@ class TimeBudget:
     agree_every: int = AGREE_EVERY
     early_share: float = EARLY_SHARE
     """See EARLY_SHARE; 0 measures only at the step counts."""
+    replan_share: float = REPLAN_SHARE
+    """See REPLAN_SHARE; 0 re-plans only every replan_every steps."""
     t0: float | None = None
     end_step: int | None = None
     """Planned end (exclusive step index): training stops after step end_step - 1. None until measured."""
@@ -525,6 +535,13 @@ class TimeBudget:
                 due = done >= EARLY_MIN_STEPS and self.clock() - t0 >= early
             else:
                 due = done - self._mark[0] >= EARLY_MIN_STEPS and self.clock() - self._mark[1] >= early
+        if not due and self.agree is None and self.end_step is not None and self._mark is not None:  # steps slow down
+            since = self.clock() - self._mark[1]
+            due = (
+                self.replan_share > 0
+                and done - self._mark[0] >= EARLY_MIN_STEPS
+                and since >= self.replan_share * self.budget_s
+            )
         # with several ranks the clock is held against the budget only where the ranks exchange it
         read = self.agree is None or due or done % self.agree_every == 0
         now = self._now() if due else self.clock()

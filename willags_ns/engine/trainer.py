@@ -429,7 +429,22 @@ class WillagsTrainer(Trainer):
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._budget_done),
         ]
         self.time_budget = budget
+        self._budget_record["gaussians_at_start"] = self._num_gaussians()
         self._write_budget_record()
+
+    def _num_gaussians(self) -> int | None:
+        """The model's Gaussian count (None for a model without Gaussians)."""
+        means = getattr(self.pipeline.model, "means", None)
+        return None if means is None else int(means.shape[0])
+
+    def _densification_window(self) -> dict[str, int] | None:
+        """The densification steps as the strategy runs them now (after the budget fitted them): refinements every
+        ``refine_every`` steps after ``refine_start_iter`` until ``refine_stop_iter``."""
+        strategy = getattr(self.pipeline.model, "strategy", None)
+        if strategy is None or not hasattr(strategy, "refine_start_iter"):
+            return None
+        keys = ("refine_start_iter", "refine_every", "refine_stop_iter", "reset_every")
+        return {k: int(getattr(strategy, k)) for k in keys if isinstance(getattr(strategy, k, None), int)}
 
     def _schedule_fitter(self, preset_steps: int) -> Callable[[int], None]:
         """A function of the run's planned steps that fits the model's step schedules into them
@@ -515,6 +530,9 @@ class WillagsTrainer(Trainer):
             end_schedules_at(self.config.optimizers, step + 1, self._warmups)
             self.config.max_num_iterations = trained
             self.config.save_config()  # config.yml says what was trained
+        # whether the run densified: Gaussians at the end against those it started from (the SfM points)
+        self._budget_record["gaussians_at_end"] = self._num_gaussians()
+        self._budget_record["densification"] = self._densification_window()
         self._write_budget_record()
 
     def _write_budget_record(self) -> None:

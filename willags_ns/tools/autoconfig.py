@@ -126,6 +126,9 @@ def apply_auto_config(
             "settings": {},
             "reasons": {},
         }
+    if not Path(data).exists():  # the dataparser stops on it in one line: nothing to say about the switches
+        error = f"data path {data} does not exist"
+        return {"applied": False, "error": error, "missing": True, "changes": {}, "settings": {}, "reasons": {}}
     icfg = inspect_config if inspect_config is not None else InspectConfig()
     icfg.data = data
     try:
