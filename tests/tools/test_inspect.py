@@ -476,3 +476,29 @@ def test_the_resource_estimate_stops_at_the_defaults_gaussian_cap():
     sizes = np.array([[800, 600]] * 10)
     assert resource_estimate(10, sizes, 1_000_000, cfg)["expected_gaussians"] == cfg.max_gaussians
     assert resource_estimate(10, sizes, 12_000, cfg)["expected_gaussians"] == 120_000
+
+
+def test_the_estimate_counts_the_photos_at_the_size_training_reads_them(scenes, tmp_path, monkeypatch):
+    """Training reads photos above 1600 px at 1/2**k of their size (the data parser's rule) or at the factor given:
+    the time and memory estimate counts the pixels of that size, and says which factor it used."""
+    from willags_ns.data.dataparser import auto_downscale_factor
+    from willags_ns.tools import inspect as insp
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    Image.new("RGB", (3300, 8)).save(folder / "a.png")  # the first by name decides
+    Image.new("RGB", (100, 8)).save(folder / "b.png")
+    assert insp.training_downscale(3300) == auto_downscale_factor(folder) == 4
+    assert [insp.training_downscale(s) for s in (1600, 1601, 8000)] == [1, 2, 8]
+    seen = []
+    real = insp.resource_estimate
+
+    def spy(n, sizes, points, cfg):
+        seen.append(sizes)
+        return real(n, sizes, points, cfg)
+
+    monkeypatch.setattr(insp, "resource_estimate", spy)
+    full = insp.inspect_scene(InspectConfig(data=scenes[(True, True)]))["facts"]["estimate"]
+    half = insp.inspect_scene(InspectConfig(data=scenes[(True, True)], downscale_factor=2))["facts"]["estimate"]
+    assert (full["downscale_factor"], half["downscale_factor"]) == (1, 2)  # the synthetic photos are small
+    np.testing.assert_allclose(seen[1], seen[0] / 2)

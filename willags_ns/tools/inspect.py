@@ -103,6 +103,10 @@ class InspectConfig:
     """Which images to analyse: 'train' (the images training sees, when the scene names a split) or 'all'."""
     max_images: int = 120
     """Analyse at most this many images (evenly spaced), to bound the time."""
+    downscale_factor: int | None = None
+    """The factor training reads the photos at (1/N of their sides) for the time and memory estimate: ns-train's
+    `--pipeline.datamanager.dataparser.downscale-factor`. None: the factor training resolves by itself (the largest
+    side brought to at most 1600 px, as willags' data parser does)."""
     max_points: int = 20000
     """Use at most this many SfM points (a seeded random subset)."""
     max_side: int = 400
@@ -698,6 +702,16 @@ CPU_STEP_S, CPU_STEP_MPX = 0.8, 0.13
 """A measured CPU step (seconds, 2 cores) and the megapixels per image it was measured at (fox)."""
 
 
+def training_downscale(side: int, max_side: int = 1600) -> int:
+    """The factor training reads a scene's photos at when none is given, from the largest side of its first photo by
+    name: the smallest power of 2 that brings it to at most `max_side` (data/dataparser.py auto_downscale_factor,
+    nerfstudio's rule; not imported, to keep this tool's start light)."""
+    factor = 1
+    while side / factor > max_side:
+        factor *= 2
+    return factor
+
+
 def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: InspectConfig) -> dict[str, Any]:
     """Rough memory and time (module docstring, evidence 3)."""
     mpx = float(np.mean(sizes[:, 0] * sizes[:, 1])) / 1e6
@@ -900,6 +914,8 @@ def inspect_scene(cfg: InspectConfig) -> dict[str, Any]:
     scene = read_scene(cfg.data)
     sel = select_images(scene, cfg.split, cfg.max_images)
     sizes = image_sizes(scene.image_paths)
+    first = min(range(len(scene.image_paths)), key=lambda i: Path(scene.image_paths[i]).name, default=None)
+    factor = cfg.downscale_factor or (1 if first is None else training_downscale(int(sizes[first].max())))
     n_train = sum(s == "train" for s in scene.split) or len(scene.image_paths)
     evidence: dict[str, Any] = {"data": str(cfg.data)}
     if scene.points is not None and len(scene.points) >= 20 and scene.w2c is not None:
@@ -924,7 +940,10 @@ def inspect_scene(cfg: InspectConfig) -> dict[str, Any]:
         "points": 0 if scene.points is None else len(scene.points),
         "points_extent": _extent(scene.points),
         "cameras_extent": _extent(cams),
-        "estimate": resource_estimate(n_train, sizes, 0 if scene.points is None else len(scene.points), cfg),
+        "estimate": {
+            **resource_estimate(n_train, sizes / factor, 0 if scene.points is None else len(scene.points), cfg),
+            "downscale_factor": factor,
+        },
     }
     rec = recommend(evidence, n_train, cfg)
     short = {k: v for k, v in evidence.items() if not k.startswith("per_image")}
@@ -958,7 +977,9 @@ def format_report(report: dict[str, Any]) -> str:
         f"  rough estimate: ~{est['expected_gaussians']:,} Gaussians, GPU ~{est['gpu_memory_gb']} GB / "
         f"~{est['gpu_hours']} h, CPU ~{est['cpu_memory_gb']} GB / ~{est['cpu_hours']} h for {est['steps']} steps "
         f"(a CPU step ~{est['cpu_first_step_s']} s at the first 1/4 size, ~{est['cpu_full_step_s']} s at full size: an "
-        "ETA taken early in a run counts the first)",
+        "ETA taken early in a run counts the first"
+        + (f"; photos read at 1/{est['downscale_factor']} of their size" if est.get("downscale_factor", 1) > 1 else "")
+        + ")",
         f"  evidence ({e['method']}): appearance {e['appearance_score']:.2f} levels, transients "
         + ("not measured" if ts is None else f"{ts:.2f} of the images occluded")
         + ", open background "
