@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.curves import grid_descriptions, scene_points, step_curve, step_time
-from benchmarks.methods import configuration
+from benchmarks.methods import METHODS, configuration
 from benchmarks.records import RECORDS, REPO, load_records
 
 RESULTS_MD = REPO / "docs" / "results.md"
@@ -229,10 +229,12 @@ def mask_rows(records: list[dict[str, Any]]) -> list[str]:
         recs = [r for r in recs if r.get("mask_status") == "ok"]
         if not recs:
             continue
-        static = [r["mask_fp_rate"] if "mask_iou" in r else r.get("mask_share") for r in recs]
-        if sc == "liberty":
-            static = [r.get("mask_fp_rate") for r in recs]
-        residual = any(r.get("mask_rule") == "residual" for r in recs) or m in ("willags-mask", "willags-residual")
+        # every pixel's share where the scene has no masks; else the static (or non-subject) pixels' share
+        static = [r.get("mask_share", r.get("mask_fp_rate")) for r in recs]
+        spec = METHODS.get(m)
+        residual = any(r.get("mask_rule") == "residual" for r in recs) or (
+            spec is not None and ("mask.distance", "residual") in spec.overrides
+        )
         cells = [
             _pct([float(v) for v in static if v is not None]),
             _pct([float(r["subject_masked"]) for r in recs if r.get("subject_masked") is not None]),

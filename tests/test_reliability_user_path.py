@@ -267,9 +267,27 @@ def test_row_u9_ns_train_starts_readably_and_a_bad_scene_leaves_no_run_folder(sc
     assert len(list(out.rglob("config.yml"))) == 1  # the full configuration is in the run folder
 
 
+def _as_from_a_terminal(cmd: list[str], cwd: Path, stderr: int):
+    """`cmd` started as from a terminal, for Ctrl-C: a suite started in the background (`make test &`, CI runners)
+    hands its children SIGINT ignored, and Python then never raises KeyboardInterrupt; the child gets the terminal's
+    default disposition. Unbuffered text output on a pipe; stderr: subprocess.PIPE or subprocess.STDOUT."""
+    import os
+    import signal
+    import subprocess
+
+    return subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=stderr,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        cwd=cwd,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+
 @pytest.mark.timing
 def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path):
-    import os
     import signal
     import socket
     import subprocess
@@ -282,18 +300,7 @@ def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path)
         port = s.getsockname()[1]
     exe = Path(sys.executable).with_name("ns-viewer")
     cmd = [str(exe), "--load-config", str(cfg), "--viewer.websocket-port", str(port)]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    # Ctrl-C as in a terminal: a suite started in the background (`make test &`, CI runners) hands its children SIGINT
-    # ignored, and Python then never raises KeyboardInterrupt; the viewer gets the terminal's default disposition
-    proc = subprocess.Popen(
-        cmd,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        cwd=tmp_path,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
+    proc = _as_from_a_terminal(cmd, tmp_path, stderr=subprocess.PIPE)
     try:
         deadline = time.time() + 300
         while True:  # serving: its port accepts connections
@@ -315,7 +322,6 @@ def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path)
 def test_row_u9_ctrl_c_after_training_closes_the_viewer_in_one_line(scene, tmp_path):  # noqa: F811
     """ns-train with the viewer waits after training ("Use ctrl+c to quit"); that Ctrl-C ends it with one line and
     exit status 0, the run complete, no traceback."""
-    import os
     import signal
     import socket
     import subprocess
@@ -328,17 +334,7 @@ def test_row_u9_ctrl_c_after_training_closes_the_viewer_in_one_line(scene, tmp_p
     out = tmp_path / "outputs"
     args = ["willags", "--data", str(scene), "--output-dir", str(out), "--viewer.websocket-port", str(port)]
     args += ["--max-num-iterations", "2", "--pipeline.model.mask.vgg-weights", "seeded"]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    # Ctrl-C as in a terminal (see test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback)
-    proc = subprocess.Popen(
-        _ns_train(args),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-        cwd=tmp_path,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
+    proc = _as_from_a_terminal(_ns_train(args), tmp_path, stderr=subprocess.STDOUT)
     lines: list[str] = []
     try:
         assert proc.stdout is not None

@@ -43,6 +43,11 @@ milestones_for() {  # steps -> the milestones up to it (SOLO_MILESTONES: another
   echo "${out#,}"
 }
 
+sharing() {  # runs sharing the GPU: the queues pinned to this one (`queues`; asked when a run starts and when it is
+  # recorded, so queues added meanwhile count), 1 for a queue alone
+  if [ -f "$S/gpu" ]; then grep -lx "$(cat "$S/gpu")" "$(dirname "$S")"/q*/gpu 2> /dev/null | wc -l; else echo 1; fi
+}
+
 run_one() {
   local scene=$1 m=$2 steps=$3 seed=$4 bm=$5
   local name="$scene-$m-$steps-s$seed${bm:+-knob$bm}" tag=${SOLO_TAG:-h200-curve}
@@ -52,13 +57,9 @@ run_one() {
   local ms
   ms=$(milestones_for "$steps")
   [ -n "$bm" ] && ms=$steps  # the knob's run: scored where it stops (and at the cap, were it reached)
-  # runs sharing the GPU: the queues pinned to this one (`queues`; counted when the run starts and when it is
-  # recorded, so queues added meanwhile count), 1 for a queue alone
-  local conc=1
-  [ -f "$S/gpu" ] && conc=$(grep -lx "$(cat "$S/gpu")" "$(dirname "$S")"/q*/gpu 2> /dev/null | wc -l)
   echo "gpu_solo: train $name ($(date +%T))"
   python3 -m benchmarks.long_run train --method "$m" --data "$S/data/$scene" --run-dir "$d" --budget-s 100000 \
-    --steps "$steps" --milestones "$ms" --seed "$seed" --concurrent "$conc" ${bm:+--budget-minutes "$bm"} \
+    --steps "$steps" --milestones "$ms" --seed "$seed" --concurrent "$(sharing)" ${bm:+--budget-minutes "$bm"} \
     >> "$d.log" 2>&1
   grep "long_run:\|time budget" "$d.log" | tail -n 4
   local timed
@@ -71,8 +72,7 @@ run_one() {
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$k" >> "$d.eval-$k.log" 2>&1 &
   done
   wait
-  [ -f "$S/gpu" ] && conc=$(grep -lx "$(cat "$S/gpu")" "$(dirname "$S")"/q*/gpu 2> /dev/null | wc -l)
-  python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent "$conc" --milestones all \
+  python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent "$(sharing)" --milestones all \
     --out "$S/rec/long-$name.json" > /dev/null 2>> "$d.log"
   cat "$d".eval-*.log >> "$d.log" 2>/dev/null
   grep "long_run:" "$d.log" | tail -n 8

@@ -481,15 +481,15 @@ def test_the_resource_estimate_stops_at_the_defaults_gaussian_cap():
 def test_the_estimate_counts_the_photos_at_the_size_training_reads_them(scenes, tmp_path, monkeypatch):
     """Training reads photos above 1600 px at 1/2**k of their size (the data parser's rule) or at the factor given:
     the time and memory estimate counts the pixels of that size, and says which factor it used."""
-    from willags_ns.data.dataparser import auto_downscale_factor
+    from willags_ns.data.dataparser import auto_downscale_factor, downscale_for_side
     from willags_ns.tools import inspect as insp
 
     folder = tmp_path / "images"
     folder.mkdir()
     Image.new("RGB", (3300, 8)).save(folder / "a.png")  # the first by name decides
     Image.new("RGB", (100, 8)).save(folder / "b.png")
-    assert insp.training_downscale(3300) == auto_downscale_factor(folder) == 4
-    assert [insp.training_downscale(s) for s in (1600, 1601, 8000)] == [1, 2, 8]
+    assert downscale_for_side(3300) == auto_downscale_factor(folder) == 4
+    assert [downscale_for_side(s) for s in (1600, 1601, 8000)] == [1, 2, 8]
     seen = []
     real = insp.resource_estimate
 

@@ -509,6 +509,12 @@ def auto_downscale_factor(images_dir: Path) -> int:
             side = max(im.size)
     except OSError:
         return 1
+    return downscale_for_side(side)
+
+
+def downscale_for_side(side: int) -> int:
+    """The automatic downscale factor of a photo whose largest side is `side` px: the smallest power of 2 that brings
+    it to at most MAX_AUTO_SIDE."""
     factor = 1
     while side / factor > MAX_AUTO_SIDE:
         factor *= 2

@@ -702,16 +702,6 @@ CPU_STEP_S, CPU_STEP_MPX = 0.8, 0.13
 """A measured CPU step (seconds, 2 cores) and the megapixels per image it was measured at (fox)."""
 
 
-def training_downscale(side: int, max_side: int = 1600) -> int:
-    """The factor training reads a scene's photos at when none is given, from the largest side of its first photo by
-    name: the smallest power of 2 that brings it to at most `max_side` (data/dataparser.py auto_downscale_factor,
-    nerfstudio's rule; not imported, to keep this tool's start light)."""
-    factor = 1
-    while side / factor > max_side:
-        factor *= 2
-    return factor
-
-
 def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: InspectConfig) -> dict[str, Any]:
     """Rough memory and time (module docstring, evidence 3)."""
     mpx = float(np.mean(sizes[:, 0] * sizes[:, 1])) / 1e6
@@ -914,8 +904,11 @@ def inspect_scene(cfg: InspectConfig) -> dict[str, Any]:
     scene = read_scene(cfg.data)
     sel = select_images(scene, cfg.split, cfg.max_images)
     sizes = image_sizes(scene.image_paths)
+    from willags_ns.data.dataparser import downscale_for_side
+
+    # the factor training reads the photos at: the data parser's rule, from the first photo by name
     first = min(range(len(scene.image_paths)), key=lambda i: Path(scene.image_paths[i]).name, default=None)
-    factor = cfg.downscale_factor or (1 if first is None else training_downscale(int(sizes[first].max())))
+    factor = cfg.downscale_factor or (1 if first is None else downscale_for_side(int(sizes[first].max())))
     n_train = sum(s == "train" for s in scene.split) or len(scene.image_paths)
     evidence: dict[str, Any] = {"data": str(cfg.data)}
     if scene.points is not None and len(scene.points) >= 20 and scene.w2c is not None:
