@@ -72,6 +72,18 @@ METHODS: dict[str, MethodSpec] = {
         (_AUTO, ("densification", "mcmc"), ("mcmc.cap_max", 1_000_000)),
         note="the default, MCMC capped at 1M",
     ),
+    "willags-cap1m-mask": MethodSpec(
+        "willags",
+        (
+            _AUTO,
+            ("mask.enabled", True),
+            ("mask.distance", "residual"),
+            ("densification", "mcmc"),
+            ("mcmc.cap_max", 1_000_000),
+        ),
+        note="willags-cap1m with the transient mask on every scene, by the colour residual to the teacher",
+        keep=("mask.enabled",),
+    ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
     # antialiased: gsplat's opacity compensation for the 2D dilation, consistent renders across resolutions
     "splatfacto-aa": MethodSpec(
