@@ -21,8 +21,6 @@ what the records hold and every run per scene. PSNR at each step count and at eq
 """
 
 import argparse
-import json
-import re
 import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -67,67 +65,19 @@ class Sharing:
         return "not recorded"
 
 
-_COUNT = re.compile(r"((?:\d+(?:-\d+)?(?:, | and ))*\d+(?:-\d+)?) (?:scene )?runs (?:at once|concurrent)")
-_OTHERS = re.compile(r"with (\d+) other runs?")
-_SHARED_WORDS = ("shared-gpu", "shared the gpu", "concurrent", "at once")
-_ALONE_WORDS = ("one after another", "alone")
-
-
-def grid_descriptions(repo: Path = REPO) -> dict[str, str]:
-    """configs/<grid>.json -> its description (which says whether its runs shared the GPU)."""
-    out = {}
-    for p in sorted((repo / "configs").glob("*.json")):
-        try:
-            out[f"configs/{p.name}"] = str(json.loads(p.read_text()).get("description", ""))
-        except (OSError, ValueError):
-            continue
-    return out
-
-
-def gpu_sharing(rec: dict[str, Any], grids: dict[str, str] | None = None) -> Sharing:
-    """How many runs shared the GPU while ``rec`` trained, from what the record says.
-
-    Counts: ``concurrent_runs`` (long runs: runs on the GPU while its segment trained), each segment's
-    ``concurrent_runs`` or ``shared_with`` + 1, and numbers in its notes ("12, 9 and 3 runs concurrent", "4-5 runs at
-    once", "with 6 other runs"); the largest wins. Without a count above 1: words in the notes ("shared-GPU",
-    "concurrently" -> shared; "alone", "one after another" -> alone), then the grid file named in ``command``
-    (remote/grid.sh grids say their runs are concurrent; the Pareto grid ran one after another).
-    """
-    counts: list[int] = []
-    why: list[str] = []
-    if isinstance(rec.get("concurrent_runs"), int):
-        counts.append(rec["concurrent_runs"])
-        why.append("concurrent_runs")
-    for seg in rec.get("segments") or []:
-        if isinstance(seg.get("concurrent_runs"), int):
-            counts.append(seg["concurrent_runs"])
-            why.append("segments")
-        elif isinstance(seg.get("shared_with"), int):
-            counts.append(seg["shared_with"] + 1)
-            why.append("segments")
-    text = " ".join(str(rec.get(k) or "") for k in ("note", "run_note"))
-    for m in _COUNT.finditer(text):
-        counts += [int(n) for n in re.findall(r"\d+", m.group(1))]
-        why.append("note")
-    for m in _OTHERS.finditer(text):
-        counts.append(int(m.group(1)) + 1)
-        why.append("note")
-    low = text.lower()
-    src = ", ".join(dict.fromkeys(why))
-    if counts and max(counts) > 1:
-        return Sharing("shared", max(counts), src)
-    if any(w in low for w in _SHARED_WORDS):
-        return Sharing("shared", None, "note")
-    if (counts and max(counts) == 1) or any(w in low for w in _ALONE_WORDS):
-        return Sharing("alone", 1, src or "note")
-    grid = re.search(r"--grid (\S+\.json)", str(rec.get("command") or ""))
-    if grid is not None:
-        desc = (grids if grids is not None else grid_descriptions()).get(grid.group(1), "").lower()
-        if "concurrent" in desc:
-            return Sharing("shared", None, f"{grid.group(1)} runs its pairs concurrently")
-        if "one after another" in desc:
-            return Sharing("alone", 1, f"{grid.group(1)} runs one after another")
-    return Sharing("unknown", None, "")
+def gpu_sharing(rec: dict[str, Any]) -> Sharing:
+    """How many runs shared the GPU while ``rec`` trained: the most of its ``concurrent_runs`` and its segments'
+    (benchmarks/long_run.py and benchmarks/grid.py ``--concurrent``), or the ``gpu_sharing`` it carries (records from
+    before those fields, read from their notes and grid files)."""
+    if rec.get("gpu_sharing"):
+        return Sharing(**rec["gpu_sharing"])
+    given = {"concurrent_runs": [rec.get("concurrent_runs")]}
+    given["segments"] = [seg.get("concurrent_runs") for seg in rec.get("segments") or []]
+    counts = {k: [n for n in ns if isinstance(n, int)] for k, ns in given.items()}
+    runs = max((n for ns in counts.values() for n in ns), default=None)
+    if runs is None:
+        return Sharing("unknown", None, "")
+    return Sharing("alone" if runs == 1 else "shared", runs, ", ".join(k for k, ns in counts.items() if ns))
 
 
 # ---------------------------------------------------------------------------------------------- points
@@ -184,11 +134,9 @@ def scene_points(
     records: Sequence[dict[str, Any]],
     scene: str,
     methods: Sequence[str] = CURVE_METHODS,
-    grids: dict[str, str] | None = None,
 ) -> list[Point]:
     """Every measured (method, steps, train time, PSNR) of ``scene`` on the GPU, one per run and step count. Runs
     under the time budget are left out (:func:`is_knob_run`)."""
-    grids = grid_descriptions() if grids is None else grids
     out, seen = [], set()
     for r in records:
         method = configuration(r)
@@ -197,7 +145,7 @@ def scene_points(
         if is_knob_run(r):  # a compressed schedule: not its method's curve
             continue
         tag = str(r.get("tag") or "")
-        point = partial(Point, scene, method, tag=tag, gpu=_gpu(r), sharing=gpu_sharing(r, grids), seed=_seed(r))
+        point = partial(Point, scene, method, tag=tag, gpu=_gpu(r), sharing=gpu_sharing(r), seed=_seed(r))
         if r.get("kind") == "long_run":
             for k, ms in (r.get("milestones") or {}).items():
                 if ms.get("psnr") is None:
@@ -463,14 +411,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--md", default=None, help="markdown output (default: <out-dir>/curves.md)")
     args = ap.parse_args(argv)
     records = load_records([Path(p) for p in args.records])
-    grids = grid_descriptions()
     skipped = {
         "failed runs": sum(r.get("status", "ok") != "ok" for r in records if r.get("scene") in args.scenes),
         "records with a tree_note (not a clean record of their method)": sum(
             bool(r.get("tree_note")) for r in records if r.get("scene") in args.scenes
         ),
     }
-    by_scene = {s: scene_points(records, s, grids=grids) for s in args.scenes}
+    by_scene = {s: scene_points(records, s) for s in args.scenes}
     out_dir = Path(args.out_dir)
     pngs = {s: plot_scene(pts, out_dir / f"curves_{s}.png") for s, pts in by_scene.items() if has_curve(pts)}
     md = Path(args.md) if args.md else out_dir / "curves.md"

@@ -66,6 +66,9 @@ class RunSpec:
     """Also score the right half with the latent fitted on the whole test image (oracle_* keys)."""
     train_views: int = 8
     """Training views scored with their own latents (train_* keys: fitting capacity); 0 = none."""
+    concurrent_runs: int | None = None
+    """Runs on the GPU at once while this one trained, itself included (benchmarks/remote/grid.sh says); None: not
+    recorded."""
 
     @property
     def scene_name(self) -> str:
@@ -254,6 +257,7 @@ def run_one(
         "command": command,
         "machine": machine,
         "commit": git_commit(),
+        "concurrent_runs": spec.concurrent_runs,
     }
     t = time.perf_counter()
     with open(log_path, "w") as logf:
@@ -359,6 +363,7 @@ def main(argv=None) -> int:
     ap.add_argument("--stop-after-s", type=float, default=0.0, help="start no new run after this many seconds")
     ap.add_argument("--tag", help="override every run's tag (repeats: r1, r2, ...)")
     ap.add_argument("--seed", type=int, help="override every run's seed")
+    ap.add_argument("--concurrent", type=int, help="runs on the GPU at once, this one included (recorded)")
     ap.add_argument("--render-only", action="store_true", help="regenerate the markdown from <out>.json and exit")
     ap.add_argument("--merge", nargs="*", type=Path, default=[], help="merge these record files into <out>.json")
     args = ap.parse_args(argv)
@@ -372,7 +377,8 @@ def main(argv=None) -> int:
         return 0
     if args.grid is None:
         ap.error("--grid is required (unless --merge or --render-only)")
-    overrides = {k: v for k, v in (("tag", args.tag), ("seed", args.seed)) if v is not None}
+    given = (("tag", args.tag), ("seed", args.seed), ("concurrent_runs", args.concurrent))
+    overrides = {k: v for k, v in given if v is not None}
     command = "python -m benchmarks run " + " ".join(sys.argv[1:] if argv is None else argv)
     run_grid(
         args.grid,

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.curves import grid_descriptions, scene_points, step_curve, step_time
+from benchmarks.curves import scene_points, step_curve, step_time
 from benchmarks.methods import METHODS, configuration
 from benchmarks.records import RECORDS, REPO, load_records
 
@@ -312,11 +312,10 @@ def step_rows(records: list[dict[str, Any]], scenes: Sequence[str] = REAL_SCENES
     """Per real scene where the default has a curve, and method: mean PSNR at each step count with its runs and the
     median time of the runs alone on the GPU (`shared GPU`: only shared-GPU times, longer than the method's own
     cost)."""
-    grids = grid_descriptions()
     head = "| scene | method | " + " | ".join(f"{s // 1000}k" for s in STEP_COUNTS) + " |"
     out = [head, "|---|---|" + "---|" * len(STEP_COUNTS)]
     for sc in scenes:
-        points = scene_points(records, sc, grids=grids)
+        points = scene_points(records, sc)
         if len(step_curve(points, STEP_METHODS[0])) < 2:
             continue  # no curve of the default on this scene
         for m in STEP_METHODS:

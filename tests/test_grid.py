@@ -238,7 +238,9 @@ def test_tiny_grid_end_to_end(tmp_path):
     out = tmp_path / "docs" / "benchmarks"
     write_outputs([_rec("fox-wild", "willags", 300, 18.0, device="cuda", tag="")], out)  # a GPU record
     logs = []
-    recs = grid.run_grid(gpath, out, tmp_path / "work", command="bench-test", log=logs.append)
+    recs = grid.run_grid(
+        gpath, out, tmp_path / "work", command="bench-test", log=logs.append, overrides={"concurrent_runs": 2}
+    )
     assert len(recs) == 1 and recs[0]["status"] == "ok", logs
     r = recs[0]
     for k in ("psnr", "ssim", "encoder_psnr", "full_psnr", "train_s", "fps", "num_gaussians", "peak_mem_gb"):
@@ -246,6 +248,7 @@ def test_tiny_grid_end_to_end(tmp_path):
     assert r["lpips"] is None or np.isfinite(r["lpips"])
     assert r["mask_status"] == "ok" and r["mask_num_images"] == 2  # the synthetic scene has masks_gt/
     assert r["steps"] == 5 and r["device"] == "cpu" and r["scene"] == "default" and r["command"] == "bench-test"
+    assert r["concurrent_runs"] == 2  # --concurrent (benchmarks/remote/grid.sh) recorded
     back = load_records(out.with_suffix(".json"))
     assert {x["device"] for x in back} == {"cpu", "cuda"}  # merged, the GPU record kept
     assert "### default (cpu)" in out.with_suffix(".md").read_text()
