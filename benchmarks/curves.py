@@ -29,10 +29,9 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.methods import configuration
-from benchmarks.records import RECORDS, merge_records
-from benchmarks.records import load_records as records_in
+from benchmarks.records import RECORDS, REPO, merged_records
+from benchmarks.tables import gpu
 
-REPO = Path(__file__).resolve().parents[1]
 CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer-full", "peer", "splatfacto")
 """The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
 benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`)."""
@@ -101,17 +100,6 @@ class Point:
     """The run's seed (records without one ran with the harness's default, 42)."""
 
 
-def _gpu(rec: dict[str, Any]) -> str:
-    machine = str(rec.get("machine") or "")
-    name = machine.split("(")[0].replace("NVIDIA", "").split()
-    return name[0] if name else "?"
-
-
-def _seed(rec: dict[str, Any]) -> int:
-    seed = rec.get("seed")
-    return 42 if seed is None else int(seed)
-
-
 def _usable(rec: dict[str, Any]) -> bool:
     return rec.get("status", "ok") == "ok" and not rec.get("tree_note")
 
@@ -137,26 +125,21 @@ def scene_points(
 ) -> list[Point]:
     """Every measured (method, steps, train time, PSNR) of ``scene`` on the GPU, one per run and step count. Runs
     under the time budget are left out (:func:`is_knob_run`)."""
-    out, seen = [], set()
+    out = []
     for r in records:
         method = configuration(r)
         if r.get("scene") != scene or method not in methods or r.get("device") != "cuda" or not _usable(r):
             continue
         if is_knob_run(r):  # a compressed schedule: not its method's curve
             continue
-        tag = str(r.get("tag") or "")
-        point = partial(Point, scene, method, tag=tag, gpu=_gpu(r), sharing=gpu_sharing(r), seed=_seed(r))
+        tag, seed = str(r.get("tag") or ""), int(r.get("seed") or 42)
+        point = partial(Point, scene, method, tag=tag, gpu=gpu(r), sharing=gpu_sharing(r), seed=seed)
         if r.get("kind") == "long_run":
             for k, ms in (r.get("milestones") or {}).items():
                 if ms.get("psnr") is None:
                     continue
-                seen.add((method, int(k), tag))
                 out.append(point(int(k), float(ms["psnr"]), milestone_train_s(r, k), "long run"))
         elif r.get("psnr") is not None and int(r.get("steps") or 0) > 0:
-            key = (method, int(r["steps"]), tag)
-            if key in seen:  # the same run merged twice (a long run's final milestone and its grid copy)
-                continue
-            seen.add(key)
             t = r.get("train_s")
             out.append(point(int(r["steps"]), float(r["psnr"]), None if t is None else float(t), "grid"))
     return sorted(out, key=lambda p: (methods.index(p.method), p.steps, p.train_s or 0.0))
@@ -190,10 +173,8 @@ class StepPoint:
     n: int
     times: tuple[float, ...]
     """Measured train seconds of the runs (untimed runs left out)."""
-    sharing: str
-    """The runs' sharing labels, joined."""
-    alone: tuple[tuple[float, str], ...] = ()
-    """(train seconds, GPU) of the runs timed alone on their GPU."""
+    alone: tuple[float, ...] = ()
+    """Train seconds of the runs timed alone on their GPU."""
 
 
 def step_curve(points: Sequence[Point], method: str) -> list[StepPoint]:
@@ -202,9 +183,8 @@ def step_curve(points: Sequence[Point], method: str) -> list[StepPoint]:
     for steps in sorted({p.steps for p in points if p.method == method}):
         ps = [p for p in points if p.method == method and p.steps == steps]
         times = tuple(sorted(p.train_s for p in ps if p.train_s is not None))
-        labels = " / ".join(dict.fromkeys(p.sharing.label() for p in ps if p.train_s is not None)) or "–"
-        alone = tuple(sorted((p.train_s, p.gpu) for p in ps if p.train_s is not None and p.sharing.state == "alone"))
-        out.append(StepPoint(method, steps, statistics.mean(p.psnr for p in ps), len(ps), times, labels, alone))
+        alone = tuple(sorted(p.train_s for p in ps if p.train_s is not None and p.sharing.state == "alone"))
+        out.append(StepPoint(method, steps, statistics.mean(p.psnr for p in ps), len(ps), times, alone))
     return out
 
 
@@ -215,20 +195,11 @@ class StepTime:
 
     seconds: float
     alone: bool
-    n: int
-    """Runs the median is over."""
-    gpus: tuple[str, ...]
-    """GPU models of the alone runs (empty for a shared time)."""
 
 
 def step_time(s: StepPoint) -> StepTime | None:
     """``s``'s time (:class:`StepTime`); None: no run of it was timed."""
-    if s.alone:
-        gpus = tuple(sorted({g for _, g in s.alone}))
-        return StepTime(statistics.median(t for t, _ in s.alone), True, len(s.alone), gpus)
-    if s.times:
-        return StepTime(statistics.median(s.times), False, len(s.times), ())
-    return None
+    return StepTime(statistics.median(s.alone or s.times), bool(s.alone)) if s.times else None
 
 
 def has_curve(points: Sequence[Point]) -> bool:
@@ -306,15 +277,6 @@ def plot_scene(points: Sequence[Point], path: Path) -> Path:
     fig.savefig(path)
     plt.close(fig)
     return path
-
-
-def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
-    """Records of several files (each a JSON list); a later record with the same (scene, method, device, steps, tag)
-    replaces an earlier one (benchmarks.records.merge_records)."""
-    records: list[dict[str, Any]] = []
-    for p in paths:
-        records = merge_records(records, records_in(Path(p)))
-    return records
 
 
 # ---------------------------------------------------------------------------------------------- docs/curves.md
@@ -410,7 +372,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out-dir", default=str(REPO / "docs"), help="where curves_<scene>.png go")
     ap.add_argument("--md", default=None, help="markdown output (default: <out-dir>/curves.md)")
     args = ap.parse_args(argv)
-    records = load_records([Path(p) for p in args.records])
+    records = merged_records(args.records)
     skipped = {
         "failed runs": sum(r.get("status", "ok") != "ok" for r in records if r.get("scene") in args.scenes),
         "records with a tree_note (not a clean record of their method)": sum(

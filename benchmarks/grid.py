@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.methods import METHODS
-from benchmarks.records import RECORDS, REPO, load_records, merge_records
+from benchmarks.records import RECORDS, REPO, load_records, merge_records, merged_records
 from benchmarks.tables import write_outputs
 
 
@@ -369,9 +369,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     out = args.out if args.out.is_absolute() else Path.cwd() / args.out
     if args.merge or args.render_only:
-        recs = load_records(out.with_suffix(".json"))
-        for f in args.merge:
-            recs = merge_records(recs, load_records(f))
+        recs = merged_records([out.with_suffix(".json"), *args.merge])
         j, m = write_outputs(recs, out)
         print(f"{len(recs)} records -> {j}, {m}")
         return 0
