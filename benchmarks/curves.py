@@ -30,7 +30,7 @@ from typing import Any
 
 from benchmarks.methods import configuration
 from benchmarks.records import RECORDS, REPO, merged_records
-from benchmarks.tables import gpu
+from benchmarks.tables import gpu, md_table
 
 CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer-full", "peer", "splatfacto")
 """The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
@@ -298,19 +298,12 @@ MEASURE = (
 
 def scene_table(points: Sequence[Point]) -> list[str]:
     """Markdown rows: every run, its time, GPU, sharing and Pareto mark."""
-    flags = pareto_flags(points)
-    out = [
-        "| method | steps | train s | PSNR | GPU | GPU shared | from | tag | Pareto |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for p, pareto in zip(points, flags, strict=True):
+    rows = []
+    for p, pareto in zip(points, pareto_flags(points), strict=True):
         t = "not recorded" if p.train_s is None else f"{p.train_s:.0f}"
         share = p.sharing.label() + (f" ({p.sharing.why})" if p.sharing.why else "")
-        out.append(
-            f"| {p.method} | {p.steps} | {t} | {p.psnr:.2f} | {p.gpu} | {share} | {p.source} | {p.tag or '–'} "
-            f"| {'*' if pareto else ''} |"
-        )
-    return out
+        rows.append([p.method, str(p.steps), t, f"{p.psnr:.2f}", p.gpu, share, p.source, p.tag or "–", "*" * pareto])
+    return md_table(["method", "steps", "train s", "PSNR", "GPU", "GPU shared", "from", "tag", "Pareto"], rows)
 
 
 def render_markdown(
@@ -334,9 +327,8 @@ def render_markdown(
         "",
         "## What the records hold",
         "",
-        "| scene | runs × step counts (timed) | methods: step counts | plot |",
-        "|---|---|---|---|",
     ]
+    rows = []
     for scene, points in by_scene.items():
         timed = sum(p.train_s is not None for p in points)
         methods = "; ".join(
@@ -347,7 +339,8 @@ def render_markdown(
         plot = (
             f"[curves_{scene}.png]({pngs[scene].name})" if scene in pngs else "none (no method timed at 2 step counts)"
         )
-        out.append(f"| {scene} | {len(points)} ({timed}) | {methods or '–'} | {plot} |")
+        rows.append([scene, f"{len(points)} ({timed})", methods or "–", plot])
+    out += md_table(["scene", "runs × step counts (timed)", "methods: step counts", "plot"], rows)
     missing = [m for m in CURVE_METHODS if not any(p.method == m for ps in by_scene.values() for p in ps)]
     if missing:
         out += ["", f"No records of {', '.join(missing)} on these scenes."]

@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.tables import md_table
+
 REGIONS_ENV = "WILLAGS_BENCH_REGIONS"
 """Folder where each scored run writes its error maps and geometry (unset: nothing is written)."""
 
@@ -367,10 +369,7 @@ def _table_order(method: str) -> tuple[int, str]:
 def report(folder: Path, out: Path | None, pictures: Path | None, json_out: Path | None = None) -> str:
     """The markdown table of every scene's regions (a picture per scene when ``pictures`` is given; the scores as
     JSON, scene -> method -> region -> share / psnr / runs, when ``json_out`` is)."""
-    lines = [
-        "| scene | method | runs | " + " | ".join(f"{r} PSNR (share)" for r in ("all", *REGIONS)) + " |",
-        "|---|---|---|" + "---|" * (1 + len(REGIONS)),
-    ]
+    rows = []
     every: dict[str, Any] = {}
     for scene, runs in sorted(load_dumps(folder).items()):
         got = scene_regions(runs)
@@ -381,12 +380,13 @@ def report(folder: Path, out: Path | None, pictures: Path | None, json_out: Path
         for method in sorted(scores, key=_table_order):
             s = scores[method]
             cells = [f"{s[k]['psnr']:.2f} ({100 * s[k]['share']:.0f} %)" for k in ("all", *REGIONS)]
-            lines.append(f"| {scene} | {method} | {s['all']['runs']} | " + " | ".join(cells) + " |")
+            rows.append([scene, method, str(s["all"]["runs"]), *cells])
         if pictures is not None:
             ref = reference_run(runs)
             assert ref is not None
             region_picture(pictures / f"{scene}.png", _images(ref, "gt"), labels)
-    text = "\n".join(lines) + "\n"
+    head = ["scene", "method", "runs", *(f"{r} PSNR (share)" for r in ("all", *REGIONS))]
+    text = "\n".join(md_table(head, rows)) + "\n"
     if json_out is not None:
         import json
 
