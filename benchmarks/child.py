@@ -55,24 +55,14 @@ def mask_record(model, train_dataset, max_images: int = -1) -> dict[str, Any]:
     subject_dir = scene / "masks_subject" if scene else None
     if gt_dir is not None and gt_dir.is_dir():
         ms = mask_scores(model, train_dataset, gt_dir, max_images=max_images)
-        out = {"mask_status": ms.pop("status")}
-        out.update({f"mask_{k}": v for k, v in ms.items()})
-        return out
-    if subject_dir is not None and subject_dir.is_dir():
-        ms = mask_scores(model, train_dataset, subject_dir, max_images=max_images)
-        return {
-            "mask_status": ms["status"],
-            "subject_masked": ms.get("recall"),
-            "mask_fp_rate": ms.get("fp_rate"),
-            "mask_rule": ms.get("rule"),
-        }
-    ms = mask_scores(model, train_dataset, None, max_images=max_images)
-    return {
-        "mask_status": ms["status"],
-        "mask_share": ms.get("fp_rate"),
-        "mask_rejected": ms.get("rejected"),
-        "mask_rule": ms.get("rule"),
-    }
+        return {"mask_status": ms.pop("status"), **{f"mask_{k}": v for k, v in ms.items()}}
+    subject = subject_dir if subject_dir is not None and subject_dir.is_dir() else None
+    ms = mask_scores(model, train_dataset, subject, max_images=max_images)
+    if subject is not None:
+        shares = {"subject_masked": ms.get("recall"), "mask_fp_rate": ms.get("fp_rate")}
+    else:
+        shares = {"mask_share": ms.get("fp_rate"), "mask_rejected": ms.get("rejected")}
+    return {"mask_status": ms["status"], **shares, "mask_rule": ms.get("rule")}
 
 
 def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, float]:
@@ -167,19 +157,8 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     )
     if renders_dir and shown:
         save_right_halves(Path(renders_dir) / f"{_run_name(spec)}.png", shown, [r["psnr"] for r in per_image])
-    if dump is not None:
-        # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
-        geometry = spec["method"] == REFERENCE
-        raw = trainer.pipeline.model
-        points = dm.train_dataparser_outputs.metadata.get("points3D_xyz") if geometry else None
-        dump.save(
-            Path(regions_dir) / f"{_run_name(spec)}.npz",
-            names,
-            raw if geometry else None,
-            dm.train_dataset.cameras if geometry else None,
-            dm.eval_dataset.cameras if geometry else None,
-            points.cpu().numpy() if points is not None else None,
-        )
+    if dump is not None:  # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
+        dump.save(Path(regions_dir) / f"{_run_name(spec)}.npz", names, trainer if spec["method"] == REFERENCE else None)
     rec: dict[str, Any] = dict(agg)
     rec["per_image"] = per_image
     rec["eval_s"] = time.perf_counter() - t2
@@ -244,8 +223,6 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     config = build_config(
         spec["method"], spec["steps"], device, data, spec.get("downscale"), spec["schedule"], Path(spec["work_dir"])
     )
-    config.set_timestamp()
-    config.timestamp = "run"
     config.machine.seed = int(spec.get("seed", config.machine.seed))
     config.save_config()
     seed = config.machine.seed

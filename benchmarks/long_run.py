@@ -114,7 +114,6 @@ def _setup(
     config = build_config(
         method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
     )
-    config.timestamp = "run"
     config.machine.seed = seed
     if load_step is not None:
         _trained_model(config)
@@ -381,12 +380,7 @@ def main(argv=None) -> int:
     t.add_argument("--seed", type=int, default=42)
     t.add_argument("--budget-s", type=float, required=True, help="stop (and checkpoint) after this many train s")
     t.add_argument("--concurrent", type=int, default=1, help="runs on the GPU during this segment, itself included")
-    t.add_argument(
-        "--budget-minutes",
-        type=float,
-        default=None,
-        help="train under willags' time budget (--pipeline.time-budget-minutes); --steps is the cap",
-    )
+    t.add_argument("--budget-minutes", type=float, help="willags' --pipeline.time-budget-minutes; --steps is the cap")
     t.add_argument("--check-finite", action="store_true", help="anomaly mode; stop at a non-finite parameter or grad")
     sub.choices["eval"].add_argument("--train-views", type=int, default=8)
     r = sub.choices["record"]

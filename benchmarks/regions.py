@@ -227,18 +227,19 @@ class RegionDump:
         self.errors.append(error_map(p, g))
         self.thumbs.append((block_mean(right_half(np.clip(g, 0, 1))) * 255).astype(np.uint8))
 
-    def save(
-        self, path: Path, names: Sequence[str], model=None, train_cameras=None, test_cameras=None, points=None
-    ) -> Path:
-        """Writes the error maps (as root mean squares in float16); with a ``model`` and its cameras also the geometry
-        and the photos' right halves (the picture's); with the SfM ``points`` [N, 3] each test view's far depth."""
+    def save(self, path: Path, names: Sequence[str], trainer=None) -> Path:
+        """Writes the error maps (as root mean squares in float16); with the reference run's ``trainer`` also the
+        geometry of its model and the photos' right halves (the picture's), and with the scene's SfM points each test
+        view's far depth."""
         arrays: dict[str, Any] = {"names": np.array(list(names)[: len(self.errors)])}
         for i, e in enumerate(self.errors):
             arrays[f"rms_{i}"] = np.sqrt(e).astype(np.float16)
-        if model is not None and train_cameras is not None and test_cameras is not None:
+        if trainer is not None:
+            model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
+            test_cameras, points = dm.eval_dataset.cameras, dm.train_dataparser_outputs.metadata.get("points3D_xyz")
             for i, t in enumerate(self.thumbs):
                 arrays[f"gt_{i}"] = t
-            views = training_views(model, train_cameras)
+            views = training_views(model, dm.train_dataset.cameras)
             for i in range(len(self.errors)):
                 p = _camera_params(test_cameras, i)
                 depth, acc = _render_geometry(model, test_cameras, i)
@@ -246,7 +247,7 @@ class RegionDump:
                 arrays[f"acc_{i}"] = block_mean(right_half(acc)).astype(np.float32)
                 arrays[f"depth_{i}"] = block_mean(right_half(depth)).astype(np.float32)
                 if points is not None:
-                    arrays[f"far_{i}"] = np.float64(far_depth(np.asarray(points, dtype=np.float64), **p))
+                    arrays[f"far_{i}"] = np.float64(far_depth(points.cpu().numpy().astype(np.float64), **p))
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(path, **arrays)
         return path
