@@ -287,19 +287,17 @@ def run_grid(
     grid_path: Path,
     out_prefix: Path,
     work_root: Path,
+    command: str,
     only_methods: Sequence[str] | None = None,
     only_scenes: Sequence[str] | None = None,
     dry_run: bool = False,
     keep_runs: bool = False,
-    command: str | None = None,
-    log=print,
-    stop_after_s: float = 0.0,
     overrides: dict[str, Any] | None = None,
+    log=print,
 ) -> list[dict[str, Any]]:
-    """Run every spec of the grid (sequentially), merging each record into `<out>.json` as it finishes.
-
-    overrides: RunSpec fields set on every run (e.g. {"tag": "r2", "seed": 43} for a repeat). stop_after_s > 0:
-    start no new run once that many seconds have passed (machines lent for a limited time)."""
+    """Run every spec of the grid (sequentially), merging each record into `<out>.json` as it finishes (a grid cut
+    short keeps what it finished). ``command`` is recorded; overrides: RunSpec fields set on every run (e.g. {"tag":
+    "r2", "seed": 43} for a repeat)."""
     settings, specs = parse_grid(json.loads(Path(grid_path).read_text()))
     device = resolve_device(settings["device"])
     specs = [s for s in specs if (not only_methods or s.method in only_methods)]
@@ -308,7 +306,6 @@ def run_grid(
     for s in [s for s in specs if METHODS[s.method].needs_cuda and device != "cuda"]:
         log(f"skip {s.scene_name}/{s.method}/{s.steps}: needs CUDA (device is {device})")
         specs.remove(s)
-    command = command or " ".join(["python"] + [str(a) for a in sys.argv])
     machine = machine_description(device)
     log(f"{len(specs)} runs on {device} ({machine}); records -> {Path(out_prefix).with_suffix('.json')}")
     if dry_run:
@@ -320,9 +317,6 @@ def run_grid(
     done: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for i, s in enumerate(specs):
-        if stop_after_s > 0 and time.perf_counter() - t0 > stop_after_s:
-            log(f"stop_after_s={stop_after_s:.0f} reached: {len(specs) - i} runs not started")
-            break
         log(f"[{i + 1}/{len(specs)}] {s.scene_name} {s.method} steps={s.steps} tag={s.tag!r}")
         rec = run_one(s, device, settings, Path(work_root), command, machine, keep_runs, log)
         if rec["status"] == "ok":
@@ -360,7 +354,6 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", nargs="*", help="only these scenes of the grid (short names: default, fox-wild, ...)")
     ap.add_argument("--dry-run", action="store_true", help="list the runs and exit")
     ap.add_argument("--keep-runs", action="store_true", help="keep each run's checkpoint and config.yml")
-    ap.add_argument("--stop-after-s", type=float, default=0.0, help="start no new run after this many seconds")
     ap.add_argument("--tag", help="override every run's tag (repeats: r1, r2, ...)")
     ap.add_argument("--seed", type=int, help="override every run's seed")
     ap.add_argument("--concurrent", type=int, help="runs on the GPU at once, this one included (recorded)")
@@ -378,18 +371,7 @@ def main(argv=None) -> int:
     given = (("tag", args.tag), ("seed", args.seed), ("concurrent_runs", args.concurrent))
     overrides = {k: v for k, v in given if v is not None}
     command = "python -m benchmarks run " + " ".join(sys.argv[1:] if argv is None else argv)
-    run_grid(
-        args.grid,
-        out,
-        args.work_dir,
-        args.methods,
-        args.scenes,
-        args.dry_run,
-        args.keep_runs,
-        command,
-        stop_after_s=args.stop_after_s,
-        overrides=overrides,
-    )
+    run_grid(args.grid, out, args.work_dir, command, args.methods, args.scenes, args.dry_run, args.keep_runs, overrides)
     return 0
 
 

@@ -238,9 +238,7 @@ def test_tiny_grid_end_to_end(tmp_path):
     out = tmp_path / "docs" / "benchmarks"
     write_outputs([_rec("fox-wild", "willags", 300, 18.0, device="cuda", tag="")], out)  # a GPU record
     logs = []
-    recs = grid.run_grid(
-        gpath, out, tmp_path / "work", command="bench-test", log=logs.append, overrides={"concurrent_runs": 2}
-    )
+    recs = grid.run_grid(gpath, out, tmp_path / "work", "bench-test", overrides={"concurrent_runs": 2}, log=logs.append)
     assert len(recs) == 1 and recs[0]["status"] == "ok", logs
     r = recs[0]
     for k in ("psnr", "ssim", "encoder_psnr", "full_psnr", "train_s", "fps", "num_gaussians", "peak_mem_gb"):
