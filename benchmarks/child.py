@@ -20,12 +20,16 @@ halves of its test images (ground truth above, the protocol's render below, PSNR
 
 import json
 import os
+import random
 import resource
 import statistics
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+import torch
 
 from benchmarks.methods import METHODS, build_config, is_peer
 from benchmarks.records import json_default
@@ -34,8 +38,6 @@ from benchmarks.regions import REFERENCE, REGIONS_ENV, RegionDump
 
 def _sync(device: str) -> None:
     if device.startswith("cuda"):
-        import torch
-
         torch.cuda.synchronize()
 
 
@@ -67,8 +69,6 @@ def mask_record(model, train_dataset, max_images: int = -1) -> dict[str, Any]:
 
 def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, float]:
     """Median ms per `model.get_outputs` over up to n_views test cameras (eval, no grad, one fixed latent)."""
-    import torch
-
     dev = str(model.device)
     model.eval()
     appearance = getattr(model.config, "appearance", "sh") == "willags"
@@ -97,7 +97,6 @@ def patch_stock_splatfacto() -> list[str]:
     """Stock splatfacto offline: LPIPS would download AlexNet weights (unused here: the protocol scores LPIPS
     through the model's own metric, which splatfacto lacks); get_viewmat's torch.compile is replaced by the same
     maths."""
-    import torch
     import torchmetrics.image.lpip as tm_lpip
     from nerfstudio.models import splatfacto as sf
 
@@ -181,7 +180,6 @@ def _run_name(spec: dict[str, Any]) -> str:
 def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[float], height: int = 200) -> Path:
     """(ground truth, render) right halves [H, W, 3] in [0, 1]: one column per test image, each scaled to `height`
     pixels, ground truth above and the render below with its PSNR written on it."""
-    import numpy as np
     from PIL import Image, ImageDraw
 
     def tile(t):
@@ -203,11 +201,6 @@ def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[floa
 
 def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     """Train and evaluate one run in this process; returns the result record (see the module docstring)."""
-    import random
-
-    import numpy as np
-    import torch
-
     threads = int(spec.get("threads") or 0)
     if threads > 0:
         torch.set_num_threads(threads)

@@ -16,11 +16,23 @@ Methods are benchmarks.methods METHODS (stock schedule: only max_num_iterations 
 """
 
 import argparse
+import datetime as _dt
+import fcntl
+import gc
 import json
 import os
+import random
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from benchmarks.child import mask_record, patch_stock_splatfacto, protocol_scores
+from benchmarks.grid import git_commit, machine_description
+from benchmarks.methods import METHODS, build_config, is_peer
 
 STATE = "state.json"
 
@@ -39,8 +51,6 @@ def _save_state(run_dir: Path, state: dict[str, Any]) -> None:
 def _save_score(run_dir: Path, milestone: str, rec: dict[str, Any]) -> None:
     """Add one milestone's scores to the state, under a lock: `eval` runs one process per milestone at once (their
     set-up, mostly CPU, overlaps), each re-reading the state so that none overwrites another's score."""
-    import fcntl
-
     with open(run_dir / (STATE + ".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         state = _state(run_dir)
@@ -64,7 +74,6 @@ def _patch_resume(model_cls) -> None:
     old ones: a resumed run optimises tensors the model no longer uses and gsplat's densification indexes mismatched
     states (a device-side assert, seen here). Resize the Parameters in place instead, as WillagsModel.load_state_dict
     does."""
-    import torch
 
     def load_state_dict(self, state, **kwargs):
         self.step = 30000  # as stock: the trainer's step callback sets the real step before the next iteration
@@ -89,14 +98,6 @@ def _setup(
     """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given). ``budget_minutes``:
     `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and ends the learning-
     rate schedules there; ``steps`` is then the cap, as --max-num-iterations is)."""
-    import random
-
-    import numpy as np
-    import torch
-
-    from benchmarks.child import patch_stock_splatfacto
-    from benchmarks.methods import METHODS, build_config, is_peer
-
     base = METHODS[method].base
     if base == "splatfacto" or is_peer(base):
         patch_stock_splatfacto()  # as the grid runs do (offline LPIPS)
@@ -141,8 +142,6 @@ def _trained_model(config) -> None:
     Rebuilding from the name would inspect the scene again in every segment and every scoring process, and a run
     named `willags` before the default inspected (benchmarks.methods.AUTO_DEFAULT_SINCE) would get another model
     than its checkpoints hold. Other methods' models do not depend on the scene: left as built."""
-    import yaml
-
     saved = config.get_base_dir() / "config.yml"
     if not hasattr(config.pipeline.model, "auto_config") or not saved.exists():
         return
@@ -161,14 +160,11 @@ def _milestones(spec: str, state: dict[str, Any]) -> list[int]:
 def _eval_method(state: dict[str, Any]) -> str:
     """The method whose model the checkpoints hold: the preset the knob chose (it may swap willags for willags-lite
     on a CPU), else the run's."""
-    from benchmarks.methods import METHODS
-
     chosen = ((state.get("time_budget") or {}).get("choice") or {}).get("preset")
     return chosen if chosen in METHODS else state["method"]
 
 
 def train(args) -> int:
-    import torch
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
     run_dir = Path(args.run_dir)
@@ -267,12 +263,6 @@ def train(args) -> int:
 
 
 def evaluate(args) -> int:
-    import gc
-
-    import torch
-
-    from benchmarks.child import mask_record, protocol_scores
-
     run_dir = Path(args.run_dir)
     state = _state(run_dir)
     milestones = _milestones(args.milestones, state)
@@ -315,12 +305,6 @@ def evaluate(args) -> int:
 def record(args) -> int:
     """The run as a record of benchmarks/records/benchmarks.json: train wall time summed over segments, PSNR at each
     milestone."""
-    import datetime as _dt
-
-    import torch
-
-    from benchmarks.grid import git_commit, machine_description
-
     state = _state(Path(args.run_dir))
     segs = state["segments"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
