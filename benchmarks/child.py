@@ -93,10 +93,13 @@ def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, floa
     return {"render_ms": ms, "fps": 1e3 / ms}
 
 
-def patch_stock_splatfacto() -> list[str]:
-    """Stock splatfacto offline: LPIPS would download AlexNet weights (unused here: the protocol scores LPIPS
-    through the model's own metric, which splatfacto lacks); get_viewmat's torch.compile is replaced by the same
-    maths."""
+def patch_offline(base: str) -> list[str]:
+    """Stock splatfacto and the peer (a ``base`` of benchmarks.methods) offline, before their model is built; the
+    patches applied (none for our own methods). LPIPS would download AlexNet weights (unused here: the protocol scores
+    LPIPS through the model's own metric, which splatfacto lacks); get_viewmat's torch.compile is replaced by the same
+    maths (the peer's too: benchmarks.peer.patch_peer, which puts its package on the path)."""
+    if base != "splatfacto" and not is_peer(base):
+        return []
     import torchmetrics.image.lpip as tm_lpip
     from nerfstudio.models import splatfacto as sf
 
@@ -114,6 +117,10 @@ def patch_stock_splatfacto() -> list[str]:
         patches.append("LPIPS stubbed (no AlexNet weights)")
     sf.get_viewmat = viewmat_from_c2w
     patches.append("get_viewmat without torch.compile")
+    if is_peer(base):
+        from benchmarks.peer import patch_peer
+
+        patches += patch_peer()
     return patches
 
 
@@ -158,9 +165,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         save_right_halves(Path(renders_dir) / f"{_run_name(spec)}.png", shown, [r["psnr"] for r in per_image])
     if dump is not None:  # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
         dump.save(Path(regions_dir) / f"{_run_name(spec)}.npz", names, trainer if spec["method"] == REFERENCE else None)
-    rec: dict[str, Any] = dict(agg)
-    rec["per_image"] = per_image
-    rec["eval_s"] = time.perf_counter() - t2
+    rec: dict[str, Any] = {**agg, "per_image": per_image, "eval_s": time.perf_counter() - t2}
     if int(spec.get("train_views", 0)) != 0:
         train_imgs = [image_as_float(d["image"]) for d in dm.cached_train]
         rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
@@ -206,12 +211,7 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         torch.set_num_threads(threads)
     device = spec["device"]
     rec: dict[str, Any] = {}
-    base = METHODS[spec["method"]].base
-    patches = patch_stock_splatfacto() if base == "splatfacto" or is_peer(base) else []
-    if is_peer(base):
-        from benchmarks.peer import patch_peer
-
-        patches += patch_peer()
+    patches = patch_offline(METHODS[spec["method"]].base)
     data = Path(spec["data"]) if spec.get("data") else None
     config = build_config(
         spec["method"], spec["steps"], device, data, spec.get("downscale"), spec["schedule"], Path(spec["work_dir"])
@@ -265,16 +265,14 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         rec["peak_mem_kind"] = "process max RSS (training + evaluation)"
     img0 = dm.cached_train[0]["image"]
     rec.update(
-        {
-            "num_gaussians": int(model.num_points),
-            "train_s": train_s,
-            "setup_s": setup_s,
-            "s_per_step": train_s / max(1, spec["steps"]),
-            "image_hw": [int(img0.shape[0]), int(img0.shape[1])],
-            "num_train_images": len(dm.train_dataset),
-            "patches": patches,
-            "threads": torch.get_num_threads(),
-        }
+        num_gaussians=int(model.num_points),
+        train_s=train_s,
+        setup_s=setup_s,
+        s_per_step=train_s / max(1, spec["steps"]),
+        image_hw=[int(img0.shape[0]), int(img0.shape[1])],
+        num_train_images=len(dm.train_dataset),
+        patches=patches,
+        threads=torch.get_num_threads(),
     )
     return rec
 

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import yaml
 
-from benchmarks.child import mask_record, patch_stock_splatfacto, protocol_scores
+from benchmarks.child import mask_record, patch_offline, protocol_scores
 from benchmarks.grid import git_commit, machine_description
 from benchmarks.methods import METHODS, build_config, is_peer
 
@@ -99,16 +99,12 @@ def _setup(
     `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and ends the learning-
     rate schedules there; ``steps`` is then the cap, as --max-num-iterations is)."""
     base = METHODS[method].base
-    if base == "splatfacto" or is_peer(base):
-        patch_stock_splatfacto()  # as the grid runs do (offline LPIPS)
+    patch_offline(base)  # as the grid runs do (offline LPIPS; the peer's package on the path)
     if base == "splatfacto":
         from nerfstudio.models.splatfacto import SplatfactoModel
 
         _patch_resume(SplatfactoModel)
     elif is_peer(base):
-        from benchmarks.peer import patch_peer
-
-        patch_peer()  # offline, as in the grid runs; puts the peer's package on the path
         import splatfactow.splatfactow_model as pm  # type: ignore[import-not-found]
 
         _patch_resume(pm.SplatfactoWModel)
@@ -116,17 +112,16 @@ def _setup(
         method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
     )
     config.machine.seed = seed
-    if load_step is not None:
+    if load_step is not None:  # the model its checkpoints hold, resumed from the one of load_step
         _trained_model(config)
+        config.load_dir = _ckpt_dir(run_dir)
+        config.load_step = load_step
     if budget_minutes is not None:
         if not hasattr(config.pipeline, "time_budget_minutes"):
             raise SystemExit(f"long_run: {method} has no time budget (only willags' pipeline has the knob)")
         config.pipeline.time_budget_minutes = budget_minutes
     config.steps_per_save = 10**9  # checkpoints are written here: at milestones and at the end of the segment
     config.save_only_latest_checkpoint = False
-    if load_step is not None:
-        config.load_dir = _ckpt_dir(run_dir)
-        config.load_step = load_step
     config.save_config()
     random.seed(seed)
     np.random.seed(seed)

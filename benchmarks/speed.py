@@ -105,7 +105,7 @@ def build_model(variant: str, seeds, n_train: int, dev: torch.device, backend: s
     """(model on dev in train mode with its optimisers, is_willags); the same Gaussians for every variant."""
     from nerfstudio.data.scene_box import SceneBox
 
-    from benchmarks.child import patch_stock_splatfacto
+    from benchmarks.child import patch_offline
     from benchmarks.methods import set_nested
     from willags_ns import method_configs as mc
     from willags_ns.method_configs import FusedAdamOptimizerConfig
@@ -119,7 +119,7 @@ def build_model(variant: str, seeds, n_train: int, dev: torch.device, backend: s
             raise RuntimeError("stock splatfacto hard-codes .cuda(): skipped without CUDA")
         from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
-        patch_stock_splatfacto()
+        patch_offline("splatfacto")
         cfg = SplatfactoModelConfig(**TIMING_OVERRIDES)
     else:
         lite = lambda: mc.willags_lite_config().pipeline.model  # noqa: E731
