@@ -118,11 +118,7 @@ def milestone_train_s(rec: dict[str, Any], milestone: str) -> float | None:
     return None
 
 
-def scene_points(
-    records: Sequence[dict[str, Any]],
-    scene: str,
-    methods: Sequence[str] = CURVE_METHODS,
-) -> list[Point]:
+def scene_points(records: Sequence[dict[str, Any]], scene: str, methods: Sequence[str] = CURVE_METHODS) -> list[Point]:
     """Every measured (method, steps, train time, PSNR) of ``scene`` on the GPU, one per run and step count. Runs
     under the time budget are left out (:func:`is_knob_run`)."""
     out = []
@@ -307,10 +303,7 @@ def scene_table(points: Sequence[Point]) -> list[str]:
 
 
 def render_markdown(
-    by_scene: dict[str, list[Point]],
-    pngs: dict[str, Path],
-    skipped: dict[str, int],
-    sources: Sequence[str],
+    by_scene: dict[str, list[Point]], pngs: dict[str, Path], skipped: dict[str, int], sources: Sequence[str]
 ) -> str:
     out = [
         "# Speed vs accuracy: PSNR against training time",
@@ -346,10 +339,7 @@ def render_markdown(
         out += ["", f"No records of {', '.join(missing)} on these scenes."]
     out += ["", MEASURE]
     if any(skipped.values()):
-        out += [
-            "",
-            "Left out: " + ", ".join(f"{n} {why}" for why, n in skipped.items() if n) + ".",
-        ]
+        out += ["", "Left out: " + ", ".join(f"{n} {why}" for why, n in skipped.items() if n) + "."]
     for scene, points in by_scene.items():
         out += [f"## {scene}", ""]
         if scene in pngs:

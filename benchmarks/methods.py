@@ -178,13 +178,7 @@ def base_trainer_config(base: str):
 
 
 def build_config(
-    method: str,
-    steps: int,
-    device_type: str,
-    data: Path | None,
-    downscale: int | None,
-    schedule: str,
-    output_dir: Path,
+    method: str, steps: int, device_type: str, data: Path | None, downscale: int | None, schedule: str, output_dir: Path
 ):
     """The TrainerConfig of one benchmark run (saved to output_dir like ns-train would)."""
     spec = METHODS[method]
