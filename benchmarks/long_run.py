@@ -135,7 +135,7 @@ def _trained_model(config) -> None:
     """Resuming or scoring a willags run: the model it trained, from its own config.yml (written when it trained: the
     inspector's resolved switches, or the time budget's preset), in place of the one its method name builds today.
     Rebuilding from the name would inspect the scene again in every segment and every scoring process, and a run
-    named `willags` before the default inspected (benchmarks.methods.AUTO_DEFAULT_SINCE) would get another model
+    named `willags` before the default inspected (its record's configuration: willags-full) would get another model
     than its checkpoints hold. Other methods' models do not depend on the scene: left as built."""
     saved = config.get_base_dir() / "config.yml"
     if not hasattr(config.pipeline.model, "auto_config") or not saved.exists():

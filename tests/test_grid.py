@@ -133,13 +133,12 @@ def test_the_default_inspects_and_its_candidates_change_the_full_model(tmp_path)
 @pytest.mark.parametrize(
     "rec, name",
     [
-        ({"method": "willags", "date": "2026-11-25T19:00:00"}, "willags-full"),  # before the default inspected
-        ({"method": "willags", "date": "2026-11-26T09:00:00"}, "willags-splitclone"),  # before it densified by MCMC
+        ({"method": "willags", "configuration": "willags-full"}, "willags-full"),  # before the default inspected
+        ({"method": "willags", "configuration": "willags-splitclone"}, "willags-splitclone"),  # before MCMC
         ({"method": "willags", "date": "2026-11-28T09:00:00"}, "willags"),
         ({"method": "willags-mcmc", "date": "2026-11-27T16:00:00"}, "willags"),  # the default named in full
-        ({"method": "willags"}, "willags"),  # undated: its own name
-        ({"method": "willags-auto", "date": "2026-11-25T16:00:00"}, "willags-splitclone"),  # the default of its time
-        ({"method": "willags-auto", "date": "2026-11-24T16:00:00"}, "willags-auto"),  # an older full model under it
+        ({"method": "willags-auto", "configuration": "willags-splitclone"}, "willags-splitclone"),
+        ({"method": "willags-auto"}, "willags-auto"),  # an older full model under it
         ({"method": "peer", "date": "2026-11-25T19:00:00"}, "peer"),
     ],
 )
