@@ -190,11 +190,9 @@ def machine_description(device: str) -> str:
     if device == "cuda":
         return f"{torch.cuda.get_device_name(0)} ({os.cpu_count()} CPU cores)"
     model = platform.processor() or platform.machine()
-    with contextlib.suppress(OSError):
-        names = [
-            ln.split(":", 1)[1] for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("model n")
-        ]
-        model = names[0].strip() if names else model
+    with contextlib.suppress(OSError):  # the CPU's name, where Linux says it
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        model = next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model n")), model)
     return f"{os.cpu_count()} CPU cores ({model}), no GPU"
 
 

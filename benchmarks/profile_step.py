@@ -31,11 +31,9 @@ def sync_site(stack: list[traceback.FrameSummary]) -> str:
     """``file:line`` of the innermost frame of ``stack`` inside willags_ns, nerfstudio, gsplat or benchmarks (the line
     that asked torch for a host value), or "?" when none is."""
     for frame in reversed(stack):
-        if any(p in frame.filename.replace("\\", "/") for p in SITE_PARTS) and not frame.filename.endswith(
-            "profile_step.py"
-        ):
-            parts = frame.filename.replace("\\", "/").split("/")
-            return f"{'/'.join(parts[-2:])}:{frame.lineno}"
+        path = frame.filename.replace("\\", "/")
+        if any(p in path for p in SITE_PARTS) and not path.endswith("profile_step.py"):
+            return f"{'/'.join(path.split('/')[-2:])}:{frame.lineno}"
     return "?"
 
 

@@ -26,6 +26,7 @@ a folder of them into the table and one picture per scene:
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import re
 from collections.abc import Sequence
@@ -389,8 +390,6 @@ def report(folder: Path, out: Path | None, pictures: Path | None, json_out: Path
     head = ["scene", "method", "runs", *(f"{r} PSNR (share)" for r in ("all", *REGIONS))]
     text = "\n".join(md_table(head, rows)) + "\n"
     if json_out is not None:
-        import json
-
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(every, indent=1))
     if out is not None:

@@ -9,6 +9,7 @@ their times are docs/curves.md's (:mod:`benchmarks.curves`).
 """
 
 import argparse
+import json
 import math
 import sys
 from collections.abc import Sequence
@@ -18,6 +19,7 @@ from typing import Any
 from benchmarks.curves import scene_points, step_curve, step_time
 from benchmarks.methods import METHODS, configuration
 from benchmarks.records import RECORDS, REPO, load_records
+from benchmarks.regions import REGIONS
 from benchmarks.tables import md_table
 
 RESULTS_MD = REPO / "docs" / "results.md"
@@ -311,10 +313,6 @@ def step_rows(records: list[dict[str, Any]], scenes: Sequence[str] = REAL_SCENES
 def region_rows(folder: Path = REGION_RECORDS) -> list[str]:
     """The region table (benchmarks/regions.py) of every region record: PSNR (pooled over the test photos' right
     halves) and pixel share per region, per scene and method."""
-    import json
-
-    from benchmarks.regions import REGIONS
-
     rows = []
     for f in sorted(folder.glob("*.json")):
         for scene, methods in sorted(json.loads(f.read_text()).items()):
