@@ -311,29 +311,19 @@ def scene_regions(runs: dict[str, list[dict[str, np.ndarray]]]) -> tuple[list[np
         return None
     covis, acc = _images(ref, "covis"), _images(ref, "acc")
     n = len(covis)
-    firsts = [rs[0] for rs in runs.values() if rs and len(_images(rs[0], "err")) >= n]
-    labels = [
-        region_labels(
-            covis[i],
-            acc[i],
-            [_images(r, "err")[i] for r in firsts],
-            ref.get(f"depth_{i}"),
-            float(ref.get(f"far_{i}", np.inf)),
-        )
-        for i in range(n)
-    ]
+    firsts = [_images(rs[0], "err") for rs in runs.values() if rs and len(_images(rs[0], "rms")) >= n]
+    labels = []
+    for i in range(n):
+        depth, far = ref.get(f"depth_{i}"), float(ref.get(f"far_{i}", np.inf))
+        labels.append(region_labels(covis[i], acc[i], [errs[i] for errs in firsts], depth, far))
     scores: dict[str, Any] = {}
     for method, rs in runs.items():
         per_run = [region_scores(_images(r, "err")[:n], labels) for r in rs if len(_images(r, "err")) >= n]
         if not per_run:
             continue
+        psnr = {k: float(np.mean([p[k]["psnr"] for p in per_run])) for k in per_run[0]}
         scores[method] = {
-            k: {
-                "share": per_run[0][k]["share"],
-                "psnr": float(np.mean([p[k]["psnr"] for p in per_run])),
-                "runs": len(per_run),
-            }
-            for k in per_run[0]
+            k: {"share": s["share"], "psnr": psnr[k], "runs": len(per_run)} for k, s in per_run[0].items()
         }
     return labels, scores
 
