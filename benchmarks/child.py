@@ -36,8 +36,9 @@ from benchmarks.records import json_default
 from benchmarks.regions import REFERENCE, REGIONS_ENV, RegionDump
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
+def sync(device) -> None:
+    """Wait for the work queued on ``device`` (nothing to wait for off CUDA): before a clock is read."""
+    if str(device).startswith("cuda"):
         torch.cuda.synchronize()
 
 
@@ -81,10 +82,10 @@ def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, floa
                 cam = cameras[i : i + 1].to(model.device)
                 model.get_outputs(cam)  # warm-up: allocations, f_d of the fixed latent
                 for _ in range(repeats):
-                    _sync(dev)
+                    sync(dev)
                     t = time.perf_counter()
                     model.get_outputs(cam)
-                    _sync(dev)
+                    sync(dev)
                     times.append(time.perf_counter() - t)
     finally:
         if appearance:
@@ -235,12 +236,12 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         rec["auto_inspect_s"] = (auto.get("report") or {}).get("wall_s")
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    _sync(device)
+    sync(device)
     ru0 = resource.getrusage(resource.RUSAGE_SELF)
     load0 = os.getloadavg()[0]
     t1 = time.perf_counter()
     trainer.train()
-    _sync(device)
+    sync(device)
     train_s = time.perf_counter() - t1
     ru1 = resource.getrusage(resource.RUSAGE_SELF)
     # CPU seconds of this process while training, and the machine's load: wall time on a shared CPU machine is

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import yaml
 
-from benchmarks.child import mask_record, patch_offline, protocol_scores
+from benchmarks.child import mask_record, patch_offline, protocol_scores, sync
 from benchmarks.grid import git_commit, machine_description
 from benchmarks.methods import METHODS, build_config, is_peer
 
@@ -180,6 +180,7 @@ def train(args) -> int:
     trainer = _setup(args.method, Path(args.data), run_dir, args.steps, args.seed, start, "val", args.budget_minutes)
     _ = trainer.pipeline.datamanager.cached_train
     setup_s = time.perf_counter() - t_setup
+    device = trainer.pipeline.model.device
     seg = {
         "start_step": (start + 1) if start is not None else 0,
         "setup_s": setup_s,
@@ -207,8 +208,7 @@ def train(args) -> int:
                 raise RuntimeError(f"long_run: non-finite at step {step}: {bad[:20]}")
         knob_end = budget is not None and budget.stopped_after == step  # the knob ends the run after this step
         if step in milestones or step == args.steps - 1 or knob_end:
-            if torch.cuda.is_available():
-                torch.cuda.synchronize()  # the step's work done, then the clock: the milestone's own train time
+            sync(device)  # the step's work done, then the clock: the milestone's own train time
             milestone_s[str(step + 1)] = before_s + time.perf_counter() - t0[0]
             trainer.save_checkpoint(step)
             # the state as if the segment ended here: a run killed later is scored at its milestones and resumes
@@ -222,8 +222,7 @@ def train(args) -> int:
     trainer.callbacks.append(
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
     )
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
+    sync(device)
     t0[0] = time.perf_counter()
     stopped = False
     try:
@@ -231,8 +230,7 @@ def train(args) -> int:
             trainer.train()
     except Stop:
         stopped = True
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
+    sync(device)
     seg["train_s"] = time.perf_counter() - t0[0]
     seg["end_step"] = last[0]
     if stopped and last[0] not in milestones and last[0] != args.steps - 1:

@@ -142,6 +142,7 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
     from torch.profiler import profile as torch_profile
 
     from benchmarks import long_run
+    from benchmarks.child import sync
 
     on_cuda = torch.cuda.is_available()
     trainer = long_run._setup(method, data, run_dir, warmup + 2 * steps + 1, seed, None, "val")
@@ -162,16 +163,12 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
     class Stop(Exception):
         pass
 
-    def sync() -> None:
-        if on_cuda:
-            torch.cuda.synchronize()
-
     def after_step(step: int) -> None:
         if step == warmup - 1:  # the timed window (no profiler: it adds host time to every operator)
-            sync()
+            sync(trainer.pipeline.model.device)
             clock["t0"] = time.perf_counter()
         elif step == warmup + steps - 1:  # the timed window ends, the profiled one starts with the next step
-            sync()
+            sync(trainer.pipeline.model.device)
             clock["t1"] = time.perf_counter()
             warnings.showwarning = on_warning
             warnings.simplefilter("always")
@@ -179,7 +176,7 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
                 torch.cuda.set_sync_debug_mode("warn")
             prof.__enter__()
         elif step == warmup + 2 * steps - 1:
-            sync()
+            sync(trainer.pipeline.model.device)
             prof.__exit__(None, None, None)
             clock["t2"] = time.perf_counter()
             raise Stop  # the sync mode and the warning hooks are put back below
