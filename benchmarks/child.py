@@ -219,10 +219,9 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     )
     config.machine.seed = int(spec.get("seed", config.machine.seed))
     config.save_config()
-    seed = config.machine.seed
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
+    random.seed(config.machine.seed)
+    np.random.seed(config.machine.seed)
+    torch.manual_seed(config.machine.seed)
 
     t0 = time.perf_counter()
     trainer = config.setup(local_rank=0, world_size=1)

@@ -356,11 +356,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--md", default=None, help="markdown output (default: <out-dir>/curves.md)")
     args = ap.parse_args(argv)
     records = merged_records(args.records)
+    asked = [r for r in records if r.get("scene") in args.scenes]
     skipped = {
-        "failed runs": sum(r.get("status", "ok") != "ok" for r in records if r.get("scene") in args.scenes),
-        "records with a tree_note (not a clean record of their method)": sum(
-            bool(r.get("tree_note")) for r in records if r.get("scene") in args.scenes
-        ),
+        "failed runs": sum(r.get("status", "ok") != "ok" for r in asked),
+        "records with a tree_note (not a clean record of their method)": sum(bool(r.get("tree_note")) for r in asked),
     }
     by_scene = {s: scene_points(records, s) for s in args.scenes}
     out_dir = Path(args.out_dir)

@@ -159,6 +159,10 @@ def _eval_method(state: dict[str, Any]) -> str:
     return chosen if chosen in METHODS else state["method"]
 
 
+class Stop(Exception):
+    """Raised by a step callback to end ``trainer.train()`` after that step."""
+
+
 def train(args) -> int:
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
@@ -191,10 +195,6 @@ def train(args) -> int:
     milestone_s = state.setdefault("milestone_train_s", {})
     t0 = [0.0]
     last = [seg["start_step"] - 1]
-
-    class Stop(Exception):
-        pass
-
     budget = getattr(trainer, "time_budget", None)  # the knob's (its callback runs before this one)
 
     def after_step(step: int) -> None:

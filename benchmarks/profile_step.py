@@ -160,9 +160,6 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
             return
         original_showwarning(message, category, filename, lineno, file, line)
 
-    class Stop(Exception):
-        pass
-
     def after_step(step: int) -> None:
         if step == warmup - 1:  # the timed window (no profiler: it adds host time to every operator)
             sync(trainer.pipeline.model.device)
@@ -179,14 +176,14 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
             sync(trainer.pipeline.model.device)
             prof.__exit__(None, None, None)
             clock["t2"] = time.perf_counter()
-            raise Stop  # the sync mode and the warning hooks are put back below
+            raise long_run.Stop  # the sync mode and the warning hooks are put back below
 
     trainer.callbacks.append(
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
     )
     try:
         trainer.train()
-    except Stop:
+    except long_run.Stop:
         pass
     finally:
         if on_cuda:
