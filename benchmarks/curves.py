@@ -66,8 +66,8 @@ class Sharing:
 
 def gpu_sharing(rec: dict[str, Any]) -> Sharing:
     """How many runs shared the GPU while ``rec`` trained: the most of its ``concurrent_runs`` and its segments'
-    (benchmarks/long_run.py and benchmarks/grid.py ``--concurrent``), or the ``gpu_sharing`` it carries (records from
-    before those fields, read from their notes and grid files)."""
+    (benchmarks/long_run.py and benchmarks/grid.py ``--concurrent``), or the ``gpu_sharing`` it carries (records
+    without those fields: what their notes and grid files said)."""
     if rec.get("gpu_sharing"):
         return Sharing(**rec["gpu_sharing"])
     given = {"concurrent_runs": [rec.get("concurrent_runs")]}

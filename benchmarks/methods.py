@@ -128,7 +128,7 @@ def set_nested(obj, dotted: str, value) -> None:
 def configuration(rec: dict[str, Any]) -> str:
     """The method name of the configuration a record measured: the ``configuration`` it carries where the name it ran
     as meant another one then (`willags` before the default inspected the scene: `willags-full`; before it densified
-    by MCMC, and `willags-auto` runs of that time: `willags-splitclone`), `willags` for `willags-mcmc` (today's
+    by MCMC, and `willags-auto` runs of that time: `willags-splitclone`), `willags` for `willags-mcmc` (the
     default named in full), else its own."""
     if rec.get("configuration"):
         return str(rec["configuration"])
