@@ -20,6 +20,7 @@ halves of its test images (ground truth above, the protocol's render below, PSNR
 
 import json
 import os
+import random
 import resource
 import statistics
 import sys
@@ -27,15 +28,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
+
 from benchmarks.methods import METHODS, build_config, is_peer
 from benchmarks.records import json_default
 from benchmarks.regions import REFERENCE, REGIONS_ENV, RegionDump
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        import torch
-
+def sync(device) -> None:
+    """Wait for the work queued on ``device`` (nothing to wait for off CUDA): before a clock is read."""
+    if str(device).startswith("cuda"):
         torch.cuda.synchronize()
 
 
@@ -55,30 +58,18 @@ def mask_record(model, train_dataset, max_images: int = -1) -> dict[str, Any]:
     subject_dir = scene / "masks_subject" if scene else None
     if gt_dir is not None and gt_dir.is_dir():
         ms = mask_scores(model, train_dataset, gt_dir, max_images=max_images)
-        out = {"mask_status": ms.pop("status")}
-        out.update({f"mask_{k}": v for k, v in ms.items()})
-        return out
-    if subject_dir is not None and subject_dir.is_dir():
-        ms = mask_scores(model, train_dataset, subject_dir, max_images=max_images)
-        return {
-            "mask_status": ms["status"],
-            "subject_masked": ms.get("recall"),
-            "mask_fp_rate": ms.get("fp_rate"),
-            "mask_rule": ms.get("rule"),
-        }
-    ms = mask_scores(model, train_dataset, None, max_images=max_images)
-    return {
-        "mask_status": ms["status"],
-        "mask_share": ms.get("fp_rate"),
-        "mask_rejected": ms.get("rejected"),
-        "mask_rule": ms.get("rule"),
-    }
+        return {"mask_status": ms.pop("status"), **{f"mask_{k}": v for k, v in ms.items()}}
+    subject = subject_dir if subject_dir is not None and subject_dir.is_dir() else None
+    ms = mask_scores(model, train_dataset, subject, max_images=max_images)
+    if subject is not None:
+        shares = {"subject_masked": ms.get("recall"), "mask_fp_rate": ms.get("fp_rate")}
+    else:
+        shares = {"mask_share": ms.get("fp_rate"), "mask_rejected": ms.get("rejected")}
+    return {"mask_status": ms["status"], **shares, "mask_rule": ms.get("rule")}
 
 
 def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, float]:
     """Median ms per `model.get_outputs` over up to n_views test cameras (eval, no grad, one fixed latent)."""
-    import torch
-
     dev = str(model.device)
     model.eval()
     appearance = getattr(model.config, "appearance", "sh") == "willags"
@@ -91,10 +82,10 @@ def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, floa
                 cam = cameras[i : i + 1].to(model.device)
                 model.get_outputs(cam)  # warm-up: allocations, f_d of the fixed latent
                 for _ in range(repeats):
-                    _sync(dev)
+                    sync(dev)
                     t = time.perf_counter()
                     model.get_outputs(cam)
-                    _sync(dev)
+                    sync(dev)
                     times.append(time.perf_counter() - t)
     finally:
         if appearance:
@@ -103,11 +94,13 @@ def render_fps(model, cameras, n_views: int, repeats: int = 3) -> dict[str, floa
     return {"render_ms": ms, "fps": 1e3 / ms}
 
 
-def patch_stock_splatfacto() -> list[str]:
-    """Stock splatfacto offline: LPIPS would download AlexNet weights (unused here: the protocol scores LPIPS
-    through the model's own metric, which splatfacto lacks); get_viewmat's torch.compile is replaced by the same
-    maths."""
-    import torch
+def patch_offline(base: str) -> list[str]:
+    """Stock splatfacto and the peer (a ``base`` of benchmarks.methods) offline, before their model is built; the
+    patches applied (none for our own methods). LPIPS would download AlexNet weights (unused here: the protocol scores
+    LPIPS through the model's own metric, which splatfacto lacks); get_viewmat's torch.compile is replaced by the same
+    maths (the peer's too: benchmarks.peer.patch_peer, which puts its package on the path)."""
+    if base != "splatfacto" and not is_peer(base):
+        return []
     import torchmetrics.image.lpip as tm_lpip
     from nerfstudio.models import splatfacto as sf
 
@@ -125,6 +118,10 @@ def patch_stock_splatfacto() -> list[str]:
         patches.append("LPIPS stubbed (no AlexNet weights)")
     sf.get_viewmat = viewmat_from_c2w
     patches.append("get_viewmat without torch.compile")
+    if is_peer(base):
+        from benchmarks.peer import patch_peer
+
+        patches += patch_peer()
     return patches
 
 
@@ -167,22 +164,9 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     )
     if renders_dir and shown:
         save_right_halves(Path(renders_dir) / f"{_run_name(spec)}.png", shown, [r["psnr"] for r in per_image])
-    if dump is not None:
-        # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
-        geometry = spec["method"] == REFERENCE
-        raw = trainer.pipeline.model
-        points = dm.train_dataparser_outputs.metadata.get("points3D_xyz") if geometry else None
-        dump.save(
-            Path(regions_dir) / f"{_run_name(spec)}.npz",
-            names,
-            raw if geometry else None,
-            dm.train_dataset.cameras if geometry else None,
-            dm.eval_dataset.cameras if geometry else None,
-            points.cpu().numpy() if points is not None else None,
-        )
-    rec: dict[str, Any] = dict(agg)
-    rec["per_image"] = per_image
-    rec["eval_s"] = time.perf_counter() - t2
+    if dump is not None:  # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
+        dump.save(Path(regions_dir) / f"{_run_name(spec)}.npz", names, trainer if spec["method"] == REFERENCE else None)
+    rec: dict[str, Any] = {**agg, "per_image": per_image, "eval_s": time.perf_counter() - t2}
     if int(spec.get("train_views", 0)) != 0:
         train_imgs = [image_as_float(d["image"]) for d in dm.cached_train]
         rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
@@ -202,7 +186,6 @@ def _run_name(spec: dict[str, Any]) -> str:
 def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[float], height: int = 200) -> Path:
     """(ground truth, render) right halves [H, W, 3] in [0, 1]: one column per test image, each scaled to `height`
     pixels, ground truth above and the render below with its PSNR written on it."""
-    import numpy as np
     from PIL import Image, ImageDraw
 
     def tile(t):
@@ -224,34 +207,21 @@ def save_right_halves(path: Path, pairs: list[tuple[Any, Any]], psnrs: list[floa
 
 def run_child(spec: dict[str, Any]) -> dict[str, Any]:
     """Train and evaluate one run in this process; returns the result record (see the module docstring)."""
-    import random
-
-    import numpy as np
-    import torch
-
     threads = int(spec.get("threads") or 0)
     if threads > 0:
         torch.set_num_threads(threads)
     device = spec["device"]
     rec: dict[str, Any] = {}
-    base = METHODS[spec["method"]].base
-    patches = patch_stock_splatfacto() if base == "splatfacto" or is_peer(base) else []
-    if is_peer(base):
-        from benchmarks.peer import patch_peer
-
-        patches += patch_peer()
+    patches = patch_offline(METHODS[spec["method"]].base)
     data = Path(spec["data"]) if spec.get("data") else None
     config = build_config(
         spec["method"], spec["steps"], device, data, spec.get("downscale"), spec["schedule"], Path(spec["work_dir"])
     )
-    config.set_timestamp()
-    config.timestamp = "run"
     config.machine.seed = int(spec.get("seed", config.machine.seed))
     config.save_config()
-    seed = config.machine.seed
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
+    random.seed(config.machine.seed)
+    np.random.seed(config.machine.seed)
+    torch.manual_seed(config.machine.seed)
 
     t0 = time.perf_counter()
     trainer = config.setup(local_rank=0, world_size=1)
@@ -265,12 +235,12 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         rec["auto_inspect_s"] = (auto.get("report") or {}).get("wall_s")
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    _sync(device)
+    sync(device)
     ru0 = resource.getrusage(resource.RUSAGE_SELF)
     load0 = os.getloadavg()[0]
     t1 = time.perf_counter()
     trainer.train()
-    _sync(device)
+    sync(device)
     train_s = time.perf_counter() - t1
     ru1 = resource.getrusage(resource.RUSAGE_SELF)
     # CPU seconds of this process while training, and the machine's load: wall time on a shared CPU machine is
@@ -295,16 +265,14 @@ def run_child(spec: dict[str, Any]) -> dict[str, Any]:
         rec["peak_mem_kind"] = "process max RSS (training + evaluation)"
     img0 = dm.cached_train[0]["image"]
     rec.update(
-        {
-            "num_gaussians": int(model.num_points),
-            "train_s": train_s,
-            "setup_s": setup_s,
-            "s_per_step": train_s / max(1, spec["steps"]),
-            "image_hw": [int(img0.shape[0]), int(img0.shape[1])],
-            "num_train_images": len(dm.train_dataset),
-            "patches": patches,
-            "threads": torch.get_num_threads(),
-        }
+        num_gaussians=int(model.num_points),
+        train_s=train_s,
+        setup_s=setup_s,
+        s_per_step=train_s / max(1, spec["steps"]),
+        image_hw=[int(img0.shape[0]), int(img0.shape[1])],
+        num_train_images=len(dm.train_dataset),
+        patches=patches,
+        threads=torch.get_num_threads(),
     )
     return rec
 

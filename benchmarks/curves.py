@@ -21,8 +21,6 @@ what the records hold and every run per scene. PSNR at each step count and at eq
 """
 
 import argparse
-import json
-import re
 import statistics
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -31,10 +29,9 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.methods import configuration
-from benchmarks.records import RECORDS, merge_records
-from benchmarks.records import load_records as records_in
+from benchmarks.records import RECORDS, REPO, merged_records
+from benchmarks.tables import gpu, md_table
 
-REPO = Path(__file__).resolve().parents[1]
 CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer-full", "peer", "splatfacto")
 """The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
 benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`)."""
@@ -67,67 +64,19 @@ class Sharing:
         return "not recorded"
 
 
-_COUNT = re.compile(r"((?:\d+(?:-\d+)?(?:, | and ))*\d+(?:-\d+)?) (?:scene )?runs (?:at once|concurrent)")
-_OTHERS = re.compile(r"with (\d+) other runs?")
-_SHARED_WORDS = ("shared-gpu", "shared the gpu", "concurrent", "at once")
-_ALONE_WORDS = ("one after another", "alone")
-
-
-def grid_descriptions(repo: Path = REPO) -> dict[str, str]:
-    """configs/<grid>.json -> its description (which says whether its runs shared the GPU)."""
-    out = {}
-    for p in sorted((repo / "configs").glob("*.json")):
-        try:
-            out[f"configs/{p.name}"] = str(json.loads(p.read_text()).get("description", ""))
-        except (OSError, ValueError):
-            continue
-    return out
-
-
-def gpu_sharing(rec: dict[str, Any], grids: dict[str, str] | None = None) -> Sharing:
-    """How many runs shared the GPU while ``rec`` trained, from what the record says.
-
-    Counts: ``concurrent_runs`` (long runs: runs on the GPU while its segment trained), each segment's
-    ``concurrent_runs`` or ``shared_with`` + 1, and numbers in its notes ("12, 9 and 3 runs concurrent", "4-5 runs at
-    once", "with 6 other runs"); the largest wins. Without a count above 1: words in the notes ("shared-GPU",
-    "concurrently" -> shared; "alone", "one after another" -> alone), then the grid file named in ``command``
-    (remote/grid.sh grids say their runs are concurrent; the Pareto grid ran one after another).
-    """
-    counts: list[int] = []
-    why: list[str] = []
-    if isinstance(rec.get("concurrent_runs"), int):
-        counts.append(rec["concurrent_runs"])
-        why.append("concurrent_runs")
-    for seg in rec.get("segments") or []:
-        if isinstance(seg.get("concurrent_runs"), int):
-            counts.append(seg["concurrent_runs"])
-            why.append("segments")
-        elif isinstance(seg.get("shared_with"), int):
-            counts.append(seg["shared_with"] + 1)
-            why.append("segments")
-    text = " ".join(str(rec.get(k) or "") for k in ("note", "run_note"))
-    for m in _COUNT.finditer(text):
-        counts += [int(n) for n in re.findall(r"\d+", m.group(1))]
-        why.append("note")
-    for m in _OTHERS.finditer(text):
-        counts.append(int(m.group(1)) + 1)
-        why.append("note")
-    low = text.lower()
-    src = ", ".join(dict.fromkeys(why))
-    if counts and max(counts) > 1:
-        return Sharing("shared", max(counts), src)
-    if any(w in low for w in _SHARED_WORDS):
-        return Sharing("shared", None, "note")
-    if (counts and max(counts) == 1) or any(w in low for w in _ALONE_WORDS):
-        return Sharing("alone", 1, src or "note")
-    grid = re.search(r"--grid (\S+\.json)", str(rec.get("command") or ""))
-    if grid is not None:
-        desc = (grids if grids is not None else grid_descriptions()).get(grid.group(1), "").lower()
-        if "concurrent" in desc:
-            return Sharing("shared", None, f"{grid.group(1)} runs its pairs concurrently")
-        if "one after another" in desc:
-            return Sharing("alone", 1, f"{grid.group(1)} runs one after another")
-    return Sharing("unknown", None, "")
+def gpu_sharing(rec: dict[str, Any]) -> Sharing:
+    """How many runs shared the GPU while ``rec`` trained: the most of its ``concurrent_runs`` and its segments'
+    (benchmarks/long_run.py and benchmarks/grid.py ``--concurrent``), or the ``gpu_sharing`` it carries (records
+    without those fields: what their notes and grid files said)."""
+    if rec.get("gpu_sharing"):
+        return Sharing(**rec["gpu_sharing"])
+    given = {"concurrent_runs": [rec.get("concurrent_runs")]}
+    given["segments"] = [seg.get("concurrent_runs") for seg in rec.get("segments") or []]
+    counts = {k: [n for n in ns if isinstance(n, int)] for k, ns in given.items()}
+    runs = max((n for ns in counts.values() for n in ns), default=None)
+    if runs is None:
+        return Sharing("unknown", None, "")
+    return Sharing("alone" if runs == 1 else "shared", runs, ", ".join(k for k, ns in counts.items() if ns))
 
 
 # ---------------------------------------------------------------------------------------------- points
@@ -151,17 +100,6 @@ class Point:
     """The run's seed (records without one ran with the harness's default, 42)."""
 
 
-def _gpu(rec: dict[str, Any]) -> str:
-    machine = str(rec.get("machine") or "")
-    name = machine.split("(")[0].replace("NVIDIA", "").split()
-    return name[0] if name else "?"
-
-
-def _seed(rec: dict[str, Any]) -> int:
-    seed = rec.get("seed")
-    return 42 if seed is None else int(seed)
-
-
 def _usable(rec: dict[str, Any]) -> bool:
     return rec.get("status", "ok") == "ok" and not rec.get("tree_note")
 
@@ -180,35 +118,24 @@ def milestone_train_s(rec: dict[str, Any], milestone: str) -> float | None:
     return None
 
 
-def scene_points(
-    records: Sequence[dict[str, Any]],
-    scene: str,
-    methods: Sequence[str] = CURVE_METHODS,
-    grids: dict[str, str] | None = None,
-) -> list[Point]:
+def scene_points(records: Sequence[dict[str, Any]], scene: str, methods: Sequence[str] = CURVE_METHODS) -> list[Point]:
     """Every measured (method, steps, train time, PSNR) of ``scene`` on the GPU, one per run and step count. Runs
     under the time budget are left out (:func:`is_knob_run`)."""
-    grids = grid_descriptions() if grids is None else grids
-    out, seen = [], set()
+    out = []
     for r in records:
         method = configuration(r)
         if r.get("scene") != scene or method not in methods or r.get("device") != "cuda" or not _usable(r):
             continue
         if is_knob_run(r):  # a compressed schedule: not its method's curve
             continue
-        tag = str(r.get("tag") or "")
-        point = partial(Point, scene, method, tag=tag, gpu=_gpu(r), sharing=gpu_sharing(r, grids), seed=_seed(r))
+        tag, seed = str(r.get("tag") or ""), int(r.get("seed") or 42)
+        point = partial(Point, scene, method, tag=tag, gpu=gpu(r), sharing=gpu_sharing(r), seed=seed)
         if r.get("kind") == "long_run":
             for k, ms in (r.get("milestones") or {}).items():
                 if ms.get("psnr") is None:
                     continue
-                seen.add((method, int(k), tag))
                 out.append(point(int(k), float(ms["psnr"]), milestone_train_s(r, k), "long run"))
         elif r.get("psnr") is not None and int(r.get("steps") or 0) > 0:
-            key = (method, int(r["steps"]), tag)
-            if key in seen:  # the same run merged twice (a long run's final milestone and its grid copy)
-                continue
-            seen.add(key)
             t = r.get("train_s")
             out.append(point(int(r["steps"]), float(r["psnr"]), None if t is None else float(t), "grid"))
     return sorted(out, key=lambda p: (methods.index(p.method), p.steps, p.train_s or 0.0))
@@ -242,10 +169,8 @@ class StepPoint:
     n: int
     times: tuple[float, ...]
     """Measured train seconds of the runs (untimed runs left out)."""
-    sharing: str
-    """The runs' sharing labels, joined."""
-    alone: tuple[tuple[float, str], ...] = ()
-    """(train seconds, GPU) of the runs timed alone on their GPU."""
+    alone: tuple[float, ...] = ()
+    """Train seconds of the runs timed alone on their GPU."""
 
 
 def step_curve(points: Sequence[Point], method: str) -> list[StepPoint]:
@@ -254,9 +179,8 @@ def step_curve(points: Sequence[Point], method: str) -> list[StepPoint]:
     for steps in sorted({p.steps for p in points if p.method == method}):
         ps = [p for p in points if p.method == method and p.steps == steps]
         times = tuple(sorted(p.train_s for p in ps if p.train_s is not None))
-        labels = " / ".join(dict.fromkeys(p.sharing.label() for p in ps if p.train_s is not None)) or "–"
-        alone = tuple(sorted((p.train_s, p.gpu) for p in ps if p.train_s is not None and p.sharing.state == "alone"))
-        out.append(StepPoint(method, steps, statistics.mean(p.psnr for p in ps), len(ps), times, labels, alone))
+        alone = tuple(sorted(p.train_s for p in ps if p.train_s is not None and p.sharing.state == "alone"))
+        out.append(StepPoint(method, steps, statistics.mean(p.psnr for p in ps), len(ps), times, alone))
     return out
 
 
@@ -267,20 +191,11 @@ class StepTime:
 
     seconds: float
     alone: bool
-    n: int
-    """Runs the median is over."""
-    gpus: tuple[str, ...]
-    """GPU models of the alone runs (empty for a shared time)."""
 
 
 def step_time(s: StepPoint) -> StepTime | None:
     """``s``'s time (:class:`StepTime`); None: no run of it was timed."""
-    if s.alone:
-        gpus = tuple(sorted({g for _, g in s.alone}))
-        return StepTime(statistics.median(t for t, _ in s.alone), True, len(s.alone), gpus)
-    if s.times:
-        return StepTime(statistics.median(s.times), False, len(s.times), ())
-    return None
+    return StepTime(statistics.median(s.alone or s.times), bool(s.alone)) if s.times else None
 
 
 def has_curve(points: Sequence[Point]) -> bool:
@@ -360,15 +275,6 @@ def plot_scene(points: Sequence[Point], path: Path) -> Path:
     return path
 
 
-def load_records(paths: Sequence[Path]) -> list[dict[str, Any]]:
-    """Records of several files (each a JSON list); a later record with the same (scene, method, device, steps, tag)
-    replaces an earlier one (benchmarks.records.merge_records)."""
-    records: list[dict[str, Any]] = []
-    for p in paths:
-        records = merge_records(records, records_in(Path(p)))
-    return records
-
-
 # ---------------------------------------------------------------------------------------------- docs/curves.md
 
 
@@ -388,26 +294,16 @@ MEASURE = (
 
 def scene_table(points: Sequence[Point]) -> list[str]:
     """Markdown rows: every run, its time, GPU, sharing and Pareto mark."""
-    flags = pareto_flags(points)
-    out = [
-        "| method | steps | train s | PSNR | GPU | GPU shared | from | tag | Pareto |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for p, pareto in zip(points, flags, strict=True):
+    rows = []
+    for p, pareto in zip(points, pareto_flags(points), strict=True):
         t = "not recorded" if p.train_s is None else f"{p.train_s:.0f}"
         share = p.sharing.label() + (f" ({p.sharing.why})" if p.sharing.why else "")
-        out.append(
-            f"| {p.method} | {p.steps} | {t} | {p.psnr:.2f} | {p.gpu} | {share} | {p.source} | {p.tag or '–'} "
-            f"| {'*' if pareto else ''} |"
-        )
-    return out
+        rows.append([p.method, str(p.steps), t, f"{p.psnr:.2f}", p.gpu, share, p.source, p.tag or "–", "*" * pareto])
+    return md_table(["method", "steps", "train s", "PSNR", "GPU", "GPU shared", "from", "tag", "Pareto"], rows)
 
 
 def render_markdown(
-    by_scene: dict[str, list[Point]],
-    pngs: dict[str, Path],
-    skipped: dict[str, int],
-    sources: Sequence[str],
+    by_scene: dict[str, list[Point]], pngs: dict[str, Path], skipped: dict[str, int], sources: Sequence[str]
 ) -> str:
     out = [
         "# Speed vs accuracy: PSNR against training time",
@@ -424,9 +320,8 @@ def render_markdown(
         "",
         "## What the records hold",
         "",
-        "| scene | runs × step counts (timed) | methods: step counts | plot |",
-        "|---|---|---|---|",
     ]
+    rows = []
     for scene, points in by_scene.items():
         timed = sum(p.train_s is not None for p in points)
         methods = "; ".join(
@@ -437,16 +332,14 @@ def render_markdown(
         plot = (
             f"[curves_{scene}.png]({pngs[scene].name})" if scene in pngs else "none (no method timed at 2 step counts)"
         )
-        out.append(f"| {scene} | {len(points)} ({timed}) | {methods or '–'} | {plot} |")
+        rows.append([scene, f"{len(points)} ({timed})", methods or "–", plot])
+    out += md_table(["scene", "runs × step counts (timed)", "methods: step counts", "plot"], rows)
     missing = [m for m in CURVE_METHODS if not any(p.method == m for ps in by_scene.values() for p in ps)]
     if missing:
         out += ["", f"No records of {', '.join(missing)} on these scenes."]
     out += ["", MEASURE]
     if any(skipped.values()):
-        out += [
-            "",
-            "Left out: " + ", ".join(f"{n} {why}" for why, n in skipped.items() if n) + ".",
-        ]
+        out += ["", "Left out: " + ", ".join(f"{n} {why}" for why, n in skipped.items() if n) + "."]
     for scene, points in by_scene.items():
         out += [f"## {scene}", ""]
         if scene in pngs:
@@ -462,15 +355,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out-dir", default=str(REPO / "docs"), help="where curves_<scene>.png go")
     ap.add_argument("--md", default=None, help="markdown output (default: <out-dir>/curves.md)")
     args = ap.parse_args(argv)
-    records = load_records([Path(p) for p in args.records])
-    grids = grid_descriptions()
+    records = merged_records(args.records)
+    asked = [r for r in records if r.get("scene") in args.scenes]
     skipped = {
-        "failed runs": sum(r.get("status", "ok") != "ok" for r in records if r.get("scene") in args.scenes),
-        "records with a tree_note (not a clean record of their method)": sum(
-            bool(r.get("tree_note")) for r in records if r.get("scene") in args.scenes
-        ),
+        "failed runs": sum(r.get("status", "ok") != "ok" for r in asked),
+        "records with a tree_note (not a clean record of their method)": sum(bool(r.get("tree_note")) for r in asked),
     }
-    by_scene = {s: scene_points(records, s, grids=grids) for s in args.scenes}
+    by_scene = {s: scene_points(records, s) for s in args.scenes}
     out_dir = Path(args.out_dir)
     pngs = {s: plot_scene(pts, out_dir / f"curves_{s}.png") for s, pts in by_scene.items() if has_curve(pts)}
     md = Path(args.md) if args.md else out_dir / "curves.md"

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.methods import METHODS
-from benchmarks.records import RECORDS, REPO, load_records, merge_records
+from benchmarks.records import RECORDS, REPO, load_records, merge_records, merged_records
 from benchmarks.tables import write_outputs
 
 
@@ -66,6 +66,9 @@ class RunSpec:
     """Also score the right half with the latent fitted on the whole test image (oracle_* keys)."""
     train_views: int = 8
     """Training views scored with their own latents (train_* keys: fitting capacity); 0 = none."""
+    concurrent_runs: int | None = None
+    """Runs on the GPU at once while this one trained, itself included (benchmarks/remote/grid.sh says); None: not
+    recorded."""
 
     @property
     def scene_name(self) -> str:
@@ -187,11 +190,9 @@ def machine_description(device: str) -> str:
     if device == "cuda":
         return f"{torch.cuda.get_device_name(0)} ({os.cpu_count()} CPU cores)"
     model = platform.processor() or platform.machine()
-    with contextlib.suppress(OSError):
-        names = [
-            ln.split(":", 1)[1] for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("model n")
-        ]
-        model = names[0].strip() if names else model
+    with contextlib.suppress(OSError):  # the CPU's name, where Linux says it
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        model = next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model n")), model)
     return f"{os.cpu_count()} CPU cores ({model}), no GPU"
 
 
@@ -254,6 +255,7 @@ def run_one(
         "command": command,
         "machine": machine,
         "commit": git_commit(),
+        "concurrent_runs": spec.concurrent_runs,
     }
     t = time.perf_counter()
     with open(log_path, "w") as logf:
@@ -283,19 +285,17 @@ def run_grid(
     grid_path: Path,
     out_prefix: Path,
     work_root: Path,
+    command: str,
     only_methods: Sequence[str] | None = None,
     only_scenes: Sequence[str] | None = None,
     dry_run: bool = False,
     keep_runs: bool = False,
-    command: str | None = None,
-    log=print,
-    stop_after_s: float = 0.0,
     overrides: dict[str, Any] | None = None,
+    log=print,
 ) -> list[dict[str, Any]]:
-    """Run every spec of the grid (sequentially), merging each record into `<out>.json` as it finishes.
-
-    overrides: RunSpec fields set on every run (e.g. {"tag": "r2", "seed": 43} for a repeat). stop_after_s > 0:
-    start no new run once that many seconds have passed (machines lent for a limited time)."""
+    """Run every spec of the grid (sequentially), merging each record into `<out>.json` as it finishes (a grid cut
+    short keeps what it finished). ``command`` is recorded; overrides: RunSpec fields set on every run (e.g. {"tag":
+    "r2", "seed": 43} for a repeat)."""
     settings, specs = parse_grid(json.loads(Path(grid_path).read_text()))
     device = resolve_device(settings["device"])
     specs = [s for s in specs if (not only_methods or s.method in only_methods)]
@@ -304,7 +304,6 @@ def run_grid(
     for s in [s for s in specs if METHODS[s.method].needs_cuda and device != "cuda"]:
         log(f"skip {s.scene_name}/{s.method}/{s.steps}: needs CUDA (device is {device})")
         specs.remove(s)
-    command = command or " ".join(["python"] + [str(a) for a in sys.argv])
     machine = machine_description(device)
     log(f"{len(specs)} runs on {device} ({machine}); records -> {Path(out_prefix).with_suffix('.json')}")
     if dry_run:
@@ -316,9 +315,6 @@ def run_grid(
     done: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     for i, s in enumerate(specs):
-        if stop_after_s > 0 and time.perf_counter() - t0 > stop_after_s:
-            log(f"stop_after_s={stop_after_s:.0f} reached: {len(specs) - i} runs not started")
-            break
         log(f"[{i + 1}/{len(specs)}] {s.scene_name} {s.method} steps={s.steps} tag={s.tag!r}")
         rec = run_one(s, device, settings, Path(work_root), command, machine, keep_runs, log)
         if rec["status"] == "ok":
@@ -356,36 +352,24 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", nargs="*", help="only these scenes of the grid (short names: default, fox-wild, ...)")
     ap.add_argument("--dry-run", action="store_true", help="list the runs and exit")
     ap.add_argument("--keep-runs", action="store_true", help="keep each run's checkpoint and config.yml")
-    ap.add_argument("--stop-after-s", type=float, default=0.0, help="start no new run after this many seconds")
     ap.add_argument("--tag", help="override every run's tag (repeats: r1, r2, ...)")
     ap.add_argument("--seed", type=int, help="override every run's seed")
+    ap.add_argument("--concurrent", type=int, help="runs on the GPU at once, this one included (recorded)")
     ap.add_argument("--render-only", action="store_true", help="regenerate the markdown from <out>.json and exit")
     ap.add_argument("--merge", nargs="*", type=Path, default=[], help="merge these record files into <out>.json")
     args = ap.parse_args(argv)
     out = args.out if args.out.is_absolute() else Path.cwd() / args.out
     if args.merge or args.render_only:
-        recs = load_records(out.with_suffix(".json"))
-        for f in args.merge:
-            recs = merge_records(recs, load_records(f))
+        recs = merged_records([out.with_suffix(".json"), *args.merge])
         j, m = write_outputs(recs, out)
         print(f"{len(recs)} records -> {j}, {m}")
         return 0
     if args.grid is None:
         ap.error("--grid is required (unless --merge or --render-only)")
-    overrides = {k: v for k, v in (("tag", args.tag), ("seed", args.seed)) if v is not None}
+    given = (("tag", args.tag), ("seed", args.seed), ("concurrent_runs", args.concurrent))
+    overrides = {k: v for k, v in given if v is not None}
     command = "python -m benchmarks run " + " ".join(sys.argv[1:] if argv is None else argv)
-    run_grid(
-        args.grid,
-        out,
-        args.work_dir,
-        args.methods,
-        args.scenes,
-        args.dry_run,
-        args.keep_runs,
-        command,
-        stop_after_s=args.stop_after_s,
-        overrides=overrides,
-    )
+    run_grid(args.grid, out, args.work_dir, command, args.methods, args.scenes, args.dry_run, args.keep_runs, overrides)
     return 0
 
 

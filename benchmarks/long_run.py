@@ -16,11 +16,23 @@ Methods are benchmarks.methods METHODS (stock schedule: only max_num_iterations 
 """
 
 import argparse
+import datetime as _dt
+import fcntl
+import gc
 import json
 import os
+import random
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from benchmarks.child import mask_record, patch_offline, protocol_scores, sync
+from benchmarks.grid import git_commit, machine_description
+from benchmarks.methods import METHODS, build_config, is_peer
 
 STATE = "state.json"
 
@@ -39,8 +51,6 @@ def _save_state(run_dir: Path, state: dict[str, Any]) -> None:
 def _save_score(run_dir: Path, milestone: str, rec: dict[str, Any]) -> None:
     """Add one milestone's scores to the state, under a lock: `eval` runs one process per milestone at once (their
     set-up, mostly CPU, overlaps), each re-reading the state so that none overwrites another's score."""
-    import fcntl
-
     with open(run_dir / (STATE + ".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         state = _state(run_dir)
@@ -64,7 +74,6 @@ def _patch_resume(model_cls) -> None:
     old ones: a resumed run optimises tensors the model no longer uses and gsplat's densification indexes mismatched
     states (a device-side assert, seen here). Resize the Parameters in place instead, as WillagsModel.load_state_dict
     does."""
-    import torch
 
     def load_state_dict(self, state, **kwargs):
         self.step = 30000  # as stock: the trainer's step callback sets the real step before the next iteration
@@ -89,44 +98,30 @@ def _setup(
     """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given). ``budget_minutes``:
     `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and ends the learning-
     rate schedules there; ``steps`` is then the cap, as --max-num-iterations is)."""
-    import random
-
-    import numpy as np
-    import torch
-
-    from benchmarks.child import patch_stock_splatfacto
-    from benchmarks.methods import METHODS, build_config, is_peer
-
     base = METHODS[method].base
-    if base == "splatfacto" or is_peer(base):
-        patch_stock_splatfacto()  # as the grid runs do (offline LPIPS)
+    patch_offline(base)  # as the grid runs do (offline LPIPS; the peer's package on the path)
     if base == "splatfacto":
         from nerfstudio.models.splatfacto import SplatfactoModel
 
         _patch_resume(SplatfactoModel)
     elif is_peer(base):
-        from benchmarks.peer import patch_peer
-
-        patch_peer()  # offline, as in the grid runs; puts the peer's package on the path
         import splatfactow.splatfactow_model as pm  # type: ignore[import-not-found]
 
         _patch_resume(pm.SplatfactoWModel)
     config = build_config(
         method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
     )
-    config.timestamp = "run"
     config.machine.seed = seed
-    if load_step is not None:
+    if load_step is not None:  # the model its checkpoints hold, resumed from the one of load_step
         _trained_model(config)
+        config.load_dir = _ckpt_dir(run_dir)
+        config.load_step = load_step
     if budget_minutes is not None:
         if not hasattr(config.pipeline, "time_budget_minutes"):
             raise SystemExit(f"long_run: {method} has no time budget (only willags' pipeline has the knob)")
         config.pipeline.time_budget_minutes = budget_minutes
     config.steps_per_save = 10**9  # checkpoints are written here: at milestones and at the end of the segment
     config.save_only_latest_checkpoint = False
-    if load_step is not None:
-        config.load_dir = _ckpt_dir(run_dir)
-        config.load_step = load_step
     config.save_config()
     random.seed(seed)
     np.random.seed(seed)
@@ -140,10 +135,8 @@ def _trained_model(config) -> None:
     """Resuming or scoring a willags run: the model it trained, from its own config.yml (written when it trained: the
     inspector's resolved switches, or the time budget's preset), in place of the one its method name builds today.
     Rebuilding from the name would inspect the scene again in every segment and every scoring process, and a run
-    named `willags` before the default inspected (benchmarks.methods.AUTO_DEFAULT_SINCE) would get another model
+    named `willags` before the default inspected (its record's configuration: willags-full) would get another model
     than its checkpoints hold. Other methods' models do not depend on the scene: left as built."""
-    import yaml
-
     saved = config.get_base_dir() / "config.yml"
     if not hasattr(config.pipeline.model, "auto_config") or not saved.exists():
         return
@@ -162,14 +155,15 @@ def _milestones(spec: str, state: dict[str, Any]) -> list[int]:
 def _eval_method(state: dict[str, Any]) -> str:
     """The method whose model the checkpoints hold: the preset the knob chose (it may swap willags for willags-lite
     on a CPU), else the run's."""
-    from benchmarks.methods import METHODS
-
     chosen = ((state.get("time_budget") or {}).get("choice") or {}).get("preset")
     return chosen if chosen in METHODS else state["method"]
 
 
+class Stop(Exception):
+    """Raised by a step callback to end ``trainer.train()`` after that step."""
+
+
 def train(args) -> int:
-    import torch
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 
     run_dir = Path(args.run_dir)
@@ -190,6 +184,7 @@ def train(args) -> int:
     trainer = _setup(args.method, Path(args.data), run_dir, args.steps, args.seed, start, "val", args.budget_minutes)
     _ = trainer.pipeline.datamanager.cached_train
     setup_s = time.perf_counter() - t_setup
+    device = trainer.pipeline.model.device
     seg = {
         "start_step": (start + 1) if start is not None else 0,
         "setup_s": setup_s,
@@ -200,10 +195,6 @@ def train(args) -> int:
     milestone_s = state.setdefault("milestone_train_s", {})
     t0 = [0.0]
     last = [seg["start_step"] - 1]
-
-    class Stop(Exception):
-        pass
-
     budget = getattr(trainer, "time_budget", None)  # the knob's (its callback runs before this one)
 
     def after_step(step: int) -> None:
@@ -217,8 +208,7 @@ def train(args) -> int:
                 raise RuntimeError(f"long_run: non-finite at step {step}: {bad[:20]}")
         knob_end = budget is not None and budget.stopped_after == step  # the knob ends the run after this step
         if step in milestones or step == args.steps - 1 or knob_end:
-            if torch.cuda.is_available():
-                torch.cuda.synchronize()  # the step's work done, then the clock: the milestone's own train time
+            sync(device)  # the step's work done, then the clock: the milestone's own train time
             milestone_s[str(step + 1)] = before_s + time.perf_counter() - t0[0]
             trainer.save_checkpoint(step)
             # the state as if the segment ended here: a run killed later is scored at its milestones and resumes
@@ -232,8 +222,7 @@ def train(args) -> int:
     trainer.callbacks.append(
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
     )
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
+    sync(device)
     t0[0] = time.perf_counter()
     stopped = False
     try:
@@ -241,8 +230,7 @@ def train(args) -> int:
             trainer.train()
     except Stop:
         stopped = True
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
+    sync(device)
     seg["train_s"] = time.perf_counter() - t0[0]
     seg["end_step"] = last[0]
     if stopped and last[0] not in milestones and last[0] != args.steps - 1:
@@ -268,12 +256,6 @@ def train(args) -> int:
 
 
 def evaluate(args) -> int:
-    import gc
-
-    import torch
-
-    from benchmarks.child import mask_record, protocol_scores
-
     run_dir = Path(args.run_dir)
     state = _state(run_dir)
     milestones = _milestones(args.milestones, state)
@@ -316,12 +298,6 @@ def evaluate(args) -> int:
 def record(args) -> int:
     """The run as a record of benchmarks/records/benchmarks.json: train wall time summed over segments, PSNR at each
     milestone."""
-    import datetime as _dt
-
-    import torch
-
-    from benchmarks.grid import git_commit, machine_description
-
     state = _state(Path(args.run_dir))
     segs = state["segments"]
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -381,12 +357,7 @@ def main(argv=None) -> int:
     t.add_argument("--seed", type=int, default=42)
     t.add_argument("--budget-s", type=float, required=True, help="stop (and checkpoint) after this many train s")
     t.add_argument("--concurrent", type=int, default=1, help="runs on the GPU during this segment, itself included")
-    t.add_argument(
-        "--budget-minutes",
-        type=float,
-        default=None,
-        help="train under willags' time budget (--pipeline.time-budget-minutes); --steps is the cap",
-    )
+    t.add_argument("--budget-minutes", type=float, help="willags' --pipeline.time-budget-minutes; --steps is the cap")
     t.add_argument("--check-finite", action="store_true", help="anomaly mode; stop at a non-finite parameter or grad")
     sub.choices["eval"].add_argument("--train-views", type=int, default=8)
     r = sub.choices["record"]

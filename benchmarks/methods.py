@@ -137,31 +137,14 @@ def set_nested(obj, dotted: str, value) -> None:
     setattr(obj, leaf, value)
 
 
-AUTO_DEFAULT_SINCE = "2026-11-25T20:05:00"
-"""`willags` records dated from here on (a record is dated when its run starts) inspected the scene first; earlier ones
-are of the full model without inspection, the configuration named `willags-full`."""
-AUTO_SAME_SINCE = "2026-11-25T15:26:40"
-"""`willags-auto` records dated from here on ran what `willags` then was: willags-splitclone's configuration."""
-MCMC_DEFAULT_SINCE = "2026-11-27T16:30:00"
-"""`willags` records dated from here on densify by MCMC; earlier ones since AUTO_DEFAULT_SINCE are of the
-configuration named `willags-splitclone`, and `willags-mcmc` records are of today's `willags`."""
-
-
 def configuration(rec: dict[str, Any]) -> str:
-    """The method name of the configuration a record measured: its own, except `willags` records from before
-    AUTO_DEFAULT_SINCE, which are `willags-full`, and from before MCMC_DEFAULT_SINCE, which are
-    `willags-splitclone`; `willags-mcmc` records, which are today's `willags`. Undated records keep their name."""
-    method = str(rec.get("method"))
-    date = str(rec.get("date") or "")
-    if method == "willags" and date and date < AUTO_DEFAULT_SINCE:
-        return "willags-full"
-    if method == "willags" and date and date < MCMC_DEFAULT_SINCE:
-        return "willags-splitclone"
-    if method == "willags-auto" and date >= AUTO_SAME_SINCE:
-        return "willags-splitclone"
-    if method == "willags-mcmc":
-        return "willags"
-    return method
+    """The method name of the configuration a record measured: the ``configuration`` it carries where the name it ran
+    as meant another one then (`willags` before the default inspected the scene: `willags-full`; before it densified
+    by MCMC, and `willags-auto` runs of that time: `willags-splitclone`), `willags` for `willags-mcmc` (the
+    default named in full), else its own."""
+    if rec.get("configuration"):
+        return str(rec["configuration"])
+    return "willags" if rec.get("method") == "willags-mcmc" else str(rec.get("method"))
 
 
 def base_trainer_config(base: str):
@@ -190,13 +173,7 @@ def base_trainer_config(base: str):
 
 
 def build_config(
-    method: str,
-    steps: int,
-    device_type: str,
-    data: Path | None,
-    downscale: int | None,
-    schedule: str,
-    output_dir: Path,
+    method: str, steps: int, device_type: str, data: Path | None, downscale: int | None, schedule: str, output_dir: Path
 ):
     """The TrainerConfig of one benchmark run (saved to output_dir like ns-train would)."""
     spec = METHODS[method]

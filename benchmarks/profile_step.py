@@ -31,11 +31,9 @@ def sync_site(stack: list[traceback.FrameSummary]) -> str:
     """``file:line`` of the innermost frame of ``stack`` inside willags_ns, nerfstudio, gsplat or benchmarks (the line
     that asked torch for a host value), or "?" when none is."""
     for frame in reversed(stack):
-        if any(p in frame.filename.replace("\\", "/") for p in SITE_PARTS) and not frame.filename.endswith(
-            "profile_step.py"
-        ):
-            parts = frame.filename.replace("\\", "/").split("/")
-            return f"{'/'.join(parts[-2:])}:{frame.lineno}"
+        path = frame.filename.replace("\\", "/")
+        if any(p in path for p in SITE_PARTS) and not path.endswith("profile_step.py"):
+            return f"{'/'.join(path.split('/')[-2:])}:{frame.lineno}"
     return "?"
 
 
@@ -144,6 +142,7 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
     from torch.profiler import profile as torch_profile
 
     from benchmarks import long_run
+    from benchmarks.child import sync
 
     on_cuda = torch.cuda.is_available()
     trainer = long_run._setup(method, data, run_dir, warmup + 2 * steps + 1, seed, None, "val")
@@ -161,19 +160,12 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
             return
         original_showwarning(message, category, filename, lineno, file, line)
 
-    class Stop(Exception):
-        pass
-
-    def sync() -> None:
-        if on_cuda:
-            torch.cuda.synchronize()
-
     def after_step(step: int) -> None:
         if step == warmup - 1:  # the timed window (no profiler: it adds host time to every operator)
-            sync()
+            sync(trainer.pipeline.model.device)
             clock["t0"] = time.perf_counter()
         elif step == warmup + steps - 1:  # the timed window ends, the profiled one starts with the next step
-            sync()
+            sync(trainer.pipeline.model.device)
             clock["t1"] = time.perf_counter()
             warnings.showwarning = on_warning
             warnings.simplefilter("always")
@@ -181,17 +173,17 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
                 torch.cuda.set_sync_debug_mode("warn")
             prof.__enter__()
         elif step == warmup + 2 * steps - 1:
-            sync()
+            sync(trainer.pipeline.model.device)
             prof.__exit__(None, None, None)
             clock["t2"] = time.perf_counter()
-            raise Stop  # the sync mode and the warning hooks are put back below
+            raise long_run.Stop  # the sync mode and the warning hooks are put back below
 
     trainer.callbacks.append(
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
     )
     try:
         trainer.train()
-    except Stop:
+    except long_run.Stop:
         pass
     finally:
         if on_cuda:

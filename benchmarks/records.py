@@ -4,7 +4,9 @@
 docs/curves.md, docs/results.md); ``gpu_runs/`` and ``cpu_runs/`` the files runs brought back, as they wrote them;
 ``regions/`` the region scores (:mod:`benchmarks.regions`)."""
 
+import functools
 import json
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,11 @@ def load_records(path: Path) -> list[dict[str, Any]]:
         return []
     data = json.loads(path.read_text())
     return data["records"] if isinstance(data, dict) else data
+
+
+def merged_records(paths: Sequence[Path | str]) -> list[dict[str, Any]]:
+    """The records of several files, merged in their order (:func:`merge_records`: a later record wins)."""
+    return functools.reduce(lambda records, path: merge_records(records, load_records(Path(path))), paths, [])
 
 
 def sort_records(records: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -26,6 +26,7 @@ a folder of them into the table and one picture per scene:
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import re
 from collections.abc import Sequence
@@ -33,6 +34,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from benchmarks.tables import md_table
 
 REGIONS_ENV = "WILLAGS_BENCH_REGIONS"
 """Folder where each scored run writes its error maps and geometry (unset: nothing is written)."""
@@ -225,18 +228,19 @@ class RegionDump:
         self.errors.append(error_map(p, g))
         self.thumbs.append((block_mean(right_half(np.clip(g, 0, 1))) * 255).astype(np.uint8))
 
-    def save(
-        self, path: Path, names: Sequence[str], model=None, train_cameras=None, test_cameras=None, points=None
-    ) -> Path:
-        """Writes the error maps (as root mean squares in float16); with a ``model`` and its cameras also the geometry
-        and the photos' right halves (the picture's); with the SfM ``points`` [N, 3] each test view's far depth."""
+    def save(self, path: Path, names: Sequence[str], trainer=None) -> Path:
+        """Writes the error maps (as root mean squares in float16); with the reference run's ``trainer`` also the
+        geometry of its model and the photos' right halves (the picture's), and with the scene's SfM points each test
+        view's far depth."""
         arrays: dict[str, Any] = {"names": np.array(list(names)[: len(self.errors)])}
         for i, e in enumerate(self.errors):
             arrays[f"rms_{i}"] = np.sqrt(e).astype(np.float16)
-        if model is not None and train_cameras is not None and test_cameras is not None:
+        if trainer is not None:
+            model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
+            test_cameras, points = dm.eval_dataset.cameras, dm.train_dataparser_outputs.metadata.get("points3D_xyz")
             for i, t in enumerate(self.thumbs):
                 arrays[f"gt_{i}"] = t
-            views = training_views(model, train_cameras)
+            views = training_views(model, dm.train_dataset.cameras)
             for i in range(len(self.errors)):
                 p = _camera_params(test_cameras, i)
                 depth, acc = _render_geometry(model, test_cameras, i)
@@ -244,7 +248,7 @@ class RegionDump:
                 arrays[f"acc_{i}"] = block_mean(right_half(acc)).astype(np.float32)
                 arrays[f"depth_{i}"] = block_mean(right_half(depth)).astype(np.float32)
                 if points is not None:
-                    arrays[f"far_{i}"] = np.float64(far_depth(np.asarray(points, dtype=np.float64), **p))
+                    arrays[f"far_{i}"] = np.float64(far_depth(points.cpu().numpy().astype(np.float64), **p))
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(path, **arrays)
         return path
@@ -307,29 +311,19 @@ def scene_regions(runs: dict[str, list[dict[str, np.ndarray]]]) -> tuple[list[np
         return None
     covis, acc = _images(ref, "covis"), _images(ref, "acc")
     n = len(covis)
-    firsts = [rs[0] for rs in runs.values() if rs and len(_images(rs[0], "err")) >= n]
-    labels = [
-        region_labels(
-            covis[i],
-            acc[i],
-            [_images(r, "err")[i] for r in firsts],
-            ref.get(f"depth_{i}"),
-            float(ref.get(f"far_{i}", np.inf)),
-        )
-        for i in range(n)
-    ]
+    firsts = [_images(rs[0], "err") for rs in runs.values() if rs and len(_images(rs[0], "rms")) >= n]
+    labels = []
+    for i in range(n):
+        depth, far = ref.get(f"depth_{i}"), float(ref.get(f"far_{i}", np.inf))
+        labels.append(region_labels(covis[i], acc[i], [errs[i] for errs in firsts], depth, far))
     scores: dict[str, Any] = {}
     for method, rs in runs.items():
         per_run = [region_scores(_images(r, "err")[:n], labels) for r in rs if len(_images(r, "err")) >= n]
         if not per_run:
             continue
+        psnr = {k: float(np.mean([p[k]["psnr"] for p in per_run])) for k in per_run[0]}
         scores[method] = {
-            k: {
-                "share": per_run[0][k]["share"],
-                "psnr": float(np.mean([p[k]["psnr"] for p in per_run])),
-                "runs": len(per_run),
-            }
-            for k in per_run[0]
+            k: {"share": s["share"], "psnr": psnr[k], "runs": len(per_run)} for k, s in per_run[0].items()
         }
     return labels, scores
 
@@ -367,10 +361,7 @@ def _table_order(method: str) -> tuple[int, str]:
 def report(folder: Path, out: Path | None, pictures: Path | None, json_out: Path | None = None) -> str:
     """The markdown table of every scene's regions (a picture per scene when ``pictures`` is given; the scores as
     JSON, scene -> method -> region -> share / psnr / runs, when ``json_out`` is)."""
-    lines = [
-        "| scene | method | runs | " + " | ".join(f"{r} PSNR (share)" for r in ("all", *REGIONS)) + " |",
-        "|---|---|---|" + "---|" * (1 + len(REGIONS)),
-    ]
+    rows = []
     every: dict[str, Any] = {}
     for scene, runs in sorted(load_dumps(folder).items()):
         got = scene_regions(runs)
@@ -381,15 +372,14 @@ def report(folder: Path, out: Path | None, pictures: Path | None, json_out: Path
         for method in sorted(scores, key=_table_order):
             s = scores[method]
             cells = [f"{s[k]['psnr']:.2f} ({100 * s[k]['share']:.0f} %)" for k in ("all", *REGIONS)]
-            lines.append(f"| {scene} | {method} | {s['all']['runs']} | " + " | ".join(cells) + " |")
+            rows.append([scene, method, str(s["all"]["runs"]), *cells])
         if pictures is not None:
             ref = reference_run(runs)
             assert ref is not None
             region_picture(pictures / f"{scene}.png", _images(ref, "gt"), labels)
-    text = "\n".join(lines) + "\n"
+    head = ["scene", "method", "runs", *(f"{r} PSNR (share)" for r in ("all", *REGIONS))]
+    text = "\n".join(md_table(head, rows)) + "\n"
     if json_out is not None:
-        import json
-
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(every, indent=1))
     if out is not None:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.child import patch_offline, sync
 from benchmarks.grid import git_commit
 from benchmarks.records import REPO
 
@@ -105,7 +106,6 @@ def build_model(variant: str, seeds, n_train: int, dev: torch.device, backend: s
     """(model on dev in train mode with its optimisers, is_willags); the same Gaussians for every variant."""
     from nerfstudio.data.scene_box import SceneBox
 
-    from benchmarks.child import patch_stock_splatfacto
     from benchmarks.methods import set_nested
     from willags_ns import method_configs as mc
     from willags_ns.method_configs import FusedAdamOptimizerConfig
@@ -119,7 +119,7 @@ def build_model(variant: str, seeds, n_train: int, dev: torch.device, backend: s
             raise RuntimeError("stock splatfacto hard-codes .cuda(): skipped without CUDA")
         from nerfstudio.models.splatfacto import SplatfactoModelConfig
 
-        patch_stock_splatfacto()
+        patch_offline("splatfacto")
         cfg = SplatfactoModelConfig(**TIMING_OVERRIDES)
     else:
         lite = lambda: mc.willags_lite_config().pipeline.model  # noqa: E731
@@ -162,11 +162,6 @@ def train_step(model, camera, batch, step: int, is_willags: bool) -> None:
         model.end_step(step)
 
 
-def _sync(cuda: bool) -> None:
-    if cuda:
-        torch.cuda.synchronize()
-
-
 def _stamp(cuda: bool):
     """A point on the device's timeline: a CUDA event (no host sync when taken), else perf_counter."""
     if not cuda:
@@ -190,7 +185,7 @@ def time_steps(variant: str, args, cuda: bool, dev, backend: str) -> dict:
     for _ in range(args.warmup):  # also builds the lazy VGG and the Adam states
         train_step(model, cam, batch, step, is_w)
         step += 1
-    _sync(cuda)
+    sync(dev)
     if cuda:
         gc.collect()
         torch.cuda.reset_peak_memory_stats()
@@ -201,7 +196,7 @@ def time_steps(variant: str, args, cuda: bool, dev, backend: str) -> dict:
         train_step(model, cam, batch, step, is_w)
         spans.append((s, _stamp(cuda)))
         step += 1
-    _sync(cuda)
+    sync(dev)
     ms = [_ms(s, e, cuda) for s, e in spans]
     r.update(step_ms=statistics.fmean(ms), step_ms_median=statistics.median(ms))
     r["step_ms_wall"] = (time.perf_counter() - t0) * 1e3 / args.iters
@@ -232,11 +227,11 @@ def render_fps(args, cuda: bool, dev, backend: str) -> dict:
         with torch.no_grad():
             for i in range(3):
                 render_one(i)
-            _sync(cuda)
+            sync(dev)
             t0 = time.perf_counter()
             for i in range(args.frames):
                 render_one(i % 8)
-            _sync(cuda)
+            sync(dev)
         return args.frames / (time.perf_counter() - t0)
 
     def willags() -> None:  # its model freed on return, before splatfacto's is built

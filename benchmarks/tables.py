@@ -55,7 +55,8 @@ def gpu(rec: dict[str, Any]) -> str:
     return name[0] if name else "?"
 
 
-def _table(head: list[str], rows: list[list[str]]) -> list[str]:
+def md_table(head: list[str], rows: list[list[str]]) -> list[str]:
+    """A markdown table: the head, its rule and a line per row of cells."""
     return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *("| " + " | ".join(r) + " |" for r in rows)]
 
 
@@ -74,7 +75,7 @@ def grid_table(recs: list[dict[str, Any]]) -> list[str]:
             fp = r.get("mask_fp_rate")
             cells += [_f(r.get("mask_iou"), ".3f"), "–" if fp is None else f"{100 * fp:.1f}%"]
         rows.append(cells + [gpu(r), str(r.get("commit") or r.get("code_commit") or "–")])
-    return _table(head + ["GPU", "commit"], rows)
+    return md_table(head + ["GPU", "commit"], rows)
 
 
 def _milestones(r: dict[str, Any]) -> str:
@@ -94,7 +95,7 @@ def long_table(recs: list[dict[str, Any]]) -> list[str]:
         cells += [_f(r.get("train_s"), ".0f"), _milestones(r), "–" if budget is None else f"{budget:g} min"]
         rows.append(cells + [gpu(r), str(r.get("commit") or "–")])
     head = ["scene", "method", "tag", "seed", "steps", "train s", "PSNR at milestones", "time budget", "GPU", "commit"]
-    return _table(head, rows)
+    return md_table(head, rows)
 
 
 def speed_table(recs: list[dict[str, Any]]) -> list[str]:
@@ -111,7 +112,7 @@ def speed_table(recs: list[dict[str, Any]]) -> list[str]:
         rows.append(cells)
     head = ["scene", "variant", "tag", "GPU", "step ms", "ratio vs splatfacto", "extra peak VRAM GB", "host syncs/step"]
     head += ["render FPS vs splatfacto", "render FPS vs gsplat", "parity fwd / grad rel. err", "commit"]
-    return _table(head, rows)
+    return md_table(head, rows)
 
 
 def devices_table(recs: list[dict[str, Any]]) -> list[str]:
@@ -126,7 +127,7 @@ def devices_table(recs: list[dict[str, Any]]) -> list[str]:
         cells += [_f(r.get("step_ms"), ".2f"), _f(x1, ".2f"), _f(r.get("psnr"), ".2f"), _f(r.get("num_gaussians"), ",")]
         rows.append(cells)
     head = ["scene", "tag", "GPUs", "machines", "steps", "images", "wall s", "step ms", "x1", "PSNR", "Gaussians"]
-    return _table(head, rows)
+    return md_table(head, rows)
 
 
 def render_markdown(records: list[dict[str, Any]]) -> str:

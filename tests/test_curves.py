@@ -18,10 +18,6 @@ from benchmarks.curves import (
     step_time,
 )
 
-GRIDS = {
-    "configs/concurrent.json": "benchmarks/remote/grid.sh runs the pairs concurrently on one GPU",
-    "configs/seq.json": "runs one after another (true times)",
-}
 ALONE = Sharing("alone", 1, "test")
 SHARED = Sharing("shared", 4, "test")
 
@@ -60,26 +56,22 @@ def _long(method, milestones, segments, tag="long", scene="reichstag", **extra):
 # ---------------------------------------------------------------------------------------------- sharing labels
 
 
+NOTE_SHARING = {"state": "shared", "runs": 12, "why": "concurrent_runs, note"}
+
+
 @pytest.mark.parametrize(
-    "rec, state, runs",
+    "rec, state, runs, why",
     [
-        ({"concurrent_runs": 3, "note": "three segments, 12, 9 and 3 runs concurrent on the GPU"}, "shared", 12),
-        ({"run_note": "4-5 runs at once on one H100 (train times are shared-GPU times)"}, "shared", 5),
-        ({"note": "segments 1-2 shared the GPU with 6 other runs; segments 3-4 ran alone"}, "shared", 7),
-        ({"concurrent_runs": 1, "segments": [{"shared_with": 1}]}, "shared", 2),
-        ({"concurrent_runs": 1, "segments": [{"concurrent_runs": 4}]}, "shared", 4),
-        ({"note": "willags and splatfacto concurrently on one H100"}, "shared", None),
-        ({"concurrent_runs": 1, "note": "trained alone on one H100"}, "alone", 1),
-        ({"run_note": "runs one after another on one H100 (true train times)"}, "alone", 1),
-        ({"command": "python -m benchmarks run --grid configs/concurrent.json --scenes x"}, "shared", None),
-        ({"command": "python -m benchmarks run --grid configs/seq.json"}, "alone", 1),
-        ({"command": "python -m benchmarks run --grid configs/other.json"}, "unknown", None),
-        ({}, "unknown", None),
+        ({"concurrent_runs": 3}, "shared", 3, "concurrent_runs"),
+        ({"concurrent_runs": 1, "segments": [{"concurrent_runs": 4}]}, "shared", 4, "concurrent_runs, segments"),
+        ({"concurrent_runs": 1, "segments": [{"train_s": 1.0}]}, "alone", 1, "concurrent_runs"),
+        ({"concurrent_runs": None}, "unknown", None, ""),  # a grid run not told
+        ({"concurrent_runs": 9, "gpu_sharing": NOTE_SHARING}, "shared", 12, "concurrent_runs, note"),  # carried
+        ({}, "unknown", None, ""),
     ],
 )
-def test_gpu_sharing_reads_what_the_record_says(rec, state, runs):
-    s = gpu_sharing(rec, GRIDS)
-    assert (s.state, s.runs) == (state, runs)
+def test_gpu_sharing_reads_what_the_record_says(rec, state, runs, why):
+    assert gpu_sharing(rec) == Sharing(state, runs, why)
 
 
 def test_sharing_labels_say_shared_gpu_times():
@@ -104,7 +96,7 @@ def test_milestone_times_are_measured_never_interpolated():
 
 def test_scene_points_from_milestones_and_grid_runs():
     records = [
-        _grid("willags", 5000, 19.0, 200.0, tag="a", command="x --grid configs/concurrent.json"),
+        _grid("willags", 5000, 19.0, 200.0, tag="a", concurrent_runs=2),
         _grid("peer", 5000, 19.5, 300.0, tag="a", seed=43),
         _grid("willags", 5000, 30.0, 10.0, tag="dirty", tree_note="not a clean record"),
         _grid("willags", 5000, 30.0, 10.0, tag="failed", status="failed"),
@@ -118,7 +110,7 @@ def test_scene_points_from_milestones_and_grid_runs():
             concurrent_runs=1,
         ),
     ]
-    pts = scene_points(records, "reichstag", grids=GRIDS)
+    pts = scene_points(records, "reichstag")
     got = [(p.method, p.steps, p.train_s, p.source, p.gpu, p.sharing.state) for p in pts]
     assert got == [
         ("willags", 5000, 200.0, "grid", "H100", "shared"),
@@ -156,7 +148,7 @@ def test_a_step_counts_time_is_the_median_of_its_runs_timed_alone():
     (hit,) = step_curve(pts, "willags")
     assert hit.psnr == pytest.approx(19.3) and hit.n == 3 and hit.times == (30.0, 100.0, 140.0)
     t = step_time(hit)
-    assert (t.seconds, t.alone, t.n, t.gpus) == (120.0, True, 2, ("H200",))
+    assert (t.seconds, t.alone) == (120.0, True) and hit.alone == (100.0, 140.0)
     (peer,) = step_curve(pts, "peer")
     assert (step_time(peer).seconds, step_time(peer).alone) == (1000.0, False)  # only a shared-GPU time
     assert step_time(step_curve([_p("peer", 15000, 19.4, None)], "peer")[0]) is None
@@ -172,7 +164,7 @@ def test_time_budget_runs_stay_off_the_curves():
         concurrent_runs=1,
     )
     plain = _long("willags", {"5000": {"psnr": 19.4, "train_s": 80.0}}, [{"end_step": 4999, "train_s": 80.0}])
-    assert [(p.steps, p.tag) for p in scene_points([knob, plain], "reichstag", grids=GRIDS)] == [(5000, "long")]
+    assert [(p.steps, p.tag) for p in scene_points([knob, plain], "reichstag")] == [(5000, "long")]
 
 
 def test_has_curve_needs_a_method_timed_at_two_step_counts():
@@ -185,8 +177,8 @@ def test_has_curve_needs_a_method_timed_at_two_step_counts():
 
 def test_main_writes_the_png_and_labels_shared_times(tmp_path):
     records = [
-        _grid("willags", 5000, 19.0, 200.0, tag="a", run_note="5 runs at once on one H100"),
-        _grid("peer", 5000, 19.4, 210.0, tag="a", run_note="runs one after another"),
+        _grid("willags", 5000, 19.0, 200.0, tag="a", concurrent_runs=5),
+        _grid("peer", 5000, 19.4, 210.0, tag="a", gpu_sharing={"state": "alone", "runs": 1, "why": "note"}),
         _long("peer", {"15000": {"psnr": 19.3}}, [{"end_step": 14999, "train_s": 500.0}], concurrent_runs=1),
         _long(
             "willags",
@@ -210,7 +202,7 @@ def test_main_writes_the_png_and_labels_shared_times(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     assert not (out / "curves_south-building.png").exists()
     md = (out / "curves.md").read_text()
-    assert "| willags | 5000 | 200 | 19.00 | H100 | shared, up to 5 runs (note) |" in md
+    assert "| willags | 5000 | 200 | 19.00 | H100 | shared, up to 5 runs (concurrent_runs) |" in md
     assert "| willags | 15000 | 380 | 19.35 | H200 | shared, up to 3 runs (segments) |" in md
     assert "| peer | 5000 | 210 | 19.40 | H100 | alone (note) |" in md
     assert "none (no method timed at 2 step counts)" in md  # south-building
@@ -239,4 +231,4 @@ def test_long_run_record_keeps_milestone_times_and_the_most_runs_sharing(tmp_pat
     long_run.main(["record", "--run-dir", str(run), "--tag", "t", "--out", str(out), "--milestones", "1000,3000"])
     (rec,) = json.loads(out.read_text())
     assert rec["milestones"]["1000"] == {"psnr": 18.0, "train_s": 13.0} and rec["concurrent_runs"] == 3
-    assert milestone_train_s(rec, "1000") == 13.0 and gpu_sharing(rec, {}).label() == "shared, up to 3 runs"
+    assert milestone_train_s(rec, "1000") == 13.0 and gpu_sharing(rec).label() == "shared, up to 3 runs"

@@ -133,13 +133,12 @@ def test_the_default_inspects_and_its_candidates_change_the_full_model(tmp_path)
 @pytest.mark.parametrize(
     "rec, name",
     [
-        ({"method": "willags", "date": "2026-11-25T19:00:00"}, "willags-full"),  # before the default inspected
-        ({"method": "willags", "date": "2026-11-26T09:00:00"}, "willags-splitclone"),  # before it densified by MCMC
+        ({"method": "willags", "configuration": "willags-full"}, "willags-full"),  # before the default inspected
+        ({"method": "willags", "configuration": "willags-splitclone"}, "willags-splitclone"),  # before MCMC
         ({"method": "willags", "date": "2026-11-28T09:00:00"}, "willags"),
         ({"method": "willags-mcmc", "date": "2026-11-27T16:00:00"}, "willags"),  # the default named in full
-        ({"method": "willags"}, "willags"),  # undated: its own name
-        ({"method": "willags-auto", "date": "2026-11-25T16:00:00"}, "willags-splitclone"),  # the default of its time
-        ({"method": "willags-auto", "date": "2026-11-24T16:00:00"}, "willags-auto"),  # an older full model under it
+        ({"method": "willags-auto", "configuration": "willags-splitclone"}, "willags-splitclone"),
+        ({"method": "willags-auto"}, "willags-auto"),  # an older full model under it
         ({"method": "peer", "date": "2026-11-25T19:00:00"}, "peer"),
     ],
 )
@@ -238,7 +237,7 @@ def test_tiny_grid_end_to_end(tmp_path):
     out = tmp_path / "docs" / "benchmarks"
     write_outputs([_rec("fox-wild", "willags", 300, 18.0, device="cuda", tag="")], out)  # a GPU record
     logs = []
-    recs = grid.run_grid(gpath, out, tmp_path / "work", command="bench-test", log=logs.append)
+    recs = grid.run_grid(gpath, out, tmp_path / "work", "bench-test", overrides={"concurrent_runs": 2}, log=logs.append)
     assert len(recs) == 1 and recs[0]["status"] == "ok", logs
     r = recs[0]
     for k in ("psnr", "ssim", "encoder_psnr", "full_psnr", "train_s", "fps", "num_gaussians", "peak_mem_gb"):
@@ -246,6 +245,7 @@ def test_tiny_grid_end_to_end(tmp_path):
     assert r["lpips"] is None or np.isfinite(r["lpips"])
     assert r["mask_status"] == "ok" and r["mask_num_images"] == 2  # the synthetic scene has masks_gt/
     assert r["steps"] == 5 and r["device"] == "cpu" and r["scene"] == "default" and r["command"] == "bench-test"
+    assert r["concurrent_runs"] == 2  # --concurrent (benchmarks/remote/grid.sh) recorded
     back = load_records(out.with_suffix(".json"))
     assert {x["device"] for x in back} == {"cpu", "cuda"}  # merged, the GPU record kept
     assert "### default (cpu)" in out.with_suffix(".md").read_text()

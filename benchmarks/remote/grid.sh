@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # (scene, method[, tag, seed]) pairs of a grid (configs/benchmark_gpu_*.json) on one GPU, one `python -m benchmarks
-# run` per pair, at most $JOBS at once (train times are then shared-GPU times). Source benchmarks/remote/env.sh first.
+# run` per pair, at most $JOBS at once (train times are then shared-GPU times: each record's concurrent_runs says how
+# many at most). Source benchmarks/remote/env.sh first.
 #
 #   GRID=configs/benchmark_gpu_fidelity.json JOBS=12 bash benchmarks/remote/grid.sh run OUT scene:method[:tag[:seed]] ...
 #   SHARED_DATA=".gpu-lib .gpu-r" GRID=... bash benchmarks/remote/grid.sh start "liberty:peer:h200-l1:42 ..."
@@ -22,6 +23,7 @@ run_grid() {  # OUT PAIRS...
   dups=$(echo "$names" | sort | uniq -d)
   [ -n "$dups" ] && { echo "gpu_grid: pairs share a record name (give each repeat its own tag): $dups" >&2; exit 2; }
   python3 -c "from benchmarks.grid import warm_gsplat; warm_gsplat()" || exit 1
+  at_once=$(( $# < jobs_max ? $# : jobs_max ))
   for pair in "$@"; do
     IFS=: read -r scene method tag seed <<< "$pair"
     name="$scene-$method${tag:+-$tag}"
@@ -30,7 +32,7 @@ run_grid() {  # OUT PAIRS...
     [ -n "${seed:-}" ] && extra+=(--seed "$seed")
     while [ "$(jobs -rp | wc -l)" -ge "$jobs_max" ]; do sleep 2; done
     python3 -m benchmarks run --grid "$grid" --scenes "$scene" --methods "$method" "${extra[@]}" \
-      --out "$logs/$name" --work-dir "/tmp/willags-gpu-work/$name" > "$logs/$name.log" 2>&1 &
+      --concurrent "$at_once" --out "$logs/$name" --work-dir "/tmp/willags-gpu-work/$name" > "$logs/$name.log" 2>&1 &
   done
   wait
   cp "$logs"/*.json "$out"/ 2>/dev/null

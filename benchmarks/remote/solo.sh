@@ -114,13 +114,19 @@ loop() {
   touch "$S/done"
 }
 
+unfinished() {  # how many of the queues under $1 have not finished
+  local d n=0
+  for d in "$1"/q*; do [ -e "$d/done" ] || n=$((n + 1)); done
+  echo "$n"
+}
+
 queue_gpus() {  # the GPUs queues are spread over: $QUEUE_GPUS, else every GPU nvidia-smi lists, else none
   if [ -n "${QUEUE_GPUS:-}" ]; then echo "$QUEUE_GPUS"; return; fi
   command -v nvidia-smi > /dev/null 2>&1 && nvidia-smi -L 2> /dev/null | awk '{print NR - 1}' | tr '\n' ' '
 }
 
 queues() {  # start RUNS... | add RUNS... | wait OUT [SECONDS]: several queues side by side
-  local Q=${QUEUES_DIR:-/tmp/queues} self=${BASH_SOURCE[0]} out limit end left regions i d runs gpus gpu
+  local Q=${QUEUES_DIR:-/tmp/queues} self=${BASH_SOURCE[0]} out limit end regions i d runs gpus gpu
   case "${1:-}" in
     start | add)
       # queue i runs on GPU number i of the list, round robin (CUDA_VISIBLE_DEVICES); `add` appends queues to the
@@ -147,12 +153,7 @@ queues() {  # start RUNS... | add RUNS... | wait OUT [SECONDS]: several queues s
       limit=${3:-540}
       end=$(( $(date +%s) + limit ))
       for d in "$Q"/q*; do SOLO_DIR=$d bash "$self" wait "$Q/.copy" 0 > /dev/null; done  # new scenes
-      while [ "$(date +%s)" -lt "$end" ]; do
-        left=0
-        for d in "$Q"/q*; do [ -e "$d/done" ] || left=$((left + 1)); done
-        [ "$left" = 0 ] && break
-        sleep 5
-      done
+      while [ "$(date +%s)" -lt "$end" ] && [ "$(unfinished "$Q")" != 0 ]; do sleep 5; done
       mkdir -p "$out"
       regions=${WILLAGS_BENCH_REGIONS:-}
       tar czf "$out/queues.tgz" -C / $(cd / && ls -d "${Q#/}"/q*/rec "${Q#/}"/q*/queue.log)
@@ -162,9 +163,7 @@ queues() {  # start RUNS... | add RUNS... | wait OUT [SECONDS]: several queues s
         echo "== $(basename "$d")$( [ -f "$d/gpu" ] && echo " (GPU $(cat "$d/gpu"))"): $(tr -d '\n' < "$d/queue" 2>/dev/null)"
         grep "gpu_solo:\|long_run:\|Traceback\|Error" "$d/queue.log" | tail -n 6
       done
-      left=0
-      for d in "$Q"/q*; do [ -e "$d/done" ] || left=$((left + 1)); done
-      echo "gpu_queues: $left queue(s) still running"
+      echo "gpu_queues: $(unfinished "$Q") queue(s) still running"
       ;;
     *) echo "usage: solo.sh queues start RUNS... | queues add RUNS... | queues wait OUT [SECONDS]" >&2; exit 2 ;;
   esac
