@@ -56,13 +56,14 @@ COMMANDS = [
 ]
 
 
-SIDE_BY_SIDE_TAGS = ("h200x4", "h100x4-b")
+SIDE_BY_SIDE_TAGS = ("h200x4", "h100x4-b", "h100x4-c")
 """Tags (a prefix; `-s43` follows for the second seed) of the side-by-side grid the default was decided on: every
 real collection to 15000 steps (milestones of 30000-step runs count) and two fox scenes to 5000, seeds 42 and 43, the
-default, its candidates and both peers, in two leases of 4 GPUs (benchmarks/remote/solo.sh queues, one scene's
-methods on one GPU at the same time): h200x4 (the default, its densification and the residual mask, both peers) and
+default, its candidates and both peers, in three leases of 4 GPUs (benchmarks/remote/solo.sh queues, one scene's
+methods on one GPU at the same time): h200x4 (the default, its densification and the residual mask, both peers),
 h100x4-b (the default and both peers to 30000 steps, the peer's second seeds, MCMC's cap and the residual mask on the
-default)."""
+default) and h100x4-c (the full peer to 30000 steps, MCMC's 1M cap with the residual mask, the default and splatfacto
+alone on one GPU)."""
 EQUAL_TIME_TAGS = ("h200x4",)
 """The lease whose times the equal-time table reads: times compare only between runs that shared one machine."""
 SIDE_BY_SIDE_STEPS = {"fox-clean": 5000, "fox-wild": 5000}
@@ -76,6 +77,7 @@ CANDIDATES = (
     ("willags-mask", "willags"),
     ("willags-cap150k", "willags"),
     ("willags-cap1m", "willags"),
+    ("willags-cap1m-mask", "willags-cap1m"),
 )
 """The default and the alternatives it was chosen over, from the same runs: (method, the method its difference is
 taken to: the configuration it changes one thing of)."""
@@ -342,7 +344,7 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "",
         "## Every collection, side by side",
         "",
-        "Every method of a scene on one GPU at the same time (two leases of 4 GPUs; the 15k point of a 30k run "
+        "Every method of a scene on one GPU at the same time (three leases of 4 GPUs; the 15k point of a 30k run "
         "counts: the schedules do not depend on the run's length), splatfacto's stock schedule (1/4 resolution "
         "to step 3000, 1/2 to 6000, full after), the real collections to 15000 steps, the fox scenes (rendered: "
         "their transients and appearance changes are known) to 5000. A cell marked * holds a method that was not in "
@@ -358,8 +360,9 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "on every scene, comparing the photo with the EMA teacher's render by colour residual (no downloaded "
         "weights); **willags-mask** is the default with that mask on every scene; **willags-cap150k** and "
         "**willags-cap1m** are the default with MCMC's cap on the number of Gaussians at 150,000 and 1,000,000 "
-        "instead of 300,000. Each cell: the mean, then its difference to the configuration it changes one thing of (named in "
-        "the column). Why the default is what it is: [design.md](design.md).",
+        "instead of 300,000; **willags-cap1m-mask** is willags-cap1m with the residual mask on every scene. Each cell: "
+        "the mean, then its difference to the configuration it changes one thing of (named in the column). Why the "
+        "default is what it is: [design.md](design.md).",
         "",
         *candidate_rows(records),
         "",
@@ -379,8 +382,9 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "",
         "Each method's score once it had trained as long as the default needed for 15000 steps, read off its 5k, "
         "10k and 15k milestones (linear between them). The runs of a scene shared one GPU throughout, so their times "
-        "compare within a scene; alone on an H100, 3000 steps of reichstag took splatfacto 37 s, peer 47 s, willags "
-        "(splatfacto's densification) 49 s and peer-full 75 s (docs/benchmarks.md, speed suite).",
+        "compare within a scene. Alone on an H100, 3000 steps of reichstag took splatfacto 37-39 s, peer 47 s, "
+        "willags 52 s (49 s with splatfacto's densification) and peer-full 75 s, and 15000 steps splatfacto 201 s and "
+        "willags 258 s (docs/benchmarks.md, the speed suite; docs/curves.md, the runs alone).",
         "",
         "## Longer training: PSNR at each step count",
         "",
