@@ -9,10 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
-from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
 from willags_ns.engine import time_budget as tb
 from willags_ns.engine.time_budget import (
@@ -22,9 +20,7 @@ from willags_ns.engine.time_budget import (
     TimeBudget,
     TimeBudgetError,
     choose,
-    end_schedules_at,
     plan_steps,
-    schedule_warmups,
     validate_minutes,
 )
 
@@ -291,28 +287,6 @@ def test_resumed_run_counts_its_own_steps():
     assert budget.history[0]["step"] == 5069 and ends[0] == 5100 and last == 5099
 
 
-def test_schedules_end_at_the_planned_step():
-    opt = {
-        "means": {"scheduler": ExponentialDecaySchedulerConfig(lr_final=1.6e-6, max_steps=30000)},
-        "camera_opt": {"scheduler": ExponentialDecaySchedulerConfig(lr_final=5e-7, max_steps=30000, warmup_steps=1000)},
-        "scales": {"scheduler": None},
-    }
-    warmups = schedule_warmups(opt)
-    end_schedules_at(opt, 500, warmups)
-    assert opt["means"]["scheduler"].max_steps == 500 and opt["camera_opt"]["scheduler"].warmup_steps == 50
-    end_schedules_at(opt, 5000, warmups)  # a re-plan starts from the schedule's own warm-up
-    assert opt["camera_opt"]["scheduler"].warmup_steps == 1000
-    # the live scheduler follows its config: at the planned last step the learning rate is the final one
-    param = torch.nn.Parameter(torch.zeros(1))
-    optim = torch.optim.Adam([param], lr=1.6e-4)
-    sched = opt["means"]["scheduler"].setup().get_scheduler(optim, lr_init=1.6e-4)
-    end_schedules_at(opt, 200, warmups)
-    for _ in range(200):
-        optim.step()
-        sched.step()
-    assert np.isclose(optim.param_groups[0]["lr"], 1.6e-6, rtol=1e-6)
-
-
 # ---------------------------------------------------------------------------------------------- the table
 
 
@@ -414,7 +388,10 @@ def test_apply_budget_switches_the_preset_in_the_config():
     assert model.num_downscales == 0 and config.max_num_iterations == CAPS["willags-lite"]
     assert replaced == preset_defaults("willags-lite")[0].num_downscales > 0
     lite_step = STEP_TIMES[("willags-lite", "cpu")].seconds
-    assert config.optimizers["means"]["scheduler"].max_steps == choice.steps == plan_steps(90.0, 0, 0, lite_step, 7000)
+    assert choice.steps == plan_steps(90.0, 0, 0, lite_step, 7000)
+    # the learning-rate schedules stay the preset's: a short run is not decayed within its few hundred steps
+    own = method_configs.willags_config().optimizers  # the invoked config's (a switch swaps only the model)
+    assert {k: g["scheduler"] for k, g in config.optimizers.items()} == {k: g["scheduler"] for k, g in own.items()}
     assert config.method_name == "willags" and "your settings kept: backend" in notes[0]
 
 
@@ -515,6 +492,13 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
             ]
         assert refines, (strategy.refine_every, strategy.reset_every, getattr(strategy, "pause_refine_after_reset", 0))
         assert trainer.pipeline.model.config.mask.warmup_steps < last_plan
+    # the learning-rate schedules are the preset's, not ended at the plan
+    preset_opt = real_config().optimizers  # the invoked config's (a switch swaps only the model)
+    assert all(
+        trainer.config.optimizers[k]["scheduler"] == g["scheduler"]
+        for k, g in preset_opt.items()
+        if k in trainer.config.optimizers
+    )
 
 
 def test_slow_steps_are_measured_within_the_first_sixth_of_the_budget():
@@ -542,17 +526,27 @@ def test_fit_schedules_keeps_each_schedules_share_of_a_shorter_run():
         "mask.warmup_steps": 500,
         "mask.ramp_steps": 0,
     }
-    short = tb.fit_schedules(own, 600, 30000)  # the docstring's worked example
-    assert short["warmup_length"] == 10 and short["refine_every"] == 10 and short["stop_split_at"] == 300
-    assert short["reset_alpha_every"] * short["refine_every"] == 60 and short["mask.ramp_steps"] == 0
-    assert short["mask.warmup_steps"] == 10 and short["sh_degree_interval"] == 20
+    long = tb.fit_schedules(own, 6000, 30000)  # the docstring's worked example: each keeps its share of the run
+    assert long["warmup_length"] == 100 and long["refine_every"] == 20 and long["stop_split_at"] == 3000
+    assert long["reset_alpha_every"] * long["refine_every"] == 600 and long["mask.ramp_steps"] == 0
+    assert long["mask.warmup_steps"] == 100 and long["sh_degree_interval"] == 200
+    # a short run densifies by the short-run schedule: from a sixth of the run, every 50 steps, until 0.8 of it,
+    # and never resets opacities within it; the mask keeps its share
+    short = tb.fit_schedules(own, 600, 30000)
+    assert (short["warmup_length"], short["refine_every"], short["stop_split_at"]) == (100, 50, 480)
+    assert short["reset_alpha_every"] * short["refine_every"] > 600 and short["mask.warmup_steps"] == 10
     assert tb.fit_schedules(own, 30000, 30000) == own and tb.fit_schedules(own, 90000, 30000) == own
     half = tb.fit_schedules(own, 15000, 30000)
     assert half["warmup_length"] == 250 and half["refine_every"] == 50 and half["reset_alpha_every"] == 30
-    tiny = tb.fit_schedules(own, 1, 30000)  # never 0 (0 would switch a schedule off), refine_every floored
-    assert all(v >= 1 for k, v in tiny.items() if own[k] > 0) and tiny["refine_every"] == tb.MIN_REFINE_EVERY
-    assert tiny["reset_alpha_every"] == tb.MIN_RESET_REFINES  # densifications between two resets
-    assert tb.fit_schedules({**own, "refine_every": 4}, 600, 30000)["refine_every"] == 4  # below the floor: kept
+    assert half["mask.warmup_steps"] == 250
+    tiny = tb.fit_schedules(own, 12, 30000)  # never 0 (0 would switch a schedule off); still a few refinements
+    assert all(v >= 1 for k, v in tiny.items() if own[k] > 0)
+    assert tiny["warmup_length"] + 2 * tiny["refine_every"] < tiny["stop_split_at"] <= 12
+    assert tiny["reset_alpha_every"] * tiny["refine_every"] > 12
+    at = tb.fit_schedules(own, tb.SHORT_RUN_STEPS, 30000)  # from SHORT_RUN_STEPS on, the preset's shares
+    assert at["refine_every"] == tb.MIN_REFINE_EVERY and at["reset_alpha_every"] * at["refine_every"] == 200
+    assert tb.fit_schedules({**own, "refine_every": 4}, 6000, 30000)["refine_every"] == 4  # below the floor: kept
+    assert tb.fit_schedules({**own, "refine_every": 4}, 600, 30000)["refine_every"] == 4
 
 
 @pytest.mark.parametrize("mcmc", [True, False], ids=["mcmc", "splatfacto"])
@@ -571,19 +565,23 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
     strategy = densification_strategy(cfg, num_train=12, mcmc=mcmc)
     trainer = SimpleNamespace(pipeline=SimpleNamespace(model=SimpleNamespace(config=cfg, strategy=strategy)))
     fit = WillagsTrainer._schedule_fitter(trainer, 30000)  # type: ignore[arg-type]
-    fit(600)  # the fit_schedules docstring's example
+    fit(6000)  # the fit_schedules docstring's example
     assert isinstance(strategy, McmcDensification) == mcmc
-    assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (10, 10, 300)
-    assert (cfg.warmup_length, cfg.refine_every, cfg.stop_split_at) == (10, 10, 300)
+    assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (100, 20, 3000)
+    assert (cfg.warmup_length, cfg.refine_every, cfg.stop_split_at) == (100, 20, 3000)
     assert cfg.sh_degree_interval == 1000  # the SH degree keeps its steps: a short run stays at degree 0
+    assert cfg.mask.warmup_steps == 100  # the mask keeps its share of the run
     if mcmc:
         assert strategy.reset_every == 0  # never resets opacities, however short the run
     else:
-        assert strategy.reset_every == 60 and strategy.refine_scale2d_stop_iter == 80
-        assert strategy.pause_refine_after_reset == 10
+        assert strategy.reset_every == 600 and strategy.refine_scale2d_stop_iter == 800
+        assert strategy.pause_refine_after_reset == 20
+    fit(600)  # a short run: the short-run densification, no opacity reset within it
+    assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (100, 50, 480)
+    assert strategy.reset_every == 0 if mcmc else strategy.reset_every > 600
     fit(30000)  # a plan of the preset's own length gives the schedules back
     assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (500, 100, 15000)
-    assert strategy.reset_every == (0 if mcmc else 3000)
+    assert strategy.reset_every == (0 if mcmc else 3000) and cfg.mask.warmup_steps == 500
 
 
 @pytest.mark.slow

@@ -117,7 +117,8 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     """Train within this many minutes of training steps (None or 0: off; set-up not counted). Before training
     `ns-train willags` chooses the preset (willags-lite or willags), the step count and the resolution schedule from
     measured points (willags_ns/engine/time_budget.py); after steps 20-70 the run's own step time sets the last step (never
-    past the preset's default), the learning-rate schedules end there, and the choice is printed and kept in
+    past the preset's default), the densification and mask schedules fit into it (the learning-rate schedules stay the
+    preset's), and the choice is printed and kept in
     time_budget.json. Other methods (willags-lite named explicitly too) keep their model; only their step count
     follows the budget."""
 

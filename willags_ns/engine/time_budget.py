@@ -352,7 +352,7 @@ def format_choice(
         sched = f"splatfacto's resolution schedule kept (the {device} points were measured with it)"
     else:
         sched = f"full resolution from the first step (the {device} points were measured so, on small images)"
-    lines.append(f"  schedule: {sched}; learning-rate schedules end at the last step")
+    lines.append(f"  schedule: {sched}; the step schedules (densification, mask) fitted into the planned steps")
     if num_devices > 1:
         lines.append(
             f"  devices:  {num_devices}, one image each per step: the steps and every schedule as on one device, with "
@@ -365,34 +365,6 @@ def format_choice(
 
 # --------------------------------------------------------------------------------------------------------------------
 # while training
-
-
-def schedule_warmups(optimizers: Mapping[str, Mapping[str, Any]]) -> dict[str, int]:
-    """Each learning-rate schedule's own warm-up (steps), kept so that re-plans start from it, not from a shortened one."""
-    return {
-        name: int(group["scheduler"].warmup_steps)
-        for name, group in optimizers.items()
-        if group.get("scheduler") is not None and hasattr(group["scheduler"], "warmup_steps")
-    }
-
-
-def end_schedules_at(
-    optimizers: Mapping[str, Mapping[str, Any]], end_step: int, warmups: Mapping[str, int] | None = None
-) -> None:
-    """Make every learning-rate schedule with a ``max_steps`` end at ``end_step`` (what the benchmarks' short
-    schedule does, here also during the run: nerfstudio's schedulers read their config at every step). A warm-up
-    (``warmups``: the schedules' own, default their current one) that would not end before ``end_step`` is shortened
-    to a tenth of the run.
-
-    camera_opt (warm-up 1000, exponential decay to 5e-7) with end_step 500: max_steps 500, warm-up 50."""
-    for name, group in optimizers.items():
-        sched = group.get("scheduler")
-        if sched is None or not hasattr(sched, "max_steps"):
-            continue
-        sched.max_steps = int(end_step)
-        if hasattr(sched, "warmup_steps"):
-            own = int((warmups or {}).get(name, sched.warmup_steps) or 0)
-            sched.warmup_steps = own if own < end_step else int(end_step) // 10
 
 
 STEP_SCHEDULES = (
@@ -408,14 +380,21 @@ STEP_SCHEDULES = (
 shorter than its preset's. reset_alpha_every counts refinements, the others steps. Two step schedules are not among
 them: the resolution schedule (each doubling makes a step four times dearer, and the plan is re-measured at the
 resolution trained) and the SH degree's (``sh_degree_interval``): the higher bands are view-dependent colour that a
-few hundred steps cannot constrain, and raised within a short run they fit the training views and lose on new ones
-(docs/design.md, the time budget)."""
+few hundred steps cannot constrain, and raised within a short run they fit the training views and lose on new ones.
+Nor are the learning-rate schedules: a budget keeps the preset's, so a short run trains at the learning rates of a
+run's first steps instead of decaying them within a few hundred (docs/design.md, the time budget)."""
 MIN_REFINE_EVERY = 10
 """Fewest steps between two densifications in a fitted schedule (each one judges the gradients gathered since the
 last)."""
 MIN_RESET_REFINES = 3
 """Fewest densifications between two opacity resets in a fitted schedule: a reset at every densification would
 leave none outside the pause that follows each reset."""
+SHORT_RUN_STEPS = 2000
+"""A run planned shorter than this densifies by the short-run schedule (:func:`short_densification`) instead of the
+preset's scaled: scaled, a few hundred steps would split from their tenth step on, on gradients of a scene not yet
+fitted, and reset opacities every few dozen steps (docs/design.md, the time budget)."""
+SHORT_REFINE_EVERY = 50
+"""Steps between two densifications in the short-run schedule (at most; fewer where a run has room for few)."""
 
 
 def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> dict[str, int]:
@@ -424,21 +403,39 @@ def fit_schedules(own: Mapping[str, int], run_steps: int, preset_steps: int) -> 
     short budget still densifies, resets opacities and warms up the mask within it.
     refine_every is at least MIN_REFINE_EVERY (or its own value when smaller); the opacity reset keeps its period in
     steps (reset_alpha_every x refine_every x r), counted in the fitted refinements and at least MIN_RESET_REFINES of
-    them; a schedule at 0 (off) stays 0.
+    them; a schedule at 0 (off) stays 0. A run shorter than SHORT_RUN_STEPS densifies by :func:`short_densification`.
 
-    willags (30000 steps: warm-up 500, refine every 100, split until 15000, reset every 30 refinements) in 600 steps:
-    warm-up 10, refine every 10, split until 300, reset every 6 refinements (60 steps)."""
+    willags (30000 steps: warm-up 500, refine every 100, split until 15000, reset every 30 refinements) in 6000
+    steps: warm-up 100, refine every 20, split until 3000, reset every 30 refinements (600 steps)."""
     r = min(1.0, max(0, int(run_steps)) / max(1, int(preset_steps)))
     if r >= 1.0:
         return dict(own)
     out = {k: (max(1, round(v * r)) if v > 0 else int(v)) for k, v in own.items()}
     refine = own.get("refine_every", 0)
-    if refine > 0:
+    if refine > 0 and run_steps < SHORT_RUN_STEPS:
+        out.update(short_densification(own, int(run_steps)))
+    elif refine > 0:
         out["refine_every"] = max(min(refine, MIN_REFINE_EVERY), round(refine * r))
         if own.get("reset_alpha_every", 0) > 0:
             scaled = round(own["reset_alpha_every"] * refine * r / out["refine_every"])
             out["reset_alpha_every"] = max(min(own["reset_alpha_every"], MIN_RESET_REFINES), scaled)
     return out
+
+
+def short_densification(own: Mapping[str, int], run_steps: int) -> dict[str, int]:
+    """The densification schedule of a run of ``run_steps`` < SHORT_RUN_STEPS (the schedule the CPU points were
+    measured with, benchmarks/methods.py ``apply_schedule``): the first split after a sixth of the run, one every
+    SHORT_REFINE_EVERY steps (at most ``own``'s period, and at least four within the window), the last at 0.8 of
+    the run, and no opacity reset within it. Only the keys ``own`` has.
+
+    600 steps: warm-up 100, refine every 50, split until 480, a reset every 13 refinements (650 steps: never)."""
+    run = max(1, int(run_steps))
+    warm, stop = max(1, run // 6), max(1, int(0.8 * run))
+    every = max(1, min(own["refine_every"], SHORT_REFINE_EVERY, (stop - warm) // 4))
+    out = {"warmup_length": warm, "refine_every": every, "stop_split_at": stop}
+    if own.get("reset_alpha_every", 0) > 0:
+        out["reset_alpha_every"] = run // every + 1
+    return {k: v for k, v in out.items() if k in own}
 
 
 def agreed_max(values: list[float]) -> list[float]:
@@ -478,7 +475,7 @@ class TimeBudget:
     start_step: int = 0
     """The first step of this run (> 0 when resumed)."""
     on_plan: Callable[[int], None] | None = None
-    """Called with the new end step (exclusive) at every plan: the trainer ends its learning-rate schedules there."""
+    """Called with the new end step (exclusive) at every plan: the trainer fits its step schedules into it."""
     log: Callable[[str], None] = print
     clock: Callable[[], float] = time.perf_counter
     sync: Callable[[], None] | None = None
@@ -582,7 +579,7 @@ class TimeBudget:
         verb = "measured" if first else "re-planned: step time now"
         self.log(
             f"willags time budget: {verb} {step_s * 1000:.1f} ms/step ({span}), {elapsed:.0f} s of "
-            f"{self.budget_s:.0f} s used -> training stops after step {end - 1}{cap}; learning-rate schedules end there"
+            f"{self.budget_s:.0f} s used -> training stops after step {end - 1}{cap}"
         )
 
     def _stop(self, step: int, why: str) -> bool:

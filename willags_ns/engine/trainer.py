@@ -2,8 +2,8 @@
 that survive faults.
 
 Why a Trainer of our own: the budget decides things only the trainer owns. Before the pipeline is built it picks the
-preset (its model config), the step cap and where the learning-rate schedules end; during training it stops the loop
-at the step the run's own clock allows (nerfstudio's loop runs a fixed ``max_num_iterations``). The decisions
+preset (its model config) and the step cap; during training it fits the step schedules (densification, mask) into
+the planned steps and stops the loop at the step the run's own clock allows (nerfstudio's loop runs a fixed ``max_num_iterations``). The decisions
 themselves are pure functions in willags_ns/engine/time_budget.py.
 
 Checkpoints (willags_ns/engine/checkpoints.py, docs/reliability.md): every save is atomic, and one that fails (a full disk)
@@ -55,10 +55,8 @@ from willags_ns.engine.time_budget import (
     TimeBudget,
     choose,
     device_class,
-    end_schedules_at,
     fixed_choice,
     format_choice,
-    schedule_warmups,
     validate_minutes,
 )
 
@@ -137,11 +135,9 @@ def carry_overrides(current: Any, base: Any, target: Any) -> list[str]:
     return copied
 
 
-def apply_budget(
-    config: TrainerConfig, budget_s: float, warmups: dict[str, int] | None = None
-) -> tuple[BudgetChoice, list[str], int | None]:
+def apply_budget(config: TrainerConfig, budget_s: float) -> tuple[BudgetChoice, list[str], int | None]:
     """Choose the preset and the steps for ``budget_s`` and write them into ``config`` (model, max_num_iterations,
-    learning-rate schedules with their own ``warmups``, resolution schedule). Returns the choice, notes for the
+    resolution schedule; the learning-rate schedules stay the preset's). Returns the choice, notes for the
     printed block, and the preset's num_downscales when this set full resolution from the first step in its place
     (None otherwise: kept schedule, or the user's own num_downscales), which the trainer restores for large images."""
     device = device_class(config.machine.device_type)
@@ -171,7 +167,6 @@ def apply_budget(
             else:
                 notes.append(f"your --pipeline.model.num-downscales {model.num_downscales} kept")
     config.max_num_iterations = choice.max_steps
-    end_schedules_at(config.optimizers, choice.steps, warmups)
     return choice, notes, replaced
 
 
@@ -209,8 +204,7 @@ class WillagsTrainer(Trainer):
         minutes = validate_minutes(getattr(self.config.pipeline, "time_budget_minutes", None))
         choice = None
         if minutes is not None and test_mode == "val":
-            self._warmups = schedule_warmups(self.config.optimizers)
-            choice, notes, replaced = apply_budget(self.config, minutes * 60.0, self._warmups)
+            choice, notes, replaced = apply_budget(self.config, minutes * 60.0)
             device = device_class(self.config.machine.device_type)
             CONSOLE.print(format_choice(choice, minutes, device, notes, num_devices=self.world_size))
             self._budget_record = {
@@ -389,8 +383,6 @@ class WillagsTrainer(Trainer):
 
     def _attach_budget(self, budget_s: float, choice: BudgetChoice) -> None:
         start = self._start_step  # > 0 when resumed with --load-dir: the budget is this run's
-        optimizers = self.config.optimizers  # the schedulers read these configs at every step
-        warmups = self._warmups
 
         # the step schedules are the preset's, for its own run: their shares are of that run, not of a lower cap
         # (--max-num-iterations 5000 would keep a 30000-step run's last split at 3 times the planned run)
@@ -398,7 +390,6 @@ class WillagsTrainer(Trainer):
         fit = self._schedule_fitter(own_steps)
 
         def on_plan(end_step: int) -> None:
-            end_schedules_at(optimizers, end_step, warmups)
             fit(end_step - start)
             # progress and ETA count against the planned end, not the cap (nerfstudio's step table reads max_iter)
             writer.GLOBAL_BUFFER["max_iter"] = end_step
@@ -527,7 +518,6 @@ class WillagsTrainer(Trainer):
             f"{budget.budget_s:.0f} s"
         )
         if self.local_rank == 0:
-            end_schedules_at(self.config.optimizers, step + 1, self._warmups)
             self.config.max_num_iterations = trained
             self.config.save_config()  # config.yml says what was trained
         # whether the run densified: Gaussians at the end against those it started from (the SfM points)
