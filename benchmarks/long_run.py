@@ -96,8 +96,8 @@ def _setup(
     budget_minutes: float | None = None,
 ):
     """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given). ``budget_minutes``:
-    `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and ends the learning-
-    rate schedules there; ``steps`` is then the cap, as --max-num-iterations is)."""
+    `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and fits the
+    densification and mask schedules into it; ``steps`` is then the cap, as --max-num-iterations is)."""
     base = METHODS[method].base
     patch_offline(base)  # as the grid runs do (offline LPIPS; the peer's package on the path)
     if base == "splatfacto":

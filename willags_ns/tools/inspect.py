@@ -904,11 +904,12 @@ def inspect_scene(cfg: InspectConfig) -> dict[str, Any]:
     scene = read_scene(cfg.data)
     sel = select_images(scene, cfg.split, cfg.max_images)
     sizes = image_sizes(scene.image_paths)
-    from willags_ns.data.dataparser import downscale_for_side
+    from willags_ns.data.dataparser import auto_downscale_factor
 
-    # the factor training reads the photos at: the data parser's rule, from the first photo by name
-    first = min(range(len(scene.image_paths)), key=lambda i: Path(scene.image_paths[i]).name, default=None)
-    factor = cfg.downscale_factor or (1 if first is None else downscale_for_side(int(sizes[first].max())))
+    # the factor training reads the photos at: the data parser's rule on the photos' folder
+    factor = cfg.downscale_factor or (
+        auto_downscale_factor(Path(scene.image_paths[0]).parent) if scene.image_paths else 1
+    )
     n_train = sum(s == "train" for s in scene.split) or len(scene.image_paths)
     evidence: dict[str, Any] = {"data": str(cfg.data)}
     if scene.points is not None and len(scene.points) >= 20 and scene.w2c is not None:
