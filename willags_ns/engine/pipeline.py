@@ -118,7 +118,8 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     `ns-train willags` chooses the preset (willags-lite or willags), the step count and the resolution schedule from
     measured points (willags_ns/engine/time_budget.py); after steps 20-70 the run's own step time sets the last step (never
     past the preset's default), the densification and mask schedules fit into it (the learning-rate schedules stay the
-    preset's), and the choice is printed and kept in
+    preset's; a plan under 2000 steps trains at 4 times its rates, falling to 0 over its second half), and the choice
+    is printed and kept in
     time_budget.json. Other methods (willags-lite named explicitly too) keep their model; only their step count
     follows the budget."""
 

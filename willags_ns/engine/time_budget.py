@@ -13,9 +13,10 @@ Two decisions, both from measurements:
    steps' warm-up: allocations, kernel caches) gives the step time on this machine and scene; the last step is set so
    that the run ends within the budget (never after the preset's own default, nor after ``--max-num-iterations``),
    re-planned every 200 steps and, on one device, every tenth of the budget (steps get slower as densification adds
-   Gaussians and the resolution schedule doubles the image size), and every learning-rate schedule ends at that
-   step. Should the clock run out first, training
-   stops there.
+   Gaussians and the resolution schedule doubles the image size); the step schedules (densification, the mask's
+   warm-up) fit into the planned steps, and a plan shorter than SHORT_RUN_STEPS trains at higher learning rates that
+   fall to zero over its second half (:func:`short_run_rates`). Should the clock run out first, training stops
+   there.
 
 The budget is wall-clock time of the trainer's loop (its periodic evaluation and checkpoints, and any pause in the
 viewer, included) from the first step; not the set-up before it (loading and caching images, gsplat's first JIT
@@ -353,6 +354,10 @@ def format_choice(
     else:
         sched = f"full resolution from the first step (the {device} points were measured so, on small images)"
     lines.append(f"  schedule: {sched}; the step schedules (densification, mask) fitted into the planned steps")
+    lines.append(
+        f"  rates:    a plan under {SHORT_RUN_STEPS} steps: {SHORT_RUN_LR_SCALE:g} x the preset's learning rates, "
+        f"falling to {COOLDOWN_FLOOR:g} over its last {SHORT_RUN_COOLDOWN:.0%}; a longer one: the preset's"
+    )
     if num_devices > 1:
         lines.append(
             f"  devices:  {num_devices}, one image each per step: the steps and every schedule as on one device, with "
@@ -381,8 +386,9 @@ shorter than its preset's. reset_alpha_every counts refinements, the others step
 them: the resolution schedule (each doubling makes a step four times dearer, and the plan is re-measured at the
 resolution trained) and the SH degree's (``sh_degree_interval``): the higher bands are view-dependent colour that a
 few hundred steps cannot constrain, and raised within a short run they fit the training views and lose on new ones.
-Nor are the learning-rate schedules: a budget keeps the preset's, so a short run trains at the learning rates of a
-run's first steps instead of decaying them within a few hundred (docs/design.md, the time budget)."""
+Nor are the learning-rate schedules: a budget keeps the preset's (decayed within a few hundred steps they cost a
+short run more than a decibel); a short plan scales them instead and cools them down at its end
+(:func:`short_run_rates`; docs/design.md, the time budget)."""
 MIN_REFINE_EVERY = 10
 """Fewest steps between two densifications in a fitted schedule (each one judges the gradients gathered since the
 last)."""
@@ -436,6 +442,41 @@ def short_densification(own: Mapping[str, int], run_steps: int) -> dict[str, int
     if own.get("reset_alpha_every", 0) > 0:
         out["reset_alpha_every"] = run // every + 1
     return {k: v for k, v in out.items() if k in own}
+
+
+SHORT_RUN_LR_SCALE = 4.0
+"""A plan shorter than SHORT_RUN_STEPS trains at this multiple of the preset's learning rates (:func:`short_run_rates`).
+The preset's rates are a 30000-step run's: a run of a few hundred steps ends while they are at their first values,
+far from what the scene needs (docs/design.md, the time budget)."""
+SHORT_RUN_COOLDOWN = 0.5
+"""Share of such a plan's last steps over which its learning rates fall linearly to COOLDOWN_FLOOR of their value
+(:func:`cooldown_factor`): the run ends settled rather than wherever its last few images pulled it."""
+COOLDOWN_FLOOR = 0.0
+"""The learning rates' factor at the last step of a cooldown."""
+
+
+def short_run_rates(run_steps: int) -> tuple[float, float]:
+    """(learning-rate scale, cooldown share) of a budgeted run planned for ``run_steps``: SHORT_RUN_LR_SCALE and
+    SHORT_RUN_COOLDOWN below SHORT_RUN_STEPS, the preset's own rates (1.0, 0.0) from there on."""
+    if run_steps < SHORT_RUN_STEPS:
+        return SHORT_RUN_LR_SCALE, SHORT_RUN_COOLDOWN
+    return 1.0, 0.0
+
+
+def cooldown_factor(step: int, start_step: int, end_step: int, share: float, floor: float = COOLDOWN_FLOOR) -> float:
+    """The factor on every learning rate at ``step`` of a run training steps ``start_step`` to ``end_step - 1``: 1
+    until the last ``share`` of the run, then falling linearly to reach ``floor`` at ``end_step`` (so its last step
+    still trains). ``share`` 0: always 1.
+
+    Steps 0-999, share 0.3, floor 0: 1 up to step 700, 0.5 at step 850, 0.01 at step 997, 1/300 at step 999."""
+    run = end_step - start_step
+    if share <= 0 or run <= 0:
+        return 1.0
+    length = max(1.0, share * run)
+    t = (step - (end_step - length)) / length
+    if t <= 0:
+        return 1.0
+    return 1.0 - (1.0 - floor) * min(1.0, t)
 
 
 def agreed_max(values: list[float]) -> list[float]:

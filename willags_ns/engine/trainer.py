@@ -18,6 +18,7 @@ redraws itself with cursor movements, and with it the viewer's address, at every
 import copy
 import dataclasses
 import json
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -47,8 +48,9 @@ from willags_ns.engine.checkpoints import (
     save_atomic,
     write_text_atomic,
 )
-from willags_ns.engine.checks import install_cli_excepthook
+from willags_ns.engine.checks import WillagsTrainingError, install_cli_excepthook
 from willags_ns.engine.time_budget import (
+    COOLDOWN_FLOOR,
     DEFAULT_PRESET,
     PRESETS,
     BudgetChoice,
@@ -99,6 +101,16 @@ class WillagsTrainerConfig(TrainerConfig):
     steps_per_save steps), so a killed run loses at most this much work. Saves are atomic and, with
     save_only_latest_checkpoint, replace the previous one; a CPU step can take seconds, so steps alone can leave
     hours between saves."""
+    lr_scale: float | None = None
+    """Multiplies every learning rate of the run (their schedules included). None: under a time budget whose plan is
+    shorter than time_budget.SHORT_RUN_STEPS, time_budget.SHORT_RUN_LR_SCALE; else 1 (the preset's rates)."""
+    lr_cooldown: float | None = None
+    """Share of the run's last steps over which every learning rate falls linearly to ``lr_cooldown_floor`` of its
+    value (0: off; at most 1). The run's end: a time budget's latest plan, else max_num_iterations. None: under a
+    time budget whose plan is shorter than time_budget.SHORT_RUN_STEPS, time_budget.SHORT_RUN_COOLDOWN; else off (the
+    presets' schedules are a whole run's)."""
+    lr_cooldown_floor: float = COOLDOWN_FLOOR
+    """The learning rates' factor at the last step of the cooldown (0 to 1)."""
 
 
 PRESET_CONFIGS: dict[str, Any] = {}
@@ -224,6 +236,7 @@ class WillagsTrainer(Trainer):
             if replaced is not None:
                 self._resolution_for_images(replaced)
             self._attach_budget(minutes * 60.0, choice)
+        self._attach_rates(None if self.time_budget is None or choice is None else choice.steps)
         for line in quiet_local_writer(writer.EVENT_WRITERS, sys.stdout.isatty()):
             CONSOLE.print(line)
         # last: after the model's own callbacks (densification) the step's state is complete; train() restarts the
@@ -422,6 +435,50 @@ class WillagsTrainer(Trainer):
         self.time_budget = budget
         self._budget_record["gaussians_at_start"] = self._num_gaussians()
         self._write_budget_record()
+
+    def _attach_rates(self, budget_steps: int | None) -> None:
+        """Before every step, each learning rate = its scheduled value x ``lr_scale`` x time_budget.cooldown_factor
+        (``lr_cooldown``). The run's end: the budget's latest plan (``budget_steps`` from the first step until the run
+        has measured its own), else max_num_iterations from the first step; under a budget, unset switches follow
+        time_budget.short_run_rates of that plan. The schedulers set their groups' rates from their own base every
+        step; groups without one keep the rate they started with. Nothing is attached when neither a budget nor a
+        switch asks for it."""
+        cfg = self.config
+        for name, value, top in (
+            ("lr-scale", cfg.lr_scale, math.inf),
+            ("lr-cooldown", cfg.lr_cooldown, 1.0),
+            ("lr-cooldown-floor", cfg.lr_cooldown_floor, 1.0),
+        ):
+            ok = value is None or (isinstance(value, (int, float)) and 0.0 <= value <= top and math.isfinite(value))
+            if not ok or (name == "lr-scale" and value == 0):
+                bound = "a finite number > 0" if top == math.inf else f"a number from 0 to {top:g}"
+                raise WillagsTrainingError(f"--{name} must be {bound} (got {value!r})")
+        budget = self.time_budget
+        if budget is None and cfg.lr_scale in (None, 1) and not cfg.lr_cooldown:
+            return
+        optimizers = self.optimizers
+        start = self._start_step
+        fixed_end = start + (cfg.max_num_iterations if budget_steps is None else budget_steps)
+        base = {name: [g["lr"] for g in opt.param_groups] for name, opt in optimizers.optimizers.items()}
+        used: dict[str, float] = {}
+
+        def before_step(step: int) -> None:
+            end = budget.end_step if budget is not None and budget.end_step is not None else fixed_end
+            scale, share = time_budget.short_run_rates(end - start) if budget is not None else (1.0, 0.0)
+            scale = scale if cfg.lr_scale is None else cfg.lr_scale
+            share = share if cfg.lr_cooldown is None else cfg.lr_cooldown
+            factor = scale * time_budget.cooldown_factor(step, start, end, share, cfg.lr_cooldown_floor)
+            for name, opt in optimizers.optimizers.items():
+                scheduler = optimizers.schedulers.get(name)
+                rates = scheduler.get_last_lr() if scheduler is not None else base[name]
+                for group, lr in zip(opt.param_groups, rates, strict=True):
+                    group["lr"] = lr * factor
+            if used.get("scale") != scale or used.get("cooldown") != share:
+                used.update(scale=scale, cooldown=share, floor=cfg.lr_cooldown_floor)
+                if budget is not None:
+                    self._budget_record["learning_rates"] = dict(used)
+
+        self.callbacks.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_step))
 
     def _num_gaussians(self) -> int | None:
         """The model's Gaussian count (None for a model without Gaussians)."""
