@@ -151,6 +151,111 @@ def test_bad_budget_stops_the_trainer_before_training(tmp_path):
         trainer.setup()
 
 
+# ---------------------------------------------------------------------------------------------- the short-run rates
+
+
+def test_cooldown_factor_falls_linearly_over_the_last_share():
+    f = [tb.cooldown_factor(s, 0, 1000, 0.3) for s in range(1000)]
+    assert f[:701] == [1.0] * 701
+    assert tb.cooldown_factor(850, 0, 1000, 0.3) == pytest.approx(0.5)
+    assert all(a >= b for a, b in zip(f, f[1:], strict=False))
+    assert 0 < f[-1] < 0.01  # the last step still trains
+    assert tb.cooldown_factor(999, 0, 1000, 0.3, floor=0.2) == pytest.approx(0.2 + 0.8 / 300)
+    # a resumed run counts its own steps
+    assert tb.cooldown_factor(1500, 1000, 2000, 0.5) == 1.0
+    assert tb.cooldown_factor(1750, 1000, 2000, 0.5) == pytest.approx(0.5)
+    assert {tb.cooldown_factor(s, 0, 1000, 0.0) for s in (0, 500, 999)} == {1.0}
+
+
+def test_only_a_short_plan_changes_the_rates():
+    assert tb.short_run_rates(tb.SHORT_RUN_STEPS - 1) == (tb.SHORT_RUN_LR_SCALE, tb.SHORT_RUN_COOLDOWN)
+    assert tb.short_run_rates(tb.SHORT_RUN_STEPS) == (1.0, 0.0)
+    assert tb.SHORT_RUN_LR_SCALE > 1 and 0 < tb.SHORT_RUN_COOLDOWN <= 1
+
+
+@pytest.mark.parametrize(
+    ("option", "bad"),
+    [
+        ("--lr-scale", {"scale": 0}),
+        ("--lr-scale", {"scale": -1.0}),
+        ("--lr-scale", {"scale": float("nan")}),
+        ("--lr-scale", {"scale": float("inf")}),
+        ("--lr-scale", {"scale": "4"}),
+        ("--lr-cooldown", {"cooldown": 1.5}),
+        ("--lr-cooldown", {"cooldown": -0.1}),
+        ("--lr-cooldown-floor", {"floor": 2.0}),
+        ("--lr-cooldown-floor", {"floor": None}),
+    ],
+)
+def test_bad_rates_name_their_option(option, bad):
+    values = {"scale": None, "cooldown": None, "floor": 0.0, **bad}
+    with pytest.raises(TimeBudgetError, match=f"^{option} must"):
+        tb.validate_rates(**values)
+
+
+def test_rates_in_range_pass():
+    for scale, cooldown, floor in [(None, None, 0.0), (4, 0.5, 0.1), (1, 1, 1), (0.5, 0, 0)]:
+        tb.validate_rates(scale, cooldown, floor)
+
+
+def test_a_bad_rate_stops_the_trainer_before_training(tmp_path):
+    from willags_ns import method_configs
+
+    config = method_configs.willags_config()
+    config.output_dir = tmp_path
+    config.machine.device_type = "cpu"
+    config.lr_cooldown = 2.0
+    trainer = config.setup(local_rank=0, world_size=1)
+    with pytest.raises(TimeBudgetError, match="--lr-cooldown"):
+        trainer.setup()
+    assert not list(tmp_path.rglob("config.yml"))
+
+
+def _record_rates(monkeypatch) -> list[list[float]]:
+    """Wrap the trainer's step: before each, every group's learning rate over its scheduled (or configured) one."""
+    from willags_ns.engine.trainer import WillagsTrainer
+
+    factors: list[list[float]] = []
+    train_iteration = WillagsTrainer.train_iteration
+
+    def recording(self, step):
+        opt = self.optimizers
+        row = []
+        for name, o in opt.optimizers.items():
+            scheduled = opt.schedulers[name].get_last_lr() if name in opt.schedulers else None
+            for i, group in enumerate(o.param_groups):
+                want = scheduled[i] if scheduled is not None else opt.config[name]["optimizer"].lr
+                row.append(group["lr"] / want)
+        factors.append(row)
+        return train_iteration(self, step)
+
+    monkeypatch.setattr(WillagsTrainer, "train_iteration", recording)
+    return factors
+
+
+@pytest.mark.slow
+def test_rate_switches_scale_and_cool_down_a_run_without_budget(tmp_path, monkeypatch):
+    """--lr-scale 2 --lr-cooldown 0.5 on an 8-step run: every group at twice its rate, then falling over steps 4-7."""
+    from tests.test_train import _train
+    from willags_ns import method_configs
+
+    factors = _record_rates(monkeypatch)
+    real = method_configs.willags_config
+
+    def switched():
+        config = real()
+        config.lr_scale, config.lr_cooldown = 2.0, 0.5
+        return config
+
+    monkeypatch.setattr(method_configs, "willags_config", switched)
+    _train(tmp_path, "willags", steps=8)
+    want = [2.0 * tb.cooldown_factor(s, 0, 8, 0.5) for s in range(8)]
+    assert want[:5] == [2.0] * 5 and want[-1] < 1.0
+    assert len(factors) == 8
+    for row, w in zip(factors, want, strict=True):
+        assert row == pytest.approx([w] * len(row))
+
+
 # ---------------------------------------------------------------------------------------------- while training
 
 
@@ -433,6 +538,7 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
     # the trainer's clock advances step_s seconds per training step, whatever the machine's speed: the budget
     # measures step_s and plans about 12 steps
     clock = FakeClock()
+    factors = _record_rates(monkeypatch)
     train_iteration = WillagsTrainer.train_iteration
 
     def fixed_time_steps(self, step):
@@ -492,6 +598,10 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
             ]
         assert refines, (strategy.refine_every, strategy.reset_every, getattr(strategy, "pause_refine_after_reset", 0))
         assert trainer.pipeline.model.config.mask.warmup_steps < last_plan
+    # a short plan: every rate at SHORT_RUN_LR_SCALE times the preset's, falling over the plan's second half
+    assert record["learning_rates"] == {"scale": tb.SHORT_RUN_LR_SCALE, "cooldown": tb.SHORT_RUN_COOLDOWN, "floor": 0.0}
+    assert factors[0] == pytest.approx([tb.SHORT_RUN_LR_SCALE] * len(factors[0]))
+    assert max(factors[-1]) < tb.SHORT_RUN_LR_SCALE * (1 - tb.SHORT_RUN_COOLDOWN + 0.1)
     # the learning-rate schedules are the preset's, not ended at the plan
     preset_opt = real_config().optimizers  # the invoked config's (a switch swaps only the model)
     assert all(

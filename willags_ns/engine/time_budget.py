@@ -463,6 +463,23 @@ def short_run_rates(run_steps: int) -> tuple[float, float]:
     return 1.0, 0.0
 
 
+def validate_rates(scale: Any, cooldown: Any, floor: Any) -> None:
+    """The learning-rate switches (``--lr-scale``, ``--lr-cooldown``, ``--lr-cooldown-floor``): a scale > 0 (or None),
+    a cooldown share and a floor from 0 to 1 (the share may be None). A bad value raises a TimeBudgetError naming its
+    option."""
+    for option, value, lo_open, hi, optional in (
+        ("--lr-scale", scale, True, math.inf, True),
+        ("--lr-cooldown", cooldown, False, 1.0, True),
+        ("--lr-cooldown-floor", floor, False, 1.0, False),
+    ):
+        if value is None and optional:
+            continue
+        number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        if not number or value < 0 or value > hi or (lo_open and value == 0):
+            bound = "a finite number > 0" if lo_open else f"a number from 0 to {hi:g}"
+            raise TimeBudgetError(f"{option} must be {bound} (got {value!r})")
+
+
 def cooldown_factor(step: int, start_step: int, end_step: int, share: float, floor: float = COOLDOWN_FLOOR) -> float:
     """The factor on every learning rate at ``step`` of a run training steps ``start_step`` to ``end_step - 1``: 1
     until the last ``share`` of the run, then falling linearly to reach ``floor`` at ``end_step`` (so its last step

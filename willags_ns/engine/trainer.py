@@ -18,7 +18,6 @@ redraws itself with cursor movements, and with it the viewer's address, at every
 import copy
 import dataclasses
 import json
-import math
 import sys
 import time
 from collections.abc import Callable
@@ -48,7 +47,7 @@ from willags_ns.engine.checkpoints import (
     save_atomic,
     write_text_atomic,
 )
-from willags_ns.engine.checks import WillagsTrainingError, install_cli_excepthook
+from willags_ns.engine.checks import install_cli_excepthook
 from willags_ns.engine.time_budget import (
     COOLDOWN_FLOOR,
     DEFAULT_PRESET,
@@ -60,6 +59,7 @@ from willags_ns.engine.time_budget import (
     fixed_choice,
     format_choice,
     validate_minutes,
+    validate_rates,
 )
 
 BUDGET_FILE = "time_budget.json"
@@ -210,6 +210,7 @@ class WillagsTrainer(Trainer):
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         install_cli_excepthook()  # a bad budget prints one line, as bad inputs do
+        validate_rates(self.config.lr_scale, self.config.lr_cooldown, self.config.lr_cooldown_floor)
         self.time_budget: TimeBudget | None = None
         self._budget_record: dict[str, Any] = {}
         self._keep_user_switches()
@@ -444,15 +445,6 @@ class WillagsTrainer(Trainer):
         step; groups without one keep the rate they started with. Nothing is attached when neither a budget nor a
         switch asks for it."""
         cfg = self.config
-        for name, value, top in (
-            ("lr-scale", cfg.lr_scale, math.inf),
-            ("lr-cooldown", cfg.lr_cooldown, 1.0),
-            ("lr-cooldown-floor", cfg.lr_cooldown_floor, 1.0),
-        ):
-            ok = value is None or (isinstance(value, (int, float)) and 0.0 <= value <= top and math.isfinite(value))
-            if not ok or (name == "lr-scale" and value == 0):
-                bound = "a finite number > 0" if top == math.inf else f"a number from 0 to {top:g}"
-                raise WillagsTrainingError(f"--{name} must be {bound} (got {value!r})")
         budget = self.time_budget
         if budget is None and cfg.lr_scale in (None, 1) and not cfg.lr_cooldown:
             return
