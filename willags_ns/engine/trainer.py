@@ -237,7 +237,7 @@ class WillagsTrainer(Trainer):
             if replaced is not None:
                 self._resolution_for_images(replaced)
             self._attach_budget(minutes * 60.0, choice)
-        self._attach_rates(None if self.time_budget is None or choice is None else choice.steps)
+        self._attach_rates(choice.steps if self.time_budget is not None and choice is not None else None)
         for line in quiet_local_writer(writer.EVENT_WRITERS, sys.stdout.isatty()):
             CONSOLE.print(line)
         # last: after the model's own callbacks (densification) the step's state is complete; train() restarts the
@@ -442,8 +442,8 @@ class WillagsTrainer(Trainer):
         (``lr_cooldown``). The run's end: the budget's latest plan (``budget_steps`` from the first step until the run
         has measured its own), else max_num_iterations from the first step; under a budget, unset switches follow
         time_budget.short_run_rates of that plan. The schedulers set their groups' rates from their own base every
-        step; groups without one keep the rate they started with. Nothing is attached when neither a budget nor a
-        switch asks for it."""
+        step; a group without one is at its configured rate (not the rate a resumed checkpoint saved: that one was
+        already scaled). Nothing is attached when neither a budget nor a switch asks for it."""
         cfg = self.config
         budget = self.time_budget
         if budget is None and cfg.lr_scale in (None, 1) and not cfg.lr_cooldown:
@@ -451,7 +451,6 @@ class WillagsTrainer(Trainer):
         optimizers = self.optimizers
         start = self._start_step
         fixed_end = start + (cfg.max_num_iterations if budget_steps is None else budget_steps)
-        base = {name: [g["lr"] for g in opt.param_groups] for name, opt in optimizers.optimizers.items()}
         used: dict[str, float] = {}
 
         def before_step(step: int) -> None:
@@ -462,7 +461,8 @@ class WillagsTrainer(Trainer):
             factor = scale * time_budget.cooldown_factor(step, start, end, share, cfg.lr_cooldown_floor)
             for name, opt in optimizers.optimizers.items():
                 scheduler = optimizers.schedulers.get(name)
-                rates = scheduler.get_last_lr() if scheduler is not None else base[name]
+                own = optimizers.config[name]["optimizer"].lr
+                rates = scheduler.get_last_lr() if scheduler is not None else [own] * len(opt.param_groups)
                 for group, lr in zip(opt.param_groups, rates, strict=True):
                     group["lr"] = lr * factor
             if used.get("scale") != scale or used.get("cooldown") != share:
