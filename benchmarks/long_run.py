@@ -97,7 +97,8 @@ def _setup(
 ):
     """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given). ``budget_minutes``:
     `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and fits the
-    densification and mask schedules into it; ``steps`` is then the cap, as --max-num-iterations is)."""
+    densification and mask schedules into it, and a plan under 2000 steps its learning rates; ``steps`` is then the
+    cap, as --max-num-iterations is)."""
     base = METHODS[method].base
     patch_offline(base)  # as the grid runs do (offline LPIPS; the peer's package on the path)
     if base == "splatfacto":
