@@ -27,6 +27,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "long-run": ("long_run", "one long run: train (in segments, or under the time budget), score milestones, record"),
     "speed": ("speed", "the speed suite: train step, memory and render timings per variant (GPU)"),
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
+    "cv": ("cv", "cross-validation: every photo a test photo once (fold folders, GPU queues, tables with intervals)"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
 }
 """verb -> (module under benchmarks/ whose ``main`` it runs, what it does)."""

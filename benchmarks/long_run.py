@@ -296,6 +296,13 @@ def evaluate(args) -> int:
     return 0
 
 
+def per_image_scores(per_image: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each test photo's name and right-half scores, as a record keeps them: what the cross-validation
+    (benchmarks/cv.py) pairs between methods photo by photo."""
+    keys = ("image", "psnr", "ssim", "lpips")
+    return [{k: r[k] for k in keys if k in r} for r in per_image]
+
+
 def record(args) -> int:
     """The run as a record of benchmarks/records/benchmarks.json: train wall time summed over segments, PSNR at each
     milestone."""
@@ -322,6 +329,7 @@ def record(args) -> int:
             k: {
                 **{kk: v[kk] for kk in ("psnr", "ssim", "lpips", "train_psnr", "num_gaussians") if kk in v},
                 **({"train_s": times[k]} if k in times else {}),
+                **({"per_image": per_image_scores(v["per_image"])} if v.get("per_image") else {}),
             }
             for k, v in sorted(state["scores"].items(), key=lambda kv: int(kv[0]))
         },

@@ -72,6 +72,11 @@ METHODS: dict[str, MethodSpec] = {
         (_AUTO, ("densification", "mcmc"), ("mcmc.cap_max", 1_000_000)),
         note="the default, MCMC capped at 1M",
     ),
+    "willags-capscene": MethodSpec(
+        "willags",
+        (_AUTO, ("densification", "mcmc"), ("mcmc.cap_rule", "pixels")),
+        note="the default, MCMC's cap from the training photos' megapixels (splats/mcmc.scene_cap)",
+    ),
     "willags-cap1m-mask": MethodSpec(
         "willags",
         (

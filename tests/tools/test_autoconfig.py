@@ -307,3 +307,40 @@ def test_on_liberty_the_default_resolves_to_the_measured_surround_sky_without_ma
     for key, value in (*skyalpha_nomask, ("mask.enabled", False)):
         set_nested(measured, key, value)
     assert dataclasses.asdict(resolved) == dataclasses.asdict(measured)
+
+
+def test_the_pixels_rule_sets_mcmcs_cap_from_the_training_photos_unless_the_user_set_it(scenes):
+    from willags_ns.splats.mcmc import McmcConfig, scene_cap
+
+    cfg = willags_model_config()
+    assert cfg.mcmc.cap_rule == "fixed"
+    fixed = apply_auto_config(cfg, scenes["appearance"])
+    assert cfg.mcmc.cap_max == McmcConfig().cap_max and "capacity" not in fixed["reasons"]  # the default: as set
+    mpx = fixed["report"]["facts"]["train_megapixels"]
+    assert mpx == pytest.approx(20 * 96 * 72 / 1e6, abs=0.01)  # 20 training photos of 96 x 72 px
+
+    ruled = willags_model_config()
+    ruled.mcmc.cap_rule = "pixels"
+    ruled.mcmc.cap_min = 1000
+    s = apply_auto_config(ruled, scenes["appearance"])
+    want, _ = scene_cap(mpx, ruled.mcmc)
+    assert ruled.mcmc.cap_max == want == round(12_500 * mpx / 1000) * 1000
+    assert s["settings"]["mcmc.cap_max"] == want and "Mpx of training photos" in s["reasons"]["capacity"]
+    assert "capacity (MCMC's cap, rule pixels)" in format_summary(s)
+
+    mine = willags_model_config()
+    mine.mcmc.cap_rule, mine.mcmc.cap_max = "pixels", 123_000
+    s = apply_auto_config(mine, scenes["appearance"], keep=("mcmc.cap_max",))
+    assert mine.mcmc.cap_max == 123_000 and s["reasons"]["capacity"].endswith("kept as you set it")
+
+
+def test_scene_cap_scales_with_megapixels_within_its_bounds():
+    from willags_ns.splats.mcmc import McmcConfig, scene_cap
+
+    cfg = McmcConfig(gaussians_per_megapixel=10_000, cap_min=50_000, cap_ceiling=1_000_000)
+    assert scene_cap(20.0, cfg)[0] == 200_000
+    assert scene_cap(40.0, cfg)[0] == 2 * scene_cap(20.0, cfg)[0]
+    assert scene_cap(1.0, cfg)[0] == 50_000 and "within [50,000, 1,000,000]" in scene_cap(1.0, cfg)[1]
+    assert scene_cap(500.0, cfg)[0] == 1_000_000
+    with pytest.raises(ValueError, match="megapixels"):
+        scene_cap(float("nan"), cfg)

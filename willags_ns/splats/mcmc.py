@@ -20,6 +20,7 @@ the routine its DefaultStrategy uses too).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -64,6 +65,32 @@ class McmcConfig:
     """Opacity of the initial Gaussians (splatfacto's: 0.1)."""
     init_scale: float = 0.1
     """Initial scale as a fraction of the mean distance to the 3 nearest points (splatfacto's: 1)."""
+    cap_rule: Literal["fixed", "pixels"] = "fixed"
+    """How `cap_max` is chosen: "fixed" (as set) or "pixels" (`scene_cap`: the automatic configuration sets it from
+    the training photos' pixels, gaussians_per_megapixel per megapixel within [cap_min, cap_ceiling]). Why: a few
+    photos constrain fewer Gaussians than many; a cap that exceeds what the photos pin down fits the training views
+    and generalises worse (docs/design.md)."""
+    gaussians_per_megapixel: float = 12_500.0
+    """The "pixels" rule's Gaussians per megapixel of the training photos (at the size training reads them)."""
+    cap_min: int = 50_000
+    """The "pixels" rule's smallest cap."""
+    cap_ceiling: int = 1_000_000
+    """The "pixels" rule's largest cap."""
+
+
+def scene_cap(train_megapixels: float, cfg: McmcConfig) -> tuple[int, str]:
+    """(cap, reason) of the "pixels" rule for training photos of `train_megapixels` in all: gaussians_per_megapixel
+    per megapixel, clamped to [cap_min, cap_ceiling] and rounded to thousands."""
+    if train_megapixels < 0 or not math.isfinite(train_megapixels):
+        raise ValueError(f"willags: training megapixels must be finite and >= 0, got {train_megapixels}")
+    raw = cfg.gaussians_per_megapixel * train_megapixels
+    cap = int(round(min(max(raw, cfg.cap_min), cfg.cap_ceiling) / 1000.0) * 1000)
+    reason = (
+        f"{train_megapixels:.1f} Mpx of training photos x {cfg.gaussians_per_megapixel:,.0f} per Mpx = {raw:,.0f}"
+        + ("" if cfg.cap_min <= raw <= cfg.cap_ceiling else f", within [{cfg.cap_min:,}, {cfg.cap_ceiling:,}]")
+        + f": at most {cap:,} Gaussians"
+    )
+    return cap, reason
 
 
 def relocation(opacities: Tensor, scales: Tensor, ratios: Tensor, n_max: int = N_MAX) -> tuple[Tensor, Tensor]:

@@ -32,6 +32,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from willags_ns.splats.mcmc import scene_cap
 from willags_ns.tools.inspect import InspectConfig, InspectError, inspect_scene, sky_settings
 
 AUTO_CONFIG_FILE = "auto_config.json"
@@ -68,8 +69,20 @@ AUTO_SWITCHES = (
     "sky.enabled",
     "sky.region",
     "sky.alpha_penalty",
+    "mcmc.cap_max",
 )
-"""Every model field `overrides_from_recommendation` may set."""
+"""Every model field the automatic configuration may set (`overrides_from_recommendation`, and MCMC's cap where
+`mcmc.cap_rule` is "pixels": `capacity_override`)."""
+
+
+def capacity_override(model_config, facts: dict[str, Any]) -> tuple[int, str] | None:
+    """(cap, reason) of MCMC's cap under the "pixels" rule (splats/mcmc.scene_cap) from the inspector's facts, or
+    None where the model keeps its own cap (rule "fixed", or no megapixels measured)."""
+    mcmc = getattr(model_config, "mcmc", None)
+    mpx = facts.get("train_megapixels")
+    if mcmc is None or mcmc.cap_rule != "pixels" or mpx is None:
+        return None
+    return scene_cap(float(mpx), mcmc)
 
 
 def user_switches(model_config, preset_model_config, argv: list[str] | None = None) -> tuple[str, ...]:
@@ -137,6 +150,9 @@ def apply_auto_config(
         return {"applied": False, "error": str(e), "changes": {}, "settings": {}, "reasons": {}, "report": None}
     rec = report["recommendation"]
     recommended = overrides_from_recommendation(rec)
+    capacity = capacity_override(model_config, report["facts"])
+    if capacity is not None:
+        recommended["mcmc.cap_max"] = capacity[0]
     overrides = {k: v for k, v in recommended.items() if k not in keep}
     kept = {k: _get(model_config, k) for k, v in recommended.items() if k in keep and _get(model_config, k) != v}
     changes = {}
@@ -149,6 +165,8 @@ def apply_auto_config(
         k: rec[k]["reason"] for k in ("appearance_latent", "mask", "teacher", "triplane_field", "sky", "latent_dim")
     }
     reasons["preset"] = rec["preset"]["reason"]
+    if capacity is not None:
+        reasons["capacity"] = capacity[1] + ("" if "mcmc.cap_max" in overrides else "; kept as you set it")
     switches = {k: bool(rec[k]["on"]) for k in ("appearance_latent", "mask", "teacher", "triplane_field")}
     # the user's switches stand: report the components as the model will build them
     mine = {
@@ -200,6 +218,8 @@ def format_summary(summary: dict[str, Any]) -> str:
     for k, v in _switches(summary).items():
         lines.append(f"  {k}: {'ON' if v else 'off'} - {summary['reasons'][k]}")
     lines.append(f"  latent_dim: {summary['reasons']['latent_dim']}")
+    if "capacity" in summary["reasons"]:
+        lines.append(f"  capacity (MCMC's cap, rule pixels): {summary['reasons']['capacity']}")
     if summary.get("kept"):
         lines.append("  kept (your flags win): " + ", ".join(f"{k}={v}" for k, v in summary["kept"].items()))
     if summary["changes"]:

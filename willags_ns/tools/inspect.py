@@ -702,6 +702,13 @@ CPU_STEP_S, CPU_STEP_MPX = 0.8, 0.13
 """A measured CPU step (seconds, 2 cores) and the megapixels per image it was measured at (fox)."""
 
 
+def train_megapixels(sizes: np.ndarray, trains: list[bool] | None, factor: int) -> float:
+    """Megapixels of the training photos (`trains`: which of `sizes` [N, 2] train; None: all) at the size training
+    reads them (1/`factor` of each side): what MCMC's "pixels" cap rule scales with."""
+    use = sizes if trains is None else sizes[np.asarray(trains, dtype=bool)]
+    return round(float(np.sum(use[:, 0].astype(np.float64) * use[:, 1])) / (factor * factor) / 1e6, 2)
+
+
 def resource_estimate(n_images: int, sizes: np.ndarray, n_points: int, cfg: InspectConfig) -> dict[str, Any]:
     """Rough memory and time (module docstring, evidence 3)."""
     mpx = float(np.mean(sizes[:, 0] * sizes[:, 1])) / 1e6
@@ -911,6 +918,7 @@ def inspect_scene(cfg: InspectConfig) -> dict[str, Any]:
         auto_downscale_factor(Path(scene.image_paths[0]).parent) if scene.image_paths else 1
     )
     n_train = sum(s == "train" for s in scene.split) or len(scene.image_paths)
+    trains = [s == "train" for s in scene.split] if any(s == "train" for s in scene.split) else None
     evidence: dict[str, Any] = {"data": str(cfg.data)}
     if scene.points is not None and len(scene.points) >= 20 and scene.w2c is not None:
         colors, _ = sample_colors(scene, sel, cfg)
@@ -931,6 +939,7 @@ def inspect_scene(cfg: InspectConfig) -> dict[str, Any]:
         "resolution_min": sizes.min(axis=0).tolist(),
         "resolution_median": np.median(sizes, axis=0).astype(int).tolist(),
         "resolution_max": sizes.max(axis=0).tolist(),
+        "train_megapixels": train_megapixels(sizes, trains, factor),
         "points": 0 if scene.points is None else len(scene.points),
         "points_extent": _extent(scene.points),
         "cameras_extent": _extent(cams),
@@ -965,7 +974,7 @@ def format_report(report: dict[str, Any]) -> str:
         f"willags-inspect {report['data']}  ({report['wall_s']:.1f} s)",
         f"  scene: {f['kind']}, {f['images']} images ({f['train_images']} train, {f['analysed_images']} analysed), "
         f"resolution {f['resolution_min']}..{f['resolution_max']} (median {f['resolution_median']}), "
-        f"{f['points']} SfM points",
+        f"{f['points']} SfM points, {f.get('train_megapixels', 0):.1f} Mpx of training photos",
         f"  extent: points {f['points_extent'] if f['points_extent'] is None else round(f['points_extent'], 2)}, "
         f"cameras {f['cameras_extent'] if f['cameras_extent'] is None else round(f['cameras_extent'], 2)} (scene units)",
         f"  rough estimate: ~{est['expected_gaussians']:,} Gaussians, GPU ~{est['gpu_memory_gb']} GB / "

@@ -1,0 +1,395 @@
+"""Cross-validated evaluation: every registered photo of a collection is a test photo once.
+
+A collection's test split holds 2 to 16 photos, so a method's score on it moves by up to half a decibel between runs
+and a difference between two methods is mostly which photos happened to be tested. Here the registered photos are
+dealt into K folds (sorted by name, photo i into fold i mod K); fold k trains on the other folds and is scored under
+the unchanged NeRF-W protocol on its own photos. Each photo then has one score per method, from the one run that did
+not train on it, and two methods are compared photo by photo: the mean of the paired differences with a 95 % interval
+from a bootstrap over the photos.
+
+A fold is a scene folder of its own, ``<scene>-cv<k>of<K>``: links to the collection's images, COLMAP model and
+evaluation-only files, and a NeRF-W split file naming the fold's test photos. Every method reads its splits through
+willags' data parser (the peer too: benchmarks/peer.py), so a fold is a scene to every tool: the GPU queues
+(benchmarks/remote/solo.sh), long_run's records (its `scene` names the fold) and the region maps.
+
+    python -m benchmarks cv folds --data ../shared/data/reichstag --folds 4 --out .gpu-cv   # the fold folders
+    python -m benchmarks cv plan --root .gpu-cv --methods willags peer --steps 5000 --queues 12  # solo.sh queues
+    python -m benchmarks cv report                  # the tables from benchmarks/records/benchmarks.json
+
+The tables are docs/results.md's cross-validated section (benchmarks/results.py calls :func:`cv_rows`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import re
+import sys
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FOLD_RE = re.compile(r"^(?P<scene>.+)-cv(?P<fold>\d+)of(?P<folds>\d+)$")
+"""A fold's scene name: <scene>-cv<k>of<K>, k counted from 1."""
+NOT_LINKED = {"README.md", "sources.json", "split.json"}
+"""Entries of a collection a fold does not link (its split files are replaced by the fold's own)."""
+BOOTSTRAP_SAMPLES = 10000
+"""Resamples of the photos behind each interval."""
+BOOTSTRAP_SEED = 0
+"""The bootstrap's generator seed: a table regenerates byte for byte."""
+
+
+def fold_name(scene: str, fold: int, folds: int) -> str:
+    return f"{scene}-cv{fold}of{folds}"
+
+
+def parse_fold(name: str) -> tuple[str, int, int] | None:
+    """(scene, k, K) of a fold's scene name, None for any other scene."""
+    m = FOLD_RE.match(name)
+    if m is None:
+        return None
+    fold, folds = int(m["fold"]), int(m["folds"])
+    return (m["scene"], fold, folds) if 1 <= fold <= folds else None
+
+
+def registered_photos(scene_dir: Path) -> list[str]:
+    """The photos a fold can test: the COLMAP model's images whose file is in `images/`, sorted by name."""
+    from willags_ns.data.dataparser import find_colmap_model
+    from willags_ns.data.sfm_tracks import read_observations
+
+    model = find_colmap_model(scene_dir)
+    if model is None:
+        raise SystemExit(f"cv: {scene_dir} holds no COLMAP model (colmap/sparse/0, sparse/0, ...)")
+    names = sorted(n for n in read_observations(model) if (scene_dir / "images" / n).is_file())
+    if not names:
+        raise SystemExit(f"cv: no image of the COLMAP model in {scene_dir} is in {scene_dir / 'images'}")
+    return names
+
+
+def assign_folds(names: Sequence[str], folds: int) -> dict[str, int]:
+    """Photo -> fold (1..folds): sorted by name, photo i into fold i mod folds + 1 (every fold within one photo of
+    the others' size; neighbours by name, often taken together, are spread over the folds)."""
+    if folds < 2:
+        raise ValueError(f"cv: at least 2 folds, got {folds}")
+    if len(names) < folds:
+        raise ValueError(f"cv: {len(names)} photos cannot fill {folds} folds")
+    return {name: i % folds + 1 for i, name in enumerate(sorted(names))}
+
+
+def write_fold_scenes(scene_dir: Path, folds: int, out: Path) -> list[Path]:
+    """The K fold folders of the collection at `scene_dir` under `out`: relative links to its entries (images, the
+    COLMAP model, evaluation-only files; not its own split files) and `<fold name>.tsv` with the fold's photos as
+    test and the rest as train. Relative links keep a collection and its folds movable together (a GPU bundle)."""
+    scene_dir = Path(scene_dir)
+    assignment = assign_folds(registered_photos(scene_dir), folds)
+    written = []
+    for k in range(1, folds + 1):
+        d = Path(out) / fold_name(scene_dir.name, k, folds)
+        d.mkdir(parents=True, exist_ok=True)
+        for entry in sorted(scene_dir.iterdir()):
+            if entry.name in NOT_LINKED or entry.suffix == ".tsv" or entry.name.startswith("."):
+                continue
+            link = d / entry.name
+            if link.is_symlink() or link.exists():
+                link.unlink()
+            link.symlink_to(os.path.relpath(entry.resolve(), d.resolve()))
+        with open(d / f"{d.name}.tsv", "w", newline="") as f:
+            w = csv.writer(f, delimiter="\t", lineterminator="\n")
+            w.writerow(["filename", "id", "split", "dataset"])
+            for i, (name, fold) in enumerate(sorted(assignment.items())):
+                w.writerow([name, i + 1, "test" if fold == k else "train", scene_dir.name])
+        written.append(d)
+    return written
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the plan: the GPU queues of a cross-validation
+
+
+@dataclass(frozen=True)
+class PlannedRun:
+    scene: str
+    method: str
+    steps: int
+    seed: int
+    cost: float
+    priority: int
+
+    def spec(self) -> str:
+        """solo.sh's run spec: scene:method:steps:seed."""
+        return f"{self.scene}:{self.method}:{self.steps}:{self.seed}"
+
+
+RUN_COST = {"peer-full": 1.6}
+"""Training cost of a method relative to the default's (the full peer trained ~1.5x as long on a shared GPU:
+docs/design.md); unnamed methods count 1."""
+PHOTO_COST = 0.03
+"""Cost of scoring one test photo (128 Adam steps of the protocol) relative to a 5000-step training run."""
+
+
+def plan_runs(
+    test_photos: dict[str, int], methods: Sequence[str], steps: int, seeds: Sequence[int] = (42,)
+) -> list[PlannedRun]:
+    """Every (scene, method, seed) run with its estimated cost; `test_photos`: scene -> its test photos. Priority:
+    the order of `methods` (the first ones are compared first, so a lease that ends early leaves complete pairs)."""
+    runs = []
+    for p, method in enumerate(methods):
+        for scene, n_test in sorted(test_photos.items()):
+            for seed in seeds:
+                cost = RUN_COST.get(method, 1.0) * steps / 5000 + PHOTO_COST * n_test
+                runs.append(PlannedRun(scene, method, steps, seed, cost, p))
+    return runs
+
+
+def balance(runs: Sequence[PlannedRun], queues: int) -> list[list[PlannedRun]]:
+    """Runs dealt into `queues` queues: by priority, then longest first, each to the least loaded queue; a queue runs
+    its runs in that order."""
+    load = [0.0] * queues
+    out: list[list[PlannedRun]] = [[] for _ in range(queues)]
+    for r in sorted(runs, key=lambda r: (r.priority, -r.cost, r.scene, r.method)):
+        q = min(range(queues), key=lambda i: (load[i], i))
+        out[q].append(r)
+        load[q] += r.cost
+    return [q for q in out if q]
+
+
+def test_photo_counts(root: Path) -> dict[str, int]:
+    """Scene folder name -> test photos of its split file, for every scene folder under `root` with one *.tsv."""
+    from willags_ns.data.dataparser import read_split_tsv
+
+    counts = {}
+    for d in sorted(p for p in Path(root).iterdir() if p.is_dir()):
+        tsvs = sorted(d.glob("*.tsv"))
+        if len(tsvs) == 1:
+            counts[d.name] = sum(s == "test" for s in read_split_tsv(tsvs[0]).values())
+    return counts
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the analysis: per-photo scores, fold means, paired differences with intervals
+
+
+def bootstrap_interval(diffs: Sequence[float], samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED):
+    """(mean, low, high): the mean of `diffs` and the 2.5th and 97.5th percentiles of the means of `samples`
+    resamples of them with replacement (the percentile bootstrap)."""
+    d = np.asarray(diffs, dtype=np.float64)
+    if d.size == 0:
+        raise ValueError("cv: no paired photo to compare")
+    rng = np.random.default_rng(seed)
+    means = d[rng.integers(0, d.size, size=(samples, d.size))].mean(axis=1)
+    low, high = np.percentile(means, [2.5, 97.5])
+    return float(d.mean()), float(low), float(high)
+
+
+@dataclass
+class MethodCV:
+    """One method's cross-validation of one collection."""
+
+    folds: int
+    per_photo: dict[str, float]
+    """Photo -> right-half PSNR from the run that held it out (mean over seeds where several ran)."""
+    fold_means: dict[int, float]
+    """Fold -> mean over its photos."""
+    runs: int
+
+    @property
+    def complete(self) -> bool:
+        return len(self.fold_means) == self.folds
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(list(self.per_photo.values())))
+
+
+def milestone(rec: dict[str, Any], steps: int) -> dict[str, Any] | None:
+    """A record's scores at `steps` (its milestone, or the record itself when it ran exactly that long)."""
+    ms = (rec.get("milestones") or {}).get(str(steps))
+    if ms is not None:
+        return ms
+    return rec if int(rec.get("steps", -1)) == steps and rec.get("per_image") else None
+
+
+def collect(records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None):
+    """{scene: {method: MethodCV}} from the fold runs scored at `steps` (records with per-photo scores; `tags`: only
+    records whose tag starts with one of these)."""
+    from benchmarks.methods import configuration
+
+    photos: dict[tuple[str, int, str], dict[int, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(dict))
+    runs: dict[tuple[str, int, str], int] = defaultdict(int)
+    for rec in records:
+        fold = parse_fold(str(rec.get("scene", "")))
+        if fold is None or rec.get("status", "ok") != "ok":
+            continue
+        if tags is not None and not any(str(rec.get("tag") or "").startswith(t) for t in tags):
+            continue
+        ms = milestone(rec, steps)
+        if ms is None or not ms.get("per_image"):
+            continue
+        scene, k, folds = fold
+        key = (scene, folds, configuration(rec))
+        runs[key] += 1
+        for p in ms["per_image"]:
+            photos[key][k].setdefault(p["image"], []).append(float(p["psnr"]))
+    out: dict[str, dict[str, MethodCV]] = defaultdict(dict)
+    for (scene, folds, method), by_fold in sorted(photos.items()):
+        per_photo = {name: float(np.mean(v)) for fold in by_fold.values() for name, v in fold.items()}
+        fold_means = {k: float(np.mean([np.mean(v) for v in fold.values()])) for k, fold in sorted(by_fold.items())}
+        prev = out[scene].get(method)
+        if prev is None or folds > prev.folds:  # one fold count per scene and method: the finer split
+            out[scene][method] = MethodCV(folds, per_photo, fold_means, runs[(scene, folds, method)])
+    return dict(out)
+
+
+def paired(a: MethodCV, b: MethodCV) -> tuple[float, float, float, int]:
+    """(mean, low, high, photos) of a - b over the photos both scored (bootstrap_interval)."""
+    common = sorted(set(a.per_photo) & set(b.per_photo))
+    mean, low, high = bootstrap_interval([a.per_photo[p] - b.per_photo[p] for p in common])
+    return mean, low, high, len(common)
+
+
+def _cell(cv: MethodCV | None) -> str:
+    if cv is None:
+        return "–"
+    folds = " / ".join(f"{cv.fold_means[k]:.2f}" for k in sorted(cv.fold_means))
+    note = "" if cv.complete else f"; {len(cv.fold_means)} of {cv.folds} folds"
+    return f"{cv.mean:.2f} ({folds}{note})"
+
+
+def _diff(a: MethodCV | None, b: MethodCV | None) -> str:
+    if a is None or b is None or not (set(a.per_photo) & set(b.per_photo)):
+        return "–"
+    mean, low, high, n = paired(a, b)
+    return f"{mean:+.2f} [{low:+.2f}, {high:+.2f}] (n={n})"
+
+
+GOAL_DB = 1.0
+"""The goal: the default this much above the stronger peer by the cross-validated mean ..."""
+GOAL_LOW_DB = 0.5
+"""... with the 95 % interval of the difference above this."""
+
+
+def goal_cell(a: MethodCV | None, b: MethodCV | None) -> str:
+    """Whether `a` (the default) meets the goal against `b` (the stronger peer), or by how much it misses."""
+    if a is None or b is None or not (a.complete and b.complete):
+        return "–"
+    mean, low, _, _ = paired(a, b)
+    if mean >= GOAL_DB and low > GOAL_LOW_DB:
+        return "met"
+    return f"missed by {max(GOAL_DB - mean, GOAL_LOW_DB - low, 0.0):.2f}"
+
+
+def stronger_peer(by_method: dict[str, MethodCV]) -> str | None:
+    """The peer with the higher cross-validated mean among those with every fold scored (where neither has: among
+    those with some, so a partial table still pairs the photos there are)."""
+    peers = [m for m in ("peer", "peer-full") if m in by_method]
+    complete = [m for m in peers if by_method[m].complete]
+    return max(complete or peers, key=lambda m: by_method[m].mean) if peers else None
+
+
+def cv_rows(records: Sequence[dict[str, Any]], steps: int, default: str = "willags", tags=None) -> list[str]:
+    """The markdown tables of the cross-validated section: per collection the photos, each method's mean (fold
+    means), the default against the stronger peer, then every other method against the default."""
+    from benchmarks.tables import md_table
+
+    by_scene = collect(records, steps, tags)
+    if not by_scene:
+        return [f"No cross-validated run scored at {steps} steps yet."]
+    rows, cand_rows = [], []
+    for scene, by_method in sorted(by_scene.items()):
+        ref = by_method.get(default)
+        peer_name = stronger_peer(by_method)
+        peer = by_method.get(peer_name) if peer_name else None
+        photos = max(len(cv.per_photo) for cv in by_method.values())
+        folds = max(cv.folds for cv in by_method.values())
+        rows.append(
+            [
+                scene,
+                f"{steps // 1000}k" if steps % 1000 == 0 else str(steps),
+                str(folds),
+                str(photos),
+                _cell(by_method.get("peer")),
+                _cell(by_method.get("peer-full")),
+                _cell(ref),
+                (f"{peer_name}: " if peer_name else "") + _diff(ref, peer),
+                goal_cell(ref, peer),
+            ]
+        )
+        for method, cv in sorted(by_method.items()):
+            if method in (default, "peer", "peer-full"):
+                continue
+            cand_rows.append([scene, method, _cell(cv), _diff(cv, ref)])
+    head = [
+        "scene",
+        "steps",
+        "folds",
+        "photos",
+        "peer",
+        "peer-full",
+        f"**{default}**",
+        f"{default} − stronger peer [95 % CI] (photos)",
+        f"goal (+{GOAL_DB:g} dB, CI above +{GOAL_LOW_DB:g})",
+    ]
+    out = md_table(head, rows)
+    if cand_rows:
+        out += ["", *md_table(["scene", "method", "mean (fold means)", f"− {default} [95 % CI] (photos)"], cand_rows)]
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the command line
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    f = sub.add_parser("folds", help="write the fold folders of a collection")
+    f.add_argument("--data", type=Path, required=True, help="the collection (a COLMAP scene)")
+    f.add_argument("--folds", type=int, default=4)
+    f.add_argument("--out", type=Path, required=True, help="where the fold folders go (beside the collection's copy)")
+    p = sub.add_parser("plan", help="print balanced solo.sh queues for the fold folders (and other scenes) of a root")
+    p.add_argument("--root", type=Path, nargs="+", required=True, help="folders holding the scenes to plan")
+    p.add_argument("--methods", nargs="+", required=True, help="benchmarks.methods names, first = compared first")
+    p.add_argument("--steps", type=int, default=5000)
+    p.add_argument("--seeds", type=int, nargs="+", default=[42])
+    p.add_argument("--queues", type=int, default=12)
+    p.add_argument("--only", nargs="*", default=None, help="plan only these scenes (folder names or collections)")
+    r = sub.add_parser("report", help="print the cross-validated tables from the records")
+    r.add_argument("--records", type=Path, default=None)
+    r.add_argument("--steps", type=int, default=5000)
+    args = ap.parse_args(argv)
+    if args.cmd == "folds":
+        try:
+            written = write_fold_scenes(args.data, args.folds, args.out)
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
+        for d in written:
+            print(f"cv: wrote {d}")
+        return 0
+    if args.cmd == "plan":
+        counts: dict[str, int] = {}
+        for root in args.root:
+            counts.update(test_photo_counts(root))
+        if args.only is not None:
+            keep = set(args.only)
+            counts = {s: n for s, n in counts.items() if s in keep or (parse_fold(s) or ("",))[0] in keep}
+        if not counts:
+            raise SystemExit(f"cv: no scene folder with one split file under {', '.join(map(str, args.root))}")
+        qs = balance(plan_runs(counts, args.methods, args.steps, args.seeds), args.queues)
+        for q in qs:
+            print(" ".join(r.spec() for r in q))
+        total = sum(r.cost for q in qs for r in q)
+        print(f"# {sum(map(len, qs))} runs in {len(qs)} queues, {total:.1f} run-units", file=sys.stderr)
+        return 0
+    from benchmarks.records import RECORDS, load_records
+
+    print("\n".join(cv_rows(load_records(args.records or RECORDS), args.steps)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

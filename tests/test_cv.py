@@ -1,0 +1,145 @@
+"""benchmarks/cv.py: folds that hold every photo once, paired differences with bootstrap intervals, the queues."""
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import cv
+from benchmarks.long_run import per_image_scores
+from tests.conftest import SHARED_DATA
+
+SACRE = SHARED_DATA / "sacre-coeur-mini"
+
+
+def test_assign_folds_puts_every_photo_in_one_fold_of_near_equal_size():
+    names = [f"img_{i:03d}.jpg" for i in range(23)][::-1]
+    folds = cv.assign_folds(names, 4)
+    assert sorted(folds) == sorted(names)
+    sizes = np.bincount(list(folds.values()))[1:]
+    assert len(sizes) == 4 and sizes.max() - sizes.min() <= 1
+    assert folds["img_000.jpg"] == 1 and folds["img_001.jpg"] == 2 and folds["img_004.jpg"] == 1  # by name order
+    with pytest.raises(ValueError, match="at least 2 folds"):
+        cv.assign_folds(names, 1)
+    with pytest.raises(ValueError, match="cannot fill"):
+        cv.assign_folds(names[:3], 4)
+
+
+def test_fold_names_parse_back_and_other_scenes_are_not_folds():
+    assert cv.parse_fold(cv.fold_name("sacre-coeur-mini", 3, 7)) == ("sacre-coeur-mini", 3, 7)
+    assert cv.parse_fold("reichstag") is None
+    assert cv.parse_fold("reichstag-cv5of4") is None  # a fold beyond the count
+
+
+@pytest.mark.skipif(not SACRE.is_dir(), reason="needs ../shared/data/sacre-coeur-mini")
+def test_fold_scenes_test_each_registered_photo_once_through_the_data_parser(tmp_path):
+    from willags_ns.data.dataparser import WillagsDataParserConfig
+
+    folds = cv.write_fold_scenes(SACRE, 4, tmp_path)
+    assert [d.name for d in folds] == [f"sacre-coeur-mini-cv{k}of4" for k in range(1, 5)]
+    tested: list[str] = []
+    for d in folds:
+        assert (d / "images").is_symlink() and not (d / "README.md").exists()
+        assert [p.name for p in d.glob("*.tsv")] == [f"{d.name}.tsv"]  # the collection's own split is not linked
+        parser = WillagsDataParserConfig(data=d).setup()
+        test = [Path(p).name for p in parser.get_dataparser_outputs("test").image_filenames]
+        train = [Path(p).name for p in parser.get_dataparser_outputs("train").image_filenames]
+        assert not set(test) & set(train) and len(test) + len(train) == 14
+        tested += test
+    assert sorted(tested) == sorted(p.name for p in (SACRE / "images").iterdir())
+    # the links are relative: the collection and its folds move together
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    (moved / SACRE.name).symlink_to(SACRE)
+    again = cv.write_fold_scenes(moved / SACRE.name, 4, moved)
+    assert not Path((again[0] / "images").readlink()).is_absolute()
+    with open(again[0] / f"{again[0].name}.tsv") as f:
+        rows = list(csv.DictReader(f, delimiter="\t"))
+    assert {r["split"] for r in rows} == {"train", "test"} and len(rows) == 14
+
+
+def test_bootstrap_interval_brackets_the_mean_and_narrows_with_more_photos():
+    assert cv.bootstrap_interval([0.5] * 10) == (0.5, 0.5, 0.5)
+    rng = np.random.default_rng(1)
+    small = rng.normal(0.3, 1.0, 16)
+    big = rng.normal(0.3, 1.0, 400)
+    m, lo, hi = cv.bootstrap_interval(small)
+    assert lo < m < hi and m == pytest.approx(small.mean())
+    m2, lo2, hi2 = cv.bootstrap_interval(big)
+    assert hi2 - lo2 < (hi - lo) / 3
+    assert hi2 - lo2 == pytest.approx(2 * 1.96 * big.std() / np.sqrt(big.size), rel=0.15)  # the normal interval
+    assert cv.bootstrap_interval(small) == (m, lo, hi)  # seeded: the tables regenerate identically
+    with pytest.raises(ValueError):
+        cv.bootstrap_interval([])
+
+
+def _fold_rec(scene: str, fold: int, folds: int, method: str, scores: dict[str, float], steps: int = 5000) -> dict:
+    per = [{"image": k, "psnr": v} for k, v in scores.items()]
+    return {
+        "scene": cv.fold_name(scene, fold, folds),
+        "method": method,
+        "device": "cuda",
+        "steps": steps,
+        "tag": "cv-test",
+        "seed": 42,
+        "status": "ok",
+        "milestones": {str(steps): {"psnr": float(np.mean(list(scores.values()))), "per_image": per}},
+    }
+
+
+def _records(shift: float, folds_of_b: int = 2) -> list[dict]:
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+    recs = [_fold_rec("scene", k, 2, "willags", p) for k, p in photos.items()]
+    recs += [
+        _fold_rec("scene", k, 2, "peer", {n: v - shift for n, v in p.items()})
+        for k, p in photos.items()
+        if k <= folds_of_b
+    ]
+    recs.append(_fold_rec("scene", 1, 2, "peer", {"a.jpg": 99.0}, steps=15000))  # another step count
+    recs.append({**_fold_rec("reichstag", 1, 2, "peer", {"x.jpg": 1.0}), "status": "failed"})
+    return recs
+
+
+def test_collect_pairs_each_photo_across_folds_and_methods():
+    by = cv.collect(_records(1.5), 5000)
+    assert set(by) == {"scene"} and set(by["scene"]) == {"willags", "peer"}
+    w, p = by["scene"]["willags"], by["scene"]["peer"]
+    assert w.per_photo == {"a.jpg": 20.0, "c.jpg": 22.0, "b.jpg": 18.0, "d.jpg": 24.0}
+    assert w.fold_means == {1: 21.0, 2: 21.0} and w.complete and w.mean == 21.0
+    assert cv.paired(w, p) == (pytest.approx(1.5), pytest.approx(1.5), pytest.approx(1.5), 4)
+    assert cv.goal_cell(w, p) == "met"
+    low = cv.collect(_records(0.7), 5000)["scene"]
+    assert cv.goal_cell(low["willags"], low["peer"]) == "missed by 0.30"
+    assert cv.collect(_records(1.5), 15000)["scene"]["peer"].per_photo == {"a.jpg": 99.0}
+
+
+def test_cv_rows_give_means_fold_means_intervals_and_say_what_is_missing():
+    rows = cv.cv_rows(_records(0.5, folds_of_b=1), 5000)
+    head, _, row = rows
+    assert "willags − stronger peer" in head
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[:4] == ["scene", "5k", "2", "4"]
+    assert cells[4] == "20.50 (20.50; 1 of 2 folds)"  # the peer's one fold
+    assert cells[6] == "21.00 (21.00 / 21.00)"
+    assert cells[7] == "peer: +0.50 [+0.50, +0.50] (n=2)"  # paired on the photos both scored
+    assert cells[8] == "–"  # no goal on an incomplete cross-validation
+    assert cv.cv_rows([], 5000) == ["No cross-validated run scored at 5000 steps yet."]
+
+
+def test_plan_deals_every_run_once_by_priority_and_balances_the_queues():
+    counts = {"a-cv1of2": 10, "a-cv2of2": 10, "b-cv1of2": 40, "b-cv2of2": 40}
+    runs = cv.plan_runs(counts, ["willags", "peer", "willags-capscene"], 5000)
+    qs = cv.balance(runs, 4)
+    specs = [r.spec() for q in qs for r in q]
+    assert sorted(specs) == sorted(r.spec() for r in runs) and len(specs) == 12
+    for q in qs:
+        assert [r.priority for r in q] == sorted(r.priority for r in q)  # the first methods first in every queue
+    loads = [sum(r.cost for r in q) for q in qs]
+    assert max(loads) - min(loads) <= max(r.cost for r in runs)
+    assert all(s.endswith(":5000:42") for s in specs)
+
+
+def test_long_run_records_keep_each_photos_scores():
+    per = [{"image": "a.jpg", "psnr": 20.0, "ssim": 0.5, "fit_scale": 2.0, "encoder_psnr": 10.0}]
+    assert per_image_scores(per) == [{"image": "a.jpg", "psnr": 20.0, "ssim": 0.5}]
