@@ -136,10 +136,11 @@ def plan_runs(
     test_photos: dict[str, int], methods: Sequence[str], steps: int, seeds: Sequence[int] = (42,)
 ) -> list[PlannedRun]:
     """Every (scene, method, seed) run with its estimated cost; `test_photos`: scene -> its test photos. Priority:
-    the order of `methods` (the first ones are compared first, so a lease that ends early leaves complete pairs)."""
+    the order of `methods`, where "a,b" is one group of equal priority (the first ones are compared first, so a lease
+    that ends early leaves complete pairs)."""
     runs = []
-    for p, method in enumerate(methods):
-        for scene, n_test in sorted(test_photos.items()):
+    for p, group in enumerate(methods):
+        for method, (scene, n_test) in ((m, sc) for sc in sorted(test_photos.items()) for m in group.split(",")):
             for seed in seeds:
                 cost = RUN_COST.get(method, 1.0) * steps / 5000 + PHOTO_COST * n_test
                 runs.append(PlannedRun(scene, method, steps, seed, cost, p))
@@ -353,7 +354,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     f.add_argument("--out", type=Path, required=True, help="where the fold folders go (beside the collection's copy)")
     p = sub.add_parser("plan", help="print balanced solo.sh queues for the fold folders (and other scenes) of a root")
     p.add_argument("--root", type=Path, nargs="+", required=True, help="folders holding the scenes to plan")
-    p.add_argument("--methods", nargs="+", required=True, help="benchmarks.methods names, first = compared first")
+    p.add_argument(
+        "--methods", nargs="+", required=True, help='benchmarks.methods names, first = compared first; "a,b": equal'
+    )
     p.add_argument("--steps", type=int, default=5000)
     p.add_argument("--seeds", type=int, nargs="+", default=[42])
     p.add_argument("--queues", type=int, default=12)

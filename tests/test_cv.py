@@ -138,6 +138,9 @@ def test_plan_deals_every_run_once_by_priority_and_balances_the_queues():
     loads = [sum(r.cost for r in q) for q in qs]
     assert max(loads) - min(loads) <= max(r.cost for r in runs)
     assert all(s.endswith(":5000:42") for s in specs)
+    grouped = cv.plan_runs(counts, ["willags,peer", "willags-capscene"], 5000)
+    assert {r.method for r in grouped if r.priority == 0} == {"willags", "peer"}
+    assert {r.method for r in grouped if r.priority == 1} == {"willags-capscene"}
 
 
 def test_long_run_records_keep_each_photos_scores():
