@@ -5,6 +5,7 @@
     python -m benchmarks report                                    # every generated page from the records
     python -m benchmarks speed --out speed.json                    # the speed suite (GPU)
     python -m benchmarks profile --method willags --data ../shared/data/reichstag --out p.json
+    python -m benchmarks collections build lund --out /scenes/lund   # a real photo collection -> a scene
 
 Each verb runs one module's ``main`` with the rest of the command line; the GPU machine's side is
 benchmarks/remote/ (its README).
@@ -29,6 +30,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
     "cv": ("cv", "cross-validation: every photo a test photo once (fold folders, GPU queues, tables with intervals)"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
+    "collections": ("collections", "real photo collections: list them, or rebuild one from its public source"),
 }
 """verb -> (module under benchmarks/ whose ``main`` it runs, what it does)."""
 

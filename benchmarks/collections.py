@@ -1,0 +1,341 @@
+"""Real photo collections rebuilt from public repositories: photos in, a scene for ``ns-train willags`` out.
+
+The photos are never committed here. Each collection names its source (a public GitHub repository pinned to a
+commit, a folder in it, and which photos to take); ``build`` fetches them, resizes them to at most ``MAX_SIDE``
+pixels on the long side (JPEG quality ``JPEG_QUALITY``: small scenes that travel to a GPU machine), runs
+``willags-process`` on them (the split is its own: every 8th registered photo is a test photo) and writes a
+README.md and a sources.json (each photo's origin, original size and whether it registered) into the scene:
+
+    python -m benchmarks collections list
+    python -m benchmarks collections build lund --out /scenes/lund [--source MIRROR] [--num-threads 2]
+
+``--source`` is a local copy of the repository: a clone or a bare mirror (the photos are read at the pinned commit)
+or a plain folder holding the repository's files. Without it the repository is cloned over https at the pinned
+commit (only the named folder is checked out). The built folder holds ``images/``, ``colmap/sparse/0``,
+``<name>.tsv``, ``process_summary.json``, README.md and sources.json; the SfM database and the distorted model
+that ``willags-process`` keeps for resuming are removed at the end (nerfstudio reads neither).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from PIL import Image, ImageOps
+
+MAX_SIDE = 800
+"""Long side of the photos given to SfM and training, in pixels (the shared real scenes' size)."""
+
+JPEG_QUALITY = 90
+"""Quality of the resized photos (4:2:0 chroma): ~100 KB per 800 px photo."""
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+"""Files taken from a source folder when a collection lists no photos."""
+
+LEFT_BEHIND = ("colmap/database.db", "colmap/distorted", "colmap/inputs", "colmap/vocab_tree.bin")
+"""What willags-process keeps for resuming and nerfstudio never reads: removed from a finished scene."""
+
+
+class CollectionError(RuntimeError):
+    """A bad collection name, source or photo list: one line saying which and why."""
+
+
+@dataclass(frozen=True)
+class Collection:
+    name: str
+    """Scene name: the built folder's ``<name>.tsv`` and the README's title."""
+    repo: str
+    """Public GitHub repository, ``owner/name``."""
+    commit: str
+    """The pinned commit (40 hex digits): the photos are read at this commit."""
+    folder: str
+    """Folder of the photos inside the repository."""
+    photos: tuple[str, ...] = ()
+    """File names to take from ``folder``; empty: every photo there (``PHOTO_SUFFIXES``)."""
+    single_camera: bool = False
+    """All photos from one camera and zoom: willags-process shares one set of intrinsics between them."""
+    mapper: str = "auto"
+    """willags-process's ``--mapper`` (auto, incremental or global)."""
+    about: str = ""
+    """What the photos show and why the collection is here (the README's first paragraph)."""
+    licence: str = ""
+    """Under what terms the photos are published (the README says it)."""
+
+    @property
+    def url(self) -> str:
+        return f"https://github.com/{self.repo}.git"
+
+
+COLLECTIONS: dict[str, Collection] = {
+    c.name: c
+    for c in (
+        Collection(
+            name="lund",
+            repo="mapillary/OpenSfM",
+            commit="238744cdf3b5d50149c50d136a87f7fea25ad5cd",
+            folder="data/lund/images",
+            photos=tuple(f"{i:02d}.jpg" for i in range(1, 30)),
+            single_camera=True,
+            mapper="global",
+            about=(
+                "A walk through the cobbled streets of old Lund (Sweden) on a sunny day: 29 phone photos, 1024 x 768, "
+                "one camera, with hard shadows, parked cars, bicycles and people walking through (faces and number "
+                "plates blurred by the source). A street scene rather than one landmark: the camera moves along "
+                "several streets, so most of each photo is seen by only a few others. One shared camera (one phone); "
+                "the global mapper, because the incremental one finds no initial pair on this forward-moving walk "
+                "(it registers 2 of 29). The global model agrees with the photos' own GPS tags (not used by SfM): "
+                "after a similarity alignment the camera centres are a median 4 m (at most 11 m) from them over a "
+                "179 m walk, within a phone's GPS error."
+            ),
+            licence="part of OpenSfM's example data (the repository is BSD-2-Clause licensed)",
+        ),
+    )
+}
+"""Every collection ``build`` knows, by name."""
+
+
+def collection(name: str) -> Collection:
+    if name not in COLLECTIONS:
+        raise CollectionError(f"unknown collection {name!r}; known: {', '.join(COLLECTIONS)}")
+    return COLLECTIONS[name]
+
+
+def select_photos(available: Sequence[str], coll: Collection) -> list[str]:
+    """The photos to take, sorted: ``coll.photos`` (each must be in ``available``) or every photo file there."""
+    have = set(available)
+    if coll.photos:
+        missing = [p for p in coll.photos if p not in have]
+        if missing:
+            more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+            raise CollectionError(
+                f"{coll.name}: {coll.repo} {coll.folder} lacks {', '.join(missing[:3])}{more} at {coll.commit[:8]}"
+            )
+        return sorted(coll.photos)
+    picked = sorted(n for n in have if Path(n).suffix.lower() in PHOTO_SUFFIXES)
+    if not picked:
+        raise CollectionError(f"{coll.name}: no photos ({', '.join(PHOTO_SUFFIXES)}) in {coll.repo} {coll.folder}")
+    return picked
+
+
+def resize_photo(data: bytes, dst: Path, max_side: int = MAX_SIDE, quality: int = JPEG_QUALITY) -> dict[str, Any]:
+    """Write the photo ``data`` to ``dst`` as a JPEG with a long side of at most ``max_side`` (area filter; EXIF
+    orientation applied to the pixels, the rest of the EXIF kept for SfM's focal-length prior). Returns its original
+    and written sizes, ``{"orig_size": [w, h], "size": [w, h]}``."""
+    with Image.open(io.BytesIO(data)) as im:
+        orig = list(im.size)
+        exif = im.getexif()
+        upright = ImageOps.exif_transpose(im)
+        w, h = upright.size
+        scale = min(1.0, max_side / max(w, h))
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        small = upright.resize(size, resample=Image.Resampling.BOX) if scale < 1.0 else upright
+        exif.pop(0x0112, None)  # orientation: now in the pixels
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        small.convert("RGB").save(dst, format="JPEG", quality=quality, exif=exif.tobytes())
+    return {"orig_size": orig, "size": list(size)}
+
+
+class Source:
+    """The photos of a collection's folder at its pinned commit: from a git repository (a clone or a bare mirror)
+    or from a plain folder holding the repository's files."""
+
+    def __init__(self, coll: Collection, root: Path):
+        self.coll, self.root = coll, root
+        self.git = _is_git(root)
+        if self.git:
+            rc = _git(root, "cat-file", "-e", f"{coll.commit}^{{commit}}", check=False)
+            if rc.returncode != 0:
+                raise CollectionError(f"{coll.name}: {root} has no commit {coll.commit} of {coll.repo}")
+        elif not (root / coll.folder).is_dir():
+            raise CollectionError(f"{coll.name}: {root} has no folder {coll.folder} ({coll.repo}) and is no git repo")
+
+    def names(self) -> list[str]:
+        if self.git:
+            out = _git(self.root, "ls-tree", "--name-only", f"{self.coll.commit}:{self.coll.folder}").stdout
+            return [line for line in out.decode().splitlines() if line]
+        return sorted(p.name for p in (self.root / self.coll.folder).iterdir() if p.is_file())
+
+    def read(self, name: str) -> bytes:
+        if self.git:
+            return _git(self.root, "cat-file", "blob", f"{self.coll.commit}:{self.coll.folder}/{name}").stdout
+        return (self.root / self.coll.folder / name).read_bytes()
+
+
+def _git(repo: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    """``git -C repo args`` (works on bare repositories too); a failure raises CollectionError with git's message."""
+    r = subprocess.run(["git", "-C", str(repo), *args], capture_output=True)
+    if check and r.returncode != 0:
+        raise CollectionError(f"git {' '.join(args)} in {repo}: {r.stderr.decode().strip() or r.returncode}")
+    return r
+
+
+def _is_git(path: Path) -> bool:
+    if not path.is_dir():
+        return False
+    r = subprocess.run(["git", "-C", str(path), "rev-parse", "--absolute-git-dir"], capture_output=True)
+    return r.returncode == 0 and Path(r.stdout.decode().strip()).resolve() in (
+        (path / ".git").resolve(),
+        path.resolve(),
+    )
+
+
+def clone(coll: Collection, dst: Path) -> Path:
+    """A partial clone of ``coll.repo`` in ``dst`` holding only ``coll.folder`` at ``coll.commit`` (network)."""
+    _git(dst.parent, "clone", "--filter=blob:none", "--no-checkout", coll.url, str(dst))
+    _git(dst, "checkout", coll.commit, "--", coll.folder)
+    return dst
+
+
+def scene_readme(coll: Collection, rows: Sequence[dict[str, Any]], summary: dict[str, Any]) -> str:
+    """The built scene's README.md: what the photos are, where from, how they were processed, the SfM numbers."""
+    reg = sum(r["registered"] for r in rows)
+    sides = [max(r["undistorted_size"]) for r in rows if r["registered"]]
+    stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary.get("stage_s", {}).items())
+    unreg = [r["name"] for r in rows if not r["registered"]]
+    lines = [
+        f"# {coll.name}",
+        "",
+        coll.about,
+        "",
+        f"Source: the public repository {coll.repo} (commit {coll.commit[:8]}, `{coll.folder}`): {len(rows)} photos "
+        f"({coll.licence}; use them for research and testing only). `sources.json` lists every photo with its origin, "
+        "original size, size here and whether it registered.",
+        "",
+        f"Built by `python -m benchmarks collections build {coll.name} --out DIR` (willags-ns): each photo resized "
+        f"to a long side of at most {MAX_SIDE} px (area filter, JPEG quality {JPEG_QUALITY}), then `willags-process`"
+        + (" --single-camera" if coll.single_camera else "")
+        + (f" --mapper {coll.mapper}" if coll.mapper != "auto" else "")
+        + ".",
+        "",
+        "Layout (nerfstudio's colmap dataparser defaults; the willags dataparser also reads the split):",
+        "",
+        "```",
+        f"images/                 {reg} registered photos, undistorted (PINHOLE), JPEG quality {JPEG_QUALITY}, long side "
+        f"{min(sides, default=0)}-{max(sides, default=0)} px (sizes differ per photo)",
+        "colmap/sparse/0/        cameras.bin images.bin points3D.bin",
+        f"{summary.get('split_file', coll.name + '.tsv'):<24}NeRF-W split (filename, id, split, dataset): "
+        f"{summary.get('num_train', '?')} train, {summary.get('num_test', '?')} test (every 8th registered photo)",
+        "process_summary.json    willags-process's summary: options, timings, why photos did not register",
+        "sources.json            per photo: origin, sizes, registered",
+        "```",
+        "",
+        f"## SfM (willags-process, pycolmap {summary.get('pycolmap', '?')}, CPU)",
+        "",
+        "| | |",
+        "|---|---|",
+        f"| photos / registered | {len(rows)} / {reg} |",
+        f"| camera model | {summary.get('camera_model', '?')} |",
+        f"| matching | {summary.get('matching', '?')} ({summary.get('num_pairs', 0):,} pairs) |",
+        f"| 3D points | {summary.get('points3D', 0):,} |",
+        f"| mean reprojection error | {summary.get('mean_reprojection_error_px', float('nan')):.3f} px |",
+        f"| mean track length | {summary.get('mean_track_length', float('nan')):.2f} |",
+        f"| wall time | {summary.get('wall_s', 0):.0f} s ({stages}) |",
+    ]
+    if unreg:
+        lines += ["", f"Not registered ({len(unreg)}): {', '.join(unreg)} (why: process_summary.json)."]
+    return "\n".join(lines) + "\n"
+
+
+def build(coll: Collection, out: Path, source: Path | None = None, num_threads: int = 2, log=print) -> dict[str, Any]:
+    """Fetch, resize and process ``coll`` into the scene folder ``out``; returns the SfM summary plus the sources."""
+    out = out.resolve()
+    with tempfile.TemporaryDirectory(prefix=f"willags-{coll.name}-") as tmp:
+        tmp_path = Path(tmp)
+        if source is None:
+            log(f"cloning {coll.url} at {coll.commit[:8]} ({coll.folder} only)")
+            source = clone(coll, tmp_path / "repo")
+        src = Source(coll, source.resolve())
+        names = select_photos(src.names(), coll)
+        photos = tmp_path / "photos"
+        rows = []
+        for name in names:
+            dst = photos / (Path(name).stem + ".jpg")
+            sizes = resize_photo(src.read(name), dst)
+            rows.append({"name": dst.name, "repo": f"{coll.repo} @ {coll.commit}", "path": f"{coll.folder}/{name}"})
+            rows[-1].update(sizes)
+        if len({r["name"] for r in rows}) != len(rows):
+            raise CollectionError(f"{coll.name}: two photos share a stem in {coll.folder}")
+        log(f"{len(rows)} photos resized to <= {MAX_SIDE} px in {photos}; running willags-process")
+        cmd = [
+            sys.executable, "-m", "willags_ns.scripts.process", "--images", str(photos), "--output", str(out),
+            "--num-threads", str(num_threads), "--num-downscales", "0",
+        ]  # fmt: skip
+        if coll.single_camera:
+            cmd.append("--single-camera")
+        if coll.mapper != "auto":
+            cmd += ["--mapper", coll.mapper]
+        r = subprocess.run(cmd)
+        if r.returncode != 0:
+            raise CollectionError(f"{coll.name}: willags-process failed (exit status {r.returncode}); see above")
+    return finish_scene(coll, out, rows)
+
+
+def reencode(images: Path, quality: int = JPEG_QUALITY) -> None:
+    """Re-save every JPEG in ``images`` at ``quality`` (same pixels and size): COLMAP's undistorter writes near
+    lossless JPEGs, about three times the bytes of the photos it was given."""
+    for f in sorted(images.iterdir()):
+        if f.suffix.lower() in (".jpg", ".jpeg"):
+            tmp = f.with_name(f".{f.name}.partial")
+            with Image.open(f) as im:
+                im.convert("RGB").save(tmp, format="JPEG", quality=quality, exif=im.getexif().tobytes())
+            tmp.replace(f)
+
+
+def finish_scene(coll: Collection, out: Path, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Drop what nerfstudio does not read, re-encode the images, mark which photos registered, write README.md and
+    sources.json."""
+    summary = json.loads((out / "process_summary.json").read_text())
+    reencode(out / "images")
+    registered = {p.name: p for p in (out / "images").iterdir()}
+    for r in rows:
+        r["registered"] = r["name"] in registered
+        if r["registered"]:
+            with Image.open(registered[r["name"]]) as im:
+                r["undistorted_size"] = list(im.size)
+    for rel in LEFT_BEHIND:
+        p = out / rel
+        shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+    (out / "sources.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (out / "README.md").write_text(scene_readme(coll, rows, summary))
+    return {**summary, "sources": rows}
+
+
+def folder_mb(path: Path) -> float:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 1e6
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="benchmarks collections", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    sub.add_parser("list", help="the collections: name, source, photos")
+    b = sub.add_parser("build", help="fetch a collection's photos, resize them, run willags-process")
+    b.add_argument("name", help=f"one of {', '.join(COLLECTIONS)}")
+    b.add_argument("--out", type=Path, required=True, help="scene folder to write (outside any git tree)")
+    b.add_argument("--source", type=Path, default=None, help="local clone, bare mirror or copy of the repository")
+    b.add_argument("--num-threads", type=int, default=2, help="willags-process's CPU threads (default 2)")
+    args = ap.parse_args(argv)
+    try:
+        if args.cmd == "list":
+            for c in COLLECTIONS.values():
+                n = f"{len(c.photos)} photos" if c.photos else "every photo"
+                print(f"{c.name:<16} {c.repo} @ {c.commit[:8]}  {c.folder}  ({n})")
+            return 0
+        res = build(collection(args.name), args.out, args.source, args.num_threads)
+    except CollectionError as e:
+        print(f"benchmarks collections: {e}", file=sys.stderr)
+        return 1
+    reg = sum(r["registered"] for r in res["sources"])
+    print(
+        f"{args.name}: {reg} / {len(res['sources'])} registered, mean reprojection error "
+        f"{res['mean_reprojection_error_px']:.3f} px, {res['wall_s']:.0f} s, {folder_mb(args.out):.1f} MB in {args.out}"
+    )
+    return 0
