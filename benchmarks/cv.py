@@ -199,6 +199,11 @@ class MethodCV:
     runs: int
 
     @property
+    def seeds(self) -> float:
+        """Runs per fold (seeds): what the run noise of its mean is divided by."""
+        return self.runs / max(len(self.fold_means), 1)
+
+    @property
     def complete(self) -> bool:
         return len(self.fold_means) == self.folds
 
@@ -246,10 +251,73 @@ def collect(records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] |
     return dict(out)
 
 
-def paired(a: MethodCV, b: MethodCV) -> tuple[float, float, float, int]:
-    """(mean, low, high, photos) of a - b over the photos both scored (bootstrap_interval)."""
+EQUIVALENT = {("willags-capscene", "willags"): "MCMC's cap not reached on any fold: the same model"}
+"""Method pairs that train the same model where their runs end with the same number of Gaussians on every fold (the
+pair's runs then differ only by the GPU's non-deterministic sums): replicates for the run noise."""
+
+
+def _runs(records: Sequence[dict[str, Any]], steps: int):
+    """{(scene, folds, configuration, seed): {fold: (per-photo PSNR, Gaussians)}} of the fold runs scored at
+    `steps`."""
+    from benchmarks.methods import configuration
+
+    out: dict[tuple[str, int, str, int], dict[int, tuple[dict[str, float], Any]]] = defaultdict(dict)
+    for rec in records:
+        fold = parse_fold(str(rec.get("scene", "")))
+        ms = milestone(rec, steps) if fold is not None and rec.get("status", "ok") == "ok" else None
+        if fold is None or ms is None or not ms.get("per_image"):
+            continue
+        scene, k, folds = fold
+        scores = {p["image"]: float(p["psnr"]) for p in ms["per_image"]}
+        out[(scene, folds, configuration(rec), int(rec.get("seed") or 42))][k] = (scores, ms.get("num_gaussians"))
+    return out
+
+
+def replicate_differences(records: Sequence[dict[str, Any]], steps: int) -> list[tuple[str, str, float]]:
+    """(scene, what, D): D is the difference of the cross-validated means of two runs of one model over every fold
+    (the photos both scored): the same configuration at two seeds, or an EQUIVALENT pair at one seed whose runs ended
+    with equal Gaussian counts on every fold. Only complete cross-validations count."""
+    runs = {k: v for k, v in _runs(records, steps).items() if len(v) == k[1]}
+
+    def d(a, b) -> float:
+        pairs = [(a[k][0][p], b[k][0][p]) for k in a for p in a[k][0] if p in b[k][0]]
+        return float(np.mean([x - y for x, y in pairs]))
+
+    out = []
+    keys = sorted(runs)
+    for i, ka in enumerate(keys):
+        for kb in keys[i + 1 :]:
+            same_scene = ka[:2] == kb[:2]
+            if same_scene and ka[2] == kb[2]:
+                out.append((ka[0], f"{ka[2]} seeds {kb[3]} - {ka[3]}", d(runs[kb], runs[ka])))
+            elif same_scene and ka[3] == kb[3]:
+                for (x, y), _ in EQUIVALENT.items():
+                    a, b = {ka[2]: runs[ka], kb[2]: runs[kb]}.get(x), {ka[2]: runs[ka], kb[2]: runs[kb]}.get(y)
+                    if a is None or b is None or a is b:
+                        continue
+                    if all(a[k][1] is not None and a[k][1] == b[k][1] for k in a):
+                        out.append((ka[0], f"{x} - {y} (seed {ka[3]}, equal Gaussians)", d(a, b)))
+    return out
+
+
+def run_noise(records: Sequence[dict[str, Any]], steps: int) -> tuple[float | None, int]:
+    """(sigma, pairs): the standard deviation of one run's cross-validated mean about its model's, from the
+    replicate pairs (sigma^2 = mean of D^2 / 2), and how many pairs it rests on; (None, 0) without any. The photo
+    bootstrap cannot see it: every photo of a fold shares that fold's run."""
+    diffs = [x for _, _, x in replicate_differences(records, steps)]
+    if not diffs:
+        return None, 0
+    return float(np.sqrt(np.mean(np.square(diffs)) / 2)), len(diffs)
+
+
+def paired(a: MethodCV, b: MethodCV, sigma: float | None = None) -> tuple[float, float, float, int]:
+    """(mean, low, high, photos) of a - b over the photos both scored: bootstrap_interval's, each side widened in
+    quadrature by the run noise 1.96 sigma sqrt(1/seeds_a + 1/seeds_b) when `sigma` (run_noise) is known."""
     common = sorted(set(a.per_photo) & set(b.per_photo))
     mean, low, high = bootstrap_interval([a.per_photo[p] - b.per_photo[p] for p in common])
+    if sigma:
+        extra = 1.96 * sigma * float(np.sqrt(1 / a.seeds + 1 / b.seeds))
+        low, high = mean - float(np.hypot(mean - low, extra)), mean + float(np.hypot(high - mean, extra))
     return mean, low, high, len(common)
 
 
@@ -261,10 +329,10 @@ def _cell(cv: MethodCV | None) -> str:
     return f"{cv.mean:.2f} ({folds}{note})"
 
 
-def _diff(a: MethodCV | None, b: MethodCV | None) -> str:
+def _diff(a: MethodCV | None, b: MethodCV | None, sigma: float | None = None) -> str:
     if a is None or b is None or not (set(a.per_photo) & set(b.per_photo)):
         return "–"
-    mean, low, high, n = paired(a, b)
+    mean, low, high, n = paired(a, b, sigma)
     return f"{mean:+.2f} [{low:+.2f}, {high:+.2f}] (n={n})"
 
 
@@ -274,11 +342,11 @@ GOAL_LOW_DB = 0.5
 """... with the 95 % interval of the difference above this."""
 
 
-def goal_cell(a: MethodCV | None, b: MethodCV | None) -> str:
+def goal_cell(a: MethodCV | None, b: MethodCV | None, sigma: float | None = None) -> str:
     """Whether `a` (the default) meets the goal against `b` (the stronger peer), or by how much it misses."""
     if a is None or b is None or not (a.complete and b.complete):
         return "–"
-    mean, low, _, _ = paired(a, b)
+    mean, low, _, _ = paired(a, b, sigma)
     if mean >= GOAL_DB and low > GOAL_LOW_DB:
         return "met"
     return f"missed by {max(GOAL_DB - mean, GOAL_LOW_DB - low, 0.0):.2f}"
@@ -300,6 +368,7 @@ def cv_rows(records: Sequence[dict[str, Any]], steps: int, default: str = "willa
     by_scene = collect(records, steps, tags)
     if not by_scene:
         return [f"No cross-validated run scored at {steps} steps yet."]
+    sigma, pairs = run_noise(records, steps)
     rows, cand_rows = [], []
     for scene, by_method in sorted(by_scene.items()):
         ref = by_method.get(default)
@@ -316,14 +385,14 @@ def cv_rows(records: Sequence[dict[str, Any]], steps: int, default: str = "willa
                 _cell(by_method.get("peer")),
                 _cell(by_method.get("peer-full")),
                 _cell(ref),
-                (f"{peer_name}: " if peer_name else "") + _diff(ref, peer),
-                goal_cell(ref, peer),
+                (f"{peer_name}: " if peer_name else "") + _diff(ref, peer, sigma),
+                goal_cell(ref, peer, sigma),
             ]
         )
         for method, cv in sorted(by_method.items()):
             if method in (default, "peer", "peer-full"):
                 continue
-            cand_rows.append([scene, method, _cell(cv), _diff(cv, ref)])
+            cand_rows.append([scene, method, _cell(cv), _diff(cv, ref, sigma)])
     head = [
         "scene",
         "steps",
@@ -335,7 +404,13 @@ def cv_rows(records: Sequence[dict[str, Any]], steps: int, default: str = "willa
         f"{default} − stronger peer [95 % CI] (photos)",
         f"goal (+{GOAL_DB:g} dB, CI above +{GOAL_LOW_DB:g})",
     ]
-    out = md_table(head, rows)
+    noise = (
+        f"Run noise: sigma = {sigma:.2f} dB, the standard deviation of one run's cross-validated mean, from {pairs} "
+        "replicate pair(s) (`cv.run_noise`); every interval below is the photo bootstrap's widened by it."
+        if sigma is not None
+        else "Run noise: no replicate pair yet; the intervals below are the photo bootstrap's alone and too narrow."
+    )
+    out = [noise, "", *md_table(head, rows)]
     if cand_rows:
         out += ["", *md_table(["scene", "method", "mean (fold means)", f"− {default} [95 % CI] (photos)"], cand_rows)]
     return out

@@ -360,9 +360,12 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "fold's run trains on the other folds and scores its own photos under the same protocol "
         "(`benchmarks/cv.py`). A method's cell is its mean over every photo, then the mean of each fold. "
         "Differences are paired photo by photo, with a 95 % interval from a bootstrap over the photos (10,000 "
-        "resamples): a difference whose interval holds 0 is no difference. One run per fold (seed 42), the runs of a "
-        "lease side by side on its GPUs, splatfacto's stock schedule. The goal: the default at least 1 dB above the "
-        "stronger peer with the interval's lower end above +0.5 dB.",
+        "resamples) widened by the run noise: two runs of one model differ by more than the photos' spread explains "
+        "(every photo of a fold shares its run), so the noise of one run's mean is measured on replicate pairs (the "
+        "same model run twice) and added in quadrature. A difference whose interval holds 0 is no difference. "
+        "Seed 42 on every fold (reichstag's default and peer also seed 43, averaged photo by photo), the runs of a "
+        "lease side by side on its GPUs, splatfacto's stock schedule, scored at the step count named. The goal: the "
+        "default at least 1 dB above the stronger peer with the interval's lower end above +0.5 dB.",
         "",
         *cv_section(records),
         "",

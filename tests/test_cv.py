@@ -115,8 +115,8 @@ def test_collect_pairs_each_photo_across_folds_and_methods():
 
 
 def test_cv_rows_give_means_fold_means_intervals_and_say_what_is_missing():
-    rows = cv.cv_rows(_records(0.5, folds_of_b=1), 5000)
-    head, _, row = rows
+    noise, _, head, _, row = cv.cv_rows(_records(0.5, folds_of_b=1), 5000)
+    assert noise.startswith("Run noise: no replicate pair yet")
     assert "willags − stronger peer" in head
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[:4] == ["scene", "5k", "2", "4"]
@@ -146,3 +146,40 @@ def test_plan_deals_every_run_once_by_priority_and_balances_the_queues():
 def test_long_run_records_keep_each_photos_scores():
     per = [{"image": "a.jpg", "psnr": 20.0, "ssim": 0.5, "fit_scale": 2.0, "encoder_psnr": 10.0}]
     assert per_image_scores(per) == [{"image": "a.jpg", "psnr": 20.0, "ssim": 0.5}]
+
+
+def test_run_noise_comes_from_replicates_and_widens_every_interval():
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+
+    def runs(method, shift, seed=42, gaussians=1000):
+        out = []
+        for k, p in photos.items():
+            rec = _fold_rec("scene", k, 2, method, {n: v + shift for n, v in p.items()})
+            rec["seed"] = seed
+            rec["tag"] = "cv-test" if seed == 42 else f"cv-test-s{seed}"
+            rec["milestones"]["5000"]["num_gaussians"] = gaussians
+            out.append(rec)
+        return out
+
+    records = runs("willags", 0.0) + runs("willags", 0.4, seed=43) + runs("peer", -1.0)
+    records += runs("willags-capscene", -0.2)  # the cap not reached: the same model as willags, a replicate
+    diffs = {what: d for _, what, d in cv.replicate_differences(records, 5000)}
+    assert diffs == {
+        "willags seeds 43 - 42": pytest.approx(0.4),
+        "willags-capscene - willags (seed 42, equal Gaussians)": pytest.approx(-0.2),
+    }
+    sigma, n = cv.run_noise(records, 5000)
+    assert n == 2 and sigma == pytest.approx(np.sqrt((0.4**2 + 0.2**2) / 2 / 2))
+    more = records[:-2] + runs("willags-capscene", -0.2, gaussians=5000)  # a larger model: not a replicate
+    assert len(cv.replicate_differences(more, 5000)) == 1
+    assert cv.run_noise(runs("willags", 0.0), 5000) == (None, 0)
+
+    by = cv.collect(records, 5000)["scene"]
+    w, p = by["willags"], by["peer"]
+    assert w.seeds == 2 and p.seeds == 1 and w.mean == pytest.approx(21.2)  # two seeds averaged per photo
+    mean, low, high, _ = cv.paired(w, p)
+    assert (mean, low, high) == (pytest.approx(1.2), pytest.approx(1.2), pytest.approx(1.2))  # no spread over photos
+    mean, low, high, _ = cv.paired(w, p, sigma)
+    half = 1.96 * sigma * np.sqrt(1 / 2 + 1 / 1)
+    assert (low, high) == (pytest.approx(1.2 - half), pytest.approx(1.2 + half))
+    assert cv.cv_rows(records, 5000)[0].startswith(f"Run noise: sigma = {sigma:.2f} dB")
