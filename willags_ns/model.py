@@ -16,7 +16,7 @@ get_outputs is that sequence of stage calls, each into one room; the teacher goe
 student (its colours fused as 3 more channels of the one rasterisation, or rasterised on their own).
 
 The step's intermediates travel in `get_outputs`' dictionary (nerfstudio's habit) to `get_metrics_dict` and
-`get_loss_dict`: the image index, the latent (and the VAE's posterior and input), the modulation's residual, the
+`get_loss_dict`: the image index, the latent (and the VAE's posterior and input), the colour model's penalty, the
 teacher's latent and render, the ground truth at the render's resolution. This file is the wiring (parameter groups,
 get_outputs, losses, callbacks; the settings: config.py); docs/architecture.md maps the rooms. The class subclasses
 SplatfactoModel because nerfstudio's exporter and viewer check `isinstance(model, SplatfactoModel)`; it reuses
@@ -41,7 +41,7 @@ from torch.nn import Parameter
 
 from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors, teacher_colors
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
-from willags_ns.appearance.networks import AppearanceNetworks
+from willags_ns.appearance.networks import AppearanceNetworks, gaussian_layout
 from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
 from willags_ns.appearance.triplane import robust_bounds
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
@@ -101,7 +101,8 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True).clamp_min(1e-7)
         # the densification ("auto": MCMC on a GPU) sets the initial Gaussians and the strategy below
         self.mcmc_on = uses_mcmc(cfg.densification, self.kwargs.get("device") or "cpu")
-        self.gauss_params = nn.ParameterDict(initial_gauss_params(cfg, means, seed_rgb, avg_dist, self.mcmc_on))
+        layout = gaussian_layout(cfg)  # the per-Gaussian tensors the colour model reads (SH, f_s)
+        self.gauss_params = nn.ParameterDict(initial_gauss_params(cfg, means, seed_rgb, avg_dist, layout, self.mcmc_on))
 
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         from pytorch_msssim import SSIM
@@ -185,14 +186,14 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         self, z: Tensor, means: Tensor, f_s, cam_center: Tensor, nets=None, cacheable=False, sh=None, base=None
     ) -> GaussianColors:
         """Colours of Gaussians at `means` [N, 3] seen from `cam_center` [3] under latent z [D] (ColorPath.cached_colors),
-        with the modulation's residual and the SH colours they came from.
+        with what the colour model prepared (its penalty's input) and the SH colours they came from.
 
-        `nets`: the student's networks by default. `sh` [N, K, 3]: the Gaussians' SH coefficients
-        (color_mode='modulated'); default: all the model's Gaussians. `base` [N, 3]: their SH colours from
-        cam_center, already evaluated (then sh is not used)."""
+        `nets`: the student's networks by default. `sh` [N, K, 3]: the Gaussians' SH coefficients (for a colour model
+        that reads them); default: all the model's Gaussians. `base` [N, 3]: their SH colours from cam_center,
+        already evaluated (then sh is not used)."""
         nets = nets if nets is not None else self.appearance_nets
         assert nets is not None
-        if sh is None and base is None and nets.modulation is not None:
+        if sh is None and base is None and nets.color_model.reads_sh:
             sh = self.sh_coeffs()
         return self.color_path.cached_colors(nets, z, means, f_s, cam_center, self.color_context(), cacheable, sh, base)
 
@@ -258,7 +259,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
     ) -> tuple[Tensor, int | None, Tensor | None]:
         """(the colours to rasterise, the SH degree the rasteriser evaluates them at or None for RGB, the teacher's
         colours for its own rasterisation or None): appearance "sh": the Gaussians' SH (splats/gaussians.sh_colors);
-        training: the student's colours under this step's latent (`appearance_colors`; the modulation's residual
+        training: the student's colours under this step's latent (`appearance_colors`; the colour model's penalty
         goes to `outputs`), the teacher's (appearance/color_path.teacher_colors) as channels 3:6 when fused; a fixed
         appearance (no gradient): its baked SH (ColorPath.frame_sh) from its second frame on."""
         cfg = self.config
@@ -274,8 +275,10 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
                     return baked, degree, None
             return self.appearance_colors(z, means, f_s, center, cacheable=fixed, sh=sh_coeffs(gp)).rgb, None, None
         student = self.appearance_colors(z, means, f_s, center, sh=sh_coeffs(gp))
-        if student.residual is not None:
-            outputs["local_residual"] = student.residual
+        assert self.appearance_nets is not None
+        penalty = self.appearance_nets.color_model.penalty(student.prepared)
+        if penalty is not None:
+            outputs["color_penalty"] = penalty
         if teacher not in ("fused", "second"):
             return student.rgb, None, None
         assert self.teacher is not None

@@ -6,8 +6,8 @@
     bake (a fixed appearance, no gradient): those colours as SH coefficients [N, K, 3] that the rasteriser evaluates
     per frame like 3DGS; exact for the affine modulation, a least-squares fit over view directions otherwise.
 
-The two colour modes are the two implementations behind `AppearanceNetworks.gaussian_rgb`; this module adds what depends
-on the camera and the caches. The student's colours and the EMA teacher's (:func:`teacher_colors`) are the same
+The colour models behind `AppearanceNetworks.color_model` share one contract (appearance/color_model.py); this module
+calls only that contract and adds what depends on the camera and the caches. The student's colours and the EMA teacher's (:func:`teacher_colors`) are the same
 :func:`gaussian_colors`. :class:`ColorPath` holds the caches and nothing else: the networks, the Gaussians'
 tensors and the model's step arrive as arguments (:class:`ColorContext` for what every call shares).
 """
@@ -20,7 +20,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from willags_ns.appearance.modulation import ColorModulation
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.triplane import normalize_points
 from willags_ns.render.sh import sh_basis, sh_color
@@ -64,11 +63,12 @@ class GaussianColors(NamedTuple):
 
     rgb: Tensor
     """[N, 3] colours."""
-    residual: Tensor | None
-    """[N, 6] the modulation's per-Gaussian residual (its penalty), None without one."""
+    prepared: Tensor | None
+    """What the colour model prepared for this latent (ColorModel.prepare: the modulation's per-Gaussian residual),
+    which its penalty prices; None without."""
     sh_base: Tensor | None
-    """[N, 3] the Gaussians' own SH colours from the camera (color_mode='modulated'; the teacher colours the same
-    Gaussians from the same camera), None for the decoder."""
+    """[N, 3] the Gaussians' own SH colours from the camera (a colour model that reads them; the teacher colours the
+    same Gaussians from the same camera), None otherwise."""
 
 
 def gaussian_colors(
@@ -83,19 +83,17 @@ def gaussian_colors(
     base: Tensor | None = None,
 ) -> GaussianColors:
     """The colours of `nets` (the student's or the EMA teacher's) under latent z [D] for Gaussians at `means`
-    [N, 3] seen from `cam_center` [3], with their f_s [N, Fs] and the field's f_d [N, F] (or None). Modulated:
-    from the Gaussians' SH `sh` [N, K, 3] evaluated up to `sh_degree`, unless `base` [N, 3], those colours already
-    evaluated, is given."""
+    [N, 3] seen from `cam_center` [3], with their f_s [N, Fs] and the field's f_d [N, F] (or None). A colour model
+    that reads the Gaussians' SH gets their colours from the camera: `base` [N, 3] when given, else their SH `sh`
+    [N, K, 3] evaluated up to `sh_degree`."""
     dirs = means - cam_center[None, :]
-    if nets.modulation is None:
-        assert f_s is not None
-        return GaussianColors(nets.gaussian_rgb(z, f_d, f_s, dirs), None, None)
-    residual = nets.modulation.local_residual(z, f_s, f_d, means.shape[0])
-    if base is None:
+    model = nets.color_model
+    prepared = model.prepare(z, f_s, f_d, means.shape[0])
+    if model.reads_sh and base is None:
         if sh is None:
-            raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
+            raise ValueError(f"color_mode={nets.color_mode!r} needs the Gaussians' SH coefficients (sh=...)")
         base = sh_color(sh_degree, dirs, sh)
-    return GaussianColors(nets.gaussian_rgb(z, f_d, f_s, dirs, residual=residual, base=base), residual, base)
+    return GaussianColors(model.rgb(z, base, f_s, f_d, dirs, prepared), prepared, base if model.reads_sh else None)
 
 
 @torch.no_grad()
@@ -115,30 +113,6 @@ def teacher_colors(
     return gaussian_colors(teacher, z, means, f_s, f_d, cam_center, ctx.sh_degree, sh, sh_base).rgb
 
 
-def modulated_sh(
-    mod: ColorModulation, z: Tensor, means: Tensor, f_s, f_d, degree: int, active_degree: int, sh: Tensor
-) -> Tensor:
-    """The colour transform applied to the SH coefficients: with M_i = diag(1 + s_i) A and t_i = (1 + s_i) b + o_i,
-    c_i(d) = M_i (SH_i(d) + 0.5) + t_i = sum_k (M_i c_k) Y_k(d) + 0.5 + (M_i 0.5 + t_i - 0.5), the constant going
-    into the degree-0 coefficient (Y_0 = C0). Exact up to the clamps at 0 (base colour, final colour)."""
-    k_out = (degree + 1) ** 2
-    k_use = min(k_out, (active_degree + 1) ** 2, sh.shape[1])
-    A, b = mod.global_transform(z)
-    n = means.shape[0]
-    M = A.expand(n, 3, 3)
-    t = b.expand(n, 3)
-    residual = mod.local_residual(z, f_s, f_d, n)
-    if residual is not None:
-        scale = 1.0 + residual[:, :3]
-        M = scale[:, :, None] * M
-        t = scale * t + residual[:, 3:]
-    out = torch.zeros(n, k_out, 3, device=means.device, dtype=sh.dtype)
-    out[:, :k_use] = torch.einsum("nij,nkj->nki", M, sh[:, :k_use])
-    const = (M @ torch.full((3,), 0.5, device=means.device, dtype=M.dtype)) + t - 0.5
-    out[:, 0] += const / 0.28209479177387814  # SH_C0
-    return out
-
-
 def colors_over_directions(
     nets: AppearanceNetworks,
     z: Tensor,
@@ -150,12 +124,14 @@ def colors_over_directions(
     sh_degree: int,
 ) -> Iterator[Tensor]:
     """The appearance's colours [N, 3] seen from each of `dirs` [M, 3], one colour pass per direction (no
-    [M, N, 3] buffer). The local residual does not depend on the direction: computed once. The Gaussians' SH
-    `sh` feeds color_mode='modulated'; the decoder does not read it."""
-    mod = nets.modulation
-    residual = mod.local_residual(z, f_s, f_d, means.shape[0]) if mod is not None else None
+    [M, N, 3] buffer). What the colour model prepares per latent does not depend on the direction: computed once.
+    The Gaussians' SH `sh` feeds a colour model that reads them."""
+    model = nets.color_model
+    prepared = model.prepare(z, f_s, f_d, means.shape[0])
     for d in dirs:
-        yield nets.gaussian_rgb(z, f_d, f_s, d.expand_as(means), sh=sh, sh_degree=sh_degree, residual=residual)
+        view = d.expand_as(means)
+        base = sh_color(sh_degree, view, sh) if model.reads_sh and sh is not None else None
+        yield model.rgb(z, base, f_s, f_d, view, prepared)
 
 
 class ColorPath:
@@ -236,17 +212,15 @@ class ColorPath:
         appearance's colour. Cached per (latent, Gaussians); `key` is :meth:`sh_key` when the caller already has it
         (one host sync per frame, not two).
 
-        color_mode='modulated': exact (the colour is an affine map of the SH colour: the map is applied to the
-        coefficients). 'decoder', and 'modulated' with its gamma (not affine): the colours fitted by least squares
-        over RENDER_SH_SAMPLES directions."""
+        The colour model's exact SH where it has one (color_mode='modulated': the affine map of the SH colour applied to
+        the coefficients); otherwise ('decoder', 'modulated' with its gamma) the colours fitted by least squares over
+        RENDER_SH_SAMPLES directions."""
         key = self.sh_key(z, means, ctx, degree) if key is None else key
         if self.sh_cache is not None and self.sh_cache[0] == key:
             return self.sh_cache[1]
         f_d = self.dynamic_features(nets, z, means, ctx, cacheable=True)
-        if nets.modulation is not None and not nets.modulation.gamma:
-            assert sh is not None
-            coeffs = modulated_sh(nets.modulation, z, means, f_s, f_d, degree, ctx.sh_degree, sh)
-        else:
+        coeffs = nets.color_model.exact_sh(z, sh, f_s, f_d, degree, ctx.sh_degree) if sh is not None else None
+        if coeffs is None:
             dirs = fibonacci_directions(max(RENDER_SH_SAMPLES, 2 * (degree + 1) ** 2), means.device)  # [M, 3]
             proj = torch.linalg.pinv(sh_basis(dirs, degree))  # [K, M]: coefficients from samples
             coeffs = torch.zeros(means.shape[0], proj.shape[0], 3, device=means.device)

@@ -12,11 +12,13 @@ the sparse training directions. The basis: willags_ns/render/sh.py's `sh_basis` 
 """
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from willags_ns.appearance.color_model import ColorModel, GaussianLayout
 from willags_ns.render.sh import sh_basis
 
 
@@ -31,8 +33,33 @@ class ColorDecoderConfig:
     """Degree of the real SH encoding of the view direction (0..3; (degree + 1)**2 values)."""
 
 
-class ColorDecoder(nn.Module):
-    """T_color: ``[f_d, f_s, SH(view dir)] -> Linear-ReLU-Linear-ReLU-Linear -> sigmoid -> rgb`` in (0, 1)."""
+class ColorDecoder(ColorModel):
+    """T_color: ``[f_d, f_s, SH(view dir)] -> Linear-ReLU-Linear-ReLU-Linear -> sigmoid -> rgb`` in (0, 1): the colour
+    model of color_mode 'decoder' (appearance/color_model.py). Without the field (dynamic_dim 0) z joins f_s."""
+
+    @classmethod
+    def build(cls, cfg: Any, latent_dim: int, field_dim: int) -> "ColorDecoder":
+        """From the model config: f_d of the field (field_dim, 0 without it), f_s (intrinsic_dim) and, without the
+        field, z beside it."""
+        return cls(
+            dynamic_dim=field_dim,
+            intrinsic_dim=cfg.intrinsic_dim + (0 if field_dim > 0 else latent_dim),
+            hidden=cfg.decoder.hidden,
+            dir_sh_degree=cfg.decoder.dir_sh_degree,
+        )
+
+    @classmethod
+    def layout(cls, cfg: Any) -> GaussianLayout:
+        """f_s only (no SH: the colour is regressed), its first entries starting at the seed colour."""
+        return GaussianLayout(sh=False, intrinsic_dim=cfg.intrinsic_dim, seed_color_in_features=True)
+
+    def rgb(self, z, base, f_s, f_d, dirs, prepared) -> Tensor:
+        """:meth:`forward` of (f_d, f_s, dirs); without the field, f_s with z beside it (the "w/o field" ablation)."""
+        if f_s is None:
+            raise ValueError("color_mode='decoder' needs the Gaussians' intrinsic features f_s")
+        if self.dynamic_dim == 0:
+            f_s = torch.cat([f_s, z.expand(f_s.shape[0], -1)], dim=-1)
+        return self(f_d, f_s, dirs)
 
     def __init__(self, dynamic_dim: int = 32, intrinsic_dim: int = 32, hidden: int = 64, dir_sh_degree: int = 2):
         super().__init__()

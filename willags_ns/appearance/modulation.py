@@ -23,10 +23,14 @@ same degree; with it, the bake is a least-squares fit over view directions (as f
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from jaxtyping import Float
 from torch import Tensor, nn
+
+from willags_ns.appearance.color_model import ColorModel, GaussianLayout
+from willags_ns.render.sh import SH_C0
 
 
 @dataclass
@@ -65,8 +69,11 @@ GAMMA_FLOOR = 1e-3
 """Base colours are floored here before the gamma (1e-3^3 = 1e-9: black stays black within 8-bit precision)."""
 
 
-class ColorModulation(nn.Module):
-    """(z, base colours, f_s, f_d) -> colours. See the module docstring for the formula."""
+class ColorModulation(ColorModel):
+    """(z, base colours, f_s, f_d) -> colours: the colour model of color_mode 'modulated' (appearance/color_model.py).
+    See the module docstring for the formula."""
+
+    reads_sh = True
 
     def __init__(self, latent_dim: int, intrinsic_dim: int, dynamic_dim: int, cfg: ColorModulationConfig):
         super().__init__()
@@ -76,6 +83,7 @@ class ColorModulation(nn.Module):
         self.dynamic_dim = dynamic_dim
         self.residual_chunk = cfg.residual_chunk
         self.gamma = cfg.gamma
+        self.penalty_weight = cfg.local_penalty
         self.global_mlp = nn.Sequential(
             nn.Linear(latent_dim, cfg.global_hidden), nn.ReLU(), nn.Linear(cfg.global_hidden, 15 if cfg.gamma else 12)
         )
@@ -90,6 +98,43 @@ class ColorModulation(nn.Module):
             self.local_mlp = nn.Sequential(nn.Linear(d_in, cfg.local_hidden), nn.ReLU(), nn.Linear(cfg.local_hidden, 6))
             nn.init.zeros_(self.local_mlp[-1].weight)
             nn.init.zeros_(self.local_mlp[-1].bias)
+
+    @classmethod
+    def build(cls, cfg: Any, latent_dim: int, field_dim: int) -> "ColorModulation":
+        """From the model config: f_s of the local residual (intrinsic_dim, when modulation.local), the field's
+        feature when the field is on."""
+        if field_dim > 0 and not cfg.modulation.local:
+            raise ValueError(
+                "willags: use_field=True with color_mode='modulated' needs modulation.local=True (the tri-plane "
+                "feature feeds the per-Gaussian residual); set --pipeline.model.use-field False or "
+                "--pipeline.model.modulation.local True"
+            )
+        return cls(latent_dim, cfg.intrinsic_dim if cfg.modulation.local else 0, field_dim, cfg.modulation)
+
+    @classmethod
+    def layout(cls, cfg: Any) -> GaussianLayout:
+        """The Gaussians' own SH (the base colour) and, with the local residual, its f_s."""
+        return GaussianLayout(sh=True, intrinsic_dim=cfg.intrinsic_dim if cfg.modulation.local else 0)
+
+    def prepare(self, z: Tensor, f_s: Tensor | None, f_d: Tensor | None, n: int) -> Tensor | None:
+        """The local residual [N, 6] (:meth:`local_residual`), None without one."""
+        return self.local_residual(z, f_s, f_d, n)
+
+    def rgb(self, z, base, f_s, f_d, dirs, prepared) -> Tensor:
+        """:meth:`forward` of the base colours, clamped at 0 as gsplat clamps SH colours, so that the exact render
+        and the SH bake agree."""
+        if base is None:
+            raise ValueError("color_mode='modulated' needs the Gaussians' SH colours (base=...)")
+        return self(z, base, f_s, f_d, residual=prepared).clamp_min(0.0)
+
+    def penalty(self, prepared: Tensor | None) -> Tensor | None:
+        """local_penalty x mean(s^2 + o^2) of the local residual (None without one, or with a zero weight)."""
+        pen = local_penalty(prepared)
+        return None if pen is None or self.penalty_weight <= 0 else self.penalty_weight * pen
+
+    def exact_sh(self, z, sh, f_s, f_d, degree: int, active_degree: int) -> Tensor | None:
+        """The transform applied to the SH coefficients (:func:`modulated_sh`); None with the gamma (not affine)."""
+        return None if self.gamma else modulated_sh(self, z, f_s, f_d, degree, active_degree, sh)
 
     def global_params(self, z: Float[Tensor, " D"]) -> tuple[Tensor, Tensor, Tensor | None]:
         """(A, b, g) of latent z from one pass of the global MLP: A = I + dA; g the per-channel gamma (None when
@@ -217,6 +262,28 @@ class LocalResidualMLP(torch.autograd.Function):
             gb2 = g.sum(0) if need_b2 else None
         grads = (gf, gw1, gh0, gw2, gb2)
         return (*(None if gr is None else gr.to(dt) for gr, dt in zip(grads, ctx.dtypes, strict=True)), None)
+
+
+def modulated_sh(mod: ColorModulation, z: Tensor, f_s, f_d, degree: int, active_degree: int, sh: Tensor) -> Tensor:
+    """The colour transform applied to the SH coefficients: with M_i = diag(1 + s_i) A and t_i = (1 + s_i) b + o_i,
+    c_i(d) = M_i (SH_i(d) + 0.5) + t_i = sum_k (M_i c_k) Y_k(d) + 0.5 + (M_i 0.5 + t_i - 0.5), the constant going
+    into the degree-0 coefficient (Y_0 = C0). Exact up to the clamps at 0 (base colour, final colour)."""
+    k_out = (degree + 1) ** 2
+    k_use = min(k_out, (active_degree + 1) ** 2, sh.shape[1])
+    A, b = mod.global_transform(z)
+    n = sh.shape[0]
+    M = A.expand(n, 3, 3)
+    t = b.expand(n, 3)
+    residual = mod.local_residual(z, f_s, f_d, n)
+    if residual is not None:
+        scale = 1.0 + residual[:, :3]
+        M = scale[:, :, None] * M
+        t = scale * t + residual[:, 3:]
+    out = torch.zeros(n, k_out, 3, device=sh.device, dtype=sh.dtype)
+    out[:, :k_use] = torch.einsum("nij,nkj->nki", M, sh[:, :k_use])
+    const = (M @ torch.full((3,), 0.5, device=sh.device, dtype=M.dtype)) + t - 0.5
+    out[:, 0] += const / SH_C0
+    return out
 
 
 def local_penalty(residual: Tensor | None) -> Tensor | None:

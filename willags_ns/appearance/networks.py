@@ -10,15 +10,35 @@ Per-Gaussian tensors (means, SH, f_s) live in the model's gauss_params, so densi
 
 from typing import Any, Protocol
 
-import torch
 from torch import Tensor, nn
 
+from willags_ns.appearance.color_model import ColorModel, GaussianLayout
 from willags_ns.appearance.decoder import ColorDecoder, ColorDecoderConfig
 from willags_ns.appearance.modulation import ColorModulation, ColorModulationConfig
 from willags_ns.appearance.sky import SkyConfig, SkyModel
 from willags_ns.appearance.triplane import TriplaneConfig, TriplaneHyperField
 from willags_ns.appearance.vae import AppearanceVAE
-from willags_ns.render.sh import sh_color
+
+COLOR_MODELS: dict[str, tuple[str, type[ColorModel]]] = {
+    "modulated": ("modulation", ColorModulation),
+    "decoder": ("color", ColorDecoder),
+}
+"""color_mode -> (the attribute of AppearanceNetworks that holds the model, its class): every colour model
+(appearance/color_model.py). A new one is a module with its ColorModel subclass, a line here and its config group."""
+
+
+def color_model_class(color_mode: str) -> type[ColorModel]:
+    if color_mode not in COLOR_MODELS:
+        raise ValueError(f"willags: color_mode must be one of {', '.join(COLOR_MODELS)}, got {color_mode!r}")
+    return COLOR_MODELS[color_mode][1]
+
+
+def gaussian_layout(cfg: Any) -> GaussianLayout:
+    """The per-Gaussian tensors the model config `cfg` needs (splats/gaussians.initial_gauss_params builds them):
+    its colour model's, or SH alone for plain 3DGS colours (appearance 'sh')."""
+    if cfg.appearance == "sh":
+        return GaussianLayout(sh=True, intrinsic_dim=0)
+    return color_model_class(cfg.color_mode).layout(cfg)
 
 
 class LatentSettings(Protocol):
@@ -58,12 +78,7 @@ class AppearanceNetworks(nn.Module):
         d = lat.dim
         self.latent_dim = d
         self.color_mode = cfg.color_mode
-        if cfg.color_mode == "modulated" and cfg.use_field and not cfg.modulation.local:
-            raise ValueError(
-                "willags: use_field=True with color_mode='modulated' needs modulation.local=True (the tri-plane "
-                "feature feeds the per-Gaussian residual); set --pipeline.model.use-field False or "
-                "--pipeline.model.modulation.local True"
-            )
+        color_model_class(cfg.color_mode)  # an unknown colour model stops here, before any network is built
         if lat.kind not in ("embedding", "vae"):
             raise ValueError(f"willags: latent.kind must be 'embedding' or 'vae', got {lat.kind!r}")
         self.vae = (
@@ -91,20 +106,15 @@ class AppearanceNetworks(nn.Module):
         self.sky = SkyModel(d, cfg.sky) if (cfg.sky.enabled if with_sky is None else with_sky) else None
         self.color: ColorDecoder | None = None
         self.modulation: ColorModulation | None = None
-        if cfg.color_mode == "decoder":
-            self.color = ColorDecoder(
-                dynamic_dim=tp.feature_dim if cfg.use_field else 0,
-                intrinsic_dim=cfg.intrinsic_dim + (0 if cfg.use_field else d),
-                hidden=cfg.decoder.hidden,
-                dir_sh_degree=cfg.decoder.dir_sh_degree,
-            )
-        else:
-            self.modulation = ColorModulation(
-                latent_dim=d,
-                intrinsic_dim=cfg.intrinsic_dim if cfg.modulation.local else 0,
-                dynamic_dim=tp.feature_dim if cfg.use_field else 0,
-                cfg=cfg.modulation,
-            )
+        name, model_cls = COLOR_MODELS[cfg.color_mode]
+        # under its own attribute: the checkpoints' parameter names (appearance_nets.modulation.*, ...color.*)
+        setattr(self, name, model_cls.build(cfg, d, tp.feature_dim if cfg.use_field else 0))
+        self.color_model_name = name
+
+    @property
+    def color_model(self) -> ColorModel:
+        """The colour model (appearance/color_model.py) of color_mode."""
+        return getattr(self, self.color_model_name)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         """Optimiser groups: "appearance" (the shared networks) and, for an embedding table, "appearance_embed": a
@@ -136,30 +146,3 @@ class AppearanceNetworks(nn.Module):
         if self.field is None:
             return None
         return self.field(z, xyz_norm)
-
-    def gaussian_rgb(
-        self,
-        z: Tensor,
-        f_d: Tensor | None,
-        f_s: Tensor | None,
-        dirs: Tensor,
-        sh: Tensor | None = None,
-        sh_degree: int = 0,
-        residual: Tensor | None = None,
-        base: Tensor | None = None,
-    ) -> Tensor:
-        """Per-Gaussian RGB [N, 3] from f_d [N, F] (or None), f_s [N, Fs] (or None), view directions [N, 3] and,
-        for color_mode='modulated', the Gaussians' SH coefficients sh [N, K, 3] evaluated up to sh_degree
-        (``residual``: a precomputed local residual, see ColorModulation.forward; ``base``: the SH colours
-        already evaluated, which then replace sh)."""
-        if self.modulation is not None:
-            if base is None:
-                if sh is None:
-                    raise ValueError("color_mode='modulated' needs the Gaussians' SH coefficients (sh=...)")
-                base = sh_color(sh_degree, dirs, sh)  # gsplat's SH colour
-            # clamped like gsplat clamps SH colours, so the exact render and the SH bake agree
-            return self.modulation(z, base, f_s, f_d, residual=residual).clamp_min(0.0)
-        assert self.color is not None and f_s is not None
-        if self.field is None:
-            f_s = torch.cat([f_s, z.expand(f_s.shape[0], -1)], dim=-1)  # the "w/o field" ablation
-        return self.color(f_d, f_s, dirs)

@@ -3,7 +3,7 @@
     loss = reconstruction (losses.py, masked by the transient mask)
          + latent.vae.weight * L_VAE        the beta-VAE of the step's photo        appearance/latents.py, vae.py
          + sky.alpha_penalty * mean alpha   where the sky alone explains the photo  appearance/sky.py
-         + modulation.local_penalty * mean(s^2 + o^2)   the per-Gaussian residual   appearance/modulation.py
+         + the colour model's penalty (the modulation's: local_penalty * mean(s^2 + o^2))  appearance/color_model.py
          + splatfacto's scale penalty (every 10th step)                              losses.py
          + mcmc.opacity_reg * mean opacity + mcmc.scale_reg * mean scale (MCMC)     splats/mcmc.py
 
@@ -16,7 +16,6 @@ from jaxtyping import Float
 from torch import Tensor
 
 from willags_ns.appearance.latents import latent_loss
-from willags_ns.appearance.modulation import local_penalty
 from willags_ns.appearance.sky import background_alpha_penalty
 from willags_ns.appearance.vae import AppearanceVAE
 from willags_ns.objective.losses import scale_regularization
@@ -39,12 +38,13 @@ def regularization_terms(
     photo for the logs (or None): ``(terms, metrics, recon)``.
 
     ``cfg``: the model's config (WillagsModelConfig); ``outputs``: the step's render with its intermediates
-    (``latent``, ``latent_mu``, ``latent_logvar``, ``vae_in`` of a VAE latent, ``local_residual``: WillagsModel's
+    (``latent``, ``latent_mu``, ``latent_logvar``, ``vae_in`` of a VAE latent, ``color_penalty``: WillagsModel's
     get_outputs). In the order the trainer sums them (the order of a float sum sets its last bits):
 
     - ``vae_loss``: latent.vae.weight * L_VAE of the step's photo (training with the VAE; metrics ``vae_kl``, ``vae_recon``);
     - ``sky_alpha``: sky.alpha_penalty * the mean alpha over pixels the sky alone reproduces (training with a sky);
-    - ``appearance_local``: modulation.local_penalty * mean(s^2 + o^2) of the student's local residual (training);
+    - ``appearance_local``: the colour model's weighted penalty of the step (ColorModel.penalty: the modulation's
+      local_penalty * mean(s^2 + o^2) of its per-Gaussian residual; training);
     - ``scale_reg``: splatfacto's needle penalty on every 10th step (use_scale_regularization, training or not);
     - ``mcmc_reg``: MCMC densification's opacity and scale penalties (``mcmc``: the model densifies by MCMC; training).
     """
@@ -64,9 +64,8 @@ def regularization_terms(
         pen_sky = background_alpha_penalty(acc, gt_img, bg, cfg.sky.alpha_tol, mask)
         if pen_sky is not None:
             terms["sky_alpha"] = cfg.sky.alpha_penalty * pen_sky
-    pen = local_penalty(outputs.get("local_residual")) if training else None
-    if pen is not None and cfg.modulation.local_penalty > 0:
-        terms["appearance_local"] = cfg.modulation.local_penalty * pen
+    if training and outputs.get("color_penalty") is not None:  # the colour model's own term (ColorModel.penalty)
+        terms["appearance_local"] = outputs["color_penalty"]
     if cfg.use_scale_regularization and step % 10 == 0:
         terms["scale_reg"] = scale_regularization(log_scales, cfg.max_gauss_ratio)
     if training and mcmc:

@@ -33,11 +33,12 @@ def initial_points(cfg, seed_points) -> tuple[Tensor, Tensor | None]:
 
 
 def initial_gauss_params(
-    cfg, means: Tensor, seed_rgb: Tensor | None, avg_dist: Tensor, mcmc: bool = False
+    cfg, means: Tensor, seed_rgb: Tensor | None, avg_dist: Tensor, layout, mcmc: bool = False
 ) -> dict[str, Parameter]:
     """The Gaussians' parameters at initialisation (splatfacto's rule: isotropic scales from the mean distance
-    `avg_dist` [N, 1] to the 3 nearest points, random rotations, opacity 0.1), and their colour parameters:
-    SH for appearance='sh' and color_mode='modulated' (plus f_s of the local residual), f_s for the decoder."""
+    `avg_dist` [N, 1] to the 3 nearest points, random rotations, opacity 0.1), and the colour parameters `layout`
+    names (`sh`, `intrinsic_dim` and `initial_features(n, seed_rgb)`: appearance/color_model.GaussianLayout, which
+    the model takes from its colour model, appearance/networks.gaussian_layout)."""
     n = means.shape[0]
     opacity, scale = initial_opacity_and_scale(cfg, avg_dist, mcmc)  # splatfacto's, or MCMC's (cfg.mcmc)
     params = {
@@ -46,7 +47,7 @@ def initial_gauss_params(
         "quats": Parameter(random_quat_tensor(n)),
         "opacities": Parameter(torch.logit(opacity * torch.ones(n, 1))),
     }
-    if cfg.appearance == "sh" or cfg.color_mode == "modulated":  # 3DGS colours (modulated: the base colour)
+    if layout.sh:  # 3DGS colours (a colour model's base colour, or plain 3DGS)
         dim_sh = num_sh_bases(cfg.sh_degree)
         shs = torch.zeros((n, dim_sh, 3))
         if seed_rgb is not None:
@@ -57,14 +58,8 @@ def initial_gauss_params(
             shs[:, 0, :] = torch.rand(n, 3)
         params["features_dc"] = Parameter(shs[:, 0, :].contiguous())
         params["features_rest"] = Parameter(shs[:, 1:, :].contiguous())
-        if cfg.appearance == "willags" and cfg.modulation.local and cfg.intrinsic_dim > 0:
-            params["features"] = Parameter(0.1 * torch.randn(n, cfg.intrinsic_dim))  # f_s of the residual
-    else:
-        # f_s starts small and random; its first 3 entries carry the seed colour (centred), which gives the
-        # colour decoder an easy first solution without changing the method.
-        f_s = 0.1 * torch.randn(n, cfg.intrinsic_dim)
-        if seed_rgb is not None and cfg.intrinsic_dim >= 3:
-            f_s[:, :3] = seed_rgb * 2.0 - 1.0
+    f_s = layout.initial_features(n, seed_rgb)
+    if f_s is not None:
         params["features"] = Parameter(f_s)
     return params
 
