@@ -61,7 +61,7 @@ from willags_ns.mask.transient import PerceptualFeatures
 from willags_ns.objective.losses import reconstruction_loss
 from willags_ns.objective.regularizers import regularization_terms
 from willags_ns.render.camera import View, camera_view
-from willags_ns.splats.export import SplatExport
+from willags_ns.appearance.export import SplatExport
 from willags_ns.splats.gaussians import (
     active_sh_degree,
     densification_strategy,
@@ -80,7 +80,7 @@ __all__ = ["WillagsModel"]
 
 class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
     """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Three mixins carry public
-    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: splats.export.SplatExport), the
+    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: appearance.export.SplatExport), the
     latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...:
     appearance/latents.LatentFace) and the mask's (`update_teacher`, `static_support`, `sfm_observations`, the
     teacher's second rasterisation, ...: mask.step.MaskFace)."""

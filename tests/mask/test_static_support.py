@@ -5,11 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY, train_observations
+from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY, grid_shape, train_observations
 from willags_ns.mask.static_support import (
     StaticSupportConfig,
     apply_support,
-    grid_shape,
     masked_share,
     observations_masked,
     support_map,
@@ -134,7 +133,7 @@ def test_transforms_scenes_have_no_tracks(shared_data, scene):
 
 
 def test_open_background_is_what_hangs_above_the_skyline():
-    from willags_ns.mask.static_support import open_background_map
+    from willags_ns.data.sfm_tracks import open_background_map
 
     rng = np.random.default_rng(0)
     # a "building" of keypoints filling rows 0.4-0.7 of the image across its width, nothing below or above

@@ -31,7 +31,7 @@ from jaxtyping import Float
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 
-from willags_ns.mask.static_support import open_background_map, support_at
+from willags_ns.data.sfm_tracks import open_background_map, support_at
 from willags_ns.render.sh import homogeneous_monomials, monomial_to_sh, num_sh_bases
 
 
@@ -51,7 +51,7 @@ class SkyConfig:
     """Weight of the mean accumulated alpha over pixels that the background alone reproduces (0 = off)."""
     region: Literal["everywhere", "open"] = "open"
     """Where the sky is composited while training. "everywhere": behind every pixel. "open": only above the scene's
-    skyline in each training photo (cells above the first SfM keypoint of each column, static_support
+    skyline in each training photo (cells above the first SfM keypoint of each column, data/sfm_tracks
     .open_background_map; COLMAP scenes), splatfacto's random background elsewhere, so the Gaussians of the scene
     stay opaque: with the sky everywhere and no alpha penalty, Gaussians of a near background (the fox scenes' wall)
     turn transparent and the sky paints it (docs/inspect.md). Rendering and the NeRF-W protocol use the sky behind
@@ -128,7 +128,7 @@ def background_alpha_penalty(
 
 class OpenRegions:
     """Per training image, where the learnt sky shows while training with ``region="open"``: the cells above the
-    scene's skyline (static_support.open_background_map of the image's SfM keypoints), built once per image."""
+    scene's skyline (data/sfm_tracks.open_background_map of the image's SfM keypoints), built once per image."""
 
     def __init__(self, observations: list | None):
         self.observations = observations

@@ -18,6 +18,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
+import torch.nn.functional as F
+from jaxtyping import Bool
+from torch import Tensor
 
 SFM_OBSERVATIONS_KEY = "sfm_observations"
 """DataparserOutputs.metadata key: a list (one entry per training image, in image order) of float32 arrays [n, 3]
@@ -67,3 +71,52 @@ def train_observations(
         uv = xy / np.asarray([w, h], dtype=np.float64)
         out.append(np.concatenate([uv, track[:, None]], axis=1).astype(np.float32))
     return out
+
+
+# the observations on a coarse grid of each image: the mask's safeguard (mask/static_support.py) and the sky's
+# open background (appearance/sky.py)
+
+
+def grid_shape(width: int, height: int, grid: int) -> tuple[int, int]:
+    """(rows, cols) of the support grid of a width x height image: `grid` cells along the longer side."""
+    if width >= height:
+        return max(1, round(grid * height / width)), grid
+    return grid, max(1, round(grid * width / height))
+
+
+def cell_counts(obs: np.ndarray, rows: int, cols: int, min_track: float = 0) -> Tensor:
+    """[rows, cols] counts of the observations `obs` [n, 3] = (u, v, track length) with track >= `min_track` that
+    fall inside the image, on a rows x cols grid."""
+    counts = torch.zeros(rows, cols)
+    if not len(obs):
+        return counts
+    o = torch.as_tensor(obs, dtype=torch.float32)
+    o = o[(o[:, 2] >= min_track) & (o[:, 0] >= 0) & (o[:, 0] < 1) & (o[:, 1] >= 0) & (o[:, 1] < 1)]
+    r = (o[:, 1] * rows).long().clamp_(0, rows - 1)
+    c = (o[:, 0] * cols).long().clamp_(0, cols - 1)
+    return counts.view(-1).index_add_(0, r * cols + c, torch.ones(len(o))).view(rows, cols)
+
+
+def support_at(support: Bool[Tensor, "rows cols"], height: int, width: int) -> Bool[Tensor, "H W"]:
+    """The support map at an image resolution (nearest cell)."""
+    return F.interpolate(support[None, None].float(), size=(height, width), mode="nearest")[0, 0] > 0.5
+
+
+def open_background_map(obs: np.ndarray, width: int, height: int, grid: int = 32) -> Bool[Tensor, "rows cols"]:
+    """Cells [rows, cols] of one image above the scene's skyline: in each column, the cells above the first cell
+    that an SfM observation covers (any track length; covered cells dilated by one). A column without any covered
+    cell takes the median skyline of the others; an image without observations has no open cells.
+
+    What hangs above everything SfM reconstructed is open sky or far background. A textureless plaza, a lawn or a
+    crowd below the horizon has no points either, but it lies under the scene's covered cells in its column and is
+    not open. The sky's region option (appearance/sky.py) composites the learnt sky only here while training,
+    keeping splatfacto's random background (which forces the Gaussians to be opaque) everywhere else."""
+    rows, cols = grid_shape(width, height, grid)
+    covered = (cell_counts(obs, rows, cols) > 0).float()
+    covered = F.max_pool2d(covered[None, None], 3, stride=1, padding=1)[0, 0] > 0
+    has = covered.any(dim=0)  # [cols]
+    if not bool(has.any()):
+        return torch.zeros(rows, cols, dtype=torch.bool)
+    top = covered.float().argmax(dim=0)  # first covered row of each column
+    top = torch.where(has, top, top[has].median())
+    return torch.arange(rows)[:, None] < top[None, :]
