@@ -40,6 +40,7 @@ from torch import Tensor, nn
 from torch.nn import Parameter
 
 from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors, teacher_colors
+from willags_ns.appearance.export import SplatExport
 from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.networks import AppearanceNetworks, gaussian_layout
 from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
@@ -61,7 +62,6 @@ from willags_ns.mask.transient import PerceptualFeatures
 from willags_ns.objective.losses import reconstruction_loss
 from willags_ns.objective.regularizers import regularization_terms
 from willags_ns.render.camera import View, camera_view
-from willags_ns.appearance.export import SplatExport
 from willags_ns.splats.gaussians import (
     active_sh_degree,
     densification_strategy,
