@@ -217,7 +217,8 @@ def test_row_u8_export_needs_only_the_run_not_the_photos(project, tmp_path, monk
 
 def test_row_u9_a_missing_scene_is_one_line_without_an_auto_config_note(tmp_path):
     """`ns-train willags --data <a path that does not exist>`: the dataparser's line names the path; no line before it
-    says that training goes on with the method's own configuration."""
+    says that training goes on with the method's own configuration, or where the run that never starts would have
+    written its checkpoints and config.yml: that line is all (beside nerfstudio's note on the --data alias)."""
     import os
     import subprocess
 
@@ -236,6 +237,8 @@ def test_row_u9_a_missing_scene_is_one_line_without_an_auto_config_note(tmp_path
     assert f"{nowhere} does not exist" in text
     assert "auto-config" not in text and "training with the method's own configuration" not in text
     assert not (tmp_path / "out").exists()
+    said = [ln for ln in text.splitlines() if ln.strip() and "Using --data alias" not in ln]
+    assert len(said) == 1 and said[0].startswith("willags: ") and str(nowhere) in said[0], text
 
 
 def test_row_u9_ns_train_starts_readably_and_a_bad_scene_leaves_no_run_folder(scene, tmp_path):  # noqa: F811

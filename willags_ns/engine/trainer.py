@@ -67,7 +67,7 @@ BUDGET_FILE = "time_budget.json"
 
 
 _SAVE_AFTER_SETUP: set[int] = set()
-"""ids of configs whose ns-train start printed one line instead of the whole configuration: config.yml is written
+"""ids of configs whose ns-train start printed nothing instead of the whole configuration: config.yml is written
 once the scene has been read (WillagsTrainer.setup), so a run that never starts leaves no run folder."""
 
 
@@ -75,20 +75,14 @@ once the scene has been read (WillagsTrainer.setup), so a run that never starts 
 class WillagsTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py).
 
-    At ns-train's start the configuration (some 350 lines) is not printed: one line says where config.yml will hold
-    it, and config.yml is written after the scene has been read, so a bad --data leaves no run folder behind."""
+    At ns-train's start the configuration (some 350 lines) is not printed: config.yml is written after the scene has
+    been read, and one line then says where it is, so a bad --data leaves no run folder behind and nothing is said
+    about a run that never starts."""
 
     _target: type = field(default_factory=lambda: WillagsTrainer)
 
     def print_to_terminal(self) -> None:
         _SAVE_AFTER_SETUP.add(id(self))
-        CONSOLE.print(
-            f"willags: training {self.method_name}; every setting is written to {self.get_base_dir() / 'config.yml'} "
-            "once the scene has been read (ns-train willags --help explains each)",
-            soft_wrap=True,
-            markup=False,
-            highlight=False,
-        )
 
     def save_config(self) -> None:
         if id(self) in _SAVE_AFTER_SETUP:  # ns-train's save right after print_to_terminal: WillagsTrainer.setup saves
@@ -208,6 +202,17 @@ class WillagsTrainer(Trainer):
     clock: Callable[[], float] = staticmethod(time.monotonic)  # type: ignore[assignment]
     """Wall clock of the timed saves and the time budget (tests replace it)."""
 
+    def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        # nerfstudio's constructor prints "Saving checkpoints to: <run folder>" and a note on mixed precision before
+        # the scene has been read: a run that will not start (a bad --data) would be announced. The folder is named
+        # when training starts (train()), with the save cadence and the resume file
+        quiet = CONSOLE.quiet
+        CONSOLE.quiet = True
+        try:
+            super().__init__(config, local_rank, world_size)
+        finally:
+            CONSOLE.quiet = quiet
+
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         install_cli_excepthook()  # a bad budget prints one line, as bad inputs do
         validate_rates(self.config.lr_scale, self.config.lr_cooldown, self.config.lr_cooldown_floor)
@@ -250,6 +255,13 @@ class WillagsTrainer(Trainer):
         if getattr(self, "_save_config_when_built", False):
             self._save_config_when_built = False
             self.config.save_config()
+            CONSOLE.print(
+                f"willags: training {self.config.method_name}; every setting is in {self.base_dir / 'config.yml'} "
+                "(ns-train willags --help explains each)",
+                soft_wrap=True,
+                markup=False,
+                highlight=False,
+            )
         return optimizers
 
     # ---- checkpoints
