@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from tests.test_reliability_faults import _config, scene  # noqa: F401 - the module's 8+2-image scene fixture
-from willags_ns.engine.checkpoints import CheckpointError, list_checkpoints
+from willags_ns.engine.checkpoints import CheckpointError, checkpoint_step, list_checkpoints
 
 pytestmark = pytest.mark.slow
 
@@ -358,3 +358,51 @@ def test_row_u9_ctrl_c_after_training_closes_the_viewer_in_one_line(scene, tmp_p
     assert len(closed) == 1, rest[-3000:]
     (cfg,) = out.rglob("config.yml")
     assert closed[0].endswith(str(cfg)) and list((cfg.parent / "nerfstudio_models").glob("step-000000001.ckpt"))
+
+
+def test_row_u11_an_export_of_a_damaged_only_checkpoint_writes_nothing(project, tmp_path):
+    """willags-export whose only checkpoint is truncated: one line naming it, and no output folder left behind (the
+    folder it made, empty); a folder that existed before is kept."""
+    from willags_ns.scripts.export import ExportGaussianSplat
+
+    copy_cfg = _copy_of(project, tmp_path / "copy")
+    ckpts = list_checkpoints(copy_cfg.parent / "nerfstudio_models")
+    for p in ckpts[1:]:
+        p.unlink()
+    ckpts[0].write_bytes(ckpts[0].read_bytes()[:5000])
+    out = tmp_path / "exports" / "trunc"
+    with pytest.raises(CheckpointError, match=re.escape(str(ckpts[0]))):
+        ExportGaussianSplat(load_config=copy_cfg, output_dir=out).main()
+    assert not (tmp_path / "exports").exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    with pytest.raises(CheckpointError):
+        ExportGaussianSplat(load_config=copy_cfg, output_dir=mine).main()
+    assert mine.is_dir()
+
+
+def test_row_u11_an_export_past_a_damaged_newest_checkpoint_warns_once_and_names_the_step(project, tmp_path):
+    """willags-export whose newer of two checkpoints is truncated: the real command says so in one line (not also
+    as a Python UserWarning with its source line) and the line naming the PLY names the step exported."""
+    import os
+    import subprocess
+    import sys
+
+    copy_cfg = _copy_of(project, tmp_path / "copy")
+    newest, older = list_checkpoints(copy_cfg.parent / "nerfstudio_models")[:2]
+    newest.write_bytes(newest.read_bytes()[:5000])
+    exe = Path(sys.executable).with_name("willags-export")
+    out = tmp_path / "exports"
+    res = subprocess.run(
+        [str(exe), "--load-config", str(copy_cfg), "--output-dir", str(out)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "400"},
+        timeout=600,
+    )
+    text = res.stdout + res.stderr
+    assert res.returncode == 0, text[-3000:]
+    assert len([ln for ln in text.splitlines() if newest.name in ln]) == 1, text
+    assert "Warning" not in text, text
+    (wrote,) = [ln for ln in text.splitlines() if "wrote" in ln and "splat.ply" in ln]
+    assert f"step {checkpoint_step(older)}" in wrote, wrote
