@@ -406,3 +406,27 @@ def test_row_u11_an_export_past_a_damaged_newest_checkpoint_warns_once_and_names
     assert "Warning" not in text, text
     (wrote,) = [ln for ln in text.splitlines() if "wrote" in ln and "splat.ply" in ln]
     assert f"step {checkpoint_step(older)}" in wrote, wrote
+
+
+def test_row_u12_a_test_photo_as_image_spec_is_named_with_the_spec_that_fits(appearance_run, tmp_path):
+    """willags-render --appearance image:NAME where NAME is one of the run's test photos: refused in one line that
+    says it is a test photo and gives photo:PATH, which renders."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from willags_ns.scripts import render
+
+    cfg, names, _ = appearance_run
+    _, pipeline, _, _ = eval_setup(cfg, test_mode="inference")
+    test_photo = Path(pipeline.datamanager.eval_dataset.image_filenames[0])
+    assert test_photo.name not in names
+    opts = dict(split="test", rendered_output_names=["rgb"])
+    with pytest.raises(SystemExit) as info:
+        render.DatasetRender(
+            load_config=cfg, output_path=tmp_path / "r", appearance=f"image:{test_photo.name}", **opts
+        ).main()
+    message = str(info.value.code)
+    assert "\n" not in message and "test photo" in message, message
+    (spec,) = re.findall(r"photo:\S+", message)
+    assert Path(spec.removeprefix("photo:")).resolve() == test_photo.resolve()
+    render.DatasetRender(load_config=cfg, output_path=tmp_path / "ok", appearance=spec, refine_steps=2, **opts).main()
+    assert sorted((tmp_path / "ok").rglob("*.jpg")) + sorted((tmp_path / "ok").rglob("*.png"))

@@ -337,6 +337,9 @@ class WillagsPipeline(VanillaPipeline):
         names = [Path(p).name for p in self.datamanager.train_dataparser_outputs.image_filenames]
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
+        eval_dataset = getattr(self.datamanager, "eval_dataset", None)
+        if eval_dataset is not None and hasattr(self.model, "set_test_photos"):
+            self.model.set_test_photos([str(p) for p in eval_dataset.image_filenames])
         self._last_mask_warning = -float("inf")
         self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
         if getattr(self.model, "appearance_nets", None) is not None:
