@@ -2,6 +2,7 @@
 loads from any working directory and only ever its own checkpoints, big photos, renders without ffmpeg, render
 and export options that mean what they say, a readable start of ns-train. Each test names its row."""
 
+import contextlib
 import re
 import shutil
 from pathlib import Path
@@ -321,31 +322,36 @@ def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path)
     assert proc.returncode == 130 and "willags: stopped (Ctrl-C)" in err, (proc.returncode, err[-3000:])
 
 
-@pytest.mark.timing
-def test_row_u9_ctrl_c_after_training_closes_the_viewer_in_one_line(scene, tmp_path):  # noqa: F811
-    """ns-train with the viewer waits after training ("Use ctrl+c to quit"); that Ctrl-C ends it with one line and
-    exit status 0, the run complete, no traceback."""
-    import signal
+def _free_port() -> int:
     import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.timing
+def test_row_u9_ctrl_c_on_a_viewer_kept_after_training_closes_it_in_one_line(scene, tmp_path):  # noqa: F811
+    """ns-train --viewer.quit-on-train-completion False keeps the viewer after training, saying so in one line with
+    the way out; that Ctrl-C ends it with one line and exit status 0, the run complete, no traceback."""
+    import signal
     import subprocess
 
     from tests.test_reliability import _ns_train
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     out = tmp_path / "outputs"
-    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--viewer.websocket-port", str(port)]
+    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--viewer.websocket-port", str(_free_port())]
     args += ["--max-num-iterations", "2", "--pipeline.model.mask.vgg-weights", "seeded"]
+    args += ["--viewer.quit-on-train-completion", "False"]
     proc = _as_from_a_terminal(_ns_train(args), tmp_path, stderr=subprocess.STDOUT)
     lines: list[str] = []
     try:
         assert proc.stdout is not None
         for line in proc.stdout:  # the run ends, then the viewer waits
             lines.append(line)
-            if "Use ctrl+c to quit" in line:
+            if line.startswith("willags: training is complete"):
                 break
-        assert any("Use ctrl+c to quit" in ln for ln in lines), "".join(lines)[-3000:]
+        assert "Ctrl-C ends ns-train" in lines[-1], "".join(lines)[-3000:]
         proc.send_signal(signal.SIGINT)
         rest, _ = proc.communicate(timeout=600)  # bounds a hang only
     finally:
@@ -358,6 +364,72 @@ def test_row_u9_ctrl_c_after_training_closes_the_viewer_in_one_line(scene, tmp_p
     assert len(closed) == 1, rest[-3000:]
     (cfg,) = out.rglob("config.yml")
     assert closed[0].endswith(str(cfg)) and list((cfg.parent / "nerfstudio_models").glob("step-000000001.ckpt"))
+
+
+def test_row_u14_ns_train_ends_when_training_ends(scene, tmp_path):  # noqa: F811
+    """ns-train with its viewer (the default --vis) and nobody connected to it: the process ends by itself once
+    training is complete, exit status 0, the checkpoint written; it does not wait for a Ctrl-C."""
+    import os
+    import subprocess
+
+    from tests.test_reliability import _ns_train
+
+    out = tmp_path / "outputs"
+    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--viewer.websocket-port", str(_free_port())]
+    args += ["--max-num-iterations", "2", "--pipeline.model.mask.vgg-weights", "seeded"]
+    try:
+        res = subprocess.run(
+            _ns_train(args), capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, timeout=600
+        )
+    except subprocess.TimeoutExpired as e:  # bounds a hang only: the process waited after training
+        raise AssertionError(f"ns-train did not end after training: {str(e.stdout)[-3000:]}") from None
+    text = res.stdout + res.stderr
+    assert res.returncode == 0, text[-3000:]
+    assert "Use ctrl+c to quit" not in text and "stays open" not in text, text[-3000:]
+    (cfg,) = out.rglob("config.yml")
+    assert list((cfg.parent / "nerfstudio_models").glob("step-000000001.ckpt"))
+
+
+@pytest.mark.timing
+def test_row_u14_a_browser_connected_at_the_end_keeps_the_viewer_until_it_leaves(scene, tmp_path):  # noqa: F811
+    """A browser connected to the viewer when training ends: one line says the viewer stays open while it is
+    connected and how to leave; when it disconnects, ns-train ends (status 0)."""
+    import time
+
+    import msgspec
+    from websockets.sync.client import connect
+
+    from tests._paused_ns_train import launch_paused, wait_until_paused
+
+    port = _free_port()
+    out = tmp_path / "outputs"
+    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--viewer.websocket-port", str(port)]
+    args += ["--max-num-iterations", "3", "--pipeline.model.mask.vgg-weights", "seeded"]
+    marker = tmp_path / "paused"
+    proc = launch_paused(args, "viewer", 1, marker)  # waits in step 1 until a browser is connected
+    log = marker.with_suffix(".log")
+    # what a browser sends first: its camera (viser counts a client from then on)
+    camera = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, 0.0, 3.0]}
+    camera |= {"fov": 1.0, "aspect": 1.5, "look_at": [0.0, 0.0, 0.0], "up_direction": [0.0, 0.0, 1.0]}
+    try:
+        wait_until_paused(proc, marker)
+        with connect(f"ws://127.0.0.1:{port}", open_timeout=600, max_size=None) as browser:
+            browser.send(msgspec.msgpack.encode(camera))  # training goes on and ends with the browser connected
+            deadline = time.monotonic() + 600  # bounds a hang only
+            while "willags: training is complete" not in log.read_text(errors="replace"):
+                assert proc.poll() is None and time.monotonic() < deadline, log.read_text(errors="replace")[-3000:]
+                with contextlib.suppress(TimeoutError):
+                    browser.recv(timeout=0.2)
+            assert proc.poll() is None  # still serving the browser
+        proc.wait(timeout=600)  # the browser left: ns-train ends
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = log.read_text(errors="replace")
+    assert proc.returncode == 0, text[-3000:]
+    (said,) = [ln for ln in text.splitlines() if ln.startswith("willags: training is complete")]
+    assert "while a browser is connected" in said and "Ctrl-C" in said, said
+    assert "Traceback" not in text, text[-3000:]
 
 
 def test_row_u11_an_export_of_a_damaged_only_checkpoint_writes_nothing(project, tmp_path):

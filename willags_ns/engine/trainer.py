@@ -13,11 +13,14 @@ killed run loses at most that much work); after each save, ``resume_command.txt`
 command that resumes from it (``--load-checkpoint`` naming its file) and ends at the planned step. ``--load-dir`` resumes from the newest readable
 checkpoint, naming any damaged newer one it skipped. On a log that is not a terminal, nerfstudio's step table (which
 redraws itself with cursor movements, and with it the viewer's address, at every log step) prints each line once.
+When training ends the process ends, unless the viewer is kept (a browser connected to it, or
+``--viewer.quit-on-train-completion False``), which one line says with the way out.
 """
 
 import copy
 import dataclasses
 import json
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -105,6 +108,11 @@ class WillagsTrainerConfig(TrainerConfig):
     presets' schedules are a whole run's)."""
     lr_cooldown_floor: float = COOLDOWN_FLOOR
     """The learning rates' factor at the last step of the cooldown (0 to 1)."""
+
+
+def _say(text: str) -> None:
+    """One plain line on nerfstudio's console (no markup, no wrapping)."""
+    CONSOLE.print(text, soft_wrap=True, markup=False, highlight=False)
 
 
 PRESET_CONFIGS: dict[str, Any] = {}
@@ -552,22 +560,54 @@ class WillagsTrainer(Trainer):
         if self.time_budget is not None and self.time_budget.stopped_after is not None:
             self.step = self.time_budget.stopped_after
         self.planned_end = self.step + 1  # finished (the budget may end it early): nothing left to resume
-        super()._after_train()
+        super()._after_train()  # with --viewer.quit-on-train-completion False it waits in _train_complete_viewer
+        if self.config.viewer.quit_on_train_completion:
+            self._viewer_after_training(asked=False)
 
     def _train_complete_viewer(self) -> None:
-        """After training nerfstudio keeps the viewer open until Ctrl-C ("Use ctrl+c to quit"). That Ctrl-C is how
-        ns-train ends there, not a failure: one line saying the run is complete (nerfstudio would print the
-        KeyboardInterrupt's traceback), the viewer stopped, exit status 0."""
+        """nerfstudio's wait after training, asked for by --viewer.quit-on-train-completion False."""
+        self._viewer_after_training(asked=True)
+
+    def _viewer_clients(self) -> int:
+        """How many browsers are connected to the viewer now (0 without a viewer)."""
+        get = getattr(getattr(self.viewer_state, "viser_server", None), "get_clients", None)
+        return len(get()) if callable(get) else 0
+
+    def _viewer_after_training(self, asked: bool) -> None:
+        """After training, ns-train ends (willags' methods set --viewer.quit-on-train-completion True): nerfstudio
+        alone keeps the process alive for the viewer until Ctrl-C, which a finished run in a script or a terminal
+        left alone never gets. The viewer stays open, with one line saying why and how to leave, where that is
+        wanted: ``asked`` (--viewer.quit-on-train-completion False: until Ctrl-C), or while a browser is connected
+        (until it closes, or Ctrl-C). Ctrl-C there is how ns-train ends, not a failure: one line, exit status 0."""
+        state = self.viewer_state
+        if state is None:
+            return
+        if not asked and not self._viewer_clients():
+            self.shutdown()  # the viewer's server threads would keep the process alive
+            return
+        self.training_state = "completed"
         try:
-            super()._train_complete_viewer()
+            state.training_complete()
+        except RuntimeError:
+            pass
+        found = re.search(r"https?://\S+", " ".join(getattr(state, "viewer_info", None) or []))
+        where = f"the viewer at {found.group(0)}" if found else "the viewer"
+        why = (
+            "(--viewer.quit-on-train-completion False): Ctrl-C ends ns-train"
+            if asked
+            else "while a browser is connected to it: close the browser tab, or press Ctrl-C, to end ns-train"
+        )
+        config = Path(self.base_dir) / "config.yml"
+        try:  # from the line on: a Ctrl-C may come as soon as it is read
+            _say(f"willags: training is complete ({config}); {where} stays open {why}")
+            while asked or self._viewer_clients():
+                time.sleep(0.1)
         except KeyboardInterrupt:
             self.shutdown()
-            CONSOLE.print(
-                f"willags: viewer closed (Ctrl-C); the run is complete: {Path(self.base_dir) / 'config.yml'}",
-                soft_wrap=True,
-                markup=False,
-                highlight=False,
-            )
+            _say(f"willags: viewer closed (Ctrl-C); the run is complete: {config}")
+            return
+        self.shutdown()
+        _say(f"willags: the browser left, viewer closed; the run is complete: {config}")
 
     def _budget_done(self, step: int) -> None:
         budget = self.time_budget
