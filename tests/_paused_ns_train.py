@@ -11,7 +11,8 @@ WHERE is where the process stops:
 
 There it writes its pid to MARKER (atomically) and waits for a signal (``signal.pause``): the test reads MARKER and
 sends the signal, so what the process has done when the signal arrives does not depend on the machine's speed. A
-SIGINT lets the step finish (willags' interrupt checkpoint); SIGKILL ends the process where it stands.
+SIGINT lets the step finish (willags' interrupt checkpoint); SIGKILL ends the process where it stands; SIGUSR1 lets
+it go on as if it had never stopped (the test did something meanwhile, e.g. closed the pipe of its output).
 
 ``sys.argv[0]`` is the venv's ``ns-train``, so the resume command the trainer writes is the one a user would get.
 """
@@ -26,16 +27,18 @@ from pathlib import Path
 import torch
 
 
-def launch_paused(args: list[str], where: str, step: int, marker: Path) -> subprocess.Popen:
+def launch_paused(args: list[str], where: str, step: int, marker: Path, **popen) -> subprocess.Popen:
     """`ns-train ARGS` stopped inside step ``step`` or inside the write of its checkpoint (``where``: "step" or
     "save"), waiting for a signal, or inside step ``step`` until a browser connects to its viewer ("viewer"); :func:`wait_until_paused` returns once it waits there.
-    Its output goes to MARKER.log (a file: a pipe nobody reads could fill up and block it)."""
+    Its output goes to MARKER.log (a file: a pipe nobody reads could fill up and block it), unless ``popen`` names
+    other ``stdout`` / ``stderr`` (subprocess.Popen's arguments)."""
     repo = Path(__file__).resolve().parents[1]
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": str(torch.get_num_threads())}
     env["PYTHONPATH"] = os.pathsep.join([str(repo), *filter(None, [env.get("PYTHONPATH")])])
     cmd = [sys.executable, "-m", "tests._paused_ns_train", str(marker), where, str(step), *args]
     with open(marker.with_suffix(".log"), "wb") as log:
-        return subprocess.Popen(cmd, env=env, cwd=repo, stdout=log, stderr=subprocess.STDOUT)
+        popen = {"stdout": log, "stderr": subprocess.STDOUT, **popen}
+        return subprocess.Popen(cmd, env=env, cwd=repo, **popen)
 
 
 def wait_until_paused(proc: subprocess.Popen, marker: Path) -> None:
@@ -55,6 +58,7 @@ def _pause(marker: Path) -> None:
     tmp = marker.with_name(marker.name + ".tmp")
     tmp.write_text(str(os.getpid()))
     os.replace(tmp, marker)
+    signal.signal(signal.SIGUSR1, lambda *_: None)  # go on: pause() returns once a handler has run
     signal.pause()
 
 

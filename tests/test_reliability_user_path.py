@@ -502,3 +502,94 @@ def test_row_u12_a_test_photo_as_image_spec_is_named_with_the_spec_that_fits(app
     assert Path(spec.removeprefix("photo:")).resolve() == test_photo.resolve()
     render.DatasetRender(load_config=cfg, output_path=tmp_path / "ok", appearance=spec, refine_steps=2, **opts).main()
     assert sorted((tmp_path / "ok").rglob("*.jpg")) + sorted((tmp_path / "ok").rglob("*.png"))
+
+
+class _PipeReader:
+    """The read end of a pipe a child process writes to, read in a thread (so the child never blocks on a full pipe)
+    until :meth:`close` closes it, as `tee` does when a Ctrl-C ends it: the child's next write to the pipe fails."""
+
+    def __init__(self):
+        import os
+        import threading
+
+        self.r, self.w = os.pipe()
+        self.data = bytearray()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        import os
+        import select
+
+        while not self._stop.is_set():
+            if select.select([self.r], [], [], 0.05)[0]:
+                chunk = os.read(self.r, 1 << 16)
+                if not chunk:  # the writer ended
+                    break
+                self.data += chunk
+        os.close(self.r)
+
+    def started(self) -> None:
+        """The child has its copy of the write end: drop ours, so the pipe ends when the child does."""
+        import os
+
+        os.close(self.w)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def text(self, timeout: float = 600) -> str:
+        """Everything read, once the writer has ended (the timeout bounds a hang only)."""
+        self._thread.join(timeout)
+        return self.data.decode(errors="replace")
+
+
+@pytest.mark.timing
+@pytest.mark.parametrize("how", ["ctrl-c through a pipe", "hang-up", "closed stdout"])
+def test_row_u15_a_stop_through_a_closed_pipe_still_writes_the_checkpoint_and_the_resume_command(
+    how,
+    scene,  # noqa: F811
+    tmp_path,
+):
+    """`ns-train ... | tee log` then Ctrl-C (tee ends with it: the output's reader is gone when the interrupt
+    writes), a closed terminal (SIGHUP, and nothing reads stdout or stderr any more), and a stdout closed while
+    training (`| head`): each stops after the step with its checkpoint and resume_command.txt naming it; the resume
+    line reaches stderr when it is still read."""
+    import signal
+
+    from tests._paused_ns_train import launch_paused, wait_until_paused
+
+    out = tmp_path / "outputs"
+    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--vis", "tensorboard", "--timestamp", "t"]
+    args += ["--max-num-iterations", "1000", "--logging.steps-per-log", "1"]
+    args += ["--pipeline.model.mask.vgg-weights", "seeded"]
+    stdout, stderr = _PipeReader(), _PipeReader()
+    marker = tmp_path / "paused"
+    proc = launch_paused(args, "step", 3, marker, stdout=stdout.w, stderr=stderr.w)
+    stdout.started()
+    stderr.started()
+    try:
+        wait_until_paused(proc, marker)
+        stdout.close()
+        if how == "hang-up":
+            stderr.close()
+        signal_of = {"ctrl-c through a pipe": signal.SIGINT, "hang-up": signal.SIGHUP, "closed stdout": signal.SIGUSR1}
+        proc.send_signal(signal_of[how])  # SIGUSR1: go on training, with nobody reading stdout
+        proc.wait(timeout=600)  # bounds a hang only
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    err = stderr.text() if how != "hang-up" else ""
+    assert proc.returncode == {"ctrl-c through a pipe": 130, "hang-up": 129, "closed stdout": 141}[how], err[-3000:]
+    run = out / "scene" / "willags" / "t"
+    ckpts = list_checkpoints(run / "nerfstudio_models")
+    assert len(ckpts) == 1, (ckpts, err[-3000:])
+    step = checkpoint_step(ckpts[0])
+    assert step is not None and (step == 3 if how != "closed stdout" else step >= 3)
+    resume = (run / "resume_command.txt").read_text()
+    assert str(ckpts[0]) in resume and f"--max-num-iterations {999 - step}" in resume, resume
+    if how != "hang-up":
+        assert "Traceback" not in err, err[-3000:]
+        assert resume.strip() in err, err[-3000:]  # the resume line, on the terminal

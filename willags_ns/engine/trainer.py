@@ -568,6 +568,15 @@ class WillagsTrainer(Trainer):
         """nerfstudio's wait after training, asked for by --viewer.quit-on-train-completion False."""
         self._viewer_after_training(asked=True)
 
+    def shutdown(self) -> None:
+        """nerfstudio's shutdown (stop training, stop the viewer's server), once: the viewer is stopped when training
+        ends, and a second stop of its server fails."""
+        if getattr(self, "_shut_down", False):
+            self.stop_training = True
+            return
+        self._shut_down = True
+        super().shutdown()
+
     def _viewer_clients(self) -> int:
         """How many browsers are connected to the viewer now (0 without a viewer)."""
         get = getattr(getattr(self.viewer_state, "viser_server", None), "get_clients", None)
