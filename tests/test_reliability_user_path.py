@@ -593,3 +593,49 @@ def test_row_u15_a_stop_through_a_closed_pipe_still_writes_the_checkpoint_and_th
     if how != "hang-up":
         assert "Traceback" not in err, err[-3000:]
         assert resume.strip() in err, err[-3000:]  # the resume line, on the terminal
+
+
+@pytest.mark.timing
+def test_row_u16_the_resume_command_goes_on_in_the_same_run_folder_counting_to_its_end(scene, tmp_path):  # noqa: F811
+    """Ctrl-C after step 2 of 8, then the written resume command: training goes on in the same run folder (one
+    config.yml, the checkpoints of both parts side by side, resume_command.txt gone at the end), and the step
+    table's progress counts to the run's end (step s of 8 reads s/8, never above 100 %)."""
+    import os
+    import shlex
+    import signal
+    import subprocess
+    import sys
+
+    from tests._paused_ns_train import launch_paused, wait_until_paused
+
+    out = tmp_path / "outputs"
+    args = ["willags", "--data", str(scene), "--output-dir", str(out), "--vis", "tensorboard"]
+    args += ["--max-num-iterations", "8", "--logging.steps-per-log", "1"]
+    args += ["--pipeline.model.mask.vgg-weights", "seeded", "--save-only-latest-checkpoint", "False"]
+    marker = tmp_path / "paused"
+    proc = launch_paused(args, "step", 2, marker)
+    try:
+        wait_until_paused(proc, marker)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=600)  # bounds a hang only
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, marker.with_suffix(".log").read_text(errors="replace")[-3000:]
+    (run,) = [p.parent for p in out.rglob("config.yml")]
+    command = shlex.split((run / "resume_command.txt").read_text())
+    assert command[0] == "ns-train"
+    exe = str(Path(sys.executable).with_name("ns-train"))
+    res = subprocess.run(
+        [exe, *command[1:]], capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, timeout=600
+    )
+    text = res.stdout + res.stderr
+    assert res.returncode == 0, text[-3000:]
+    assert [p.parent for p in out.rglob("config.yml")] == [run], text[-3000:]  # the same folder, no second one
+    steps = sorted(checkpoint_step(p) for p in list_checkpoints(run / "nerfstudio_models"))
+    assert steps == [2, 7], steps
+    assert not (run / "resume_command.txt").exists()  # the run is complete
+    rows = [(int(m[1]), float(m[2])) for m in re.finditer(r"^(\d+) \(([\d.]+)%\)", res.stdout, re.M)]
+    assert sorted({s for s, _ in rows}) == list(range(3, 8)), res.stdout[-3000:]  # the last one again at the end
+    for s, pct in rows:
+        assert pct == pytest.approx(100 * s / 8, abs=0.01), (s, pct)

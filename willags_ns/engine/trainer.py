@@ -74,6 +74,20 @@ _SAVE_AFTER_SETUP: set[int] = set()
 once the scene has been read (WillagsTrainer.setup), so a run that never starts leaves no run folder."""
 
 
+def resumed_run(config: TrainerConfig) -> Path | None:
+    """The run folder (config.yml beside its checkpoint directory) whose checkpoint ``config`` resumes from
+    (``load_checkpoint``'s directory, or ``load_dir``), or None."""
+    if config.load_checkpoint is not None:
+        ckpt_dir = Path(config.load_checkpoint).parent
+    elif config.load_dir is not None:
+        ckpt_dir = Path(config.load_dir)
+    else:
+        return None
+    if ckpt_dir.name != Path(config.relative_model_dir).name or not (ckpt_dir.parent / "config.yml").is_file():
+        return None
+    return ckpt_dir.parent
+
+
 @dataclass
 class WillagsTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py).
@@ -86,6 +100,19 @@ class WillagsTrainerConfig(TrainerConfig):
 
     def print_to_terminal(self) -> None:
         _SAVE_AFTER_SETUP.add(id(self))
+
+    def set_timestamp(self) -> None:
+        """ns-train's run folder: a resume (--load-checkpoint or --load-dir naming a run's checkpoints, as the
+        printed resume command does) goes on in the folder of the run it resumes, so that the run stays whole (its
+        checkpoints, config.yml, events and resume_command.txt in one place); otherwise, or with --timestamp given,
+        nerfstudio's new timestamp."""
+        run = resumed_run(self)
+        if self.timestamp == "{timestamp}" and run is not None and run.parent.name == str(self.method_name):
+            self.output_dir = run.parent.parent.parent
+            self.experiment_name = run.parent.parent.name
+            self.timestamp = run.name
+            return
+        super().set_timestamp()
 
     def save_config(self) -> None:
         if id(self) in _SAVE_AFTER_SETUP:  # ns-train's save right after print_to_terminal: WillagsTrainer.setup saves
@@ -246,6 +273,9 @@ class WillagsTrainer(Trainer):
         # invoked ones (setup_optimizers runs between the two in nerfstudio's setup)
         self._save_config_when_built = self.local_rank == 0 and test_mode == "val"
         super().setup(test_mode)
+        # the step table's progress and ETA count to the run's end: a resumed run starts at its checkpoint's step
+        # (nerfstudio counts to max_num_iterations, the steps left, from step 0: 116 % and a negative ETA)
+        writer.GLOBAL_BUFFER["max_iter"] = self._start_step + self.config.max_num_iterations
         if choice is not None and minutes is not None:
             if replaced is not None:
                 self._resolution_for_images(replaced)
