@@ -20,6 +20,7 @@ When training ends the process ends, unless the viewer is kept (a browser connec
 import copy
 import dataclasses
 import json
+import math
 import re
 import sys
 import time
@@ -34,6 +35,7 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.misc import step_check
+from nerfstudio.utils.printing import human_format
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.engine import time_budget
@@ -229,6 +231,121 @@ def quiet_local_writer(writers: list, is_terminal: bool) -> list[str]:
     return banner
 
 
+def drop_stale_local_writers(writers: list) -> None:
+    """Keep only the newest of nerfstudio's step tables (LocalWriter) in ``writers``: nerfstudio appends one at every
+    trainer set-up and never removes it, so a second training in one process (a script, a test) would print every
+    row once per earlier run, with the earlier runs' numbers."""
+    tables = [w for w in writers if isinstance(w, writer.LocalWriter)]
+    for w in tables[:-1]:
+        writers.remove(w)
+
+
+def table_time(seconds: float) -> str:
+    """A duration as nerfstudio's step table writes it: ``350.123 ms``, ``2 s, 149.675 ms``, ``7 m, 58 s``,
+    ``1 h, 2 m, 3 s``."""
+    seconds = max(0.0, float(seconds))
+    whole = int(seconds)
+    ms = (seconds - whole) * 1e3
+    hours, rest = divmod(whole, 3600)
+    minutes, secs = divmod(rest, 60)
+    if hours:
+        return f"{hours} h, {minutes} m, {secs} s"
+    if minutes:
+        return f"{minutes} m, {secs} s"
+    if secs:
+        return f"{secs} s, {ms:0.3f} ms"
+    return f"{ms:0.3f} ms"
+
+
+class BudgetStepTable(writer.LocalWriter):
+    """nerfstudio's step table (its LocalWriter, whose class this becomes: :meth:`attach`) for a run under a time
+    budget. nerfstudio counts the step against the planned end and the ETA as the steps left times the step time;
+    the budget re-plans the end as the run measures itself, so its percentage went backwards when a plan grew
+    (88 % then 87 %), and its first ETA multiplied the table's step count by this machine's slower steps (31 minutes
+    for an 8-minute budget). Here every row says, from the first one: the step, the planned end (a range while the
+    run has not measured its own step time: the plans at the table's step time and at the run's own so far), the
+    share of the run's time done (which only grows), and in the ETA column the time left of the budget
+    (time_budget.budget_progress). The other columns are nerfstudio's."""
+
+    budget: TimeBudget
+    table_step_s: float
+    shown_share: float
+    HEADER = "Step of plan (% time)"
+    WIDTH = 30
+
+    @classmethod
+    def attach(cls, writers: list, budget: TimeBudget, table_step_s: float) -> None:
+        """Make nerfstudio's LocalWriter in ``writers`` this table for ``budget`` (the table's step time:
+        ``table_step_s``)."""
+        for w in writers:
+            if type(w) is writer.LocalWriter:
+                w.__class__ = cls
+                w.budget, w.table_step_s, w.shown_share = budget, table_step_s, 0.0
+
+    def row(self, step: int, latest_map: dict) -> str:
+        """The table's row after ``step`` (see the class docstring)."""
+        b = self.budget
+        elapsed = b.elapsed()
+        done = step - b.start_step + 1
+        own = elapsed / done if done > 0 and elapsed > 0 else math.nan
+        progress = time_budget.budget_progress(
+            b.budget_s, elapsed, step, b.start_step, b.end_step, b.max_steps, (self.table_step_s, own)
+        )
+        self.shown_share = max(self.shown_share, progress.share)
+        low, high = progress.end_low, progress.end_high
+        plan = f"{low}" if low == high else f"{low}-{high}"
+        first = f"{step} of {plan} ({100 * self.shown_share:.2f}%)"
+        cells = [f"{first:<{self.WIDTH}}"]
+        for name, v in latest_map.items():
+            if name not in self.stats_to_track:
+                continue
+            if name == writer.EventName.ETA.value:
+                v = table_time(progress.time_left_s)
+            elif "(time)" in name:
+                v = table_time(v)
+            elif "Rays" in name:
+                v = human_format(v)
+            else:
+                v = f"{v:0.4f}"
+            cells.append(f"{v:<20} ")
+        return "".join(cells)
+
+    def _update_header(self, latest_map, new_key):
+        names = "".join(f"{name:<20} " for name in latest_map if name in self.stats_to_track)
+        header = f"{self.HEADER:<{self.WIDTH}}{names}"
+        if not self.config.max_log_size:  # a log: the header once, before the first row (a resumed run's too)
+            if not getattr(self, "said_header", False):
+                self.said_header = True
+                print(header)
+                print("-" * len(header))
+            return
+        if len(self.past_mssgs) - self.banner_len <= 2 or new_key:
+            self.past_mssgs[0], self.past_mssgs[1] = header, "-" * len(header)
+            if not self.has_printed:
+                print(header)
+                print("-" * len(header))
+
+    def _print_stats(self, latest_map, padding=" "):
+        curr = self.row(writer.GLOBAL_BUFFER["step"], latest_map)
+        if not self.config.max_log_size:
+            print(curr)
+            return
+        # nerfstudio's redrawn table: the last max_log_size rows above the banner
+        if not self.has_printed:
+            cursor_idx = len(self.past_mssgs) - self.banner_len
+            self.has_printed = True
+        else:
+            cursor_idx = len(self.past_mssgs)
+        if len(self.past_mssgs[2:]) - self.banner_len >= self.config.max_log_size:
+            self.past_mssgs.pop(2)
+        self.past_mssgs.insert(len(self.past_mssgs) - self.banner_len, curr)
+        print(f"\r\033[{cursor_idx}A", end="\x1b[1K\r")
+        pad_len = len(max(self.past_mssgs, key=len))
+        for i, mssg in enumerate(self.past_mssgs):
+            style = "\x1b[30;42m" if self.banner_len and i >= len(self.past_mssgs) - self.banner_len + 1 else ""
+            print(f"{style}{mssg:{padding}<{pad_len}} \x1b[0m")
+
+
 class WillagsTrainer(Trainer):
     """nerfstudio's Trainer; with a time budget it also chooses, measures and stops; its checkpoints are atomic, by
     steps and by time, and resumable with one printed command (see the module docstring)."""
@@ -276,6 +393,7 @@ class WillagsTrainer(Trainer):
         # the step table's progress and ETA count to the run's end: a resumed run starts at its checkpoint's step
         # (nerfstudio counts to max_num_iterations, the steps left, from step 0: 116 % and a negative ETA)
         writer.GLOBAL_BUFFER["max_iter"] = self._start_step + self.config.max_num_iterations
+        drop_stale_local_writers(writer.EVENT_WRITERS)
         if choice is not None and minutes is not None:
             if replaced is not None:
                 self._resolution_for_images(replaced)
@@ -484,6 +602,7 @@ class WillagsTrainer(Trainer):
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._budget_done),
         ]
         self.time_budget = budget
+        BudgetStepTable.attach(writer.EVENT_WRITERS, budget, choice.step_s)
         self._budget_record["gaussians_at_start"] = self._num_gaussians()
         self._write_budget_record()
 
