@@ -154,3 +154,30 @@ def test_demo_appearance_grid_is_labelled_and_large(appearance_run, tmp_path):
     assert grid.shape[0] == 6 + 4 * (24 + 2 * h + 20 + 6)  # photos, appearances, new photo + samples, interpolation
     assert grid.shape[1] == 6 + 5 * (2 * w + 6)  # the widest row: 5 interpolation steps
     assert (tmp_path / "new_photo.png").exists()
+
+
+def test_demo_views_label_the_photo_and_the_render(appearance_run, tmp_path):
+    """views_gt_vs_render.png: a row per test view, the photo on the left and the render on the right, each tile
+    labelled with what it is (and the render with the appearance it used)."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from willags_ns.scripts.demo import labelled_grid, views_rows
+
+    cfg, _, _ = appearance_run
+    _, pipeline, _, _ = eval_setup(cfg, test_mode="test")
+    pipeline.model.eval()
+    test = pipeline.datamanager.eval_dataset
+    rows = views_rows(pipeline)
+    assert len(rows) == min(4, len(test))
+    for i, (title, tiles) in enumerate(rows):
+        assert Path(test.image_filenames[i]).name in title
+        (photo_label, photo), (render_label, rendered) = tiles
+        assert np.array_equal(photo, (test.get_image_float32(i)[..., :3].numpy() * 255).round().astype(np.uint8))
+        assert not np.array_equal(photo, rendered)
+        assert "photo" in photo_label and "render" not in photo_label
+        assert "render" in render_label and "appearance" in render_label
+    grid = labelled_grid(rows)
+    h, w = photo.shape[:2]
+    assert grid.shape == (6 + len(rows) * (24 + 2 * h + 20 + 6), 6 + 2 * (2 * w + 6), 3)
+    label = grid[6 + 24 + 2 * h : 6 + 24 + 2 * h + 20, 6 : 6 + 2 * w]  # under the first photo
+    assert (label < 128).any()  # its label is drawn

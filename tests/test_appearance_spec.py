@@ -135,6 +135,30 @@ def test_resolve_errors_name_the_bad_part(tmp_path):
         resolve_latent(f"latent:{tmp_path / 'short.npy'}", model)
 
 
+def test_a_test_photo_named_as_a_training_image_says_so_and_gives_the_photo_spec_that_fits(tmp_path):
+    """image:NAME of a photo held out of training: an error saying it is a test photo, whose photo:PATH SPEC
+    resolves; a name or stem wins over an index (image:0001 is 0001.png, not the training image at index 1)."""
+    import re
+
+    model = _model()
+    model.set_train_image_names(["0001.png", "0000.png"])
+    img = (np.random.default_rng(1).random((24, 40, 3)) * 255).astype(np.uint8)
+    held_out = tmp_path / "images" / "0007.png"
+    held_out.parent.mkdir()
+    Image.fromarray(img).save(held_out)
+    model.set_test_photos([str(held_out)])
+    for key in ("0007.png", "0007"):
+        with pytest.raises(AppearanceSpecError, match="test photo") as info:
+            resolve_latent(f"image:{key}", model)
+        (spec,) = re.findall(r"photo:\S+", str(info.value))
+        assert spec == f"photo:{held_out}"
+        assert torch.isfinite(resolve_latent(spec, model)).all()
+    assert torch.equal(resolve_latent("image:0001", model), model.train_latents[0])
+    assert torch.equal(resolve_latent("image:1", model), model.train_latents[1])
+    with pytest.raises(AppearanceSpecError, match="unknown training image '0009'"):
+        resolve_latent("image:0009", model)
+
+
 def test_huge_latents_are_clamped_with_a_warning_and_never_render_nan(tmp_path):
     model = _model()
     d = model.train_latents.shape[1]

@@ -51,3 +51,17 @@ def test_every_relative_link_resolves(page: Path):
         elif anchor and file.suffix == ".md" and anchor not in anchors(file):
             dead.append(target)
     assert not dead, f"{page.relative_to(REPO)}: dead links {dead}"
+
+
+def test_the_readmes_demo_time_is_the_measured_one():
+    """The README's time for `make demo` is the measurement design.md records (seconds, the install apart), not an
+    estimate: the same numbers of seconds in both."""
+
+    def seconds(page: str, anchor: str) -> set[str]:
+        text = " ".join((REPO / page).read_text().split())
+        start = text.index(anchor)
+        return set(re.findall(r"(\d+) s\b", text[start : start + 250]))
+
+    measured = seconds("docs/design.md", "`make demo` (500 steps")
+    said = seconds("README.md", "`make install` does.")
+    assert said and said <= measured, (said, measured)

@@ -495,14 +495,20 @@ def test_row27_render_and_export_print_the_appearance_and_the_written_path(appea
     ply = tmp_path / "ply" / "splat.ply"
     assert ply.is_file()
     assert f"willags-export: appearance: image:{i} = training image {i} ({names[i]}), |z| = " in out
-    assert re.search(rf"willags-export: wrote {re.escape(str(ply))}, \d+\.\d MB \(appearance: image:{i} ", out), out
+    assert re.search(
+        rf"willags-export: wrote {re.escape(str(ply))}, \d+\.\d MB, from the checkpoint of step \d+ \(appearance: image:{i} ",
+        out,
+    ), out
     assert re.search(r"willags-export: writing [\d,]+ Gaussians to splat.ply: \d+/\d+ \(100%\)", out), out
 
     DatasetRender(load_config=cfg, output_path=tmp_path / "renders", split="test", rendered_output_names=["rgb"]).main()
     out = capsys.readouterr().out
     assert "willags-render: appearance: mean (the mean of the training images' latents)" in out
     assert re.search(r"^willags-render: frames: (\d+)/\1 \(100%\)", out, re.M), out  # progress, in a log too
-    assert f"willags-render: wrote {tmp_path / 'renders'} (appearance: mean" in out
+    assert re.search(
+        rf"willags-render: wrote {re.escape(str(tmp_path / 'renders'))}, from the checkpoint of step \d+ \(appearance: mean",
+        out,
+    ), out
 
 
 def test_row27_the_ply_writer_writes_nerfstudios_bytes(tmp_path):

@@ -18,6 +18,7 @@ This module imports neither the model nor the viewer (both import it), so there 
 import math
 import re
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Union
@@ -239,26 +240,48 @@ def mean_latent(model) -> Tensor:
     return torch.zeros(lat.shape[1], device=lat.device)
 
 
-def image_index(key: str, image_names: list[str], seen: Tensor | None = None, context: str = "image") -> int:
-    """Dataset index of a training image given by file name, stem or index; errors name the key."""
+def image_index(
+    key: str,
+    image_names: list[str],
+    seen: Tensor | None = None,
+    context: str = "image",
+    test_photos: Mapping[str, str] | None = None,
+) -> int:
+    """Dataset index of a training image given by file name, stem or index (a name or stem first: ``0012`` is the
+    photo 0012.png, not the 12th); errors name the key. ``test_photos`` (file name -> path of the run's test photos):
+    a key naming one of them is an error that says so and gives the ``photo:PATH`` SPEC that fits its appearance (a
+    test photo has no trained latent)."""
     key = key.strip()
+    stems = [Path(n).stem for n in image_names]
     if key in image_names:
         i = image_names.index(key)
+    elif key in stems:
+        i = stems.index(key)
+    elif (path := _test_photo(key, test_photos or {})) is not None:
+        raise AppearanceSpecError(
+            f"{context}: {key!r} is a test photo, held out of training, so it has no trained appearance; "
+            f"photo:{path} fits its appearance (a latent fitted to the photo)"
+        )
     elif key.isdigit() and int(key) < len(image_names):
         i = int(key)
     else:
-        stems = [Path(n).stem for n in image_names]
-        if key not in stems:
-            shown = ", ".join(image_names[:8]) + (" ..." if len(image_names) > 8 else "")
-            raise AppearanceSpecError(
-                f"{context}: unknown training image {key!r} ({len(image_names)} training images: {shown})"
-            )
-        i = stems.index(key)
+        shown = ", ".join(image_names[:8]) + (" ..." if len(image_names) > 8 else "")
+        raise AppearanceSpecError(
+            f"{context}: unknown training image {key!r} ({len(image_names)} training images: {shown})"
+        )
     if seen is not None and not bool(seen[i]):
         raise AppearanceSpecError(
             f"{context}: training image {image_names[i]!r} was never encoded during training (no latent yet)"
         )
     return i
+
+
+def _test_photo(key: str, test_photos: Mapping[str, str]) -> str | None:
+    """The path of the test photo a key names (file name or stem), or None."""
+    for name, path in test_photos.items():
+        if key in (name, Path(name).stem):
+            return path
+    return None
 
 
 def load_photo(path: Path, context: str = "photo") -> Tensor:
@@ -388,7 +411,7 @@ def resolve_latent(
         z = mean_latent(model)
     elif isinstance(spec, ImageSpec):
         lat, seen = model.image_latents()
-        i = image_index(spec.key, list(model.image_names), seen, context)
+        i = image_index(spec.key, list(model.image_names), seen, context, getattr(model, "test_photos", None))
         z = lat[i].clone()
     elif isinstance(spec, SampleSpec):
         z = sample_latent(dim, spec.seed, device)

@@ -92,9 +92,9 @@ def _trainer(name: str, model: WillagsModelConfig, steps: int) -> WillagsTrainer
             model=model,
         ),
         optimizers=_optimizers(steps),
-        viewer=ViewerConfig(
-            num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1"
-        ),  # LAN: --viewer.websocket-host 0.0.0.0
+        # the viewer listens on this machine only (LAN: --viewer.websocket-host 0.0.0.0); ns-train ends when training
+        # does, unless --viewer.quit-on-train-completion False keeps the viewer (WillagsTrainer, "after training")
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host="127.0.0.1", quit_on_train_completion=True),
         vis="viewer+tensorboard",
     )
 

@@ -149,6 +149,7 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         self.mask_health = MaskHealth(cfg.mask.health)
         self._train_batch: dict | None = None  # this step's batch (set_train_batch), until the step ends
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
+        self.test_photos: dict[str, str] = {}  # file name -> path of the run's test photos (set by the pipeline)
 
     # ------------------------------------------------------------------ the Gaussians, parameter groups, checkpoints
     @property

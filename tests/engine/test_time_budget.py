@@ -611,6 +611,83 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
     )
 
 
+def test_budget_progress_is_a_range_until_measured_and_counts_time():
+    """The step table's numbers under a budget (time_budget.budget_progress): the plans at the table's and the run's
+    own step time while unsure, the budget's time left, the share of time done; at the cap, the steps left."""
+    p = tb.budget_progress(480.0, 60.0, 9, 0, None, 30000, (0.1, 0.5))
+    assert (p.end_low, p.end_high, p.time_left_s, p.share) == (850, 4210, 420.0, 0.125)
+    p = tb.budget_progress(480.0, 120.0, 99, 0, 700, 30000, (0.1, 0.5))  # measured: one end
+    assert (p.end_low, p.end_high, p.time_left_s, p.share) == (700, 700, 360.0, 0.25)
+    p = tb.budget_progress(480.0, 60.0, 49, 0, None, 100, (0.1, 0.5))  # every plan at the cap: 50 steps left
+    assert (p.end_low, p.end_high, p.time_left_s) == (100, 100, 25.0)
+    p = tb.budget_progress(480.0, 60.0, 109, 100, None, 30000, (0.5, float("nan")))  # resumed; no table time
+    assert (p.end_low, p.end_high) == (100 + 850, 100 + 30000)
+    assert tb.budget_progress(60.0, 90.0, 9, 0, 20, 30000, (1.0,)).share == 1.0  # past the budget
+
+
+@pytest.mark.timing
+@pytest.mark.slow
+def test_the_step_table_of_a_budget_shows_time_left_and_a_share_that_only_grows(tmp_path, monkeypatch, capsys):
+    """A 12-second budget whose steps take 1 s, then 0.5 s (the plan grows when re-measured: nerfstudio's step / end
+    went backwards there): from the first row the table shows the planned end (a range until the run has measured
+    its own steps, then one number), the share of the budget's time done, which never decreases, and, as its ETA,
+    the time left of the budget."""
+    import re
+
+    from tests.test_train import _train
+    from willags_ns import method_configs
+    from willags_ns.engine.trainer import WillagsTrainer, table_time
+
+    monkeypatch.setattr(tb, "WARMUP_STEPS", 3)
+    monkeypatch.setattr(tb, "WINDOW_STEPS", 5)
+    clock = FakeClock()
+    train_iteration = WillagsTrainer.train_iteration
+
+    def timed_steps(self, step):
+        out = train_iteration(self, step)
+        clock.t += 1.0 if step < 8 else 0.5
+        return out
+
+    monkeypatch.setattr(WillagsTrainer, "clock", staticmethod(clock))
+    monkeypatch.setattr(WillagsTrainer, "train_iteration", timed_steps)
+    real_config = method_configs.willags_config
+
+    def budgeted():
+        config = real_config()
+        config.pipeline.time_budget_minutes = 0.2
+        config.logging.steps_per_log = 1
+        return config
+
+    monkeypatch.setattr(method_configs, "willags_config", budgeted)
+    from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, write_scene
+
+    tiny = SyntheticSceneConfig(num_train=8, num_test=2, width=32, height=24, num_points=400, supersample=1)
+    scene = write_scene(make_scene(tiny), tmp_path / "scene")
+    config, _, losses = _train(tmp_path, "willags", steps=5000, data=scene)
+    out = capsys.readouterr().out
+    (header,) = [ln for ln in out.splitlines() if ln.startswith("Step of plan (% time)")]
+    eta_at = header.index("ETA (time)")
+    rows = []
+    for line in out.splitlines():
+        m = re.match(r"^(\d+) of (\d+)(?:-(\d+))? \(([\d.]+)%\)", line)
+        if m:
+            rows.append((int(m[1]), int(m[2]), int(m[3] or m[2]), float(m[4]), line[eta_at:].split("  ")[0].strip()))
+    steps = [r[0] for r in rows]
+    assert steps[0] == 0 and len(set(steps)) == len(losses), out[-3000:]
+    step0, low, high, share0, eta0 = rows[0]
+    assert low < high  # unsure: the plans at the table's step time and at the run's own first step
+    assert eta0 == table_time(12.0 - 1.0)  # the budget's time left after the first step: no estimate from the table
+    shares = [r[3] for r in rows]
+    assert shares == sorted(shares) and shares[-1] <= 100.0
+    record = json.loads((config.get_base_dir() / "time_budget.json").read_text())
+    plans = [p["end_step"] for p in record["run"]["plans"]]
+    assert len(plans) >= 2 and plans[-1] > plans[0]  # the plan grew when re-measured
+    measured_at = record["run"]["plans"][0]["step"]
+    for step, low, high, _, _ in rows:
+        if step >= measured_at:
+            assert low == high and low in plans, (step, low, high, plans)
+
+
 def test_slow_steps_are_measured_within_the_first_sixth_of_the_budget():
     """4.5 s steps in a 180 s budget (a loaded 2-core CPU, 800 px photos): 70 steps would outlast the budget; the plan
     comes from the run's own steps within its first sixth (2 x EARLY_SHARE and a few steps), and the run ends at its

@@ -224,6 +224,7 @@ class LatentFace:
         train_latent_seen: Tensor
         latents: AppearanceLatents
         image_names: list[str]
+        test_photos: dict[str, str]
         _train_batch: dict | None
 
     def set_train_batch(self, batch: dict) -> None:
@@ -234,6 +235,11 @@ class LatentFace:
     def set_train_image_names(self, names: list[str]) -> None:
         """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
         self.image_names = list(names)
+
+    def set_test_photos(self, paths: list[str]) -> None:
+        """The run's test photos (from the pipeline): an appearance SPEC naming one is told that it is a test photo
+        (no trained latent) and which ``photo:PATH`` fits it."""
+        self.test_photos = {os.path.basename(str(p)): str(p) for p in paths}
 
     @property
     def render_latent(self) -> Tensor | None:

@@ -42,6 +42,15 @@ class WillagsTrainingError(RuntimeError):
     """Training reached a state it cannot continue from (e.g. every Gaussian pruned); the message says what to do."""
 
 
+class WillagsWarning(UserWarning):
+    """A warning of willags' own that :func:`warn_all` has printed on the console already. Python does not print it
+    a second time (``file:line: UserWarning: ...`` and the source line): the filter below ignores it, while code that
+    records warnings (``pytest.warns``, ``warnings.catch_warnings(record=True)``) still sees it."""
+
+
+warnings.filterwarnings("ignore", category=WillagsWarning)
+
+
 class WillagsIOError(RuntimeError):
     """A file cannot be written or read (a full disk, a damaged checkpoint); the message names it and what to do."""
 
@@ -386,12 +395,13 @@ def available_memory_bytes() -> int | None:
 
 
 def warn_all(messages: Sequence[str]) -> None:
-    """Print each warning once on nerfstudio's console and as a Python warning (so tests can see it)."""
+    """Print each warning once, on nerfstudio's console, and raise it as a :class:`WillagsWarning` (which Python
+    does not print again) for code that records warnings."""
     from nerfstudio.utils.rich_utils import CONSOLE
 
     for m in messages:
         CONSOLE.log(f"[bold yellow]willags warning:[/bold yellow] {m}")
-        warnings.warn(m, UserWarning, stacklevel=2)
+        warnings.warn(m, WillagsWarning, stacklevel=2)
 
 
 # --------------------------------------------------------------------------------------------------------------------

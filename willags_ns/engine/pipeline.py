@@ -31,7 +31,9 @@ its own image, gradients are averaged before the optimiser step and densificatio
 
 import json
 import math
+import os
 import signal
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,6 +76,7 @@ from willags_ns.engine.distributed import (
 )
 from willags_ns.engine.progress import Progress
 from willags_ns.engine.step_profile import StepProfile
+from willags_ns.engine.streams import guard_output, say_on_stderr_too
 from willags_ns.eval.protocol import EvalProtocolConfig, describe_protocol, eval_split_images, evaluate_model
 from willags_ns.tools.autoconfig import (
     AUTO_CONFIG_FILE,
@@ -104,8 +107,9 @@ class WillagsPipelineConfig(VanillaPipelineConfig):
     photo of another place under a registered frame; willags_ns/data/consistency.py). Needs SfM points; ~2 s per 50
     photos on a CPU."""
     checkpoint_on_interrupt: bool = True
-    """Ctrl-C finishes the current step, writes a checkpoint and exits; the printed command resumes it. A second Ctrl-C
-    interrupts at once."""
+    """Ctrl-C, a closed terminal (SIGHUP) or a closed stdout (`| tee` ended) finishes the current step, writes a
+    checkpoint and exits; the printed command (also in resume_command.txt) resumes it. A second Ctrl-C interrupts at
+    once."""
     auto_config_keep: tuple[str, ...] = ()
     """Model switches (dotted fields under pipeline.model, e.g. "use_mask") that `auto_config` leaves as they are:
     the trainer fills it with those the command line set (named as a flag, or changed from the method's own preset),
@@ -178,13 +182,27 @@ def write_scene_record(datamanager, path: Path) -> None:
     save_atomic(scene_record(train, test, SFM_OBSERVATIONS_KEY in train.metadata), path)
 
 
-class InterruptCheckpoint:
-    """SIGINT -> finish the step, checkpoint, exit 130.
+STOP_SIGNALS = {"SIGINT": "interrupt (Ctrl-C)", "SIGHUP": "hang-up (the terminal closed)"}
+"""Signals that stop training after the current step with a checkpoint (those the platform has), and their names."""
+OUTPUT_LOST_STATUS = 141
+"""Exit status of a run stopped because its output's reader went away (128 + SIGPIPE, as a shell reports it)."""
 
-    The handler is installed at the first training step (BEFORE_TRAIN_ITERATION) and the previous one restored when
-    training ends (AFTER_TRAIN) or after the checkpoint. The first Ctrl-C also restores the previous handler, so a
-    second Ctrl-C interrupts at once (and, should training have died of an exception before AFTER_TRAIN, the stale
+
+class InterruptCheckpoint:
+    """Ctrl-C (SIGINT), a closed terminal (SIGHUP) or a closed stdout -> finish the step, checkpoint, exit
+    (128 + the signal's number; 141 for a closed stdout).
+
+    The handlers are installed at the first training step (BEFORE_TRAIN_ITERATION) and the previous ones restored
+    when training ends (AFTER_TRAIN) or after the checkpoint. The first signal also restores the previous handler, so
+    a second Ctrl-C interrupts at once (and, should training have died of an exception before AFTER_TRAIN, the stale
     handler costs one extra Ctrl-C, never a process that cannot be interrupted).
+
+    The output: `ns-train ... | tee log` loses its reader with the Ctrl-C (tee gets it too), a closed terminal with
+    the hang-up. From the first step ``sys.stdout`` and ``sys.stderr`` are guarded (willags_ns/engine/streams.py): a
+    write whose reader is gone no longer raises in the middle of a step, and a closed stdout itself asks for the stop.
+    The handler writes its notice straight to file descriptor 2 (printing through Python's buffered streams from a
+    signal handler can re-enter a write it interrupted); the resume command also goes to stderr when stdout is a pipe
+    or a file and stderr is elsewhere (the terminal under `| tee`), and it is in resume_command.txt whatever happens.
 
     Why at the end of a step: a checkpoint written from inside the backward or the optimiser step would hold
     parameters and Adam moments from two different steps. Saved after every AFTER_TRAIN_ITERATION callback of
@@ -195,35 +213,68 @@ class InterruptCheckpoint:
     def __init__(self, trainer):
         self.trainer = trainer
         self.requested = False
+        self.status = 130
         self.installed = False
-        self._prev = None
+        self._prev: dict[int, object] = {}
+        self._restore_output = None
 
     def _handler(self, signum, frame):
+        what = STOP_SIGNALS.get(signal.Signals(signum).name, signal.Signals(signum).name)
+        again = "; Ctrl-C again to stop at once" if signum == signal.SIGINT else ""
+        self._request(128 + signum, f"willags: {what} received; finishing this step and writing a checkpoint{again}")
+        self._restore_signals()
+
+    def _output_lost(self, name: str) -> None:
+        if name == "stdout" and self.installed:  # during training: stop as on Ctrl-C
+            self._request(
+                OUTPUT_LOST_STATUS,
+                "willags: stdout was closed (nothing reads the output any more); finishing this step and writing a "
+                "checkpoint",
+            )
+
+    def _request(self, status: int, notice: str) -> None:
+        if self.requested:
+            return
         self.requested = True
-        CONSOLE.log(
-            "[bold yellow]willags: interrupt received; finishing this step and writing a checkpoint "
-            "(Ctrl-C again to stop at once)"
-        )
-        self.uninstall()
+        self.status = status
+        try:  # straight to the file descriptor: see the class docstring
+            os.write(2, f"\n{notice}\n".encode())
+        except OSError:
+            pass
 
     def install(self, step: int) -> None:
         if self.installed or self.requested:
             return
         try:
-            self._prev = signal.signal(signal.SIGINT, self._handler)
+            for name in STOP_SIGNALS:
+                if hasattr(signal, name):
+                    num = getattr(signal, name)
+                    self._prev[num] = signal.signal(num, self._handler)
             self.installed = True
-        except ValueError:  # not the main thread (a trainer driven from a thread): leave SIGINT alone
-            pass
+        except ValueError:  # not the main thread (a trainer driven from a thread): leave the signals alone
+            self._restore_signals()
+            return
+        if self._restore_output is None:
+            self._restore_output = guard_output(self._output_lost)
+
+    def _restore_signals(self) -> None:
+        for num, prev in self._prev.items():
+            default = signal.default_int_handler if num == signal.SIGINT else signal.SIG_DFL
+            signal.signal(num, prev if prev is not None else default)  # type: ignore[arg-type]
+        self._prev = {}
+        self.installed = False
 
     def uninstall(self, step: int | None = None) -> None:
-        if self.installed:
-            signal.signal(signal.SIGINT, self._prev if self._prev is not None else signal.default_int_handler)
-            self.installed = False
+        self._restore_signals()
+        # a run stopped on request keeps its guarded output until the process ends (the reader may be gone)
+        if self._restore_output is not None and not self.requested:
+            self._restore_output()
+            self._restore_output = None
 
     def after_step(self, step: int) -> None:
         if not self.requested:
             return
-        self.uninstall()
+        self._restore_signals()
         self.trainer.save_checkpoint(step)
         path = self.trainer.checkpoint_dir / f"step-{step:09d}.ckpt"
         from nerfstudio.utils import writer
@@ -236,13 +287,11 @@ class InterruptCheckpoint:
 
             end = self.trainer._start_step + self.trainer.config.max_num_iterations
             command = resume_command([], str(self.trainer.config.method_name), path, end - step - 1)
-        CONSOLE.print(
-            f"willags: interrupted after step {step}; checkpoint {path}\nresume with: {command}",
-            soft_wrap=True,  # one line however long: it is copied into a shell
-            markup=False,
-            highlight=False,
-        )
-        raise SystemExit(130)
+        text = f"willags: interrupted after step {step}; checkpoint {path}\nresume with: {command}"
+        CONSOLE.print(text, soft_wrap=True, markup=False, highlight=False)  # one line however long: a shell's
+        if say_on_stderr_too():
+            print(text, file=sys.stderr, flush=True)
+        raise SystemExit(self.status)
 
 
 class WillagsPipeline(VanillaPipeline):
@@ -337,6 +386,9 @@ class WillagsPipeline(VanillaPipeline):
         names = [Path(p).name for p in self.datamanager.train_dataparser_outputs.image_filenames]
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
+        eval_dataset = getattr(self.datamanager, "eval_dataset", None)
+        if eval_dataset is not None and hasattr(self.model, "set_test_photos"):
+            self.model.set_test_photos([str(p) for p in eval_dataset.image_filenames])
         self._last_mask_warning = -float("inf")
         self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
         if getattr(self.model, "appearance_nets", None) is not None:

@@ -13,11 +13,15 @@ killed run loses at most that much work); after each save, ``resume_command.txt`
 command that resumes from it (``--load-checkpoint`` naming its file) and ends at the planned step. ``--load-dir`` resumes from the newest readable
 checkpoint, naming any damaged newer one it skipped. On a log that is not a terminal, nerfstudio's step table (which
 redraws itself with cursor movements, and with it the viewer's address, at every log step) prints each line once.
+When training ends the process ends, unless the viewer is kept (a browser connected to it, or
+``--viewer.quit-on-train-completion False``), which one line says with the way out.
 """
 
 import copy
 import dataclasses
 import json
+import math
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -31,6 +35,7 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.misc import step_check
+from nerfstudio.utils.printing import human_format
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.engine import time_budget
@@ -67,28 +72,49 @@ BUDGET_FILE = "time_budget.json"
 
 
 _SAVE_AFTER_SETUP: set[int] = set()
-"""ids of configs whose ns-train start printed one line instead of the whole configuration: config.yml is written
+"""ids of configs whose ns-train start printed nothing instead of the whole configuration: config.yml is written
 once the scene has been read (WillagsTrainer.setup), so a run that never starts leaves no run folder."""
+
+
+def resumed_run(config: TrainerConfig) -> Path | None:
+    """The run folder (config.yml beside its checkpoint directory) whose checkpoint ``config`` resumes from
+    (``load_checkpoint``'s directory, or ``load_dir``), or None."""
+    if config.load_checkpoint is not None:
+        ckpt_dir = Path(config.load_checkpoint).parent
+    elif config.load_dir is not None:
+        ckpt_dir = Path(config.load_dir)
+    else:
+        return None
+    if ckpt_dir.name != Path(config.relative_model_dir).name or not (ckpt_dir.parent / "config.yml").is_file():
+        return None
+    return ckpt_dir.parent
 
 
 @dataclass
 class WillagsTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py).
 
-    At ns-train's start the configuration (some 350 lines) is not printed: one line says where config.yml will hold
-    it, and config.yml is written after the scene has been read, so a bad --data leaves no run folder behind."""
+    At ns-train's start the configuration (some 350 lines) is not printed: config.yml is written after the scene has
+    been read, and one line then says where it is, so a bad --data leaves no run folder behind and nothing is said
+    about a run that never starts."""
 
     _target: type = field(default_factory=lambda: WillagsTrainer)
 
     def print_to_terminal(self) -> None:
         _SAVE_AFTER_SETUP.add(id(self))
-        CONSOLE.print(
-            f"willags: training {self.method_name}; every setting is written to {self.get_base_dir() / 'config.yml'} "
-            "once the scene has been read (ns-train willags --help explains each)",
-            soft_wrap=True,
-            markup=False,
-            highlight=False,
-        )
+
+    def set_timestamp(self) -> None:
+        """ns-train's run folder: a resume (--load-checkpoint or --load-dir naming a run's checkpoints, as the
+        printed resume command does) goes on in the folder of the run it resumes, so that the run stays whole (its
+        checkpoints, config.yml, events and resume_command.txt in one place); otherwise, or with --timestamp given,
+        nerfstudio's new timestamp."""
+        run = resumed_run(self)
+        if self.timestamp == "{timestamp}" and run is not None and run.parent.name == str(self.method_name):
+            self.output_dir = run.parent.parent.parent
+            self.experiment_name = run.parent.parent.name
+            self.timestamp = run.name
+            return
+        super().set_timestamp()
 
     def save_config(self) -> None:
         if id(self) in _SAVE_AFTER_SETUP:  # ns-train's save right after print_to_terminal: WillagsTrainer.setup saves
@@ -111,6 +137,11 @@ class WillagsTrainerConfig(TrainerConfig):
     presets' schedules are a whole run's)."""
     lr_cooldown_floor: float = COOLDOWN_FLOOR
     """The learning rates' factor at the last step of the cooldown (0 to 1)."""
+
+
+def _say(text: str) -> None:
+    """One plain line on nerfstudio's console (no markup, no wrapping)."""
+    CONSOLE.print(text, soft_wrap=True, markup=False, highlight=False)
 
 
 PRESET_CONFIGS: dict[str, Any] = {}
@@ -200,6 +231,121 @@ def quiet_local_writer(writers: list, is_terminal: bool) -> list[str]:
     return banner
 
 
+def drop_stale_local_writers(writers: list) -> None:
+    """Keep only the newest of nerfstudio's step tables (LocalWriter) in ``writers``: nerfstudio appends one at every
+    trainer set-up and never removes it, so a second training in one process (a script, a test) would print every
+    row once per earlier run, with the earlier runs' numbers."""
+    tables = [w for w in writers if isinstance(w, writer.LocalWriter)]
+    for w in tables[:-1]:
+        writers.remove(w)
+
+
+def table_time(seconds: float) -> str:
+    """A duration as nerfstudio's step table writes it: ``350.123 ms``, ``2 s, 149.675 ms``, ``7 m, 58 s``,
+    ``1 h, 2 m, 3 s``."""
+    seconds = max(0.0, float(seconds))
+    whole = int(seconds)
+    ms = (seconds - whole) * 1e3
+    hours, rest = divmod(whole, 3600)
+    minutes, secs = divmod(rest, 60)
+    if hours:
+        return f"{hours} h, {minutes} m, {secs} s"
+    if minutes:
+        return f"{minutes} m, {secs} s"
+    if secs:
+        return f"{secs} s, {ms:0.3f} ms"
+    return f"{ms:0.3f} ms"
+
+
+class BudgetStepTable(writer.LocalWriter):
+    """nerfstudio's step table (its LocalWriter, whose class this becomes: :meth:`attach`) for a run under a time
+    budget. nerfstudio counts the step against the planned end and the ETA as the steps left times the step time;
+    the budget re-plans the end as the run measures itself, so its percentage went backwards when a plan grew
+    (88 % then 87 %), and its first ETA multiplied the table's step count by this machine's slower steps (31 minutes
+    for an 8-minute budget). Here every row says, from the first one: the step, the planned end (a range while the
+    run has not measured its own step time: the plans at the table's step time and at the run's own so far), the
+    share of the run's time done (which only grows), and in the ETA column the time left of the budget
+    (time_budget.budget_progress). The other columns are nerfstudio's."""
+
+    budget: TimeBudget
+    table_step_s: float
+    shown_share: float
+    HEADER = "Step of plan (% time)"
+    WIDTH = 30
+
+    @classmethod
+    def attach(cls, writers: list, budget: TimeBudget, table_step_s: float) -> None:
+        """Make nerfstudio's LocalWriter in ``writers`` this table for ``budget`` (the table's step time:
+        ``table_step_s``)."""
+        for w in writers:
+            if type(w) is writer.LocalWriter:
+                w.__class__ = cls
+                w.budget, w.table_step_s, w.shown_share = budget, table_step_s, 0.0
+
+    def row(self, step: int, latest_map: dict) -> str:
+        """The table's row after ``step`` (see the class docstring)."""
+        b = self.budget
+        elapsed = b.elapsed()
+        done = step - b.start_step + 1
+        own = elapsed / done if done > 0 and elapsed > 0 else math.nan
+        progress = time_budget.budget_progress(
+            b.budget_s, elapsed, step, b.start_step, b.end_step, b.max_steps, (self.table_step_s, own)
+        )
+        self.shown_share = max(self.shown_share, progress.share)
+        low, high = progress.end_low, progress.end_high
+        plan = f"{low}" if low == high else f"{low}-{high}"
+        first = f"{step} of {plan} ({100 * self.shown_share:.2f}%)"
+        cells = [f"{first:<{self.WIDTH}}"]
+        for name, v in latest_map.items():
+            if name not in self.stats_to_track:
+                continue
+            if name == writer.EventName.ETA.value:
+                v = table_time(progress.time_left_s)
+            elif "(time)" in name:
+                v = table_time(v)
+            elif "Rays" in name:
+                v = human_format(v)
+            else:
+                v = f"{v:0.4f}"
+            cells.append(f"{v:<20} ")
+        return "".join(cells)
+
+    def _update_header(self, latest_map, new_key):
+        names = "".join(f"{name:<20} " for name in latest_map if name in self.stats_to_track)
+        header = f"{self.HEADER:<{self.WIDTH}}{names}"
+        if not self.config.max_log_size:  # a log: the header once, before the first row (a resumed run's too)
+            if not getattr(self, "said_header", False):
+                self.said_header = True
+                print(header)
+                print("-" * len(header))
+            return
+        if len(self.past_mssgs) - self.banner_len <= 2 or new_key:
+            self.past_mssgs[0], self.past_mssgs[1] = header, "-" * len(header)
+            if not self.has_printed:
+                print(header)
+                print("-" * len(header))
+
+    def _print_stats(self, latest_map, padding=" "):
+        curr = self.row(writer.GLOBAL_BUFFER["step"], latest_map)
+        if not self.config.max_log_size:
+            print(curr)
+            return
+        # nerfstudio's redrawn table: the last max_log_size rows above the banner
+        if not self.has_printed:
+            cursor_idx = len(self.past_mssgs) - self.banner_len
+            self.has_printed = True
+        else:
+            cursor_idx = len(self.past_mssgs)
+        if len(self.past_mssgs[2:]) - self.banner_len >= self.config.max_log_size:
+            self.past_mssgs.pop(2)
+        self.past_mssgs.insert(len(self.past_mssgs) - self.banner_len, curr)
+        print(f"\r\033[{cursor_idx}A", end="\x1b[1K\r")
+        pad_len = len(max(self.past_mssgs, key=len))
+        for i, mssg in enumerate(self.past_mssgs):
+            style = "\x1b[30;42m" if self.banner_len and i >= len(self.past_mssgs) - self.banner_len + 1 else ""
+            print(f"{style}{mssg:{padding}<{pad_len}} \x1b[0m")
+
+
 class WillagsTrainer(Trainer):
     """nerfstudio's Trainer; with a time budget it also chooses, measures and stops; its checkpoints are atomic, by
     steps and by time, and resumable with one printed command (see the module docstring)."""
@@ -207,6 +353,17 @@ class WillagsTrainer(Trainer):
     config: WillagsTrainerConfig
     clock: Callable[[], float] = staticmethod(time.monotonic)  # type: ignore[assignment]
     """Wall clock of the timed saves and the time budget (tests replace it)."""
+
+    def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        # nerfstudio's constructor prints "Saving checkpoints to: <run folder>" and a note on mixed precision before
+        # the scene has been read: a run that will not start (a bad --data) would be announced. The folder is named
+        # when training starts (train()), with the save cadence and the resume file
+        quiet = CONSOLE.quiet
+        CONSOLE.quiet = True
+        try:
+            super().__init__(config, local_rank, world_size)
+        finally:
+            CONSOLE.quiet = quiet
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         install_cli_excepthook()  # a bad budget prints one line, as bad inputs do
@@ -233,6 +390,10 @@ class WillagsTrainer(Trainer):
         # invoked ones (setup_optimizers runs between the two in nerfstudio's setup)
         self._save_config_when_built = self.local_rank == 0 and test_mode == "val"
         super().setup(test_mode)
+        # the step table's progress and ETA count to the run's end: a resumed run starts at its checkpoint's step
+        # (nerfstudio counts to max_num_iterations, the steps left, from step 0: 116 % and a negative ETA)
+        writer.GLOBAL_BUFFER["max_iter"] = self._start_step + self.config.max_num_iterations
+        drop_stale_local_writers(writer.EVENT_WRITERS)
         if choice is not None and minutes is not None:
             if replaced is not None:
                 self._resolution_for_images(replaced)
@@ -250,6 +411,13 @@ class WillagsTrainer(Trainer):
         if getattr(self, "_save_config_when_built", False):
             self._save_config_when_built = False
             self.config.save_config()
+            CONSOLE.print(
+                f"willags: training {self.config.method_name}; every setting is in {self.base_dir / 'config.yml'} "
+                "(ns-train willags --help explains each)",
+                soft_wrap=True,
+                markup=False,
+                highlight=False,
+            )
         return optimizers
 
     # ---- checkpoints
@@ -434,6 +602,7 @@ class WillagsTrainer(Trainer):
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._budget_done),
         ]
         self.time_budget = budget
+        BudgetStepTable.attach(writer.EVENT_WRITERS, budget, choice.step_s)
         self._budget_record["gaussians_at_start"] = self._num_gaussians()
         self._write_budget_record()
 
@@ -540,22 +709,63 @@ class WillagsTrainer(Trainer):
         if self.time_budget is not None and self.time_budget.stopped_after is not None:
             self.step = self.time_budget.stopped_after
         self.planned_end = self.step + 1  # finished (the budget may end it early): nothing left to resume
-        super()._after_train()
+        super()._after_train()  # with --viewer.quit-on-train-completion False it waits in _train_complete_viewer
+        if self.config.viewer.quit_on_train_completion:
+            self._viewer_after_training(asked=False)
 
     def _train_complete_viewer(self) -> None:
-        """After training nerfstudio keeps the viewer open until Ctrl-C ("Use ctrl+c to quit"). That Ctrl-C is how
-        ns-train ends there, not a failure: one line saying the run is complete (nerfstudio would print the
-        KeyboardInterrupt's traceback), the viewer stopped, exit status 0."""
+        """nerfstudio's wait after training, asked for by --viewer.quit-on-train-completion False."""
+        self._viewer_after_training(asked=True)
+
+    def shutdown(self) -> None:
+        """nerfstudio's shutdown (stop training, stop the viewer's server), once: the viewer is stopped when training
+        ends, and a second stop of its server fails."""
+        if getattr(self, "_shut_down", False):
+            self.stop_training = True
+            return
+        self._shut_down = True
+        super().shutdown()
+
+    def _viewer_clients(self) -> int:
+        """How many browsers are connected to the viewer now (0 without a viewer)."""
+        get = getattr(getattr(self.viewer_state, "viser_server", None), "get_clients", None)
+        return len(get()) if callable(get) else 0
+
+    def _viewer_after_training(self, asked: bool) -> None:
+        """After training, ns-train ends (willags' methods set --viewer.quit-on-train-completion True): nerfstudio
+        alone keeps the process alive for the viewer until Ctrl-C, which a finished run in a script or a terminal
+        left alone never gets. The viewer stays open, with one line saying why and how to leave, where that is
+        wanted: ``asked`` (--viewer.quit-on-train-completion False: until Ctrl-C), or while a browser is connected
+        (until it closes, or Ctrl-C). Ctrl-C there is how ns-train ends, not a failure: one line, exit status 0."""
+        state = self.viewer_state
+        if state is None:
+            return
+        if not asked and not self._viewer_clients():
+            self.shutdown()  # the viewer's server threads would keep the process alive
+            return
+        self.training_state = "completed"
         try:
-            super()._train_complete_viewer()
+            state.training_complete()
+        except RuntimeError:
+            pass
+        found = re.search(r"https?://\S+", " ".join(getattr(state, "viewer_info", None) or []))
+        where = f"the viewer at {found.group(0)}" if found else "the viewer"
+        why = (
+            "(--viewer.quit-on-train-completion False): Ctrl-C ends ns-train"
+            if asked
+            else "while a browser is connected to it: close the browser tab, or press Ctrl-C, to end ns-train"
+        )
+        config = Path(self.base_dir) / "config.yml"
+        try:  # from the line on: a Ctrl-C may come as soon as it is read
+            _say(f"willags: training is complete ({config}); {where} stays open {why}")
+            while asked or self._viewer_clients():
+                time.sleep(0.1)
         except KeyboardInterrupt:
             self.shutdown()
-            CONSOLE.print(
-                f"willags: viewer closed (Ctrl-C); the run is complete: {Path(self.base_dir) / 'config.yml'}",
-                soft_wrap=True,
-                markup=False,
-                highlight=False,
-            )
+            _say(f"willags: viewer closed (Ctrl-C); the run is complete: {config}")
+            return
+        self.shutdown()
+        _say(f"willags: the browser left, viewer closed; the run is complete: {config}")
 
     def _budget_done(self, step: int) -> None:
         budget = self.time_budget

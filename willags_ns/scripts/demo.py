@@ -1,5 +1,5 @@
-"""`make demo`: train willags on the embedded default scene on CPU, then render test views next to ground truth
-and a labelled appearance grid: one test view under training images' appearances, a new photo's (a test image the
+"""`make demo`: train willags on the embedded default scene on CPU, then render test views next to their photos
+(each tile labelled: the photo on the left, the render on the right) and a labelled appearance grid: one test view under training images' appearances, a new photo's (a test image the
 model never trained on: its latent fitted to the photo, or through the encoder of a VAE-latent model), two sampled
 appearances and an interpolation. Each tile is labelled with the SPEC that renders it
 (`willags-render ... --appearance SPEC`). The test views render with the mean appearance, or with the test image's
@@ -24,7 +24,7 @@ from PIL import Image
 
 @dataclass
 class DemoConfig:
-    """Options of the demo (defaults fit the 5-minute budget on 2 CPU cores)."""
+    """Options of the demo (the defaults take about 5 minutes on 2 CPU cores: README.md)."""
 
     output_dir: Path = Path("demo_outputs")
     """Where the run (checkpoint, config.yml, tensorboard) and the PNGs go."""
@@ -80,17 +80,6 @@ def train_args(cfg: DemoConfig) -> list[str]:
 
 def to_uint8(img: torch.Tensor) -> np.ndarray:
     return (img.detach().clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
-
-
-def grid(rows: list[list[np.ndarray]], pad: int = 2) -> np.ndarray:
-    """Tile images (all the same size) into one array with white padding."""
-    h, w = rows[0][0].shape[:2]
-    ncol = max(len(r) for r in rows)
-    out = np.full((len(rows) * (h + pad) + pad, ncol * (w + pad) + pad, 3), 255, np.uint8)
-    for i, r in enumerate(rows):
-        for j, im in enumerate(r):
-            out[pad + i * (h + pad) : pad + i * (h + pad) + h, pad + j * (w + pad) : pad + j * (w + pad) + w] = im
-    return out
 
 
 def _font(size: int):
@@ -183,25 +172,32 @@ def render(pipeline, camera, latent: torch.Tensor | None = None) -> torch.Tensor
     return pipeline.model.get_outputs_for_camera(cam)["rgb"]
 
 
+def views_rows(pipeline, n_views: int = 4) -> list[tuple[str, list[tuple[str, np.ndarray]]]]:
+    """The rows of views_gt_vs_render.png, for :func:`labelled_grid`: per test view (never trained on), the photo
+    on the left and the render on the right, each labelled, with the appearance the render used."""
+    model = pipeline.model
+    test = pipeline.datamanager.eval_dataset
+    encoder = model.config.appearance == "willags" and model.appearance_nets.vae is not None
+    how = "the photo's appearance" if encoder else "mean appearance"
+    rows = []
+    for i in range(min(n_views, len(test))):
+        cam = test.cameras[i : i + 1]
+        gt = test.get_image_float32(i)[..., :3]
+        latent = model.encode_image(gt) if encoder else None  # the test image's appearance, through the encoder
+        name = Path(test.image_filenames[i]).name
+        tiles = [("the photo", to_uint8(gt)), (f"the render, {how}", to_uint8(render(pipeline, cam, latent)))]
+        rows.append((f"test view {i}: {name} (not trained on)", tiles))
+    return rows
+
+
 def render_outputs(run_dir: Path, out_dir: Path) -> dict[str, Path]:
     from nerfstudio.utils.eval_utils import eval_setup
 
     _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")
     model = pipeline.model
     model.eval()
-    dm = pipeline.datamanager
-    test = dm.eval_dataset
-    n_views = min(4, len(test))
-    rows = []
-    for i in range(n_views):
-        cam = test.cameras[i : i + 1]
-        gt = test.get_image_float32(i)[..., :3]
-        latent = None
-        if model.config.appearance == "willags" and model.appearance_nets.vae is not None:
-            latent = model.encode_image(gt)  # the test image's appearance, through the encoder
-        rows.append([to_uint8(gt), to_uint8(render(pipeline, cam, latent))])
     paths = {"views": out_dir / "views_gt_vs_render.png"}
-    Image.fromarray(grid(rows)).save(paths["views"])
+    Image.fromarray(labelled_grid(views_rows(pipeline))).save(paths["views"])
 
     if model.config.appearance == "willags":
         paths["appearances"] = out_dir / "appearance_grid.png"

@@ -9,7 +9,8 @@ SPECs: willags_ns.appearance_spec; interp needs its weight T here (a PLY is one 
 The command prints the appearance it resolved and the file it wrote. The file is nerfstudio's PLY byte for byte,
 written by :func:`write_ply` instead of nerfstudio's writer (which writes every value of every Gaussian from Python,
 minutes for a million Gaussians): at numpy speed, with progress, atomically (a partial file renamed when complete;
-a full disk is one line naming the directory and the size needed).
+a full disk is one line naming the directory and the size needed). When nothing is exported (a damaged checkpoint,
+a bad SPEC) the output folder is not left behind, empty, unless it existed before.
 """
 
 import contextlib
@@ -101,12 +102,29 @@ ExportGaussianSplat = with_appearance_options(ns_exporter.ExportGaussianSplat, n
 _appearance_main = ExportGaussianSplat.main
 
 
+def missing_dirs(path: Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first."""
+    missing = []
+    p = Path(path)
+    while not p.exists() and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    return missing
+
+
 def _main(self) -> None:
     from willags_ns.engine.checks import install_cli_excepthook
 
-    install_cli_excepthook()  # a full disk: one line
-    with numpy_ply_writer():
-        _appearance_main(self)
+    install_cli_excepthook()  # a full disk, a damaged checkpoint: one line
+    created = missing_dirs(self.output_dir)  # nerfstudio makes the folder before it loads the checkpoint
+    try:
+        with numpy_ply_writer():
+            _appearance_main(self)
+    except BaseException:
+        for d in created:  # nothing exported, nothing left: the folders this command made, while still empty
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        raise
 
 
 ExportGaussianSplat.main = _main  # type: ignore[attr-defined]

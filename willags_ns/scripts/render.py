@@ -11,7 +11,7 @@ without T, gives each camera of the path its own latent (camera metadata `appear
 honours), sweeping T from 0 to 1 along the path.
 
 The commands print the appearance they resolved (which training image, photo, seed or file, and the latent's norm)
-and the path they wrote; frame progress is a bar on a terminal and a line every half minute in a log
+and the path they wrote with the step of the checkpoint it came from; frame progress is a bar on a terminal and a line every half minute in a log
 (willags_ns.engine.progress). A damaged checkpoint is named in one line (willags_ns.engine.checkpoints).
 """
 
@@ -95,7 +95,8 @@ def with_appearance_options(cls: type, module: Any = ns_render) -> type:
             cls.main(self)
         out = written_path(self)
         size = f", {out.stat().st_size / 2**20:.1f} MB" if out.is_file() else ""
-        _print_plain(f"{_command(module)}: wrote {out}{size} (appearance: {state.get('appearance', '-')})")
+        step = f", from the checkpoint of step {state['step']}" if "step" in state else ""
+        _print_plain(f"{_command(module)}: wrote {out}{size}{step} (appearance: {state.get('appearance', '-')})")
 
     fields = [(n, t, dataclasses.field(default=d)) for n, t, d in _OPTION_FIELDS]
     sub = dataclasses.make_dataclass(cls.__name__, fields, bases=(cls,), namespace={"main": main})
@@ -303,6 +304,7 @@ def appearance_hooks(opts: Any, module: Any = ns_render):
     def eval_setup(*args, **kwargs):
         out = orig_setup(*args, **kwargs)
         pipeline = out[1]
+        state["step"] = int(out[3])  # the checkpoint loaded (an older one when the newest is damaged)
         if getattr(pipeline.model.config, "appearance", None) != "willags":
             if opts.appearance is not None:
                 raise SystemExit("--appearance: this checkpoint has no appearance model (willags-3dgs)")
