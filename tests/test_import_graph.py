@@ -92,6 +92,46 @@ def test_the_package_has_no_import_cycles():
     assert cycles(graph) == []
 
 
+def room_of(module: str) -> str:
+    """The room of a package module: its folder under willags_ns (``appearance``, ``engine``, ...), or the module
+    itself for one at the package's root (``willags_ns.model``)."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 2 else module
+
+
+def room_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """room -> the rooms its modules import (module-level and function-level imports)."""
+    rooms: dict[str, set[str]] = {}
+    for mod, deps in graph.items():
+        a = room_of(mod)
+        rooms.setdefault(a, set()).update(room_of(d) for d in deps if room_of(d) != a)
+    return rooms
+
+
+ROOM_ORDER = ("render", "data", "splats", "appearance", "mask", "objective", "eval", "tools", "engine", "scripts")
+"""The folders from the lowest to the highest: a room imports only rooms before it (and the root's modules say
+where they sit by what they import)."""
+
+
+def test_rooms_import_one_way():
+    """No loop between folders (a file-level graph without cycles can still loop at the folder level), and every
+    folder imports only folders lower in ROOM_ORDER."""
+    rooms = room_graph(import_graph())
+    assert cycles(rooms) == []
+    rank = {r: i for i, r in enumerate(ROOM_ORDER)}
+    assert set(rank) == {r for r in rooms if "." not in r and r != "willags_ns"}, "every folder has its place"
+    upward = [(a, b) for a, deps in rooms.items() for b in deps if a in rank and b in rank and rank[b] >= rank[a]]
+    assert upward == []
+
+
+def test_room_loops_are_found():
+    graph = {"willags_ns.a.x": {"willags_ns.b.y"}, "willags_ns.b.y": {"willags_ns.c.z"}, "willags_ns.c.z": set()}
+    assert cycles(room_graph(graph)) == []
+    graph["willags_ns.c.z"] = {"willags_ns.a.w"}  # no file cycle (a.w is another file), but a -> b -> c -> a
+    graph["willags_ns.a.w"] = set()
+    assert cycles(graph) == [] and cycles(room_graph(graph)) == [["a", "b", "c"]]
+
+
 def test_the_model_does_not_import_the_viewer():
     graph = import_graph()
     assert "willags_ns.viewer" not in graph["willags_ns.model"]
@@ -135,6 +175,36 @@ def private_imports(package: Path = PACKAGE, target: str = "willags_ns") -> list
                 if names or (private_module and node.module.rpartition(".")[0] != own):
                     found.append(f"{path.relative_to(package.parent)}:{node.lineno} {node.module} {names}")
     return found
+
+
+PICKLED_PRIVATE = {
+    "numpy._core": "numpy 2 pickles its arrays under it: torch's safe globals must name it (engine/compat)"
+}
+"""Other libraries' private modules the package imports, each with why: what a checkpoint's pickle names."""
+
+
+def foreign_private_imports(package: Path = PACKAGE) -> list[str]:
+    """`from lib.x import _name` and `from lib._x import ...` of a library other than willags_ns (its private names
+    and modules: they change without notice between its releases), except PICKLED_PRIVATE."""
+    found = []
+    for path in package.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ImportFrom) or not node.module or node.level:
+                continue
+            if node.module.split(".")[0] in (package.name, "__future__") or node.module in PICKLED_PRIVATE:
+                continue
+            names = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+            if names or any(part.startswith("_") and not part.startswith("__") for part in node.module.split(".")):
+                found.append(f"{path.relative_to(package.parent)}:{node.lineno} {node.module} {names}")
+    return found
+
+
+def test_no_private_name_of_another_library_is_imported(tmp_path):
+    assert foreign_private_imports() == []
+    fake = tmp_path / "willags_ns"
+    fake.mkdir()
+    (fake / "a.py").write_text("from gsplat.strategy.ops import _update\nfrom numpy._core import multiarray\n")
+    assert [f.split(" ", 1)[1] for f in foreign_private_imports(fake)] == ["gsplat.strategy.ops ['_update']"]
 
 
 def test_private_imports_are_found(tmp_path):

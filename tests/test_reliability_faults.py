@@ -438,7 +438,7 @@ def test_row27_progress_lines_in_a_log():
 
     from rich.console import Console
 
-    from willags_ns.engine.progress import Progress, progress_line
+    from willags_ns.tools.progress import Progress, progress_line
 
     assert progress_line("x", 3, 10, 12.0) == "x: 3/10 (30%), 12 s, ~28 s left"
     assert progress_line("x", 10, 10, 200.0) == "x: 10/10 (100%), 3.3 min"

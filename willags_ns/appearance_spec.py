@@ -17,7 +17,6 @@ This module imports neither the model nor the viewer (both import it), so there 
 
 import math
 import re
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -27,24 +26,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from willags_ns.appearance.latents import (
+    APPEARANCE_ENV,
+    MAX_LATENT_NORM,
+    AppearanceSpecError,
+    checked_latent,
+    mean_latent,
+)
+
 if TYPE_CHECKING:
     from nerfstudio.cameras.cameras import Cameras
 
-APPEARANCE_ENV = "WILLAGS_APPEARANCE"
-"""Environment variable read by the model when no appearance was chosen in code: lets nerfstudio's own
-`ns-render`, `ns-export gaussian-splat` and `ns-viewer` use a chosen appearance (they take no model options)."""
-
-MAX_LATENT_NORM = 100.0
-"""Latents with a larger norm are scaled down to it (with a warning). Encoder latents and N(0, I) samples have a
-norm near sqrt(D) (about 6 for D = 32); 100 is far outside anything training saw, and beyond it the colour field
-only saturates (or, for a file with garbage in it, produces noise)."""
-
 KINDS = ("mean", "image", "photo", "sample", "latent", "interp")
 USAGE = "mean | image:NAME | photo:PATH | sample:SEED | latent:FILE.npy | interp:A,B[,T]"
-
-
-class AppearanceSpecError(ValueError):
-    """A SPEC that cannot be parsed or resolved; the message names the bad part."""
 
 
 @dataclass(frozen=True)
@@ -215,29 +209,6 @@ def embedding_sample(model, eps: Tensor) -> Tensor:
     cov = cov + 1e-6 * (cov.diagonal().mean() + 1e-12) * torch.eye(cov.shape[0], dtype=cov.dtype, device=cov.device)
     chol = torch.linalg.cholesky(cov)
     return (mu.double() + chol @ eps.to(chol)).to(lat.dtype)
-
-
-def checked_latent(z: Tensor, source: str, max_norm: float = MAX_LATENT_NORM) -> Tensor:
-    """z unchanged if finite with norm <= max_norm; scaled to max_norm with a warning if larger; an error naming
-    `source` if it holds NaN or Inf (a NaN latent would make every pixel NaN)."""
-    if not torch.isfinite(z).all():
-        raise AppearanceSpecError(f"{source}: the latent holds NaN or Inf values")
-    norm = float(z.norm())
-    if norm > max_norm:
-        warnings.warn(
-            f"{source}: latent norm {norm:.3g} is far outside the training latents; scaled down to {max_norm:g}",
-            stacklevel=2,
-        )
-        z = z * (max_norm / norm)
-    return z
-
-
-def mean_latent(model) -> Tensor:
-    """The mean of the training images' latents (what the model renders when nothing is chosen)."""
-    lat, seen = model.image_latents()
-    if bool(seen.any()):
-        return lat[seen].mean(0)
-    return torch.zeros(lat.shape[1], device=lat.device)
 
 
 def image_index(
@@ -464,3 +435,12 @@ def latent_from_env(spec: str, model) -> Tensor | None:
     if isinstance(parsed, MeanSpec):
         return None
     return resolve_latent(parsed, model, context=APPEARANCE_ENV)
+
+
+__all__ = [
+    "APPEARANCE_ENV",
+    "MAX_LATENT_NORM",
+    "AppearanceSpecError",
+    "checked_latent",
+    "mean_latent",
+]

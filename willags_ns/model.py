@@ -45,6 +45,7 @@ from willags_ns.appearance.latents import AppearanceLatents, LatentFace
 from willags_ns.appearance.networks import AppearanceNetworks, gaussian_layout
 from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
 from willags_ns.appearance.triplane import robust_bounds
+from willags_ns.appearance_spec import latent_from_env
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import make_lpips
@@ -174,6 +175,11 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         for param in self.gauss_params.values():  # resized in place: the optimisers hold these Parameter objects
             param.data = torch.zeros((newp,) + param.shape[1:], device=self.device)
         nn.Module.load_state_dict(self, dict, **kwargs)
+
+    def latent_from_spec(self, spec: str) -> Tensor | None:
+        """The latent of an appearance SPEC, for $WILLAGS_APPEARANCE (appearance_spec.latent_from_env: the SPEC
+        parser sits above the rooms, so the latents reach it through the model)."""
+        return latent_from_env(spec, self)
 
     # ------------------------------------------------------------------ colours (appearance/color_path.py)
     def sh_coeffs(self, gp: dict | None = None) -> Tensor | None:

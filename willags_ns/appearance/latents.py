@@ -20,6 +20,7 @@ mixin of WillagsModel whose methods hand the model's networks and buffers to the
 """
 
 import os
+import warnings
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
@@ -28,10 +29,46 @@ from torch import Tensor
 
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.vae import AppearanceVAE, reparameterize, vae_loss
-from willags_ns.appearance_spec import APPEARANCE_ENV, checked_latent, latent_from_env, mean_latent
 
 if TYPE_CHECKING:
     from nerfstudio.cameras.cameras import Cameras
+
+
+APPEARANCE_ENV = "WILLAGS_APPEARANCE"
+"""Environment variable read by the model when no appearance was chosen in code: lets nerfstudio's own
+`ns-render`, `ns-export gaussian-splat` and `ns-viewer` use a chosen appearance (they take no model options)."""
+
+MAX_LATENT_NORM = 100.0
+"""Latents with a larger norm are scaled down to it (with a warning). Encoder latents and N(0, I) samples have a
+norm near sqrt(D) (about 6 for D = 32); 100 is far outside anything training saw, and beyond it the colour field
+only saturates (or, for a file with garbage in it, produces noise)."""
+
+
+class AppearanceSpecError(ValueError):
+    """A SPEC that cannot be parsed or resolved; the message names the bad part."""
+
+
+def checked_latent(z: Tensor, source: str, max_norm: float = MAX_LATENT_NORM) -> Tensor:
+    """z unchanged if finite with norm <= max_norm; scaled to max_norm with a warning if larger; an error naming
+    `source` if it holds NaN or Inf (a NaN latent would make every pixel NaN)."""
+    if not torch.isfinite(z).all():
+        raise AppearanceSpecError(f"{source}: the latent holds NaN or Inf values")
+    norm = float(z.norm())
+    if norm > max_norm:
+        warnings.warn(
+            f"{source}: latent norm {norm:.3g} is far outside the training latents; scaled down to {max_norm:g}",
+            stacklevel=2,
+        )
+        z = z * (max_norm / norm)
+    return z
+
+
+def mean_latent(model) -> Tensor:
+    """The mean of the training images' latents (what the model renders when nothing is chosen)."""
+    lat, seen = model.image_latents()
+    if bool(seen.any()):
+        return lat[seen].mean(0)
+    return torch.zeros(lat.shape[1], device=lat.device)
 
 
 def image_as_float(image: Tensor) -> Tensor:
@@ -227,6 +264,8 @@ class LatentFace:
         test_photos: dict[str, str]
         _train_batch: dict | None
 
+        def latent_from_spec(self, spec: str) -> Tensor | None: ...
+
     def set_train_batch(self, batch: dict) -> None:
         """Called by WillagsPipeline before each training forward (nerfstudio's forward takes only the camera): the
         step's image, which feeds the latent (the VAE encoder, or the table's row) and the ground truth."""
@@ -271,7 +310,7 @@ class LatentFace:
 
     def current_latent(self) -> Tensor:
         """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
-        return self.latents.chosen(self.device, lambda spec: latent_from_env(spec, self), self.default_latent)
+        return self.latents.chosen(self.device, self.latent_from_spec, self.default_latent)
 
     @torch.no_grad()
     def encode_image(self, image: Tensor) -> Tensor:

@@ -74,7 +74,6 @@ from willags_ns.engine.distributed import (
     validate_data_parallel,
     validate_train_images,
 )
-from willags_ns.engine.progress import Progress
 from willags_ns.engine.step_profile import StepProfile
 from willags_ns.engine.streams import guard_output, say_on_stderr_too
 from willags_ns.eval.protocol import EvalProtocolConfig, describe_protocol, eval_split_images, evaluate_model
@@ -85,6 +84,7 @@ from willags_ns.tools.autoconfig import (
     scene_dir,
     tensorboard_entries,
 )
+from willags_ns.tools.progress import Progress
 from willags_ns.viewer import appearance_controls, guard_viewer_host
 
 MASK_REJECTED_WARN_EVERY_S = 60.0

@@ -272,7 +272,7 @@ def evaluate_model(
     headline numbers), `encoder_*` (right half, encoder latent, no optimisation), `full_*` (whole image, fitted
     latent), `left_loss_before` / `left_loss_after`, `fit_scale` (the fit's downscale k). `on_prediction(i, pred,
     gt)` sees each scored render (whole image, fitted latent) and its ground truth, e.g. to save pictures.
-    `progress`: a rich-style progress (``add_task`` / ``advance``, e.g. willags_ns.engine.progress.Progress) given one task
+    `progress`: a rich-style progress (``add_task`` / ``advance``, e.g. willags_ns.tools.progress.Progress) given one task
     per image, advanced at each Adam step, and one for all images (its time left is the whole protocol's).
     """
     model.eval()

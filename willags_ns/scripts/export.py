@@ -25,8 +25,8 @@ from nerfstudio.scripts import exporter as ns_exporter
 
 from willags_ns.engine.checkpoints import PARTIAL_SUFFIX, is_disk_full, no_space_message
 from willags_ns.engine.checks import WillagsIOError
-from willags_ns.engine.progress import Progress
 from willags_ns.scripts.render import with_appearance_options
+from willags_ns.tools.progress import Progress
 
 CHUNK = 1 << 16
 """Gaussians written per progress step."""

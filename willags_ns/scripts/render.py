@@ -12,7 +12,7 @@ honours), sweeping T from 0 to 1 along the path.
 
 The commands print the appearance they resolved (which training image, photo, seed or file, and the latent's norm)
 and the path they wrote with the step of the checkpoint it came from; frame progress is a bar on a terminal and a line every half minute in a log
-(willags_ns.engine.progress). A damaged checkpoint is named in one line (willags_ns.engine.checkpoints).
+(willags_ns.tools.progress). A damaged checkpoint is named in one line (willags_ns.engine.checkpoints).
 """
 
 import contextlib
@@ -41,7 +41,7 @@ from willags_ns.appearance_spec import (
     parse_spec,
     resolve_latent,
 )
-from willags_ns.engine.progress import Progress
+from willags_ns.tools.progress import Progress
 
 APPEARANCE_HELP = (
     "Appearance SPEC: mean | image:NAME|STEM|INDEX | photo:PATH | sample:SEED | latent:FILE.npy | interp:A,B[,T] "

@@ -14,8 +14,8 @@ samples of a distribution whose density is their opacity:
 
 The number of Gaussians is capped (`cap_max`): the cost of a step is chosen, not grown by the gradients. gsplat
 ships the same algorithm with a CUDA kernel for the relocation; the functions here are plain torch so that the CPU
-backend trains the same way, and the parameter and optimiser surgery is gsplat's (`_update_param_with_optimizer`,
-the routine its DefaultStrategy uses too).
+backend trains the same way; `replace_params` swaps each Gaussian tensor and the optimiser state that follows it
+(what gsplat's strategies do internally).
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from typing import Any, Literal
 
 import torch
 from gsplat.strategy import MCMCStrategy
-from gsplat.strategy.ops import _update_param_with_optimizer
 from torch import Tensor
 
 N_MAX = 51
@@ -176,8 +175,24 @@ def relocate_dead(params, optimizers, min_opacity: float, generator=None) -> int
         v[dead_idx] = 0
         return v
 
-    _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
+    replace_params(param_fn, optimizer_fn, params, optimizers)
     return n
+
+
+def replace_params(param_fn, state_fn, params, optimizers) -> None:
+    """Give every Gaussian tensor of `params` (name -> Parameter) the new Parameter `param_fn(name, p)` and move its
+    optimiser's per-parameter state along: each state tensor but the step count becomes `state_fn(key, value)`
+    (Adam's moments grow, shrink or reset with the Gaussians they belong to). The optimiser then steps the new
+    Parameter, and `params` holds it."""
+    for name in list(params.keys()):
+        opt = optimizers[name]
+        for group in opt.param_groups:
+            old = group["params"][0]
+            state = opt.state.pop(old, {})
+            new = param_fn(name, old)
+            group["params"] = [new]
+            opt.state[new] = {k: (v if k == "step" else state_fn(k, v)) for k, v in state.items()}
+            params[name] = new
 
 
 @torch.no_grad()
@@ -198,7 +213,7 @@ def add_sampled(params, optimizers, n: int, min_opacity: float, generator=None) 
     def optimizer_fn(key: str, v: Tensor) -> Tensor:
         return torch.cat([v, torch.zeros((n, *v.shape[1:]), device=v.device, dtype=v.dtype)])
 
-    _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
+    replace_params(param_fn, optimizer_fn, params, optimizers)
     return n
 
 

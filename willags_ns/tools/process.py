@@ -375,11 +375,11 @@ def _cancellable() -> Iterator[Any]:
 
 
 def _progress():
-    """A bar per stage on a terminal; in a log, a line per stage every half minute (willags_ns.engine.progress)."""
+    """A bar per stage on a terminal; in a log, a line per stage every half minute (willags_ns.tools.progress)."""
     from nerfstudio.utils.rich_utils import CONSOLE
     from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-    from willags_ns.engine.progress import Progress
+    from willags_ns.tools.progress import Progress
 
     return Progress(
         TextColumn("[bold blue]{task.description:<22}"),
