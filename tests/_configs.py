@@ -6,8 +6,8 @@ from typing import Any
 
 from willags_ns.appearance.sky import SkyConfig
 from willags_ns.config import LatentConfig
+from willags_ns.mask.rule import MaskConfig
 from willags_ns.mask.static_support import StaticSupportConfig
-from willags_ns.mask.transient import MaskConfig
 
 
 def mask(**fields: Any) -> MaskConfig:

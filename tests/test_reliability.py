@@ -220,7 +220,7 @@ def small_networks() -> dict:
     from willags_ns.appearance.triplane import TriplaneConfig
     from willags_ns.appearance.vae import VAEConfig
     from willags_ns.config import LatentConfig
-    from willags_ns.mask.transient import MaskConfig
+    from willags_ns.mask.rule import MaskConfig
 
     return {
         "latent": LatentConfig(dim=8, vae=VAEConfig(image_size=16, channels=(8, 8))),

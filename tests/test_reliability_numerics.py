@@ -20,7 +20,7 @@ from willags_ns.engine.checks import (
     check_train_memory,
     estimate_train_step_bytes,
 )
-from willags_ns.mask.transient import transient_mask
+from willags_ns.mask.rule import transient_mask
 from willags_ns.objective.losses import masked_dssim, masked_l1, reconstruction_loss
 
 H, W = 24, 32
@@ -210,11 +210,14 @@ def test_row11_pipeline_warns_when_the_mask_is_rejected():
     from nerfstudio.utils.rich_utils import CONSOLE
 
     from willags_ns.engine.pipeline import WillagsPipeline
+    from willags_ns.mask.health import MaskHealth, MaskHealthConfig
 
     fake = SimpleNamespace(
-        _last_mask_warning=-float("inf"),
         datamanager=SimpleNamespace(train_dataparser_outputs=SimpleNamespace(image_filenames=["a/x.png", "a/y.png"])),
-        model=SimpleNamespace(config=SimpleNamespace(max_masked_fraction=0.5)),
+        model=SimpleNamespace(
+            config=SimpleNamespace(mask=SimpleNamespace(max_masked_fraction=0.5)),
+            mask_health=MaskHealth(MaskHealthConfig()),
+        ),
     )
     with CONSOLE.capture() as cap:
         WillagsPipeline._warn_mask_rejected(fake, 7, {"image_idx": torch.tensor(1)})  # type: ignore[arg-type]
@@ -229,12 +232,15 @@ def test_row11_the_rejected_flag_is_read_one_step_late_and_only_when_set():
     from nerfstudio.utils.rich_utils import CONSOLE
 
     from willags_ns.engine.pipeline import WillagsPipeline
+    from willags_ns.mask.health import MaskHealth, MaskHealthConfig
 
     fake = SimpleNamespace(
-        _last_mask_warning=-float("inf"),
         _pending_rejected=(3, {"image_idx": torch.tensor(0)}, torch.tensor(False)),
         datamanager=SimpleNamespace(train_dataparser_outputs=SimpleNamespace(image_filenames=["a/x.png", "a/y.png"])),
-        model=SimpleNamespace(config=SimpleNamespace(max_masked_fraction=0.5)),
+        model=SimpleNamespace(
+            config=SimpleNamespace(mask=SimpleNamespace(max_masked_fraction=0.5)),
+            mask_health=MaskHealth(MaskHealthConfig()),
+        ),
     )
     fake._warn_mask_rejected = lambda step, batch: WillagsPipeline._warn_mask_rejected(fake, step, batch)
     with CONSOLE.capture() as cap:

@@ -221,7 +221,7 @@ def test_ns_train_cli_runs_without_data_or_device_flags(tmp_path):
     # the default inspects the scene first; the embedded scene cannot be, so it trains the full model, says why, and
     # config.yml is resolved (reloading it does not try again)
     assert "not applied (no --data given: the embedded scene is not inspected)" in out.stdout
-    assert "auto_config: false" in cfg and "mask: !!python/object:willags_ns.mask.transient.MaskConfig" in cfg
+    assert "auto_config: false" in cfg and "mask: !!python/object:willags_ns.mask.rule.MaskConfig" in cfg
     assert yaml.load(cfg, Loader=yaml.Loader).pipeline.model.mask.enabled is True
     assert json.loads(next(tmp_path.rglob("auto_config.json")).read_text())["applied"] is False
 

@@ -27,8 +27,8 @@ from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.sky import SkyConfig
 from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
+from willags_ns.mask.rule import MaskConfig
 from willags_ns.mask.teacher import TeacherConfig
-from willags_ns.mask.transient import MaskConfig
 from willags_ns.model import WillagsModel
 from willags_ns.splats.mcmc import Densification, McmcConfig
 
@@ -120,11 +120,6 @@ class WillagsModelConfig(SplatfactoModelConfig):
         """Refuse what the model cannot train (check_settings): the model calls it when it is built, so a field
         set after construction is checked too."""
         check_settings(self)
-
-    @property
-    def max_masked_fraction(self) -> float:
-        """mask.max_masked_fraction, under the name the pipeline's rejected-mask warning reads."""
-        return self.mask.max_masked_fraction
 
     def __getattr__(self, name: str) -> Any:
         # only reached for names the object lacks: a field of the flat layout says where it is

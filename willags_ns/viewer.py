@@ -132,7 +132,7 @@ def training_view_panels(model: "WillagsModel", train_dataset, idx: int, max_wid
     rejection of mostly-flagged images).
     """
     from willags_ns.eval.mask_eval import teacher_render, training_view
-    from willags_ns.mask.step import compare_to_teacher
+    from willags_ns.mask.rule import compare_to_teacher
 
     cam, image, _ = training_view(train_dataset, idx)
     gt = torch.from_numpy(image).float().div(255.0).to(model.device)

@@ -56,6 +56,19 @@ def test_a_config_yml_naming_the_modules_before_the_rooms_loads_as_today():
     assert type(loaded) is type(config) and loaded == config
 
 
+def test_a_config_yml_naming_the_mask_settings_in_transient_loads_them_from_the_rule():
+    import yaml
+
+    from willags_ns import method_configs as mc
+    from willags_ns.mask.rule import MaskConfig
+
+    config = mc.willags_config()
+    text = yaml.dump(config)
+    assert "!!python/object:willags_ns.mask.rule.MaskConfig" in text
+    loaded = yaml.load(text.replace("mask.rule.MaskConfig", "mask.transient.MaskConfig"), Loader=yaml.Loader)
+    assert type(loaded.pipeline.model.mask) is MaskConfig and loaded == config
+
+
 def test_an_unknown_module_in_a_config_yml_still_fails():
     import yaml
 

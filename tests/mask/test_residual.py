@@ -15,8 +15,8 @@ from willags_ns.mask.residual import (
     residual_threshold,
     residual_transient,
 )
+from willags_ns.mask.rule import mask_threshold
 from willags_ns.mask.step import MaskStep, compare_to_teacher
-from willags_ns.mask.transient import mask_threshold
 
 H, W = 96, 128
 BLOB = (slice(30, 62), slice(40, 80))  # 32 x 40 px opaque occluder
@@ -135,7 +135,8 @@ def test_mask_step_residual_mode_masks_the_blob_after_warmup_only():
 
 
 def test_compare_to_teacher_vgg_mode_is_the_perceptual_rule():
-    from willags_ns.mask.transient import PerceptualFeatures, image_distance, transient_mask
+    from willags_ns.mask.rule import transient_mask
+    from willags_ns.mask.transient import PerceptualFeatures, image_distance
 
     render = _teacher_render()
     photo = _photo(render)

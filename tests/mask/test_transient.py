@@ -5,19 +5,21 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from willags_ns.mask import transient
-from willags_ns.mask.transient import (
+from willags_ns.mask import rule, transient
+from willags_ns.mask.rule import (
     MaskConfig,
-    PerceptualFeatures,
-    build_seeded_vgg16_features,
-    load_vgg16_features,
     mask_active,
     mask_threshold,
-    perceptual_error,
     robust_threshold,
     static_mask,
     transient_mask,
     transient_threshold,
+)
+from willags_ns.mask.transient import (
+    PerceptualFeatures,
+    build_seeded_vgg16_features,
+    load_vgg16_features,
+    perceptual_error,
 )
 
 
@@ -244,8 +246,8 @@ def test_schedule_boundaries():
     assert mask_threshold(499, 0.85, 500) == float("inf")
     assert mask_threshold(500, 0.85, 500) == 0.85
     assert mask_threshold(499, 0.85, 500, 100) == float("inf")
-    assert mask_threshold(500, 0.85, 500, 100) == pytest.approx(0.85 * transient.RAMP_START_FACTOR)
-    assert mask_threshold(550, 0.85, 500, 100) == pytest.approx(0.85 * (transient.RAMP_START_FACTOR + 1) / 2)
+    assert mask_threshold(500, 0.85, 500, 100) == pytest.approx(0.85 * rule.RAMP_START_FACTOR)
+    assert mask_threshold(550, 0.85, 500, 100) == pytest.approx(0.85 * (rule.RAMP_START_FACTOR + 1) / 2)
     assert mask_threshold(600, 0.85, 500, 100) == pytest.approx(0.85)
     assert mask_threshold(10_000, 0.85, 500, 100) == pytest.approx(0.85)
 

@@ -34,7 +34,6 @@ import math
 import os
 import signal
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -86,9 +85,6 @@ from willags_ns.tools.autoconfig import (
 )
 from willags_ns.tools.progress import Progress
 from willags_ns.viewer import appearance_controls, guard_viewer_host
-
-MASK_REJECTED_WARN_EVERY_S = 60.0
-"""At most one 'mask rejected' warning per this many seconds (it is normal early in training)."""
 
 
 @dataclass
@@ -389,7 +385,6 @@ class WillagsPipeline(VanillaPipeline):
         eval_dataset = getattr(self.datamanager, "eval_dataset", None)
         if eval_dataset is not None and hasattr(self.model, "set_test_photos"):
             self.model.set_test_photos([str(p) for p in eval_dataset.image_filenames])
-        self._last_mask_warning = -float("inf")
         self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
         if getattr(self.model, "appearance_nets", None) is not None:
             # the appearance panel: nerfstudio's viewer finds its elements on the pipeline; it shows a training
@@ -627,16 +622,10 @@ class WillagsPipeline(VanillaPipeline):
         return agg
 
     def _warn_mask_rejected(self, step: int, batch) -> None:
-        now = time.monotonic()
-        if now - self._last_mask_warning < MASK_REJECTED_WARN_EVERY_S:
-            return
-        self._last_mask_warning = now
+        """The model's mask-health warning (mask/health.MaskHealth.rejected) for the photo of `batch`."""
         idx = int(batch.get("image_idx", -1))
         names = self.datamanager.train_dataparser_outputs.image_filenames
         name = Path(names[idx]).name if 0 <= idx < len(names) else f"image {idx}"
-        frac = getattr(self.model.config, "max_masked_fraction", None)
-        CONSOLE.log(
-            f"[bold yellow]willags warning:[/bold yellow] step {step}: the transient mask flagged more than "
-            f"{frac} of {name}; that image is supervised everywhere this step (normal early in training; if it "
-            "persists for one image, that photo may not show this scene)"
-        )
+        message = self.model.mask_health.rejected(step, name, self.model.config.mask.max_masked_fraction)
+        if message is not None:
+            CONSOLE.log(message)

@@ -1,11 +1,12 @@
 """How well the perceptual transient mask finds the occluders: IoU / recall / clean false positives vs masks_gt.
 
 For every training image with a ground-truth mask (``masks_gt/<stem>.png``, 255 = transient) the mask is computed
-exactly as a training step at the end of training computes it (``MaskStep.static_mask``, willags_ns/mask/step.py):
+exactly as a training step at the end of training computes it: the one rule, ``compare_to_teacher``
+(willags_ns/mask/rule.py), on the teacher's render:
 
     z   = teacher VAE encoder mean of the training image      (latent.kind embedding: the teacher's table row)
     R   = teacher render of the view (teacher networks, the student's current Gaussians, full resolution)
-    D   = perceptual_error(VGG(I), VGG(R))                     [H, W]
+    D   = perceptual_error(VGG(I), VGG(R))                     [H, W]   (mask.distance "residual": the colour residual)
     static = D < threshold(step)     (an image with more than max_masked_fraction flagged is rejected:
                                       training then supervises it everywhere, so nothing counts as transient)
 
@@ -26,7 +27,6 @@ Scores (transient = positive class), over the images that have a GT mask:
 """
 
 import copy
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,8 +36,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
-from willags_ns.mask.residual import colour_residual, residual_transient
-from willags_ns.mask.transient import image_distance, mask_threshold, transient_mask
+from willags_ns.mask.rule import compare_to_teacher, step_threshold, transient_mask
 from willags_ns.render.camera import View, viewmat_from_c2w
 
 
@@ -93,25 +92,6 @@ def aggregate_counts(counts: list[MaskCounts]) -> dict[str, float | None]:
         "num_with_transients": float(sum(c.gt_pos > 0 for c in counts)),
         "rejected": float(sum(c.rejected for c in counts)),
     }
-
-
-def predicted_transient(
-    perceptual: Callable[[Tensor], list[Tensor]],
-    gt: Tensor,
-    teacher: Tensor,
-    threshold: float,
-    max_masked_fraction: float = 1.0,
-    rule: str = "fixed",
-    robust_k: float = 2.0,
-) -> tuple[Tensor, bool, Tensor]:
-    """(transient [H, W] bool, rejected, D [H, W]) from GT and teacher render [H, W, 3] in [0, 1].
-
-    Same rule as training: static = D < threshold (per image for rule "robust", see
-    willags_ns.mask.transient.robust_threshold); if more than `max_masked_fraction` of the image would be dropped, the
-    mask is rejected (nothing is transient)."""
-    d = image_distance(perceptual, gt.float(), teacher.float())
-    transient, rejected = transient_mask(d, threshold, rule, robust_k, max_masked_fraction)
-    return transient, bool(rejected), d
 
 
 def resize_mask(mask: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -224,17 +204,12 @@ def mask_scores(
     if getattr(cfg, "appearance", "sh") != "willags" or not cfg.mask.enabled or model.perceptual is None:
         return {"status": "no perceptual mask in this model"}
     masks_gt_dir = None if masks_gt_dir is None else Path(masks_gt_dir)
-    residual = getattr(cfg.mask, "distance", "vgg") == "residual"
-    thr = threshold  # distance "residual": the floor of the residual bar
-    if thr is None:
-        base = cfg.mask.residual.floor if residual else cfg.mask.threshold
-        thr = mask_threshold(model.step, base, cfg.mask.warmup_steps, cfg.mask.ramp_steps)
+    residual = cfg.mask.distance == "residual"
+    thr = step_threshold(cfg.mask, model.step) if threshold is None else threshold  # "residual": its bar's floor
     was_training = model.training
     model.eval()
     counts: list[MaskCounts] = []
     counts_fixed: list[MaskCounts] = []
-    # configs saved before the threshold rule existed load without these fields: the paper's rule
-    rule, k = getattr(cfg.mask, "threshold_rule", "fixed"), getattr(cfg.mask, "robust_k", 2.0)
     d_pos: list[Tensor] = []
     d_neg: list[Tensor] = []
     per_image = []
@@ -252,14 +227,8 @@ def mask_scores(
             cam, image, gt_mask = training_view(train_dataset, i, gt_mask)
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
             render = teacher_render(model, cam, img, i)
-            if residual:
-                d = colour_residual(img, render)
-                pred, rejected_t = residual_transient(d, thr, cfg.mask.residual, cfg.mask.max_masked_fraction)
-                rejected = bool(rejected_t)
-            else:
-                pred, rejected, d = predicted_transient(
-                    model.perceptual, img, render, thr, cfg.mask.max_masked_fraction, rule, k
-                )
+            pred, rejected_t, d = compare_to_teacher(cfg.mask, model.step, img, render, model.perceptual, thr)
+            rejected = bool(rejected_t)
             if gt_mask is None:  # no ground truth: every pixel static
                 gt_t = torch.zeros_like(pred, dtype=torch.bool)
             else:
@@ -287,7 +256,7 @@ def mask_scores(
         return {"status": f"no training image has a mask in {masks_gt_dir}" if masks_gt_dir else "no training image"}
     out: dict = dict(aggregate_counts(counts))
     out["threshold"] = float(thr)
-    out["rule"] = "residual" if residual else rule
+    out["rule"] = "residual" if residual else cfg.mask.threshold_rule
     fixed_agg = aggregate_counts(counts_fixed)
     for key in ("iou", "recall", "fp_rate", "rejected"):
         out[f"fixed_{key}"] = fixed_agg[key]

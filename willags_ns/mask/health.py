@@ -10,13 +10,18 @@ Means over windows of training steps (each step is one photo, so single steps ar
 share has risen by ``min_fraction_rise`` over the lowest window's *and* its training PSNR has fallen
 ``min_psnr_drop`` dB under the best window's, both within one regime (the same training resolution, no opacity
 reset between: both move the PSNR by themselves), :class:`MaskHealth` returns one warning naming the numbers and
-what to try. It warns; it changes nothing in the training.
+what to try. It warns; it changes nothing in the training. Beside it, the warning that a step's mask was rejected
+(:meth:`MaskHealth.rejected`), rate-limited: the pipeline reads the rejection flag one step late.
 """
 
+import time
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+REJECTED_WARN_EVERY_S = 60.0
+"""At most one 'mask rejected' warning per this many seconds (it is normal early in training)."""
 
 
 @dataclass
@@ -84,6 +89,23 @@ class MaskHealth:
         self._count = 0
         self._window_start: int | None = None
         self._regime: object = None
+        self.clock = time.monotonic
+        self._last_rejected_warning = -float("inf")
+
+    def rejected(self, step: int, photo: str, max_masked_fraction: float) -> str | None:
+        """The warning that `step`'s mask of `photo` was rejected (it would have dropped more than
+        `max_masked_fraction` of it, so the photo was supervised everywhere), at most once per
+        REJECTED_WARN_EVERY_S seconds (None in between): normal early in training, a sign when one photo keeps it
+        up."""
+        now = self.clock()
+        if now - self._last_rejected_warning < REJECTED_WARN_EVERY_S:
+            return None
+        self._last_rejected_warning = now
+        return (
+            f"[bold yellow]willags warning:[/bold yellow] step {step}: the transient mask flagged more than "
+            f"{max_masked_fraction} of {photo}; that image is supervised everywhere this step (normal early in "
+            "training; if it persists for one image, that photo may not show this scene)"
+        )
 
     def observe(self, step: int, masked_fraction: Tensor, psnr: Tensor, regime: object = None) -> str | None:
         """Add one training step (its masked share and PSNR, 0-d tensors; `regime` any key of what else moves the

@@ -14,7 +14,7 @@ are needed and nothing random decides what is static:
 
 A transient the 3D model cannot explain leaves a large, spatially coherent residual; a static pixel's residual is
 photometric noise, or a thin misalignment at an edge, which the two majority filters remove. ``floor(step)`` is
-:func:`willags_ns.mask.transient.mask_threshold` of ``floor``: inf before the warm-up (nothing masked), then the
+:func:`willags_ns.mask.rule.mask_threshold` of ``floor``: inf before the warm-up (nothing masked), then the
 optional ramp. Measured numbers: docs/design.md, "A weight-free transient mask".
 """
 

@@ -5,10 +5,9 @@ distance to the photo, the threshold, and the static-scene safeguard.
     teacher latent (teacher VAE mean of the photo, or its embedding row)                       teacher_latent
     teacher colours, rasterisation, background and composite: the student's functions, in the model's forward
         (appearance/color_path.teacher_colors, splats/gaussians.py, appearance/sky.py)
-    D = perceptual_error(VGG(photo), VGG(teacher render))                 [H, W]   (willags_ns/mask/transient.py)
-        or, with mask.distance "residual", D = mean_c |photo - teacher render| (willags_ns/mask/residual.py)
-    transient = D > threshold(step)   (rejected when it would drop more than mask.max_masked_fraction of the image;
-        "residual": a per-image robust bar and two majority filters, compare_to_teacher)
+    transient = the mask's one rule on photo and teacher render (willags_ns/mask/rule.compare_to_teacher: VGG
+        distance or colour residual against the step's bar; rejected when it would drop more than
+        mask.max_masked_fraction of the image)
     static = ~transient | SfM support (pixels near points many photos saw; willags_ns/mask/static_support.py)
 
 :func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
@@ -23,10 +22,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from willags_ns.appearance.networks import AppearanceNetworks
-from willags_ns.mask.residual import colour_residual, residual_transient
+from willags_ns.mask.rule import compare_to_teacher, mask_active
 from willags_ns.mask.static_support import apply_support, support_map
 from willags_ns.mask.teacher import ema_update_, make_teacher
-from willags_ns.mask.transient import PerceptualFeatures, image_distance, mask_active, mask_threshold, transient_mask
+from willags_ns.mask.transient import PerceptualFeatures
 
 
 def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | None, PerceptualFeatures | None]:
@@ -38,31 +37,6 @@ def mask_networks(cfg, nets: AppearanceNetworks) -> tuple[AppearanceNetworks | N
         return None, None
     teacher = cast(AppearanceNetworks, make_teacher(nets)) if m.teacher.enabled else None
     return teacher, PerceptualFeatures(weights=m.vgg_weights, path=m.vgg_weights_path, max_resolution=m.max_resolution)
-
-
-def compare_to_teacher(
-    mask_cfg, step: int, photo: Tensor, render: Tensor, perceptual: PerceptualFeatures | None
-) -> tuple[Tensor, Tensor, Tensor]:
-    """``(transient [H, W] bool, rejected 0-d bool, D [H, W])`` of a photo [H, W, 3] against the teacher's render
-    of it at `step`, by the comparison mask_cfg.distance names: "vgg" (perceptual D, its threshold rule;
-    willags_ns/mask/transient.py) or "residual" (colour residual, robust bar, coherence; willags_ns/mask/residual.py).
-    The one rule of training, the mask evaluation and the viewer."""
-    distance = getattr(mask_cfg, "distance", "vgg")  # configs saved before the switch existed: the VGG mask
-    if distance == "residual":
-        res = mask_cfg.residual
-        d = colour_residual(photo, render)
-        floor = mask_threshold(step, res.floor, mask_cfg.warmup_steps, mask_cfg.ramp_steps)
-        transient, rejected = residual_transient(d, floor, res, mask_cfg.max_masked_fraction)
-        return transient, rejected, d
-    if distance != "vgg":
-        raise ValueError(f"mask.distance {distance!r}: expected vgg | residual")
-    assert perceptual is not None
-    d = image_distance(perceptual, photo, render)  # [H, W]
-    thr = mask_threshold(step, mask_cfg.threshold, mask_cfg.warmup_steps, mask_cfg.ramp_steps)
-    transient, rejected = transient_mask(
-        d, thr, mask_cfg.threshold_rule, mask_cfg.robust_k, mask_cfg.max_masked_fraction
-    )
-    return transient, rejected, d
 
 
 class StepMask(NamedTuple):
