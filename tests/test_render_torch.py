@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from willags_ns.render import rasterize
+from willags_ns.splats.mcmc import covariances as mcmc_covariances
 
 # ----------------------------------------------------------------------------------------------- helpers
 
@@ -52,24 +53,18 @@ def random_scene(
     return means, quats, scales, opacities, colors
 
 
-def covariances(quats, scales):
-    w, x, y, z = F.normalize(quats, dim=-1).unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
-    M = R * scales[:, None, :]
-    return M @ M.transpose(-1, -2)
+def test_quaternion_to_matrix_is_a_rotation_and_normalises():
+    from willags_ns.render.rotation import quaternion_to_matrix
+
+    q = torch.randn(50, 4, dtype=torch.float64)
+    R = quaternion_to_matrix(q)
+    torch.testing.assert_close(R @ R.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(50, 3, 3))
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(50, dtype=torch.float64))
+    torch.testing.assert_close(quaternion_to_matrix(3.0 * q), R)  # the norm does not matter
+    half = torch.tensor([0.5**0.5, 0.0, 0.0, 0.5**0.5])  # 90 degrees about z: x -> y
+    torch.testing.assert_close(
+        quaternion_to_matrix(half) @ torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0])
+    )
 
 
 def rasterize_p(params, viewmats, Ks, width, height, **kwargs: Any):
@@ -102,7 +97,7 @@ def dense_reference(
     means, quats, scales, opacities, colors = params
     C, N = viewmats.shape[0], means.shape[0]
     radii, means2d, depths, conics, comp = _fully_fused_projection(
-        means, covariances(quats, scales), viewmats, Ks, width, height, eps2d=eps2d, calc_compensations=antialiased
+        means, mcmc_covariances(quats, scales), viewmats, Ks, width, height, eps2d=eps2d, calc_compensations=antialiased
     )
     opac = opacities[None].expand(C, N) * (comp if antialiased else 1.0)
     if sh_degree is not None:

@@ -28,9 +28,9 @@ The pair set and its order are piecewise constant in the parameters, as in gspla
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from willags_ns.render.rotation import quaternion_to_matrix
 from willags_ns.render.sh import sh_color
 
 ALPHA_MIN = 1.0 / 255.0  # gsplat skips pairs below this alpha: they change neither colour nor transmittance
@@ -49,21 +49,7 @@ def quat_scale_to_matrix(quats: Tensor, scales: Tensor) -> Tensor:
     Returns:
         [N, 3, 3]
     """
-    w, x, y, z = F.normalize(quats, p=2, dim=-1).unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(quats.shape[:-1] + (3, 3))
+    R = quaternion_to_matrix(quats)
     return R * scales[..., None, :]
 
 

@@ -28,6 +28,8 @@ import torch
 from gsplat.strategy import MCMCStrategy
 from torch import Tensor
 
+from willags_ns.render.rotation import quaternion_to_matrix
+
 N_MAX = 51
 """Largest number of copies one Gaussian is split into at one relocation (gsplat's table size)."""
 
@@ -116,21 +118,7 @@ def relocation(opacities: Tensor, scales: Tensor, ratios: Tensor, n_max: int = N
 def covariances(quats: Tensor, scales: Tensor) -> Tensor:
     """Covariance matrices [N, 3, 3] = R diag(scales^2) R^T of Gaussians with (unnormalised) quaternions `quats`
     [N, 4] (w, x, y, z) and scales [N, 3]."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    rot = torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
+    rot = quaternion_to_matrix(quats)
     m = rot * scales[:, None, :]
     return m @ m.transpose(1, 2)
 
