@@ -59,7 +59,7 @@ def parse_fold(name: str) -> tuple[str, int, int] | None:
 
 def registered_photos(scene_dir: Path) -> list[str]:
     """The photos a fold can test: the COLMAP model's images whose file is in `images/`, sorted by name."""
-    from willags_ns.data.dataparser import find_colmap_model
+    from willags_ns.data.colmap import find_colmap_model
     from willags_ns.data.sfm_tracks import read_observations
 
     model = find_colmap_model(scene_dir)

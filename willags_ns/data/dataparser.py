@@ -27,16 +27,19 @@ import torch
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
-from nerfstudio.data.utils import colmap_parsing_utils
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.process_data.colmap_utils import parse_colmap_camera_params
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from willags_ns.data.colmap import (
+    COLMAP_MODEL_DIRS,
+    ColmapModelError,
+    colmap_images_path,
+    find_colmap_model,
+    read_colmap_model,
+)
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY, read_observations, train_observations
 from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
-
-COLMAP_MODEL_DIRS = ("colmap/sparse/0", "sparse/0", "sparse", "dense/sparse")
-"""Where a COLMAP model is looked for, in this order (relative to `data`)."""
 
 EVAL_ONLY_DIRS = {"masks_gt_dir": "masks_gt", "gt_clean_dir": "gt_clean"}
 """metadata key -> directory name of the evaluation-only files exposed when present."""
@@ -191,19 +194,6 @@ def _tsv_split_of(image: Path, table: dict[str, str]) -> str | None:
         split = table.get("/".join(parts[-k:]))
         if split is not None:
             return split
-    return None
-
-
-def find_colmap_model(root: Path, colmap_path: Path | None = None) -> Path | None:
-    """The COLMAP model directory under `root` (`colmap_path` if given, else the first of `COLMAP_MODEL_DIRS` holding
-    cameras and images files), or None."""
-    candidates = [colmap_path] if colmap_path is not None else [Path(c) for c in COLMAP_MODEL_DIRS]
-    for rel in candidates:
-        d = root / rel
-        has_cams = (d / "cameras.bin").is_file() or (d / "cameras.txt").is_file()
-        has_imgs = (d / "images.bin").is_file() or (d / "images.txt").is_file()
-        if has_cams and has_imgs:
-            return d
     return None
 
 
@@ -404,9 +394,7 @@ class WillagsDataParser(DataParser):
     def _colmap_parser(self, root: Path, model: Path) -> DataParser:
         self._root = root
         self._colmap_model = model
-        images_path = self.config.images_path
-        if not (root / images_path).is_dir() and (root / "dense" / "images").is_dir():
-            images_path = Path("dense/images")
+        images_path = colmap_images_path(root, self.config.images_path)
         images_dir = root / images_path
         factor = self.config.downscale_factor
         if factor is None and images_dir.is_dir():  # nerfstudio's rule, without its interactive question
@@ -650,14 +638,10 @@ def check_colmap(root: Path, model: Path, images_dir: Path, need_points: bool) -
     if not images_dir.is_dir():
         raise WillagsDataError(f"COLMAP scene {root}: image directory {images_dir} does not exist")
     try:
-        if (model / "cameras.bin").is_file():
-            cameras = colmap_parsing_utils.read_cameras_binary(model / "cameras.bin")
-            images = colmap_parsing_utils.read_images_binary(model / "images.bin")
-        else:
-            cameras = colmap_parsing_utils.read_cameras_text(model / "cameras.txt")
-            images = colmap_parsing_utils.read_images_text(model / "images.txt")
-    except Exception as e:  # the readers raise assorted errors (struct, KeyError, ValueError) on bad files
-        raise WillagsDataError(f"cannot read the COLMAP model in {model}: {type(e).__name__}: {e}") from None
+        colmap = read_colmap_model(model)
+    except ColmapModelError as e:
+        raise WillagsDataError(str(e)) from None
+    cameras, images = colmap.cameras, colmap.images
     if not images:
         raise WillagsDataError(f"the COLMAP model in {model} has no registered images")
     try:

@@ -23,6 +23,8 @@ import torch.nn.functional as F
 from jaxtyping import Bool
 from torch import Tensor
 
+from willags_ns.data.colmap import read_colmap_model
+
 SFM_OBSERVATIONS_KEY = "sfm_observations"
 """DataparserOutputs.metadata key: a list (one entry per training image, in image order) of float32 arrays [n, 3]
 holding (u, v, track length over the training images), u and v in [0, 1] (x right, y down)."""
@@ -31,11 +33,8 @@ holding (u, v, track length over the training images), u and v in [0, 1] (x righ
 def read_observations(model: Path) -> dict[str, tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
     """{image name: (xy [n, 2] pixels, point3D ids [n], (width, height) of its camera)} for every registered image of
     the COLMAP model in `model` (.bin or .txt), keypoints without a 3D point left out."""
-    from nerfstudio.data.utils import colmap_parsing_utils as cpu
-
-    ext = ".bin" if (model / "images.bin").is_file() else ".txt"
-    cams = (cpu.read_cameras_binary if ext == ".bin" else cpu.read_cameras_text)(model / f"cameras{ext}")
-    ims = (cpu.read_images_binary if ext == ".bin" else cpu.read_images_text)(model / f"images{ext}")
+    colmap = read_colmap_model(model)
+    cams, ims = colmap.cameras, colmap.images
     out = {}
     for im in ims.values():
         ids = np.asarray(im.point3D_ids, dtype=np.int64).reshape(-1)

@@ -301,23 +301,16 @@ def read_colmap_scene(root: Path, model: Path) -> SceneViews:
     from nerfstudio.data.utils import colmap_parsing_utils as cpu
     from nerfstudio.process_data.colmap_utils import parse_colmap_camera_params
 
-    ext = ".bin" if (model / "images.bin").is_file() else ".txt"
+    from willags_ns.data.colmap import ColmapModelError, colmap_images_path, read_colmap_model
+
     try:
-        cams = (cpu.read_cameras_binary if ext == ".bin" else cpu.read_cameras_text)(model / f"cameras{ext}")
-        ims = (cpu.read_images_binary if ext == ".bin" else cpu.read_images_text)(model / f"images{ext}")
-        pts_file = model / f"points3D{ext}"
-        pts = (
-            (cpu.read_points3D_binary if ext == ".bin" else cpu.read_points3D_text)(pts_file)
-            if pts_file.is_file()
-            else {}
-        )
-    except Exception as e:  # a truncated or foreign file raises anything from struct.error to KeyError
-        raise InspectError(f"cannot read the COLMAP model in {model}: {e!r}") from None
+        colmap = read_colmap_model(model, points=True)
+    except ColmapModelError as e:
+        raise InspectError(str(e)) from None
+    cams, ims, pts = colmap.cameras, colmap.images, colmap.points or {}
     if not ims:
         raise InspectError(f"the COLMAP model in {model} has no registered images")
-    images_dir = root / "images"
-    if not images_dir.is_dir() and (root / "dense" / "images").is_dir():
-        images_dir = root / "dense" / "images"
+    images_dir = root / colmap_images_path(root)
     ids = sorted(ims, key=lambda i: ims[i].name)
     index = {im_id: k for k, im_id in enumerate(ids)}
     paths, w2c, Ks, dists, sizes = [], [], [], [], []
@@ -344,7 +337,7 @@ def read_colmap_scene(root: Path, model: Path) -> SceneViews:
 
 def read_scene(data: Path) -> SceneViews:
     """Resolve `data` like `willags-data` does and read it; InspectError (naming the path) when unusable."""
-    from willags_ns.data.dataparser import find_colmap_model
+    from willags_ns.data.colmap import find_colmap_model
 
     data = Path(data).expanduser()
     if not data.exists():
