@@ -226,7 +226,7 @@ def test_scene_without_points_keeps_the_methods_sky(scenes, tmp_path):
 
 def test_the_inspectors_default_sky_is_the_willags_presets():
     """inspect.WILLAGS_SKY names the default preset's sky (the recommended command lists only what differs)."""
-    from willags_ns.tools.inspect import WILLAGS_SKY
+    from willags_ns.tools.inspection import WILLAGS_SKY
 
     cfg = willags_model_config()
     own = {"sky.enabled": cfg.sky.enabled, "sky.region": cfg.sky.region, "sky.alpha_penalty": cfg.sky.alpha_penalty}

@@ -12,7 +12,7 @@ from PIL import Image
 
 from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, project, write_ply_points, write_scene
 from willags_ns.scripts import inspect as cli
-from willags_ns.tools.inspect import (
+from willags_ns.tools.inspection import (
     InspectConfig,
     InspectError,
     SceneViews,
@@ -452,7 +452,7 @@ def test_the_time_estimate_follows_the_resolution_schedule_the_run_trains_with()
     what an ETA early in the run sees, understates it ~15x on 800x571 photos)."""
     import numpy as np
 
-    from willags_ns.tools.inspect import InspectConfig, resolution_spans, resource_estimate
+    from willags_ns.tools.inspection import InspectConfig, resolution_spans, resource_estimate
 
     assert resolution_spans(30000) == {2: 3000, 1: 3000, 0: 24000}
     assert resolution_spans(4000) == {2: 3000, 1: 1000} and resolution_spans(500) == {2: 500}
@@ -469,7 +469,7 @@ def test_the_resource_estimate_stops_at_the_defaults_gaussian_cap():
     import numpy as np
 
     from willags_ns.splats.mcmc import McmcConfig
-    from willags_ns.tools.inspect import InspectConfig, resource_estimate
+    from willags_ns.tools.inspection import InspectConfig, resource_estimate
 
     cfg = InspectConfig()
     assert cfg.max_gaussians == McmcConfig().cap_max
@@ -482,7 +482,7 @@ def test_the_estimate_counts_the_photos_at_the_size_training_reads_them(scenes, 
     """Training reads photos above 1600 px at 1/2**k of their size (the data parser's rule) or at the factor given:
     the time and memory estimate counts the pixels of that size, and says which factor it used."""
     from willags_ns.data.dataparser import auto_downscale_factor, downscale_for_side
-    from willags_ns.tools import inspect as insp
+    from willags_ns.tools import inspection as insp
 
     folder = tmp_path / "images"
     folder.mkdir()

@@ -1,6 +1,6 @@
 """`willags-inspect --data DIR [--output FILE.json]`: analyse a scene before training and recommend a configuration.
 
-Thin CLI over `willags_ns.tools.inspect` (the method is in its docstring; options: `willags-inspect --help`). Prints the
+Thin CLI over `willags_ns.tools.inspection` (the method is in its docstring; options: `willags-inspect --help`). Prints the
 evidence and the recommendation; `--output` also writes them as JSON. Exit status: 0 on success, 1 when the input is
 unusable (one line naming the path).
 """
@@ -10,7 +10,7 @@ import sys
 
 import tyro
 
-from willags_ns.tools.inspect import InspectConfig, InspectError, format_report, inspect_scene
+from willags_ns.tools.inspection import InspectConfig, InspectError, format_report, inspect_scene
 
 
 def main(cfg: InspectConfig) -> int:

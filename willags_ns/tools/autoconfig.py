@@ -1,7 +1,7 @@
 """Automatic configuration: apply `willags-inspect`'s recommendation to the model before it is built.
 
 `ns-train willags --data DIR` (or any willags method with `--pipeline.model.auto-config True`) inspects the
-scene (willags_ns/tools/inspect.py: appearance change measured on the SfM points, transients as occluded observations
+scene (willags_ns/tools/inspection.py: appearance change measured on the SfM points, transients as occluded observations
 that nearby views disagree with) and switches off what the evidence says the scene does not need:
 
 - no appearance change and no transients: plain 3DGS colours (`appearance='sh'`: no latent, no mask, no teacher);
@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from willags_ns.splats.mcmc import scene_cap
-from willags_ns.tools.inspect import InspectConfig, InspectError, inspect_scene, sky_settings
+from willags_ns.tools.inspection import InspectConfig, InspectError, inspect_scene, sky_settings
 
 AUTO_CONFIG_FILE = "auto_config.json"
 """Written beside config.yml: the inspector's evidence, the recommendation and the switches applied."""
