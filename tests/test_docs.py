@@ -65,3 +65,8 @@ def test_the_readmes_demo_time_is_the_measured_one():
     measured = seconds("docs/design.md", "`make demo` (500 steps")
     said = seconds("README.md", "`make install` does.")
     assert said and said <= measured, (said, measured)
+
+
+def test_the_readme_stays_short():
+    """The README is for a user arriving with photos: what to type and where the rest is, in at most 150 lines."""
+    assert len((REPO / "README.md").read_text().splitlines()) <= 150
