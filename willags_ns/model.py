@@ -26,6 +26,7 @@ CUDA (`populate_modules`, `get_outputs`) or downloads weights (LPIPS). `appearan
 (method `willags-3dgs`).
 """
 
+import os
 from typing import Any, Union
 
 import torch
@@ -34,14 +35,21 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.scene_box import OrientedBox
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.model_components.lib_bilagrid import color_correct
-from nerfstudio.models.splatfacto import SplatfactoModel
+from nerfstudio.models.splatfacto import RGB2SH, SplatfactoModel
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
 from willags_ns.appearance.color_path import ColorContext, ColorPath, GaussianColors, teacher_colors
-from willags_ns.appearance.export import SplatExport
-from willags_ns.appearance.latents import AppearanceLatents, LatentFace
+from willags_ns.appearance.latents import (
+    AppearanceLatents,
+    TrainingLatent,
+    image_chw,
+    keeps_latent_memo,
+    mean_latent,
+    stored_latents,
+    training_latent,
+)
 from willags_ns.appearance.networks import AppearanceNetworks, gaussian_layout
 from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
 from willags_ns.appearance.triplane import robust_bounds
@@ -51,7 +59,6 @@ from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import make_lpips
 from willags_ns.mask.health import MaskHealth
 from willags_ns.mask.step import (
-    MaskFace,
     MaskStep,
     StepMask,
     TeacherPass,
@@ -59,6 +66,7 @@ from willags_ns.mask.step import (
     mask_networks,
     teacher_latent,
 )
+from willags_ns.mask.teacher import ema_update_
 from willags_ns.mask.transient import PerceptualFeatures
 from willags_ns.objective.losses import reconstruction_loss
 from willags_ns.objective.regularizers import regularization_terms
@@ -79,12 +87,12 @@ from willags_ns.splats.mcmc import McmcDensification, uses_mcmc
 __all__ = ["WillagsModel"]
 
 
-class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
-    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Three mixins carry public
-    faces: the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, ...: appearance.export.SplatExport), the
-    latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...:
-    appearance/latents.LatentFace) and the mask's (`update_teacher`, `static_support`, `sfm_observations`, the
-    teacher's second rasterisation, ...: mask.step.MaskFace)."""
+class WillagsModel(SplatfactoModel):
+    """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Its public methods are
+    here, each section a line or two over its room: the latents (`current_latent`, `render_latent`, `image_latents`,
+    `encode_image`, ...: appearance/latents.py), the mask (`update_teacher`, `static_support`, `sfm_observations`,
+    ...: mask/step.py), the exporter's names (`shs_0`, `shs_rest`, `colors`, `export_sh`, the bakes:
+    appearance/color_path.py)."""
 
     config: Any  # willags_ns.config.WillagsModelConfig (which names this class as its _target)
     # buffers registered in populate_modules (declared for type checkers: nn.Module.__getattr__ is untyped)
@@ -151,6 +159,156 @@ class WillagsModel(SplatExport, LatentFace, MaskFace, SplatfactoModel):
         self._train_batch: dict | None = None  # this step's batch (set_train_batch), until the step ends
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
         self.test_photos: dict[str, str] = {}  # file name -> path of the run's test photos (set by the pipeline)
+
+    # ------------------------------------------------------------------ latents (appearance/latents.py)
+    def set_train_batch(self, batch: dict) -> None:
+        """Called by WillagsPipeline before each training forward (nerfstudio's forward takes only the camera): the
+        step's image, which feeds the latent (the VAE encoder, or the table's row) and the ground truth."""
+        self._train_batch = batch
+
+    def set_train_image_names(self, names: list[str]) -> None:
+        """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
+        self.image_names = list(names)
+
+    def set_test_photos(self, paths: list[str]) -> None:
+        """The run's test photos (from the pipeline): an appearance SPEC naming one is told that it is a test photo
+        (no trained latent) and which ``photo:PATH`` fits it."""
+        self.test_photos = {os.path.basename(str(p)): str(p) for p in paths}
+
+    @property
+    def render_latent(self) -> Tensor | None:
+        """The chosen appearance [D] (viewer, ns-render, export), or None: $WILLAGS_APPEARANCE, else the mean."""
+        return self.latents.render_latent
+
+    @render_latent.setter
+    def render_latent(self, z: Tensor | None) -> None:
+        self.latents.render_latent = z
+
+    def image_latents(self) -> tuple[Tensor, Tensor]:
+        """(latents [num_train, D], known [num_train] bool) of the training images, detached (stored_latents)."""
+        assert self.appearance_nets is not None
+        return stored_latents(self.appearance_nets, self.train_latents, self.train_latent_seen)
+
+    def latent_memo(self) -> tuple[Tensor, Tensor] | None:
+        """The buffers (train_latents, train_latent_seen) that remember the training images' latents, written in
+        place by the rank that trains an image (keeps_latent_memo); None when the model keeps no such memo."""
+        nets = self.appearance_nets
+        if nets is None or not keeps_latent_memo(nets):
+            return None
+        return self.train_latents, self.train_latent_seen
+
+    def default_latent(self) -> Tensor:
+        """The appearance used when none is chosen: the mean of the training images' latents."""
+        assert self.appearance_nets is not None
+        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
+        return self.latents.default(nets, lat, seen, lambda: mean_latent(self))
+
+    def current_latent(self) -> Tensor:
+        """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
+        return self.latents.chosen(self.device, self.latent_from_spec, self.default_latent)
+
+    @torch.no_grad()
+    def encode_image(self, image: Tensor) -> Tensor:
+        """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
+        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs latent.kind='vae'"
+        mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
+        return mu[0]
+
+    def _image_chw(self, image: Tensor) -> Tensor:
+        return image_chw(image, self.device)  # [3, H, W]
+
+    def forward_latent(self, camera: "Cameras") -> Tensor:
+        """z [D] of a forward pass outside training: the camera's metadata, its training image, the chosen or the
+        default appearance (AppearanceLatents.for_render)."""
+        return self.latents.for_render(camera.metadata or {}, self.device, self.image_latents, self.current_latent)
+
+    def step_latent(self, camera: "Cameras") -> TrainingLatent:
+        """This training step's image's latent (the VAE's reparameterised sample, or the table's row)."""
+        assert self.appearance_nets is not None
+        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
+        return training_latent(nets, self._train_batch, camera.metadata or {}, self.device, lat, seen)
+
+    # ------------------------------------------------------------------ the mask (mask/step.py)
+    def update_teacher(self, step: int) -> None:
+        """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
+        assert self.teacher is not None and self.appearance_nets is not None
+        ema_update_(self.teacher, self.appearance_nets, self.config.mask.teacher.tau)
+
+    def step_static_mask(self, outputs, gt_img: Tensor) -> StepMask:
+        """This step's static mask (MaskStep.static_mask) of the image get_outputs rendered (`outputs`)."""
+        idx = int(outputs.get("image_idx", -1))
+        teacher_rgb = outputs.get("teacher_rgb")
+        return self.mask_step.static_mask(self.step, idx, gt_img, teacher_rgb, self.perceptual, self.device)
+
+    def static_support(self, idx: int, height: int, width: int) -> Tensor | None:
+        """Training image `idx`'s SfM support grid (True = vouched static), or None (MaskStep.support)."""
+        return self.mask_step.support(idx, height, width, self.device)
+
+    @property
+    def sfm_observations(self) -> list | None:
+        """SfM observations per training image (COLMAP scenes): the mask's safeguard (MaskStep.observations)."""
+        return self.mask_step.observations
+
+    @sfm_observations.setter
+    def sfm_observations(self, obs: list | None) -> None:
+        self.mask_step.observations = obs
+
+    @property
+    def last_masks(self) -> dict[int, Tensor]:
+        """Each image's last perceptual mask (MaskStep.masks), for looking at what the mask did."""
+        return self.mask_step.masks
+
+    # ------------------------------------------------------------------ what nerfstudio's exporter reads
+    # splatfacto's names (`shs_0`, `shs_rest`, `colors`, `features_dc`, `features_rest`): with an appearance model the
+    # Gaussians have no colour of their own, so they hand out the chosen appearance baked to SH or to view-averaged
+    # colours by the colour path (appearance/color_path.py: exact where the colour model has an exact SH)
+    @property
+    def features_dc(self):
+        """Splatfacto's name for the degree-0 SH parameter; with the paper's decoder (no SH parameters), the chosen
+        appearance baked to SH."""
+        return self.gauss_params["features_dc"] if "features_dc" in self.gauss_params else self.export_sh()[:, 0, :]
+
+    @property
+    def features_rest(self):
+        return self.gauss_params["features_rest"] if "features_rest" in self.gauss_params else self.export_sh()[:, 1:]
+
+    @property
+    def colors(self):
+        return super().colors if self.config.appearance == "sh" else self.baked_colors()  # type: ignore[misc]
+
+    @property
+    def shs_0(self):
+        """What exporters write as f_dc: splatfacto's SH, or the chosen appearance baked to SH."""
+        return super().shs_0 if self.config.appearance == "sh" else self.export_sh()[:, 0, :]  # type: ignore[misc]
+
+    @property
+    def shs_rest(self):
+        return super().shs_rest if self.config.appearance == "sh" else self.export_sh()[:, 1:, :]  # type: ignore[misc]
+
+    @torch.no_grad()
+    def export_sh(self) -> Tensor:
+        """SH [N, K, 3] of the chosen appearance for exporters (`ns-export gaussian-splat` writes f_dc + f_rest): the
+        decoder fitted by SH of degree render_sh_degree (view-dependent, 3DGS layout); with render_sh_degree=-1, the
+        decoder colour averaged over export_view_samples directions as degree 0."""
+        deg = self.config.render_sh_degree
+        if deg < 0:
+            return RGB2SH(self.baked_colors())[:, None, :]
+        return self.baked_sh(self.current_latent(), self.means, self.intrinsic_features, deg)
+
+    @torch.no_grad()
+    def baked_sh(self, z: Tensor, means: Tensor, f_s, degree: int, key: tuple | None = None, sh=None) -> Tensor:
+        """SH coefficients [N, (degree + 1)**2, 3] reproducing the appearance's colour (ColorPath.baked_sh)."""
+        assert self.appearance_nets is not None
+        sh = self.sh_coeffs() if sh is None else sh
+        return self.color_path.baked_sh(self.appearance_nets, z, means, f_s, degree, self.color_context(), sh, key)
+
+    @torch.no_grad()
+    def baked_colors(self, z: Tensor | None = None) -> Tensor:
+        """View-independent colours [N, 3] for export: the appearance averaged over a Fibonacci sphere of views."""
+        assert self.appearance_nets is not None
+        z = self.current_latent() if z is None else z.to(self.device)
+        nets, k, ctx = self.appearance_nets, max(1, self.config.export_view_samples), self.color_context()
+        return self.color_path.baked_colors(nets, z, self.means, self.intrinsic_features, k, ctx, self.sh_coeffs())
 
     # ------------------------------------------------------------------ the Gaussians, parameter groups, checkpoints
     @property

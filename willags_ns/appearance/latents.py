@@ -14,15 +14,15 @@ Rendering (viewer, ns-render, eval), first that applies:
 Latents handed out for rendering are memoised by what they are computed from (:class:`AppearanceLatents`), so a
 renderer that asks every frame pays no host sync, and their cache key (:meth:`AppearanceLatents.key_of`) costs none.
 
-:class:`LatentFace` is the model's public face over this module (`current_latent`, `render_latent`,
-`image_latents`, `encode_image`, ...: what the viewer, the CLIs, the NeRF-W protocol and the benchmarks call): a
-mixin of WillagsModel whose methods hand the model's networks and buffers to the functions above.
+The model's latent methods (`current_latent`, `render_latent`, `image_latents`, `encode_image`, ...: what the viewer,
+the CLIs, the NeRF-W protocol and the benchmarks call; willags_ns/model.py) hand its networks and buffers to the
+functions here.
 """
 
 import os
 import warnings
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
@@ -31,7 +31,7 @@ from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.vae import AppearanceVAE, reparameterize, vae_loss
 
 if TYPE_CHECKING:
-    from nerfstudio.cameras.cameras import Cameras
+    pass
 
 
 APPEARANCE_ENV = "WILLAGS_APPEARANCE"
@@ -247,88 +247,3 @@ def latent_loss(
     target = vae.prepare(vae_in[None])
     l_vae, parts = vae_loss(recon, target, mu[None], logvar[None], beta=beta, recon_reduction=recon_reduction)
     return l_vae, parts, recon.detach()
-
-
-class LatentFace:
-    """WillagsModel's latent methods (a mixin): the training image's latent for a forward pass, the stored latents
-    of the training images, the chosen appearance and its default, the encoder for a new photo."""
-
-    if TYPE_CHECKING:  # provided by WillagsModel (nn.Module attributes and the buffers of populate_modules)
-        device: Any
-        training: bool
-        appearance_nets: AppearanceNetworks | None
-        train_latents: Tensor
-        train_latent_seen: Tensor
-        latents: AppearanceLatents
-        image_names: list[str]
-        test_photos: dict[str, str]
-        _train_batch: dict | None
-
-        def latent_from_spec(self, spec: str) -> Tensor | None: ...
-
-    def set_train_batch(self, batch: dict) -> None:
-        """Called by WillagsPipeline before each training forward (nerfstudio's forward takes only the camera): the
-        step's image, which feeds the latent (the VAE encoder, or the table's row) and the ground truth."""
-        self._train_batch = batch
-
-    def set_train_image_names(self, names: list[str]) -> None:
-        """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
-        self.image_names = list(names)
-
-    def set_test_photos(self, paths: list[str]) -> None:
-        """The run's test photos (from the pipeline): an appearance SPEC naming one is told that it is a test photo
-        (no trained latent) and which ``photo:PATH`` fits it."""
-        self.test_photos = {os.path.basename(str(p)): str(p) for p in paths}
-
-    @property
-    def render_latent(self) -> Tensor | None:
-        """The chosen appearance [D] (viewer, ns-render, export), or None: $WILLAGS_APPEARANCE, else the mean."""
-        return self.latents.render_latent
-
-    @render_latent.setter
-    def render_latent(self, z: Tensor | None) -> None:
-        self.latents.render_latent = z
-
-    def image_latents(self) -> tuple[Tensor, Tensor]:
-        """(latents [num_train, D], known [num_train] bool) of the training images, detached (stored_latents)."""
-        assert self.appearance_nets is not None
-        return stored_latents(self.appearance_nets, self.train_latents, self.train_latent_seen)
-
-    def latent_memo(self) -> tuple[Tensor, Tensor] | None:
-        """The buffers (train_latents, train_latent_seen) that remember the training images' latents, written in
-        place by the rank that trains an image (keeps_latent_memo); None when the model keeps no such memo."""
-        nets = self.appearance_nets
-        if nets is None or not keeps_latent_memo(nets):
-            return None
-        return self.train_latents, self.train_latent_seen
-
-    def default_latent(self) -> Tensor:
-        """The appearance used when none is chosen: the mean of the training images' latents."""
-        assert self.appearance_nets is not None
-        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
-        return self.latents.default(nets, lat, seen, lambda: mean_latent(self))
-
-    def current_latent(self) -> Tensor:
-        """The chosen appearance: `render_latent` if set, else $WILLAGS_APPEARANCE if set, else the default."""
-        return self.latents.chosen(self.device, self.latent_from_spec, self.default_latent)
-
-    @torch.no_grad()
-    def encode_image(self, image: Tensor) -> Tensor:
-        """Mean latent [D] of an image [H, W, 3] (uint8 or float in [0, 1]) through the VAE encoder."""
-        assert self.appearance_nets is not None and self.appearance_nets.vae is not None, "needs latent.kind='vae'"
-        mu, _ = self.appearance_nets.vae.encode(self._image_chw(image)[None])
-        return mu[0]
-
-    def _image_chw(self, image: Tensor) -> Tensor:
-        return image_chw(image, self.device)  # [3, H, W]
-
-    def forward_latent(self, camera: "Cameras") -> Tensor:
-        """z [D] of a forward pass outside training: the camera's metadata, its training image, the chosen or the
-        default appearance (AppearanceLatents.for_render)."""
-        return self.latents.for_render(camera.metadata or {}, self.device, self.image_latents, self.current_latent)
-
-    def step_latent(self, camera: "Cameras") -> TrainingLatent:
-        """This training step's image's latent (the VAE's reparameterised sample, or the table's row)."""
-        assert self.appearance_nets is not None
-        nets, lat, seen = self.appearance_nets, self.train_latents, self.train_latent_seen
-        return training_latent(nets, self._train_batch, camera.metadata or {}, self.device, lat, seen)

@@ -15,7 +15,7 @@ image's last mask, its visit count, its support grid and the scene's SfM observa
 the teacher networks, the VGG features and the step arrive as arguments.
 """
 
-from typing import TYPE_CHECKING, Any, Literal, NamedTuple, cast
+from typing import Literal, NamedTuple, cast
 
 import torch
 import torch.nn.functional as F
@@ -24,7 +24,7 @@ from torch import Tensor
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.mask.rule import compare_to_teacher, mask_active
 from willags_ns.mask.static_support import apply_support, support_map
-from willags_ns.mask.teacher import ema_update_, make_teacher
+from willags_ns.mask.teacher import make_teacher
 from willags_ns.mask.transient import PerceptualFeatures
 
 
@@ -160,46 +160,3 @@ def log_step_images(
         writer.put_image("train/static_mask", mask[..., None].expand(-1, -1, 3), step)
     if recon is not None:
         writer.put_image("train/vae_reconstruction", recon[0].permute(1, 2, 0), step)
-
-
-class MaskFace:
-    """WillagsModel's mask methods (a mixin): the EMA update, the step's static mask, and the safeguard's SfM
-    observations and support grids (what the benchmarks and the viewer read)."""
-
-    if TYPE_CHECKING:  # provided by WillagsModel (nn.Module attributes and populate_modules)
-        config: Any
-        step: int
-        device: Any
-        teacher: AppearanceNetworks | None
-        appearance_nets: AppearanceNetworks | None
-        perceptual: PerceptualFeatures | None
-        mask_step: MaskStep
-
-    def update_teacher(self, step: int) -> None:
-        """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
-        assert self.teacher is not None and self.appearance_nets is not None
-        ema_update_(self.teacher, self.appearance_nets, self.config.mask.teacher.tau)
-
-    def step_static_mask(self, outputs, gt_img: Tensor) -> StepMask:
-        """This step's static mask (MaskStep.static_mask) of the image get_outputs rendered (`outputs`)."""
-        idx = int(outputs.get("image_idx", -1))
-        teacher_rgb = outputs.get("teacher_rgb")
-        return self.mask_step.static_mask(self.step, idx, gt_img, teacher_rgb, self.perceptual, self.device)
-
-    def static_support(self, idx: int, height: int, width: int) -> Tensor | None:
-        """Training image `idx`'s SfM support grid (True = vouched static), or None (MaskStep.support)."""
-        return self.mask_step.support(idx, height, width, self.device)
-
-    @property
-    def sfm_observations(self) -> list | None:
-        """SfM observations per training image (COLMAP scenes): the mask's safeguard (MaskStep.observations)."""
-        return self.mask_step.observations
-
-    @sfm_observations.setter
-    def sfm_observations(self, obs: list | None) -> None:
-        self.mask_step.observations = obs
-
-    @property
-    def last_masks(self) -> dict[int, Tensor]:
-        """Each image's last perceptual mask (MaskStep.masks), for looking at what the mask did."""
-        return self.mask_step.masks
