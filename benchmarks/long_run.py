@@ -238,7 +238,7 @@ def train(args) -> int:
         trainer.save_checkpoint(last[0])  # where the next segment resumes
     seg["num_gaussians"] = int(trainer.pipeline.model.num_points)
     if budget is not None:
-        state["time_budget"] = {**getattr(trainer, "_budget_record", {}), "run": budget.summary()}
+        state["time_budget"] = {**getattr(trainer, "budget_record", {}), "run": budget.summary()}
         state["end_step"] = last[0] + 1  # where the knob stopped: scored like a milestone
     if torch.cuda.is_available():
         seg["peak_mem_gb"] = torch.cuda.max_memory_allocated() / 1024**3

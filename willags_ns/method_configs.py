@@ -23,7 +23,8 @@ from willags_ns.config import LatentConfig, WillagsModelConfig
 from willags_ns.data.dataparser import WillagsDataParserConfig
 from willags_ns.engine.compat import quick_external_method_check
 from willags_ns.engine.pipeline import WillagsPipelineConfig
-from willags_ns.engine.trainer import PRESET_CONFIGS, WillagsTrainerConfig
+from willags_ns.engine.time_budget import PRESET_CONFIGS
+from willags_ns.engine.trainer import WillagsTrainerConfig
 from willags_ns.mask.rule import MaskConfig
 from willags_ns.mask.static_support import StaticSupportConfig
 

@@ -452,7 +452,7 @@ def test_step_times_are_their_records(key, runs):
 
 def test_preset_defaults_are_the_method_configs():
     import willags_ns.method_configs  # noqa: F401  (registers the presets)
-    from willags_ns.engine.trainer import preset_defaults
+    from willags_ns.engine.time_budget import preset_defaults
 
     assert (
         preset_defaults("willags")[1] == CAPS["willags"] and preset_defaults("willags-lite")[1] == CAPS["willags-lite"]
@@ -482,7 +482,7 @@ def test_apply_budget_switches_the_preset_in_the_config():
     """With the current CPU points, a 90 s budget picks lite (its 600 steps fit, willags' do not): the model config is
     swapped for the lite preset's, the user's settings kept, the steps capped at lite's default, full resolution."""
     from willags_ns import method_configs
-    from willags_ns.engine.trainer import apply_budget, preset_defaults
+    from willags_ns.engine.time_budget import apply_budget, preset_defaults
 
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"
@@ -502,7 +502,7 @@ def test_apply_budget_switches_the_preset_in_the_config():
 
 def test_switching_preset_keeps_the_users_settings():
     import willags_ns.method_configs  # noqa: F401  (registers the presets)
-    from willags_ns.engine.trainer import carry_overrides, preset_defaults
+    from willags_ns.engine.time_budget import carry_overrides, preset_defaults
 
     willags, _ = preset_defaults("willags")
     lite, _ = preset_defaults("willags-lite")
@@ -636,7 +636,8 @@ def test_the_step_table_of_a_budget_shows_time_left_and_a_share_that_only_grows(
 
     from tests.test_train import _train
     from willags_ns import method_configs
-    from willags_ns.engine.trainer import WillagsTrainer, table_time
+    from willags_ns.engine.time_budget import table_time
+    from willags_ns.engine.trainer import WillagsTrainer
 
     monkeypatch.setattr(tb, "WARMUP_STEPS", 3)
     monkeypatch.setattr(tb, "WINDOW_STEPS", 5)
@@ -744,14 +745,13 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
     from types import SimpleNamespace
 
     from willags_ns.config import WillagsModelConfig
-    from willags_ns.engine.trainer import WillagsTrainer
+    from willags_ns.engine.time_budget import schedule_fitter
     from willags_ns.splats.gaussians import densification_strategy
     from willags_ns.splats.mcmc import McmcDensification
 
     cfg = WillagsModelConfig(densification="mcmc" if mcmc else "splatfacto")  # 30000 steps: warm-up 500, every 100
     strategy = densification_strategy(cfg, num_train=12, mcmc=mcmc)
-    trainer = SimpleNamespace(pipeline=SimpleNamespace(model=SimpleNamespace(config=cfg, strategy=strategy)))
-    fit = WillagsTrainer._schedule_fitter(trainer, 30000)  # type: ignore[arg-type]
+    fit = schedule_fitter(SimpleNamespace(config=cfg, strategy=strategy), 30000)
     fit(6000)  # the fit_schedules docstring's example
     assert isinstance(strategy, McmcDensification) == mcmc
     assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (100, 20, 3000)
@@ -790,7 +790,8 @@ def test_a_cpu_choice_keeps_the_resolution_schedule_for_images_larger_than_the_m
     import torch
 
     from willags_ns import method_configs
-    from willags_ns.engine.trainer import WillagsTrainer, apply_budget, preset_defaults
+    from willags_ns.engine.time_budget import apply_budget, preset_defaults, resolution_for_images
+    from willags_ns.engine.trainer import WillagsTrainer
 
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"
@@ -803,14 +804,14 @@ def test_a_cpu_choice_keeps_the_resolution_schedule_for_images_larger_than_the_m
         datamanager=SimpleNamespace(train_dataset=SimpleNamespace(cameras=cams)),
         model=SimpleNamespace(config=config.pipeline.model),
     )
-    trainer._budget_record = {"notes": list(notes)}
+    trainer.budget_record = {"notes": list(notes)}
     trainer.local_rank = 1  # no config.yml written here
-    trainer._resolution_for_images(replaced)
+    resolution_for_images(trainer, replaced)
     preset = preset_defaults(choice.preset)[0].num_downscales
     assert preset > 0 and replaced == preset
     want = preset if want_downscales == "preset" else want_downscales
     assert config.pipeline.model.num_downscales == want
-    kept = [n for n in trainer._budget_record["notes"] if "resolution schedule kept" in n]
+    kept = [n for n in trainer.budget_record["notes"] if "resolution schedule kept" in n]
     assert (f"up to {side} px" in kept[0]) if want else not kept
     assert tb.full_resolution_suits(side) == (want == 0)
 
@@ -819,7 +820,7 @@ def test_the_users_own_resolution_schedule_is_kept_and_not_restored():
     """--pipeline.model.num-downscales set by the user: the budget leaves it (and says so), and reports nothing for the
     trainer to put back for large images."""
     from willags_ns import method_configs
-    from willags_ns.engine.trainer import apply_budget
+    from willags_ns.engine.time_budget import apply_budget
 
     config = method_configs.willags_config()
     config.machine.device_type = "cpu"

@@ -94,7 +94,7 @@ def test_the_default_inspects_first_and_willags_full_does_not():
     inspection."""
     from nerfstudio.plugins.registry import discover_methods
 
-    from willags_ns.engine.trainer import preset_defaults
+    from willags_ns.engine.time_budget import preset_defaults
     from willags_ns.method_configs import willags_config, willags_full_config
 
     methods, _ = discover_methods()
@@ -106,7 +106,7 @@ def test_the_default_inspects_first_and_willags_full_does_not():
     assert {k for k in d if d[k] != f[k]} == {"auto_config"}
     assert f == vars(willags_model_config())
     assert willags_config().max_num_iterations == willags_full_config().max_num_iterations == 30000
-    # the preset a user's switches are told from (trainer.preset_defaults) is the method's own
+    # the preset a user's switches are told from (time_budget.preset_defaults) is the method's own
     assert preset_defaults("willags")[0].auto_config is True
     assert preset_defaults("willags-full")[0].auto_config is False
 
