@@ -44,6 +44,7 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.data.consistency import foreign_photo_warnings
+from willags_ns.data.datamanager import use_willags_datamanager
 from willags_ns.data.dataparser import SCENE_RECORD, WillagsDataError
 from willags_ns.engine.checkpoints import eval_setup_run, install_eval_loader, resolve_run_paths
 from willags_ns.engine.checks import (
@@ -280,6 +281,7 @@ class WillagsPipeline(VanillaPipeline):
             resolve_run_paths(run[1], run[0])
             if test_mode != "val":
                 use_saved_scene_without_photos(config.datamanager, Path(run[0]).parent / SCENE_RECORD)
+        use_willags_datamanager(config.datamanager)  # an image cache that works on a CPU past 500 photos
         if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default
             guard_viewer_host()
         if checking:
