@@ -5,6 +5,7 @@
     python -m benchmarks report                                    # every generated page from the records
     python -m benchmarks speed --out speed.json                    # the speed suite (GPU)
     python -m benchmarks profile --method willags --data ../shared/data/reichstag --out p.json
+    python -m benchmarks scale run --source ../shared/data/reichstag --photos 100 300 1000 --work /tmp/scale
 
 Each verb runs one module's ``main`` with the rest of the command line; the GPU machine's side is
 benchmarks/remote/ (its README).
@@ -27,6 +28,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "long-run": ("long_run", "one long run: train (in segments, or under the time budget), score milestones, record"),
     "speed": ("speed", "the speed suite: train step, memory and render timings per variant (GPU)"),
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
+    "scale": ("scale", "Photo-Tourism scale: start-up, memory, steps, ns-eval per photo count; docs/scale.md"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
 }
 """verb -> (module under benchmarks/ whose ``main`` it runs, what it does)."""
