@@ -20,7 +20,10 @@ REPO = Path(__file__).resolve().parents[1]
 VERBS: dict[str, tuple[str, str]] = {
     "run": ("grid", "train and score a grid of methods x scenes x steps; merge its records"),
     "merge": ("grid", "merge record files into benchmarks/records/benchmarks.json (= run --merge FILES)"),
-    "report": ("", "regenerate every generated page: docs/benchmarks.md, docs/results.md + README, docs/curves.md"),
+    "report": (
+        "",
+        "regenerate every generated page: docs/benchmarks.md, docs/results.md + README, docs/curves.md, docs/scale.md",
+    ),
     "tables": ("grid", "regenerate docs/benchmarks.md from the records (= run --render-only)"),
     "results": ("results", "regenerate docs/results.md and README.md's results table"),
     "curves": ("curves", "regenerate docs/curves.md and its plots"),
@@ -65,8 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     if rest:
         print(f"benchmarks report: takes no options, got {' '.join(rest)}", file=sys.stderr)
         return 2
-    # in the order each reads the last: benchmarks.md, results.md (+ README), curves.md
-    return next((rc for rc in (_call(v, []) for v in ("tables", "results", "curves")) if rc), 0)
+    # in the order each reads the last: benchmarks.md, results.md (+ README), curves.md; scale.md reads its own records
+    pages = (("tables", []), ("results", []), ("curves", []), ("scale", ["report"]))
+    return next((rc for rc in (_call(v, a) for v, a in pages) if rc), 0)
 
 
 if __name__ == "__main__":

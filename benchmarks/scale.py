@@ -294,10 +294,14 @@ def run_process(cmd: list[str], log: Path, marker: str | None = None) -> dict[st
     start = time.perf_counter()
     seen = None
     with open(log, "w") as out:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace")
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}  # each line as printed: the marker's time is when it came
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace", env=env
+        )
         assert proc.stdout is not None
         for line in proc.stdout:
             out.write(line)
+            out.flush()  # the log follows the process (a long ns-eval shows its progress there)
             if marker is not None and seen is None and line.startswith(marker):
                 seen = round(time.perf_counter() - start, 2)
         _, status, usage = os.wait4(proc.pid, 0)
