@@ -80,4 +80,39 @@ def test_the_verb_measures_a_tiny_collection_and_writes_the_page(source, tmp_pat
     assert main(["scale", "report", "--records", str(record), "--page", str(page)]) == 0
     text = page.read_text()
     assert "| 6 (5 / 1) |" in text and "| slope per photo |" in text
+    assert "The time to the first step, phase by phase" in text and "\n| 6 | " in text
     assert "1,000 photos at 800 px start training without running out of memory: not measured" in text
+
+
+def _run(photos: int, **fields) -> dict:
+    return {"photos": photos, "train_photos": photos - photos // 8, "test_photos": photos // 8, **fields}
+
+
+def test_the_goals_are_met_or_missed_by_a_number():
+    machine = {"device": "cpu", "host_memory_gb": 24.0}
+    started = {"machine": machine, "long_side": 800, "runs": [_run(1000, first_step_s=63.0, peak_host_gb=3.1)]}
+    assert (
+        "**met** (1,000 photos: first step after 63 s, host peak 3.10 GB of 24.0 GB, 20.9 GB to spare)"
+        in (scale.cpu_goal(started)[0])
+    )
+    crashed = {"machine": machine, "long_side": 800, "runs": [_run(1000, train_rc=1, peak_host_gb=1.9)]}
+    assert "**missed** (1,000 photos: training failed, exit 1)" in scale.cpu_goal(crashed)[0]
+    small = {"machine": machine, "long_side": 64, "runs": started["runs"]}
+    assert scale.cpu_goal(small)[0].endswith("not measured")  # not 800 px photos
+    gpu = {"machine": {"device": "cuda"}, "runs": [
+        _run(100, first_step_s=30.0, peak_host_gb=3.0, peak_gpu_gb=4.0, step_s_late=0.020, eval_s=20.0, eval_photos=12),
+        _run(1000, first_step_s=70.0, peak_host_gb=6.0, peak_gpu_gb=9.0, step_s_late=0.021, eval_s=32.0, eval_photos=124),
+        _run(2000, first_step_s=110.0, peak_host_gb=17.0, peak_gpu_gb=14.0, step_s_late=0.023, eval_s=45.0,
+             eval_photos=250),
+    ]}  # fmt: skip
+    goals = "\n".join(scale.gpu_goals(gpu))
+    assert (
+        "2,000 photos within 24 GB GPU / 16 GB host memory: **missed** (2,000 photos: GPU 14.00 GB, host 17.00 GB)"
+        in goals
+    )
+    assert "step within 10 % of the 100-photo step: **missed** (worst +15% at 2,000 photos" in goals
+    assert (
+        "time to the first step < 60 s + 20 ms/photo: **missed** (worst: 110.0 s at 2,000 photos, bound 100.0 s)"
+        in goals
+    )
+    assert "ns-eval linear in the test photos: **met**" in goals  # 0.107 then 0.102 s per further photo
