@@ -6,6 +6,7 @@
     python -m benchmarks speed --out speed.json                    # the speed suite (GPU)
     python -m benchmarks profile --method willags --data ../shared/data/reichstag --out p.json
     python -m benchmarks collections build lund --out /scenes/lund   # a real photo collection -> a scene
+    python -m benchmarks scale run --source ../shared/data/reichstag --photos 100 300 1000 --work /tmp/scale
 
 Each verb runs one module's ``main`` with the rest of the command line; the GPU machine's side is
 benchmarks/remote/ (its README).
@@ -20,7 +21,10 @@ REPO = Path(__file__).resolve().parents[1]
 VERBS: dict[str, tuple[str, str]] = {
     "run": ("grid", "train and score a grid of methods x scenes x steps; merge its records"),
     "merge": ("grid", "merge record files into benchmarks/records/benchmarks.json (= run --merge FILES)"),
-    "report": ("", "regenerate every generated page: docs/benchmarks.md, docs/results.md + README, docs/curves.md"),
+    "report": (
+        "",
+        "regenerate every generated page: docs/benchmarks.md, docs/results.md + README, docs/curves.md, docs/scale.md",
+    ),
     "tables": ("grid", "regenerate docs/benchmarks.md from the records (= run --render-only)"),
     "results": ("results", "regenerate docs/results.md and README.md's results table"),
     "curves": ("curves", "regenerate docs/curves.md and its plots"),
@@ -29,6 +33,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "speed": ("speed", "the speed suite: train step, memory and render timings per variant (GPU)"),
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
     "cv": ("cv", "cross-validation: every photo a test photo once (fold folders, GPU queues, tables with intervals)"),
+    "scale": ("scale", "Photo-Tourism scale: start-up, memory, steps, ns-eval per photo count; docs/scale.md"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
     "collections": ("collections", "real photo collections: list them, or rebuild one from its public source"),
 }
@@ -66,8 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     if rest:
         print(f"benchmarks report: takes no options, got {' '.join(rest)}", file=sys.stderr)
         return 2
-    # in the order each reads the last: benchmarks.md, results.md (+ README), curves.md
-    return next((rc for rc in (_call(v, []) for v in ("tables", "results", "curves")) if rc), 0)
+    # in the order each reads the last: benchmarks.md, results.md (+ README), curves.md; scale.md reads its own records
+    pages = (("tables", []), ("results", []), ("curves", []), ("scale", ["report"]))
+    return next((rc for rc in (_call(v, a) for v, a in pages) if rc), 0)
 
 
 if __name__ == "__main__":

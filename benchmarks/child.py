@@ -128,7 +128,6 @@ def patch_offline(base: str) -> list[str]:
 def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     """The NeRF-W protocol on the test split of a set-up trainer (spec: protocol_steps, protocol_lr,
     max_test_images, oracle, train_views): aggregate scores, per_image, eval_s and the train-view scores."""
-    from willags_ns.appearance.latents import image_as_float
     from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
 
     dm = trainer.pipeline.datamanager
@@ -138,8 +137,9 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
 
         model = PeerForProtocol(model)
     model.eval()
-    # the test images as the model sees them: nerfstudio's cached (undistorted) images and updated cameras
-    images = [image_as_float(d["image"]) for d in dm.cached_eval]
+    # the test images as the model sees them: nerfstudio's cached (undistorted) images and updated cameras, as cached
+    # (uint8): the protocol turns each into floats when it scores it
+    images = [d["image"] for d in dm.cached_eval]
     names = [Path(p).name for p in dm.eval_dataset.image_filenames]
     t2 = time.perf_counter()
     proto = EvalProtocolConfig(
@@ -168,7 +168,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         dump.save(Path(regions_dir) / f"{_run_name(spec)}.npz", names, trainer if spec["method"] == REFERENCE else None)
     rec: dict[str, Any] = {**agg, "per_image": per_image, "eval_s": time.perf_counter() - t2}
     if int(spec.get("train_views", 0)) != 0:
-        train_imgs = [image_as_float(d["image"]) for d in dm.cached_train]
+        train_imgs = [d["image"] for d in dm.cached_train]
         rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
     rec["num_test_images"] = len(images)
     return rec

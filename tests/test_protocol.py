@@ -242,3 +242,29 @@ def test_reduced_fit_never_sees_the_right_half_and_still_fits():
     _, per_other = evaluate_model(model, cam, [other], cfg)
     assert per_other[0]["left_loss_after"] == per_image[0]["left_loss_after"]  # the right half never entered the fit
     assert per_other[0]["full_psnr"] != per_image[0]["full_psnr"]  # ... though it is scored
+
+
+def test_a_uint8_test_image_scores_as_the_training_loss_sees_it():
+    """The eval split stays cached as uint8 (eval_split_images hands the cache over as it is); the protocol turns each
+    image into floats at use, the values the training loss sees (splatfacto's get_gt_img: uint8 / 255): the same
+    scores as the float image."""
+    from types import SimpleNamespace
+
+    from willags_ns.eval.protocol import eval_split_images, train_view_scores, unit_float
+
+    model = _tiny_model()
+    cam = _camera()
+    model.eval()
+    gt = _render_under(model, cam, 3.0 * torch.randn(8, generator=torch.Generator().manual_seed(1)))
+    gt8 = (gt * 255).round().to(torch.uint8)
+    assert torch.equal(unit_float(gt8), model.get_gt_img(gt8))  # what the loss compares a render with
+    cached = SimpleNamespace(cached_eval=[{"image": gt8}])
+    images = eval_split_images(cached)
+    assert images[0] is gt8  # no float copy of the split
+    cfg = EvalProtocolConfig(steps=3, lr=0.1)
+    torch.manual_seed(0)
+    from_uint8, _ = evaluate_model(model, cam, images, cfg)
+    torch.manual_seed(0)
+    from_float, _ = evaluate_model(model, cam, [gt8.float() / 255.0], cfg)
+    assert from_uint8 == from_float
+    assert train_view_scores(model, cam, [gt8]) == train_view_scores(model, cam, [gt8.float() / 255.0])

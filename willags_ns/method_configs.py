@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
-from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
@@ -20,6 +19,7 @@ from nerfstudio.plugins.types import MethodSpecification
 from willags_ns.appearance.sky import SkyConfig
 from willags_ns.appearance.vae import VAEConfig
 from willags_ns.config import LatentConfig, WillagsModelConfig
+from willags_ns.data.datamanager import WillagsDatamanagerConfig
 from willags_ns.data.dataparser import WillagsDataParserConfig
 from willags_ns.engine.compat import quick_external_method_check
 from willags_ns.engine.pipeline import WillagsPipelineConfig
@@ -89,7 +89,7 @@ def _trainer(name: str, model: WillagsModelConfig, steps: int) -> WillagsTrainer
         mixed_precision=False,
         machine=MachineConfig(device_type=default_device_type()),  # type: ignore[arg-type]
         pipeline=WillagsPipelineConfig(
-            datamanager=FullImageDatamanagerConfig(dataparser=WillagsDataParserConfig(), cache_images_type="uint8"),
+            datamanager=WillagsDatamanagerConfig(dataparser=WillagsDataParserConfig(), cache_images_type="uint8"),
             model=model,
         ),
         optimizers=_optimizers(steps),

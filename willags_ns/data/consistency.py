@@ -17,8 +17,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from willags_ns.data.dataparser import InputWarning
+
 MIN_R2 = 0.05
 """Images whose affine colour fit explains less than this share of the colour variance are reported."""
+FOREIGN_PHOTO = "photos whose colours do not follow the SfM points they should show (photos of another place?)"
+"""The kind of :func:`foreign_photo_warnings`' warnings."""
 
 
 def _load(path: Path, max_side: int) -> np.ndarray:
@@ -83,7 +87,7 @@ def colour_fit_r2(obs: np.ndarray, min_views: int = 3, min_points: int = 30) -> 
     return r2
 
 
-def foreign_photo_warnings(outputs, min_r2: float = MIN_R2, max_images: int = 2000) -> list[str]:
+def foreign_photo_warnings(outputs, min_r2: float = MIN_R2, max_images: int = 2000) -> list[InputWarning]:
     """One warning per training image that does not look like what the SfM points say it sees (see the module
     docstring). Skipped (no warnings) without SfM points, with fewer than 4 images or more than `max_images`."""
     n = len(outputs.image_filenames)
@@ -94,8 +98,12 @@ def foreign_photo_warnings(outputs, min_r2: float = MIN_R2, max_images: int = 20
         return []
     r2 = colour_fit_r2(obs)
     return [
-        f"{outputs.image_filenames[i]}: its colours do not follow the SfM points it should show (colour-fit R^2 "
-        f"{r2[i]:.3f} < {min_r2}); is it a photo of another place under this frame? If so, remove it"
+        InputWarning(
+            f"{outputs.image_filenames[i]}: its colours do not follow the SfM points it should show (colour-fit R^2 "
+            f"{r2[i]:.3f} < {min_r2}); is it a photo of another place under this frame? If so, remove it",
+            FOREIGN_PHOTO,
+            Path(outputs.image_filenames[i]).name,
+        )
         for i in range(n)
         if np.isfinite(r2[i]) and r2[i] < min_r2
     ]

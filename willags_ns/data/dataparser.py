@@ -51,6 +51,19 @@ class WillagsDataError(ValueError):
     """Bad input data; the message names the file or field at fault."""
 
 
+class InputWarning(str):
+    """A warning about input that trains but deserves a look: its text, with the kind of problem it reports (the
+    same for every warning of one check: how a summary of many counts them) and the photo it names."""
+
+    kind: str
+    photo: str
+
+    def __new__(cls, text: str, kind: str, photo: str = "") -> "InputWarning":
+        self = super().__new__(cls, text)
+        self.kind, self.photo = kind, photo
+        return self
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # readers (pure functions)
 

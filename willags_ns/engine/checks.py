@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from willags_ns.data.dataparser import ROTATION_TOL, WillagsDataError
+from willags_ns.data.dataparser import ROTATION_TOL, InputWarning, WillagsDataError
 
 
 class WillagsInputError(WillagsDataError):
@@ -100,9 +100,13 @@ def _file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
+DUPLICATE_PHOTO = "photos byte-identical to another photo under another frame (duplicates: remove one of each)"
+"""The kind of :func:`check_images`' warnings."""
+
+
 def check_images(
     filenames: Sequence[Path], sizes_wh: Sequence[tuple[int, int]] | None = None, workers: int = 4
-) -> list[str]:
+) -> list[InputWarning]:
     """:func:`check_image_file` for every file (in a small thread pool: decoding releases the GIL); the first bad
     file in dataset order raises. Returns warnings: byte-identical files listed under different frames."""
     files = [Path(f) for f in filenames]
@@ -124,8 +128,12 @@ def check_images(
     for f, digest in zip(files, results, strict=True):
         if digest in first and first[digest] != f:
             out.append(
-                f"{f} and {first[digest]} are byte-identical files under two frames: if one is a duplicate, "
-                "remove it (two poses for one photo pull the scene apart)"
+                InputWarning(
+                    f"{f} and {first[digest]} are byte-identical files under two frames: if one is a duplicate, "
+                    "remove it (two poses for one photo pull the scene apart)",
+                    DUPLICATE_PHOTO,
+                    f"{f.name} = {first[digest].name}",
+                )
             )
         first.setdefault(digest, f)
     return out
@@ -204,7 +212,7 @@ def check_intrinsics(
             )
 
 
-def check_num_train_images(n: int) -> list[str]:
+def check_num_train_images(n: int) -> list[InputWarning]:
     """Zero training images: an error. One: a warning (it trains; see the module docstring)."""
     if n <= 0:
         raise WillagsInputError(
@@ -213,8 +221,11 @@ def check_num_train_images(n: int) -> list[str]:
         )
     if n == 1:
         return [
-            "only one training image: training runs (the appearance latent and the transient mask work per image), "
-            "but nothing constrains the scene away from that view; add images for novel views"
+            InputWarning(
+                "only one training image: training runs (the appearance latent and the transient mask work per "
+                "image), but nothing constrains the scene away from that view; add images for novel views",
+                "training sets of one image",
+            )
         ]
     return []
 
@@ -225,7 +236,7 @@ def check_cameras(cameras, names: Sequence[str] | None = None) -> None:
     check_poses(cameras.camera_to_worlds, names)
 
 
-def validate_dataparser_outputs(outputs, check_files: bool = True, device: str | None = None) -> list[str]:
+def validate_dataparser_outputs(outputs, check_files: bool = True, device: str | None = None) -> list[InputWarning]:
     """Every check over one split's ``DataparserOutputs``: image count, cameras, scene scale, and
     (``check_files``) that every image exists, decodes and has its camera's size; on a CPU ``device``, that the
     largest image fits in memory. Raises WillagsInputError; returns the warnings."""
@@ -402,6 +413,46 @@ def warn_all(messages: Sequence[str]) -> None:
     for m in messages:
         CONSOLE.log(f"[bold yellow]willags warning:[/bold yellow] {m}")
         warnings.warn(m, WillagsWarning, stacklevel=2)
+
+
+INPUT_WARNINGS_FILE = "input_warnings.txt"
+"""The input checks' warnings, one a line, in the run folder (beside config.yml)."""
+MAX_LISTED_WARNINGS = 10
+"""Up to this many input warnings are printed one by one; more are summarised (:func:`summarise_warnings`)."""
+EXAMPLES_PER_KIND = 3
+"""Photos a summary names per kind of warning."""
+
+
+def summarise_warnings(messages: Sequence[str], where: str, examples: int = EXAMPLES_PER_KIND) -> str:
+    """Many warnings in a few lines: their number and where the full list is (``where``), then per kind
+    (:class:`InputWarning`'s; "other" for a plain string) the count and the first ``examples`` photos."""
+    kinds: dict[str, list[str]] = {}
+    for m in messages:
+        kinds.setdefault(getattr(m, "kind", "") or "other warnings", []).append(m)
+    lines = [f"{len(messages)} warnings about the input (the full list: {where}):"]
+    for kind, group in kinds.items():
+        named = [getattr(m, "photo", "") or m[:80] for m in group[:examples]]
+        more = f", and {len(group) - examples} more" if len(group) > examples else ""
+        lines.append(f"  {len(group)} {kind}, e.g. {'; '.join(named)}{more}")
+    return "\n".join(lines)
+
+
+def report_warnings(messages: Sequence[str], where: str, max_listed: int = MAX_LISTED_WARNINGS) -> bool:
+    """Up to ``max_listed`` warnings one by one (:func:`warn_all`); more as one summary (:func:`summarise_warnings`)
+    whose first line names ``where`` the full list goes. Returns whether it summarised."""
+    if len(messages) <= max_listed:
+        warn_all(messages)
+        return False
+    warn_all([summarise_warnings(messages, where)])
+    return True
+
+
+def write_warnings(messages: Sequence[str], path: Path) -> Path:
+    """Every warning, one a line, to ``path`` (its folder made when missing)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(f"{m}\n" for m in messages))
+    return path
 
 
 # --------------------------------------------------------------------------------------------------------------------

@@ -14,7 +14,9 @@ It is also where every willags method checks its inputs and guards training, wha
 - during training: a clear error when every Gaussian was pruned; a (rate-limited) warning when the transient mask
   was rejected because it flagged most of an image;
 - before training, a warning for a photo whose colours do not follow the SfM points it should show (a photo of
-  another place under a registered frame: `check_photo_content`);
+  another place under a registered frame: `check_photo_content`); up to `checks.MAX_LISTED_WARNINGS` warnings are
+  printed one by one, more as a summary (counts per kind, a few photos each), and every one is written to the run
+  folder's `input_warnings.txt`;
 - with `--pipeline.model.auto-config True` (the method willags), the scene is inspected and the model's switches
   set before the model is built (willags_ns/tools/autoconfig.py);
 - Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and exits (status 130), so `--load-dir` resumes
@@ -45,13 +47,16 @@ from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from willags_ns.data.consistency import foreign_photo_warnings
+from willags_ns.data.datamanager import use_willags_datamanager
 from willags_ns.data.dataparser import SCENE_RECORD, WillagsDataError
 from willags_ns.engine.checkpoints import eval_setup_run, install_eval_loader, resolve_run_paths
 from willags_ns.engine.checks import (
+    INPUT_WARNINGS_FILE,
     check_gaussians_alive,
     install_cli_excepthook,
+    report_warnings,
     validate_dataparser_outputs,
-    warn_all,
+    write_warnings,
 )
 from willags_ns.engine.distributed import (
     DataParallelConfig,
@@ -325,6 +330,7 @@ class WillagsPipeline(VanillaPipeline):
             resolve_run_paths(run[1], run[0])
             if test_mode != "val":
                 use_saved_scene_without_photos(config.datamanager, Path(run[0]).parent / SCENE_RECORD)
+        use_willags_datamanager(config.datamanager)  # an image cache that works on a CPU past 500 photos
         if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default
             guard_viewer_host()
         if checking:
@@ -356,6 +362,8 @@ class WillagsPipeline(VanillaPipeline):
         # error). The hook is an instance attribute on this config only, removed again below.
         model_config = config.model
         original_setup = model_config.setup
+        self.input_warnings: list[str] = []  # the input checks' warnings: run folder's INPUT_WARNINGS_FILE
+        self.input_warnings_summarised = False
 
         def setup_after_checks(**model_kwargs):
             if self.step_profile is not None:
@@ -363,9 +371,14 @@ class WillagsPipeline(VanillaPipeline):
             if checking:
                 device = setup_kwargs.get("device")
                 outputs = self.datamanager.train_dataparser_outputs
-                warn_all(validate_dataparser_outputs(outputs, device=str(device) if device is not None else None))
-                if config.check_photo_content and rank_and_world_size()[0] == 0:  # warnings, printed once
-                    warn_all(foreign_photo_warnings(outputs))
+                found = validate_dataparser_outputs(outputs, device=str(device) if device is not None else None)
+                if rank_and_world_size()[0] == 0:  # warnings, printed once
+                    if config.check_photo_content:
+                        found += foreign_photo_warnings(outputs)
+                    # one line per photo is fine for a few; a collection of thousands gets a summary
+                    where = f"{INPUT_WARNINGS_FILE} in the run folder, beside config.yml"
+                    self.input_warnings_summarised = report_warnings(found, where)
+                    self.input_warnings = found
             if self.step_profile is not None:
                 self.step_profile.phase("inputs_checked")
             return original_setup(**model_kwargs)
@@ -433,6 +446,15 @@ class WillagsPipeline(VanillaPipeline):
         if trainer is not None and comms.is_main_process():
             Path(trainer.base_dir).mkdir(parents=True, exist_ok=True)
             write_scene_record(self.datamanager, Path(trainer.base_dir) / SCENE_RECORD)
+            if self.input_warnings:
+                path = write_warnings(self.input_warnings, Path(trainer.base_dir) / INPUT_WARNINGS_FILE)
+                if self.input_warnings_summarised:
+                    CONSOLE.print(
+                        f"willags: the {len(self.input_warnings)} warnings about the input: {path}",
+                        soft_wrap=True,  # one line: a path to copy
+                        markup=False,
+                        highlight=False,
+                    )
         optimizers = training_callback_attributes.optimizers
         profile = self.step_profile
         if profile is not None and trainer is not None:

@@ -24,7 +24,8 @@ that step is the rank's wait for the others.
 Files, per global rank r, under ``<run>/step_profile/``: ``rank<r>.jsonl`` (one JSON object per step) and
 ``rank<r>.json`` (rank, world size, device, CPU count and torch's threads, and the start-up phases as Unix times:
 the process started, the pipeline was entered, the data parsed, the inputs checked, the model built, the
-data-parallel set-up done, the training images cached, the first step started, training ended).
+data-parallel set-up done, the training images cached, the first step started, training ended), and at the end of
+training the process's peak memory (host, and on a GPU the device's).
 
 Cost when on: eight CUDA events and eight clock reads per step (tens of microseconds of host time); events are read
 back only once the device has passed them (``Event.query``), so the profile adds no host wait. When off, nothing of
@@ -76,6 +77,17 @@ def process_start_time() -> float | None:
         return boot + ticks / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, IndexError, StopIteration):
         return None
+
+
+def peak_memory(cuda: bool) -> dict[str, int]:
+    """This process's peak memory so far, bytes: ``peak_host_bytes`` (its resident set, Linux's ru_maxrss) and on a
+    GPU ``peak_device_bytes`` (torch's largest allocation on the current device)."""
+    import resource
+
+    out = {"peak_host_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}
+    if cuda:
+        out["peak_device_bytes"] = int(torch.cuda.max_memory_allocated())
+    return out
 
 
 def spans_ms(times: dict[str, float], scale: float = 1000.0) -> dict[str, float]:
@@ -187,6 +199,7 @@ class StepProfile:
                 self._open = None
             self._resolve(block=True)
             self.phase("train_end")
+            self.meta.update(peak_memory(self.cuda))
         self.directory.mkdir(parents=True, exist_ok=True)
         if self._done:
             with open(self.directory / f"rank{self.rank}.jsonl", "a") as f:

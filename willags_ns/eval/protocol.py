@@ -207,8 +207,16 @@ class frozen:
         return False
 
 
+def unit_float(image: Tensor) -> Tensor:
+    """An image as float in [0, 1]: uint8 divided by 255 (what the training loss sees: splatfacto's `get_gt_img`),
+    float as it is."""
+    return image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+
+
 def eval_split_images(datamanager) -> list[Tensor]:
-    """Eval-split GT images [H, W, 3] float in [0, 1], exactly as the eval cameras see them.
+    """Eval-split GT images [H, W, C] as the datamanager caches them (uint8, or float in [0, 1]), exactly as the eval
+    cameras see them. The protocol turns each into floats when it scores it (:func:`unit_float`): the whole split
+    as floats would hold four times the cache's memory.
 
     nerfstudio's full-image datamanager undistorts (and crops) images when it caches them and rewrites the eval
     cameras' intrinsics and sizes in place, so the dataset's raw files no longer match the cameras: use its cache.
@@ -217,11 +225,7 @@ def eval_split_images(datamanager) -> list[Tensor]:
     if cache is None:
         ds = datamanager.eval_dataset
         return [ds.get_image_float32(i) for i in range(len(ds))]
-    out = []
-    for d in cache:
-        img = d["image"]
-        out.append(img.float() / 255.0 if img.dtype == torch.uint8 else img.float())
-    return out
+    return [d["image"] for d in cache]
 
 
 def render_with_latent(model, cam, z: Tensor | None) -> Tensor:
@@ -237,7 +241,8 @@ def render_with_latent(model, cam, z: Tensor | None) -> Tensor:
 @torch.no_grad()
 def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8) -> dict[str, float]:
     """Fitting capacity: PSNR / SSIM of training views rendered with their *own* latents (the mean latent each image
-    had when last visited; no test-time inference), over up to `max_images` evenly spaced training images."""
+    had when last visited; no test-time inference), over up to `max_images` evenly spaced training images (`images`
+    uint8, or float in [0, 1])."""
     model.eval()
     n = len(images)
     if n == 0:
@@ -250,7 +255,7 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
     for i in idx:
         z = latents[i] if latents is not None else None
         pred = render_with_latent(model, cameras[i : i + 1].to(model.device), z)
-        gt = images[i][..., :3].float().to(model.device)
+        gt = unit_float(images[i][..., :3].to(model.device))
         scores.append(image_scores(pred, gt))
     return {f"train_{k}": float(sum(s[k] for s in scores) / len(scores)) for k in scores[0]} | {
         "train_num_images": float(len(scores))
@@ -266,7 +271,8 @@ def evaluate_model(
     on_prediction: Callable[[int, Tensor, Tensor], None] | None = None,
     progress: Any = None,
 ):
-    """Run the protocol over test `cameras` (nerfstudio Cameras, one per image) and GT `images` [H, W, 3] in [0, 1].
+    """Run the protocol over test `cameras` (nerfstudio Cameras, one per image) and GT `images` [H, W, 3] (uint8,
+    or float in [0, 1]: :func:`unit_float`).
 
     Returns (aggregate dict, per-image list). Keys: `psnr`/`ssim`/`lpips` (right half, fitted latent: the
     headline numbers), `encoder_*` (right half, encoder latent, no optimisation), `full_*` (whole image, fitted
@@ -286,7 +292,7 @@ def evaluate_model(
     per_image = []
     with frozen(model):
         for i in range(n):
-            gt = images[i][..., :3].float().to(model.device)
+            gt = unit_float(images[i][..., :3].to(model.device))
             cam = cameras[i : i + 1].to(model.device)
             h, w = int(cam.height.item()), int(cam.width.item())
             if gt.shape[:2] != (h, w):
