@@ -299,6 +299,9 @@ class WillagsPipeline(VanillaPipeline):
     config: WillagsPipelineConfig
 
     def __init__(self, config: WillagsPipelineConfig, *args, **kwargs):
+        """nerfstudio's pipeline, set up in steps: the step profile and the devices, the run's paths, the inspection
+        that sets the model's switches, the pipeline built with the inputs checked before the model, the model told
+        about the scene, the ranks joined."""
         install_cli_excepthook()
         install_eval_loader()  # eval_setup loads the checkpoint after this pipeline is built
         # VanillaPipeline's arguments by name: (device, test_mode, world_size, local_rank, grad_scaler)
@@ -307,6 +310,27 @@ class WillagsPipeline(VanillaPipeline):
         )
         test_mode = setup_kwargs.get("test_mode", "val")
         world_size = int(setup_kwargs.get("world_size", 1))
+        self._start_step_profile(config, setup_kwargs, test_mode, world_size)
+        if world_size > 1:
+            self._take_device(config, setup_kwargs, world_size)
+        checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
+        self._resolve_run(config, test_mode)
+        if checking:
+            precheck_dataparser_config(config.datamanager)
+        self._inspect_scene(config)
+        self._build(config, setup_kwargs, checking)
+        self.world_size = world_size
+        self.rank = rank_and_world_size()[0]
+        self._tell_model_the_scene()
+        self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
+        self._step_image_idx = -1
+        if world_size > 1:
+            self._setup_data_parallel(world_size)
+            if self.step_profile is not None:
+                self.step_profile.phase("data_parallel_ready")
+
+    def _start_step_profile(self, config: WillagsPipelineConfig, setup_kwargs: dict, test_mode: str, world_size: int):
+        """`data_parallel.step_profile` while training: the step profile, from this first phase on."""
         # a config.yml written before the field existed has no data_parallel
         self.data_parallel = getattr(config, "data_parallel", None) or DataParallelConfig()
         self.step_profile: StepProfile | None = None
@@ -316,15 +340,21 @@ class WillagsPipeline(VanillaPipeline):
             meta = {"local_rank": setup_kwargs.get("local_rank", 0), "reduction": self.data_parallel.reduction}
             self.step_profile = StepProfile(Path("."), rank, world_size, device, meta)
             self.step_profile.phase("pipeline_init")
-        if world_size > 1:
-            validate_data_parallel(world_size, setup_kwargs.get("device"), config.datamanager)
-            device = torch.device(str(setup_kwargs.get("device")))
-            if device.type == "cuda" and device.index is not None:
-                torch.cuda.set_device(device)  # NCCL and gsplat's launches follow the current device
-            # no DistributedDataParallel wrapper: its fixed buckets break when densification replaces the
-            # Gaussians; gradients are averaged by hand before each optimiser step (willags_ns/engine/distributed.py)
-            setup_kwargs["world_size"] = 1
-        checking = config.check_inputs and test_mode == "val"  # training ("val"); not ns-eval / viewer / render
+
+    def _take_device(self, config: WillagsPipelineConfig, setup_kwargs: dict, world_size: int) -> None:
+        """Several devices: check the launch, make this rank's device the current one, and build the pipeline as for
+        one device (the ranks are joined at the end: _setup_data_parallel)."""
+        validate_data_parallel(world_size, setup_kwargs.get("device"), config.datamanager)
+        device = torch.device(str(setup_kwargs.get("device")))
+        if device.type == "cuda" and device.index is not None:
+            torch.cuda.set_device(device)  # NCCL and gsplat's launches follow the current device
+        # no DistributedDataParallel wrapper: its fixed buckets break when densification replaces the
+        # Gaussians; gradients are averaged by hand before each optimiser step (willags_ns/engine/distributed.py)
+        setup_kwargs["world_size"] = 1
+
+    def _resolve_run(self, config: WillagsPipelineConfig, test_mode: str) -> None:
+        """A saved run's paths beside its config.yml (and its scene without photos where they are gone), willags'
+        datamanager, and ns-viewer off the network by default."""
         run = eval_setup_run()
         if run is not None and run[1].pipeline is config:  # a saved run: its paths beside its config.yml
             resolve_run_paths(run[1], run[0])
@@ -333,12 +363,13 @@ class WillagsPipeline(VanillaPipeline):
         use_willags_datamanager(config.datamanager)  # an image cache that works on a CPU past 500 photos
         if test_mode == "test":  # ns-viewer / ns-render / ns-eval: keep ns-viewer off the network by default
             guard_viewer_host()
-        if checking:
-            precheck_dataparser_config(config.datamanager)
+
+    def _inspect_scene(self, config: WillagsPipelineConfig) -> None:
+        """With auto_config, the inspection's switches on the model config before the model exists (they decide which
+        modules and parameters it has). Several ranks: rank 0 inspects, the others take its settings (the same scene,
+        the same decision)."""
         self.auto_config_summary = None
         if getattr(config.model, "auto_config", False):
-            # before the model exists: the switches decide which modules and parameters it has. Several ranks:
-            # rank 0 inspects, the others take its settings (the same scene, the same decision)
             summary, inspected = from_rank_zero(
                 lambda: apply_auto_config(config.model, scene_dir(config.datamanager), keep=config.auto_config_keep)
             )
@@ -357,9 +388,12 @@ class WillagsPipeline(VanillaPipeline):
             self.auto_config_summary = summary
         if self.step_profile is not None:
             self.step_profile.phase("scene_inspected")
-        # The model is built inside VanillaPipeline.__init__ right after the datamanager parses the scene; the
-        # outputs are validated in between (a NaN pose would otherwise surface in the model's kNN as a sklearn
-        # error). The hook is an instance attribute on this config only, removed again below.
+
+    def _build(self, config: WillagsPipelineConfig, setup_kwargs: dict, checking: bool) -> None:
+        """VanillaPipeline's set-up, with the input checks between the parsed scene and the model. The model is built
+        inside VanillaPipeline.__init__ right after the datamanager parses the scene; the outputs are validated in
+        between (a NaN pose would otherwise surface in the model's kNN as a sklearn error). The hook is an instance
+        attribute on this config only, removed again below."""
         model_config = config.model
         original_setup = model_config.setup
         self.input_warnings: list[str] = []  # the input checks' warnings: run folder's INPUT_WARNINGS_FILE
@@ -390,25 +424,20 @@ class WillagsPipeline(VanillaPipeline):
             del model_config.setup
         if self.step_profile is not None:
             self.step_profile.phase("model_built")
-        self.world_size = world_size
-        self.rank = rank_and_world_size()[0]
+
+    def _tell_model_the_scene(self) -> None:
+        """The model learns the training photos' names (the appearances users pick) and the test photos (a SPEC naming
+        one is told so); the viewer's appearance panel attaches (nerfstudio's viewer finds its elements on the
+        pipeline; it shows a training view's transient mask and teacher render from the training dataset)."""
         names = [Path(p).name for p in self.datamanager.train_dataparser_outputs.image_filenames]
         if hasattr(self.model, "set_train_image_names"):
             self.model.set_train_image_names(names)
         eval_dataset = getattr(self.datamanager, "eval_dataset", None)
         if eval_dataset is not None and hasattr(self.model, "set_test_photos"):
             self.model.set_test_photos([str(p) for p in eval_dataset.image_filenames])
-        self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
         if getattr(self.model, "appearance_nets", None) is not None:
-            # the appearance panel: nerfstudio's viewer finds its elements on the pipeline; it shows a training
-            # view's transient mask / teacher render from the training dataset
             self.viewer_controls = appearance_controls(self.model)
             self.viewer_controls.set_train_dataset(self.datamanager.train_dataset)
-        self._step_image_idx = -1
-        if world_size > 1:
-            self._setup_data_parallel(world_size)
-            if self.step_profile is not None:
-                self.step_profile.phase("data_parallel_ready")
 
     def _setup_data_parallel(self, world_size: int) -> None:
         """Same model on every rank, a share of the images per rank, densification that agrees over the ranks."""
