@@ -8,7 +8,9 @@ Structure-from-motion with pycolmap on CPU (a pip wheel: no COLMAP binary, no GP
    a vocabulary tree built from the collection's own SIFT descriptors (no download) and each image matched with its
    `retrieval_neighbors` best-scoring images; every pair is verified geometrically;
 3. mapping: COLMAP's incremental mapper or GLOMAP (`--mapper`; auto: global from `global_min_images` images), fixed
-   seed; the largest model is kept;
+   seed; the largest model is kept. When the incremental mapper places fewer than `retry_below` of the photos, it is
+   retried with relaxed thresholds (RETRY_STEPS), then (auto) the global mapper is tried and used only if it agrees
+   with the incremental model; the summary lists every attempt;
 4. writing: SIMPLE_RADIAL models are undistorted to PINHOLE (images re-sampled, so the training images match a
    pinhole camera); SIMPLE_PINHOLE models are written as they are with the registered photos copied.
 
@@ -96,6 +98,11 @@ class ProcessConfig:
     large collections). auto: incremental up to global_min_images images, global above."""
     global_min_images: int = 500
     """auto mapper: the smallest collection mapped with the global mapper."""
+    retry_below: float = 0.9
+    """Incremental mapper: when its model holds fewer than this share of the photos, mapping is retried with relaxed
+    thresholds (RETRY_STEPS) and, with --mapper auto, the global mapper, whose model is used only if it agrees with
+    the incremental one on the photos both placed; the model with the most photos is kept, and the summary lists
+    every attempt. 0: no retries."""
     seed: int = 0
     """Random seed of the mapper (RANSAC, image selection)."""
     num_threads: int = -1
@@ -327,7 +334,11 @@ def model_w2c(model_dir: Path) -> dict[str, np.ndarray]:
     """{image name: world-to-camera [4, 4]} of the registered images of a COLMAP model."""
     import pycolmap
 
-    rec = pycolmap.Reconstruction(str(model_dir))
+    return rec_w2c(pycolmap.Reconstruction(str(model_dir)))
+
+
+def rec_w2c(rec) -> dict[str, np.ndarray]:
+    """{image name: world-to-camera [4, 4]} of the registered images of a pycolmap Reconstruction."""
     out = {}
     for image_id in rec.reg_image_ids():
         im = rec.images[image_id]
@@ -611,9 +622,12 @@ def match_vocab_tree(cfg: ProcessConfig, names: Sequence[str], progress, chunk: 
     return len(_matched_pairs(db_path))
 
 
-def incremental_mapping(cfg: ProcessConfig, num_images: int, progress, work: Path):
+def incremental_mapping(
+    cfg: ProcessConfig, num_images: int, progress, work: Path, relax: dict[str, float] | None = None, label: str = ""
+):
     """COLMAP's incremental mapper (fixed seed); returns the reconstruction with the most registered images, or
-    None when no model could be made."""
+    None when no model could be made. ``relax``: IncrementalMapperOptions fields set instead of COLMAP's defaults
+    (RETRY_STEPS); ``label`` names the attempt on its progress bar."""
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -623,8 +637,10 @@ def incremental_mapping(cfg: ProcessConfig, num_images: int, progress, work: Pat
     options.triangulation.random_seed = cfg.seed
     # COLMAP drops models under 10 images; a small collection's only model may be smaller and still usable
     options.min_model_size = max(3, min(10, cfg.min_registered))
+    for name, value in (relax or {}).items():
+        setattr(options.mapper, name, value)
     pycolmap.set_random_seed(cfg.seed)
-    task = progress.add_task("incremental mapping", total=num_images)
+    task = progress.add_task(f"incremental mapping{f' ({label})' if label else ''}", total=num_images)
     registered = [0]
 
     def on_init_pair() -> None:
@@ -681,6 +697,158 @@ def chosen_mapper(cfg: ProcessConfig, num_images: int) -> str:
     if cfg.mapper != "auto":
         return cfg.mapper
     return "global" if num_images >= cfg.global_min_images else "incremental"
+
+
+@dataclass(frozen=True)
+class RetryStep:
+    """One retry of the incremental mapper with relaxed thresholds (IncrementalMapperOptions fields)."""
+
+    name: str
+    """Short name, in the summary and the progress bar."""
+    what: str
+    """What it changes, in words (the summary prints it)."""
+    relax: dict[str, float]
+    """IncrementalMapperOptions field -> value, instead of COLMAP's default."""
+
+
+RETRY_STEPS = (
+    RetryStep(
+        "relaxed registration",
+        "a photo is placed from 15 inlier matches with the model's points (COLMAP: 30)",
+        {"abs_pose_min_num_inliers": 15},
+    ),
+    RetryStep(
+        "relaxed initialisation",
+        "as relaxed registration, and the first pair may have a 4 deg triangulation angle (COLMAP: 16) and move "
+        "straight forward (COLMAP: forward motion at most 0.95)",
+        {"abs_pose_min_num_inliers": 15, "init_min_tri_angle": 4.0, "init_max_forward_motion": 1.0},
+    ),
+)
+"""The incremental mapper's retries, in order, when a model holds fewer than retry_below of the photos. Why these
+(docs/process.md): tourist photos (liberty: 47-53 of 90 with COLMAP's defaults) fall apart into partial models that
+15 inliers join (75-86 of 90); a forward-moving walk (lund) has no first pair with a 16 deg angle, and 2 of 29
+register until the first pair may have 4 deg and pure forward motion (21 of 29)."""
+
+MAX_RETRY_REPROJECTION_PX = 1.5
+"""A retry's model (or the global mapper's) is kept only if its mean reprojection error is at most this many px; the
+measured models had 0.3-0.8 px."""
+
+GLOBAL_CHECK_MIN_COMMON = 5
+"""The global mapper's model is checked against the incremental one on the photos both placed: at least this many."""
+GLOBAL_CHECK_MAX_ROTATION_DEG = 2.0
+"""... the median rotation error after a similarity alignment (compare_poses) must be at most this,"""
+GLOBAL_CHECK_MAX_CENTRE_PCT = 5.0
+"""... and the median centre error at most this % of the incremental model's extent. On liberty the global model
+places all 90 photos at 0.58 px yet is 41 deg off; on lund it agrees to 0.2 deg and 0.7 %."""
+
+
+def _registered_names(rec) -> set[str]:
+    return {rec.images[i].name for i in rec.reg_image_ids()}
+
+
+def models_agreement(a, b) -> dict[str, Any]:
+    """compare_poses of two reconstructions over the photos both placed, ``b`` as the reference."""
+    return compare_poses(rec_w2c(a), rec_w2c(b))
+
+
+def map_with_retries(
+    cfg: ProcessConfig,
+    num_images: int,
+    mapper: str,
+    run_incremental: Callable[[RetryStep | None], Any],
+    run_global: Callable[[], Any],
+    agreement: Callable[[Any, Any], dict[str, Any]] = models_agreement,
+) -> tuple[Any, list[dict[str, Any]]]:
+    """Mapping with the retry ladder: (the kept reconstruction or None, one entry per attempt).
+
+    ``mapper`` "global" (chosen or --mapper global): the global mapper once. Otherwise the incremental mapper with
+    COLMAP's defaults (``run_incremental(None)``), then, while the best model holds fewer than ``cfg.retry_below`` of
+    the ``num_images`` photos, each of RETRY_STEPS (kept when it places more photos at a mean reprojection error of
+    at most MAX_RETRY_REPROJECTION_PX), then with --mapper auto the global mapper (``run_global()``), kept only if it
+    places more photos and agrees with the best incremental model on the photos both placed (GLOBAL_CHECK_*).
+    Each entry: step, what, registered, mean_reprojection_error_px, seconds, kept, note (why not kept, or the check).
+    """
+    attempts: list[dict[str, Any]] = []
+
+    def attempt(step: str, what: str, fn: Callable[[], Any]) -> tuple[Any, dict[str, Any]]:
+        t = time.time()
+        rec = fn()
+        entry = {
+            "step": step,
+            "what": what,
+            "registered": 0 if rec is None else int(rec.num_reg_images()),
+            "mean_reprojection_error_px": None if rec is None else float(rec.compute_mean_reprojection_error()),
+            "seconds": time.time() - t,
+            "kept": False,
+            "note": "no model" if rec is None else "",
+        }
+        attempts.append(entry)
+        return rec, entry
+
+    if mapper == "global":
+        rec, entry = attempt("global mapper", "GLOMAP: every photo positioned at once", run_global)
+        entry["kept"] = rec is not None
+        return rec, attempts
+    best, best_entry = attempt(
+        "default", "COLMAP's incremental mapper with its default thresholds", lambda: run_incremental(None)
+    )
+    retry = cfg.retry_below > 0
+
+    def enough() -> bool:
+        return best is not None and best.num_reg_images() >= cfg.retry_below * num_images
+
+    for step in RETRY_STEPS if retry else ():
+        if enough():
+            break
+        rec, entry = attempt(step.name, step.what, lambda step=step: run_incremental(step))
+        if rec is None:
+            continue
+        if entry["mean_reprojection_error_px"] > MAX_RETRY_REPROJECTION_PX:
+            entry["note"] = f"mean reprojection error above {MAX_RETRY_REPROJECTION_PX} px"
+        elif best is None or rec.num_reg_images() > best.num_reg_images():
+            best, best_entry = rec, entry
+        else:
+            entry["note"] = f"placed no more photos than {best_entry['step']}"
+    if retry and cfg.mapper == "auto" and not enough():
+        rec, entry = attempt("global mapper", "GLOMAP, checked against the incremental model", run_global)
+        if rec is not None:
+            ok, entry["note"] = _global_check(rec, best, agreement)
+            if ok:
+                best, best_entry = rec, entry
+    if best is not None:
+        best_entry["kept"] = True
+    return best, attempts
+
+
+def kept_mapper(attempts: Sequence[dict[str, Any]], mapper: str) -> str:
+    """The mapper whose model was kept, in words: "incremental", "incremental, relaxed registration", "global"."""
+    kept = next((a["step"] for a in attempts if a["kept"]), None)
+    if kept is None or kept == "default":
+        return mapper
+    if kept == "global mapper":
+        return "global" if mapper == "global" else "global (checked against the incremental model)"
+    return f"incremental, {kept}"
+
+
+def _global_check(rec, best, agreement: Callable[[Any, Any], dict[str, Any]]) -> tuple[bool, str]:
+    """(whether the global mapper's model ``rec`` replaces the incremental model ``best``, why in words)."""
+    placed = best.num_reg_images() if best is not None else 0
+    if rec.num_reg_images() <= placed:
+        return False, "placed no more photos than the incremental mapper"
+    if rec.compute_mean_reprojection_error() > MAX_RETRY_REPROJECTION_PX:
+        return False, f"mean reprojection error above {MAX_RETRY_REPROJECTION_PX} px"
+    common = len(_registered_names(rec) & _registered_names(best)) if best is not None else 0
+    if common < GLOBAL_CHECK_MIN_COMMON:
+        return False, (
+            f"not used: it shares {common} photo(s) with the incremental model and the check needs "
+            f"{GLOBAL_CHECK_MIN_COMMON}; --mapper global uses it unchecked"
+        )
+    cmp_ = agreement(rec, best)
+    rot, ctr = cmp_["median_rotation_error_deg"], cmp_["median_centre_error_pct"]
+    words = f"on the {cmp_['num_common']} photos both placed (median {rot:.1f} deg, {ctr:.1f} % of the extent)"
+    if rot > GLOBAL_CHECK_MAX_ROTATION_DEG or ctr > GLOBAL_CHECK_MAX_CENTRE_PCT:
+        return False, f"not used: it disagrees with the incremental model {words}"
+    return True, f"agrees with the incremental model {words}"
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -763,15 +931,20 @@ def verified_links(db_path: Path) -> dict[str, dict[str, int]]:
 
 
 def unregistered_reasons(
-    links: dict[str, dict[str, int]], registered: set[str], unregistered: Sequence[str]
+    links: dict[str, dict[str, int]],
+    registered: set[str],
+    unregistered: Sequence[str],
+    tried: Sequence[str] = ("default",),
 ) -> dict[str, dict[str, str]]:
     """Why each photo of ``unregistered`` is not in the model, and what to try, from the verified pairs ``links``
-    ({photo: {other: inliers}}; pairs under MIN_LINK_INLIERS do not link). ``reason`` is one of:
+    ({photo: {other: inliers}}; pairs under MIN_LINK_INLIERS do not link). ``tried``: the mapping attempts that ran
+    (map_with_retries' steps), named in the ``weak`` text. ``reason`` is one of:
 
     - ``no-matches``: no verified pair with any photo (too little overlap, or another place);
     - ``other-component``: linked only to other unregistered photos: a separate group the model does not reach;
-    - ``weak``: linked to registered photos, yet the mapper could not place it (too few or badly spread matches).
+    - ``weak``: linked to registered photos, yet no mapping attempt could place it (too few or badly spread matches).
     """
+    tried_words = "tried: " + ", ".join(tried)
     strong = {a: {b for b, n in others.items() if n >= MIN_LINK_INLIERS} for a, others in links.items()}
     todo = set(unregistered)
     group: dict[str, list[str]] = {}
@@ -814,7 +987,7 @@ def unregistered_reasons(
             out[name] = {
                 "reason": "weak",
                 "text": f"it matches {len(placed)} registered photo(s) (at most {best} inlier matches) but could not be "
-                "placed: add photos from nearby viewpoints, or try --camera-model SIMPLE_PINHOLE",
+                f"placed ({tried_words}): add photos from nearby viewpoints",
             }
     return out
 
@@ -830,6 +1003,16 @@ def reconstruction_stats(rec, all_names: Sequence[str]) -> dict[str, Any]:
         "mean_track_length": float(rec.compute_mean_track_length()),
         "unregistered": [n for n in all_names if n not in reg],
     }
+
+
+def attempt_words(a: dict[str, Any], total: int) -> str:
+    """One mapping attempt in words: "relaxed registration 86 / 90 at 0.56 px (111 s): kept"."""
+    err = a["mean_reprojection_error_px"]
+    words = f"{a['step']} {a['registered']} / {total}" + (f" at {err:.2f} px" if err is not None else "")
+    words += f" ({a['seconds']:.0f} s)"
+    if a["kept"]:
+        return words + ": kept" + (f", {a['note']}" if a["note"] else "")
+    return words + (f": {a['note']}" if a["note"] else "")
 
 
 MAX_REASONS_SHOWN = 12
@@ -849,6 +1032,9 @@ def print_summary(summary: dict[str, Any]) -> None:
     table.add_row("matching", f"{summary['matching']} ({summary['num_pairs']:,} pairs)")
     if "mapper" in summary:
         table.add_row("mapper", summary["mapper"])
+    attempts = summary.get("mapping_attempts") or []
+    if len(attempts) > 1:
+        table.add_row("mapping attempts", "; ".join(attempt_words(a, summary["total"]) for a in attempts))
     table.add_row("split", f"{summary['num_train']} train / {summary['num_test']} test ({summary['split_file']})")
     stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["stage_s"].items())
     table.add_row("wall time", f"{summary['wall_s']:.0f} s ({stages})")
@@ -861,6 +1047,15 @@ def print_summary(summary: dict[str, Any]) -> None:
     unreg = [n for n in summary["unregistered"] if n not in set(unreadable)]
     table.add_row("unregistered", ", ".join(unreg) if unreg else "none")
     CONSOLE.print(table)
+    kept = next((a for a in attempts if a["kept"]), None)
+    if kept is not None and kept is not attempts[0]:
+        more = kept["registered"] - attempts[0]["registered"]
+        CONSOLE.print(
+            f"  {kept['step']} placed {more} more photo(s) than {attempts[0]['step']}: {kept['what']}",
+            soft_wrap=True,
+            markup=False,
+            highlight=False,
+        )
     why = summary.get("unregistered_why") or {}
     shown = list(why.items())[:MAX_REASONS_SHOWN]
     for name, entry in shown:
@@ -926,21 +1121,35 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         stage_s["matching"] = time.time() - t
         t = time.time()
         mapper = chosen_mapper(cfg, len(extracted))
-        mapping = global_mapping if mapper == "global" else incremental_mapping
-        rec = mapping(cfg, len(extracted), progress, work / "mapping")
+        n = len(extracted)
+        rec, attempts = map_with_retries(
+            cfg,
+            n,
+            mapper,
+            run_incremental=lambda step: incremental_mapping(
+                cfg, n, progress, work / "mapping", relax=step and step.relax, label=step.name if step else ""
+            ),
+            run_global=lambda: global_mapping(cfg, n, progress, work / "mapping"),
+        )
         stage_s["mapping"] = time.time() - t
     registered = 0 if rec is None else rec.num_reg_images()
     if rec is None or registered < cfg.min_registered:
         shutil.rmtree(work, ignore_errors=True)
+        tried = "; ".join(
+            f"{a['step']}: {a['registered']}" + (f" ({a['note']})" if a["note"] else "") for a in attempts
+        )
         raise ProcessError(
-            f"SfM registered {registered} of {len(names)} images, fewer than {cfg.min_registered}: the photos share "
-            "too few matching features (too little overlap or texture). Add overlapping photos of the same scene."
+            f"SfM registered {registered} of {len(names)} images, fewer than {cfg.min_registered} (tried {tried}): "
+            "the photos share too few matching features (too little overlap or texture). Add overlapping photos of "
+            "the same scene."
         )
     t = time.time()
     stats = reconstruction_stats(rec, names)
     reg_names = {rec.images[i].name for i in rec.reg_image_ids()}
     not_placed = [n for n in stats["unregistered"] if n not in bad]
-    why = unregistered_reasons(verified_links(cfg.output / DATABASE), reg_names, not_placed) if not_placed else {}
+    tried = [a["step"] for a in attempts]
+    links = verified_links(cfg.output / DATABASE) if not_placed else {}
+    why = unregistered_reasons(links, reg_names, not_placed, tried=tried) if not_placed else {}
     write_scene(cfg, rec, work)
     final = pycolmap.Reconstruction(str(cfg.output / MODEL_DIR))
     ids = {i: final.images[i].name for i in final.reg_image_ids()}
@@ -958,7 +1167,8 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         + (" -> undistorted to PINHOLE" if cfg.camera_model == "SIMPLE_RADIAL" else "")
         + (", one shared camera" if cfg.single_camera else ", one camera per image"),
         "matching": method,
-        "mapper": mapper,
+        "mapper": kept_mapper(attempts, mapper),
+        "mapping_attempts": attempts,
         "num_pairs": num_pairs,
         "num_train": sum(r[2] == "train" for r in rows),
         "num_test": sum(r[2] == "test" for r in rows),
