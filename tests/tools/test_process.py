@@ -415,6 +415,66 @@ def test_unregistered_reasons_tell_no_matches_from_another_group_and_weak_links(
     assert "F" in why["E"]["text"] and "E" in why["F"]["text"]  # the group is named
 
 
+class _NoProgress:
+    def add_task(self, *args, **kwargs) -> int:
+        return 0
+
+    def advance(self, *args) -> None:
+        pass
+
+
+def _with_exif(src: Path, dst: Path, make: str | None, model: str = "", focal: float = 4.2) -> None:
+    """``src`` saved as the JPEG ``dst``, with an EXIF camera make, model and focal length (none for make None)."""
+    with Image.open(src) as im:
+        exif = Image.Exif()
+        if make is not None:
+            exif[proc.EXIF_MAKE], exif[proc.EXIF_MODEL] = make, model
+            exif.get_ifd(proc.EXIF_IFD)[proc.EXIF_FOCAL_LENGTH] = focal
+        im.convert("RGB").save(dst, quality=95, exif=exif.tobytes())
+
+
+def test_photos_of_one_exif_camera_share_intrinsics_across_extraction_calls(synthetic_photos, tmp_path):
+    """Two phones (7 and 5 photos) and 4 photos without EXIF, extracted 3 photos per call: one camera per phone, one
+    per photo without EXIF; --single-camera gives one camera for all (not one per call); a rerun with a photo added
+    to a phone's group gives it that phone's camera."""
+    src, _ = synthetic_photos
+    views = sorted(src.iterdir())
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    owner = {}
+    for i, view in enumerate(views):
+        make = "PhoneA" if i < 7 else "PhoneB" if i < 12 else None
+        name = f"{i:02d}.jpg"
+        _with_exif(view, photos / name, make, model="X", focal=4.2 if make == "PhoneA" else 6.0)
+        owner[name] = make
+    names = sorted(owner)[:-1]  # the last photo (no EXIF) is added later
+    cfg = ProcessConfig(images=photos, output=tmp_path / "out", num_threads=2, max_feature_image_size=200)
+    groups = proc.camera_groups(cfg, names)
+    assert groups == [[n for n in names if owner[n] == "PhoneA"], [n for n in names if owner[n] == "PhoneB"]]
+    (cfg.output / "colmap").mkdir(parents=True)
+    proc.extract_features(cfg, names, _NoProgress(), chunk=3)
+
+    def cameras(db_path: Path) -> dict[str, int]:
+        with pycolmap.Database.open(str(db_path)) as db:
+            return {im.name: im.camera_id for im in db.read_all_images()}
+
+    cam = cameras(cfg.output / "colmap" / "database.db")
+    assert len({cam[n] for n in names if owner[n] == "PhoneA"}) == 1
+    assert len({cam[n] for n in names if owner[n] == "PhoneB"}) == 1
+    assert len(set(cam.values())) == 2 + sum(owner[n] is None for n in names)
+    # a rerun with one more PhoneA photo: it joins PhoneA's camera
+    extra = photos / "99.jpg"
+    _with_exif(views[0], extra, "PhoneA", model="X", focal=4.2)
+    proc.extract_features(cfg, [*names, extra.name], _NoProgress(), chunk=3)
+    cam = cameras(cfg.output / "colmap" / "database.db")
+    assert cam[extra.name] == cam[names[0]]
+    single = dataclasses.replace(cfg, output=tmp_path / "single", single_camera=True)
+    (single.output / "colmap").mkdir(parents=True)
+    proc.extract_features(single, names, _NoProgress(), chunk=3)
+    assert len(set(cameras(single.output / "colmap" / "database.db").values())) == 1
+    assert proc.camera_groups(dataclasses.replace(cfg, exif_cameras=False), names) == []
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # the mapping retry ladder, on stand-in models
 

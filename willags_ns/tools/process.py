@@ -80,7 +80,12 @@ class ProcessConfig:
     SIMPLE_PINHOLE: no distortion; the photos are copied as they are."""
     single_camera: bool = False
     """Share one camera (intrinsics) between all images, for photos taken with one camera and zoom. Default: one
-    camera per image (tourist photos come from many cameras)."""
+    camera per image (tourist photos come from many cameras), or per EXIF camera with exif_cameras."""
+    exif_cameras: bool = True
+    """Photos whose EXIF gives the same camera make, model and focal length, at the same pixel size, share one camera
+    (intrinsics): one phone's photos at one zoom are one camera, photos without an EXIF focal length a camera each.
+    Why: with a camera per photo, each photo's focal length is free, and on a forward-moving walk (lund) focal length
+    and depth trade off, bending the model (docs/process.md)."""
     max_num_features: int = 8192
     """SIFT features kept per image."""
     max_feature_image_size: int = 1600
@@ -403,9 +408,10 @@ def _progress():
     )
 
 
-def _options_stamp(cfg: ProcessConfig, capped: bool = False) -> dict[str, Any]:
+def _options_stamp(cfg: ProcessConfig, capped: bool = False, exif_grouped: bool = False) -> dict[str, Any]:
     """The options that decide what the database holds: a rerun with other values cannot reuse it. The size cap
-    only where it resized a photo (the database of a collection it leaves alone is the same either way)."""
+    only where it resized a photo, EXIF camera sharing only where photos share an EXIF camera (the database of a
+    collection they leave alone is the same either way)."""
     stamp = {
         "camera_model": cfg.camera_model,
         "single_camera": cfg.single_camera,
@@ -415,6 +421,8 @@ def _options_stamp(cfg: ProcessConfig, capped: bool = False) -> dict[str, Any]:
     }
     if capped:
         stamp["max_image_size"] = cfg.max_image_size
+    if exif_grouped:
+        stamp["exif_cameras"] = True
     return stamp
 
 
@@ -426,14 +434,14 @@ def _database_names(db: Path) -> set[str]:
         return {row[0] for row in con.execute("SELECT name FROM images")}
 
 
-def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = ()) -> None:
+def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = (), exif_grouped: bool = False) -> None:
     """Refuse a database made with options that change what it holds (_options_stamp), naming them. The size cap
     counts only for the photos it resizes: a database made when no photo was resized holds every photo at full size,
     so a photo added since and resized now (one big photo added to the folder) extends it; a resized photo the
     database already holds at full size does not."""
     stamp = cfg.output / OPTIONS_STAMP
     db = cfg.output / DATABASE
-    want = _options_stamp(cfg, capped=bool(resized))
+    want = _options_stamp(cfg, capped=bool(resized), exif_grouped=exif_grouped)
     if db.exists() and stamp.is_file():
         have = json.loads(stamp.read_text())
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
@@ -447,40 +455,117 @@ def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = ()) -
     stamp.write_text(json.dumps(want, indent=1) + "\n")
 
 
-def extract_features(cfg: ProcessConfig, names: Sequence[str], progress, chunk: int = 8) -> list[str]:
+EXIF_MAKE, EXIF_MODEL, EXIF_IFD, EXIF_FOCAL_LENGTH = 0x010F, 0x0110, 0x8769, 0x920A
+
+
+def exif_camera_key(path: Path) -> tuple[str, str, float, int, int] | None:
+    """(make, model, focal length in mm, width, height) from a photo's EXIF and size, or None without an EXIF focal
+    length: photos with the same key come from one camera and lens at one zoom."""
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            focal = exif.get_ifd(EXIF_IFD).get(EXIF_FOCAL_LENGTH)
+            if focal is None or float(focal) <= 0:
+                return None
+            make, model = (str(exif.get(tag, "")).strip("\x00 ") for tag in (EXIF_MAKE, EXIF_MODEL))
+            return make, model, round(float(focal), 3), im.width, im.height
+    except (OSError, ValueError, ZeroDivisionError, TypeError):  # unreadable EXIF: a camera of its own
+        return None
+
+
+def camera_groups(cfg: ProcessConfig, names: Sequence[str]) -> list[list[str]]:
+    """The photos that share one camera (intrinsics), each group sorted: every photo in one group with
+    --single-camera; with exif_cameras, the photos of one EXIF camera key (exif_camera_key) of two photos or more;
+    the photos in no group get a camera each."""
+    if cfg.single_camera:
+        return [sorted(names)]
+    if not cfg.exif_cameras:
+        return []
+    by_key: dict[tuple, list[str]] = {}
+    for name in names:
+        key = exif_camera_key(cfg.images / name)
+        if key is not None:
+            by_key.setdefault(key, []).append(name)
+    return sorted((sorted(g) for g in by_key.values() if len(g) > 1), key=lambda g: g[0])
+
+
+def camera_sharing_words(cfg: ProcessConfig, groups: Sequence[Sequence[str]], num_photos: int) -> str:
+    """How the photos share cameras, for the summary: ", one shared camera", ", 2 EXIF cameras for 40 photos, one
+    camera per other photo" or ", one camera per image"."""
+    if cfg.single_camera:
+        return ", one shared camera"
+    if not groups:
+        return ", one camera per image"
+    shared = sum(len(g) for g in groups)
+    rest = num_photos - shared
+    return f", {len(groups)} EXIF camera(s) for {shared} photos" + (
+        f", one camera per other photo ({rest})" if rest else ""
+    )
+
+
+def extract_features(
+    cfg: ProcessConfig, names: Sequence[str], progress, groups: Sequence[Sequence[str]] | None = None, chunk: int = 8
+) -> list[str]:
     """SIFT for every image of `names` not yet in the database, `chunk` images per call (progress and Ctrl-C between
-    calls; one image per call would cost ~0.4 s of set-up each). Returns the names with features in the database."""
+    calls; one image per call would cost ~0.4 s of set-up each). The photos of a camera group (camera_groups) share
+    the camera the group's first extracted photo got, across calls and reruns. Returns the names with features in
+    the database. ``groups``: camera_groups(cfg, names) when not given."""
     import pycolmap
 
     db_path = cfg.output / DATABASE
+    groups = camera_groups(cfg, names) if groups is None else groups
+    camera_of: dict[int, int] = {}  # group index -> camera id already in the database
     with pycolmap.Database.open(str(db_path)) as db:
         done = set()
         for name in names:
             im = db.read_image_with_name(name)
             if im is not None and db.exists_keypoints(im.image_id) and db.exists_descriptors(im.image_id):
                 done.add(name)
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = cfg.camera_model
+        for g, members in enumerate(groups):
+            for name in members:
+                im = db.read_image_with_name(name)
+                if im is not None:
+                    camera_of[g] = im.camera_id
+                    break
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = cfg.num_threads
     extraction.max_image_size = cfg.max_feature_image_size
     extraction.sift.max_num_features = cfg.max_num_features
-    mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.PER_IMAGE
     task = progress.add_task("feature extraction", total=len(names), completed=len(done))
-    todo = [n for n in names if n not in done]
-    for k in range(0, len(todo), chunk):
+    grouped = {n for members in groups for n in members}
+    calls: list[tuple[int | None, list[str]]] = []  # (group index or None: a camera per photo, names)
+    for g, members in enumerate(groups):
+        todo = [n for n in members if n not in done]
+        calls += [(g, todo[k : k + chunk]) for k in range(0, len(todo), chunk)]
+    todo = [n for n in names if n not in done and n not in grouped]
+    calls += [(None, todo[k : k + chunk]) for k in range(0, len(todo), chunk)]
+    order = {n: i for i, n in enumerate(names)}
+    calls.sort(key=lambda c: order[c[1][0]])  # the folder's order, as before groups existed
+    for g, batch in calls:
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = cfg.camera_model
+        mode = pycolmap.CameraMode.PER_IMAGE
+        if g is not None:
+            mode = pycolmap.CameraMode.SINGLE
+            if g in camera_of:
+                reader.existing_camera_id = camera_of[g]
         with _cancellable() as token:
             pycolmap.extract_features(
                 str(db_path),
                 str(cfg.images),
-                image_names=todo[k : k + chunk],
+                image_names=batch,
                 camera_mode=mode,
                 reader_options=reader,
                 extraction_options=extraction,
                 device=pycolmap.Device.cpu,
                 cancellation_token=token,
             )
-        progress.advance(task, len(todo[k : k + chunk]))
+        if g is not None and g not in camera_of:
+            with pycolmap.Database.open(str(db_path)) as db:
+                im = db.read_image_with_name(batch[0])
+                if im is not None:
+                    camera_of[g] = im.camera_id
+        progress.advance(task, len(batch))
     with pycolmap.Database.open(str(db_path)) as db:
         ok = []
         for name in names:
@@ -1092,7 +1177,8 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         )
     cfg.output.mkdir(parents=True, exist_ok=True)
     photos, resized = cap_photos(cfg, readable)
-    _check_database_options(cfg, resized=list(resized))
+    groups = camera_groups(dataclasses.replace(cfg, images=photos), readable)
+    _check_database_options(cfg, resized=list(resized), exif_grouped=bool(groups) and not cfg.single_camera)
     for name, (w, h, w2, h2) in resized.items():
         log(f"{name}: {w}x{h} resized to {w2}x{h2} (--max-image-size {cfg.max_image_size}; 0 keeps full size)")
     given = cfg.images
@@ -1103,7 +1189,7 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     work = cfg.output / "colmap" / ".work"
     with _progress() as progress:
         t = time.time()
-        extracted = extract_features(cfg, readable, progress)
+        extracted = extract_features(cfg, readable, progress, groups)
         stage_s["extraction"] = time.time() - t
         for name in readable:
             if name not in extracted:
@@ -1165,7 +1251,7 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         "unregistered_why": why,
         "camera_model": cfg.camera_model
         + (" -> undistorted to PINHOLE" if cfg.camera_model == "SIMPLE_RADIAL" else "")
-        + (", one shared camera" if cfg.single_camera else ", one camera per image"),
+        + camera_sharing_words(cfg, groups, len(readable)),
         "matching": method,
         "mapper": kept_mapper(attempts, mapper),
         "mapping_attempts": attempts,
