@@ -389,6 +389,8 @@ def test_a_huge_photo_is_capped_and_named_and_the_scene_trains_at_the_cap(tmp_pa
     unreg_line = next(line for line in table.splitlines() if "unregistered" in line and "unreadable" not in line)
     assert "broken.png" not in unreg_line and "broken.png" in table
     assert summary["unregistered_why"]["elsewhere.png"]["reason"] == "no-matches"
+    # a photo that matches no other cannot be placed by any mapper: it starts no retry
+    assert [a["step"] for a in summary["mapping_attempts"]] == ["default"]
     assert "broken.png" not in summary["unregistered_why"]
     assert any("elsewhere.png" in line and "registered:" in line for line in table.splitlines())
 

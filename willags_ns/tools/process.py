@@ -8,7 +8,7 @@ Structure-from-motion with pycolmap on CPU (a pip wheel: no COLMAP binary, no GP
    a vocabulary tree built from the collection's own SIFT descriptors (no download) and each image matched with its
    `retrieval_neighbors` best-scoring images; every pair is verified geometrically;
 3. mapping: COLMAP's incremental mapper or GLOMAP (`--mapper`; auto: global from `global_min_images` images), fixed
-   seed; the largest model is kept. When the incremental mapper places fewer than `retry_below` of the photos, it is
+   seed; the largest model is kept. When the incremental mapper leaves out photos that match others, it is
    retried with relaxed thresholds (RETRY_STEPS), then (auto) the global mapper is tried and used only if it agrees
    with the incremental model; the summary lists every attempt;
 4. writing: SIMPLE_RADIAL models are undistorted to PINHOLE (images re-sampled, so the training images match a
@@ -103,11 +103,12 @@ class ProcessConfig:
     large collections). auto: incremental up to global_min_images images, global above."""
     global_min_images: int = 500
     """auto mapper: the smallest collection mapped with the global mapper."""
-    retry_below: float = 0.9
-    """Incremental mapper: when its model holds fewer than this share of the photos, mapping is retried with relaxed
-    thresholds (RETRY_STEPS) and, with --mapper auto, the global mapper, whose model is used only if it agrees with
-    the incremental one on the photos both placed; the model with the most photos is kept, and the summary lists
-    every attempt. 0: no retries."""
+    retry_below: float = 1.0
+    """Incremental mapper: when its model holds fewer than this share of the photos that could be placed (those
+    with a verified pair of MIN_LINK_INLIERS matches or more), mapping is retried with relaxed thresholds
+    (RETRY_STEPS) and, with --mapper auto, the global mapper, whose model is used only if it agrees with the
+    incremental one on the photos both placed; the model with the most photos is kept, and the summary lists every
+    attempt. 1: retry while any such photo is left out; 0: no retries. Each retry costs about one mapping stage."""
     seed: int = 0
     """Random seed of the mapper (RANSAC, image selection)."""
     num_threads: int = -1
@@ -809,10 +810,10 @@ RETRY_STEPS = (
         {"abs_pose_min_num_inliers": 15, "init_min_tri_angle": 4.0, "init_max_forward_motion": 1.0},
     ),
 )
-"""The incremental mapper's retries, in order, when a model holds fewer than retry_below of the photos. Why these
+"""The incremental mapper's retries, in order, while a model holds fewer than retry_below of the photos. Why these
 (docs/process.md): tourist photos (liberty: 47-53 of 90 with COLMAP's defaults) fall apart into partial models that
-15 inliers join (75-86 of 90); a forward-moving walk (lund) has no first pair with a 16 deg angle, and 2 of 29
-register until the first pair may have 4 deg and pure forward motion (21 of 29)."""
+15 inliers join (75-86 of 90); a forward-moving street walk (lund) has no first pair with a 16 deg angle (2 of 29
+with COLMAP's defaults, 3-21 with relaxed registration, 21-26 with relaxed initialisation)."""
 
 MAX_RETRY_REPROJECTION_PX = 1.5
 """A retry's model (or the global mapper's) is kept only if its mean reprojection error is at most this many px; the
@@ -848,7 +849,7 @@ def map_with_retries(
 
     ``mapper`` "global" (chosen or --mapper global): the global mapper once. Otherwise the incremental mapper with
     COLMAP's defaults (``run_incremental(None)``), then, while the best model holds fewer than ``cfg.retry_below`` of
-    the ``num_images`` photos, each of RETRY_STEPS (kept when it places more photos at a mean reprojection error of
+    the ``num_images`` photos (those that could be placed), each of RETRY_STEPS (kept when it places more photos at a mean reprojection error of
     at most MAX_RETRY_REPROJECTION_PX), then with --mapper auto the global mapper (``run_global()``), kept only if it
     places more photos and agrees with the best incremental model on the photos both placed (GLOBAL_CHECK_*).
     Each entry: step, what, registered, mean_reprojection_error_px, seconds, kept, note (why not kept, or the check).
@@ -1208,9 +1209,11 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         t = time.time()
         mapper = chosen_mapper(cfg, len(extracted))
         n = len(extracted)
+        links = verified_links(cfg.output / DATABASE)
+        placeable = sum(any(k >= MIN_LINK_INLIERS for k in links.get(name, {}).values()) for name in extracted)
         rec, attempts = map_with_retries(
             cfg,
-            n,
+            placeable,
             mapper,
             run_incremental=lambda step: incremental_mapping(
                 cfg, n, progress, work / "mapping", relax=step and step.relax, label=step.name if step else ""
@@ -1234,7 +1237,6 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     reg_names = {rec.images[i].name for i in rec.reg_image_ids()}
     not_placed = [n for n in stats["unregistered"] if n not in bad]
     tried = [a["step"] for a in attempts]
-    links = verified_links(cfg.output / DATABASE) if not_placed else {}
     why = unregistered_reasons(links, reg_names, not_placed, tried=tried) if not_placed else {}
     write_scene(cfg, rec, work)
     final = pycolmap.Reconstruction(str(cfg.output / MODEL_DIR))
