@@ -326,6 +326,12 @@ def test_missing_folder_fails_clearly(tmp_path, capsys):
     assert code == 1 and "is not a folder" in text
 
 
+def test_a_retry_share_outside_zero_to_one_is_refused(tmp_path):
+    for share in (-0.1, 1.5):
+        with pytest.raises(ProcessError, match="retry-below"):
+            proc.run(ProcessConfig(images=tmp_path, output=tmp_path / "out", retry_below=share), log=lambda m: None)
+
+
 def test_unreadable_images_are_named_and_too_few_left_fails(tmp_path, synthetic_photos, capsys):
     photos = tmp_path / "photos"
     photos.mkdir()

@@ -2,8 +2,9 @@
 
 Structure-from-motion with pycolmap on CPU (a pip wheel: no COLMAP binary, no GPU), in four resumable stages:
 
-1. features: SIFT per image into `colmap/database.db`, one camera per image by default (tourist photos come from
-   many cameras), camera model SIMPLE_RADIAL (focal length, principal point, one radial term) or SIMPLE_PINHOLE;
+1. features: SIFT per image into `colmap/database.db`, one camera per EXIF camera (the photos of one phone or lens at
+   one zoom share intrinsics) and one per photo without an EXIF focal length (tourist photos come from many
+   cameras), camera model SIMPLE_RADIAL (focal length, principal point, one radial term) or SIMPLE_PINHOLE;
 2. matching: exhaustive up to `exhaustive_max_images` images (all n(n-1)/2 pairs); above that, image retrieval with
    a vocabulary tree built from the collection's own SIFT descriptors (no download) and each image matched with its
    `retrieval_neighbors` best-scoring images; every pair is verified geometrically;
@@ -1162,6 +1163,8 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     cfg = dataclasses.replace(cfg, images=Path(cfg.images).expanduser(), output=Path(cfg.output).expanduser())
     if cfg.min_registered < 3:
         raise ProcessError(f"--min-registered must be >= 3, got {cfg.min_registered}")
+    if not 0 <= cfg.retry_below <= 1:
+        raise ProcessError(f"--retry-below must be a share between 0 (no retries) and 1, got {cfg.retry_below}")
     if cfg.test_every == 1 or cfg.test_every < 0:
         raise ProcessError(f"--test-every must be 0 (no test images) or >= 2, got {cfg.test_every}")
     names = list_images(cfg.images)
