@@ -106,8 +106,8 @@ class ProcessConfig:
     """auto mapper: the smallest collection mapped with the global mapper."""
     retry_below: float = 1.0
     """Incremental mapper: when its model holds fewer than this share of the photos that could be placed (those
-    with a verified pair of MIN_LINK_INLIERS matches or more), mapping is retried with relaxed thresholds
-    (RETRY_STEPS) and, with --mapper auto, the global mapper, whose model is used only if it agrees with the
+    with a verified pair of 15 inlier matches or more), mapping is retried with relaxed thresholds (a photo placed
+    from 15 inliers, not 30; then also a first pair at 4 deg, not 16) and, with --mapper auto, the global mapper, whose model is used only if it agrees with the
     incremental one on the photos both placed; the model with the most photos is kept, and the summary lists every
     attempt. 1: retry while any such photo is left out; 0: no retries. Each retry costs about one mapping stage."""
     seed: int = 0
