@@ -226,6 +226,41 @@ def test_vocab_tree_matching_registers_the_views(processed, tmp_path):
     assert (out / "colmap" / "vocab_tree.bin").is_file()
 
 
+def test_a_failed_default_mapping_is_retried_with_relaxed_thresholds_that_reach_colmap(processed, tmp_path, capsys):
+    """The ladder through run() and the real mapper: COLMAP's defaults made to find nothing (as on a forward-moving
+    walk), the relaxed-registration retry (its threshold reaches pycolmap's options) places every view; the summary
+    and the printed table name both attempts and what helped."""
+    cfg, _, _, _ = processed
+    out = tmp_path / "retry"
+    (out / "colmap").mkdir(parents=True)
+    for name in ("database.db", "database_options.json"):
+        shutil.copy(cfg.output / "colmap" / name, out / "colmap" / name)
+    real = pycolmap.incremental_mapping
+    seen: list[int] = []
+
+    def mapping(*args, **kwargs):
+        options = args[3]
+        seen.append(options.mapper.abs_pose_min_num_inliers)
+        return {} if options.mapper.abs_pose_min_num_inliers == 30 else real(*args, **kwargs)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(pycolmap, "incremental_mapping", mapping)
+    try:
+        summary = proc.run(dataclasses.replace(cfg, output=out, num_downscales=0), log=lambda msg: None)
+    finally:
+        mp.undo()
+    assert seen == [30, proc.RETRY_STEPS[0].relax["abs_pose_min_num_inliers"]]
+    steps = [(a["step"], a["registered"], a["kept"]) for a in summary["mapping_attempts"]]
+    assert steps == [("default", 0, False), (proc.RETRY_STEPS[0].name, NUM_VIEWS, True)]
+    assert summary["registered"] == NUM_VIEWS and proc.RETRY_STEPS[0].name in summary["mapper"]
+    from willags_ns.scripts.process import print_summary
+
+    print_summary(summary)
+    printed = capsys.readouterr().out.replace("\n", " ")
+    assert "mapping attempts" in printed
+    assert f"{proc.RETRY_STEPS[0].name} placed {NUM_VIEWS} more" in printed  # what helped
+
+
 def test_database_made_with_other_options_is_refused(processed, tmp_path):
     cfg, _, _, _ = processed
     other = ProcessConfig(images=cfg.images, output=cfg.output, camera_model="SIMPLE_PINHOLE")
@@ -291,6 +326,12 @@ def test_missing_folder_fails_clearly(tmp_path, capsys):
     assert code == 1 and "is not a folder" in text
 
 
+def test_a_retry_share_outside_zero_to_one_is_refused(tmp_path):
+    for share in (-0.1, 1.5):
+        with pytest.raises(ProcessError, match="retry-below"):
+            proc.run(ProcessConfig(images=tmp_path, output=tmp_path / "out", retry_below=share), log=lambda m: None)
+
+
 def test_unreadable_images_are_named_and_too_few_left_fails(tmp_path, synthetic_photos, capsys):
     photos = tmp_path / "photos"
     photos.mkdir()
@@ -354,6 +395,8 @@ def test_a_huge_photo_is_capped_and_named_and_the_scene_trains_at_the_cap(tmp_pa
     unreg_line = next(line for line in table.splitlines() if "unregistered" in line and "unreadable" not in line)
     assert "broken.png" not in unreg_line and "broken.png" in table
     assert summary["unregistered_why"]["elsewhere.png"]["reason"] == "no-matches"
+    # a photo that matches no other cannot be placed by any mapper: it starts no retry
+    assert [a["step"] for a in summary["mapping_attempts"]] == ["default"]
     assert "broken.png" not in summary["unregistered_why"]
     assert any("elsewhere.png" in line and "registered:" in line for line in table.splitlines())
 
@@ -378,6 +421,186 @@ def test_unregistered_reasons_tell_no_matches_from_another_group_and_weak_links(
         "H": "no-matches",
     }
     assert "F" in why["E"]["text"] and "E" in why["F"]["text"]  # the group is named
+
+
+class _NoProgress:
+    def add_task(self, *args, **kwargs) -> int:
+        return 0
+
+    def advance(self, *args) -> None:
+        pass
+
+
+def _with_exif(src: Path, dst: Path, make: str | None, model: str = "", focal: float = 4.2) -> None:
+    """``src`` saved as the JPEG ``dst``, with an EXIF camera make, model and focal length (none for make None)."""
+    with Image.open(src) as im:
+        exif = Image.Exif()
+        if make is not None:
+            exif[proc.EXIF_MAKE], exif[proc.EXIF_MODEL] = make, model
+            exif.get_ifd(proc.EXIF_IFD)[proc.EXIF_FOCAL_LENGTH] = focal
+        im.convert("RGB").save(dst, quality=95, exif=exif.tobytes())
+
+
+def test_photos_of_one_exif_camera_share_intrinsics_across_extraction_calls(synthetic_photos, tmp_path):
+    """Two phones (7 and 5 photos) and 4 photos without EXIF, extracted 3 photos per call: one camera per phone, one
+    per photo without EXIF; --single-camera gives one camera for all (not one per call); a rerun with a photo added
+    to a phone's group gives it that phone's camera."""
+    src, _ = synthetic_photos
+    views = sorted(src.iterdir())
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    owner = {}
+    for i, view in enumerate(views):
+        make = "PhoneA" if i < 7 else "PhoneB" if i < 12 else None
+        name = f"{i:02d}.jpg"
+        _with_exif(view, photos / name, make, model="X", focal=4.2 if make == "PhoneA" else 6.0)
+        owner[name] = make
+    names = sorted(owner)[:-1]  # the last photo (no EXIF) is added later
+    cfg = ProcessConfig(images=photos, output=tmp_path / "out", num_threads=2, max_feature_image_size=200)
+    groups = proc.camera_groups(cfg, names)
+    assert groups == [[n for n in names if owner[n] == "PhoneA"], [n for n in names if owner[n] == "PhoneB"]]
+    (cfg.output / "colmap").mkdir(parents=True)
+    proc.extract_features(cfg, names, _NoProgress(), chunk=3)
+
+    def cameras(db_path: Path) -> dict[str, int]:
+        with pycolmap.Database.open(str(db_path)) as db:
+            return {im.name: im.camera_id for im in db.read_all_images()}
+
+    cam = cameras(cfg.output / "colmap" / "database.db")
+    assert len({cam[n] for n in names if owner[n] == "PhoneA"}) == 1
+    assert len({cam[n] for n in names if owner[n] == "PhoneB"}) == 1
+    assert len(set(cam.values())) == 2 + sum(owner[n] is None for n in names)
+    # a rerun with one more PhoneA photo: it joins PhoneA's camera
+    extra = photos / "99.jpg"
+    _with_exif(views[0], extra, "PhoneA", model="X", focal=4.2)
+    proc.extract_features(cfg, [*names, extra.name], _NoProgress(), chunk=3)
+    cam = cameras(cfg.output / "colmap" / "database.db")
+    assert cam[extra.name] == cam[names[0]]
+    single = dataclasses.replace(cfg, output=tmp_path / "single", single_camera=True)
+    (single.output / "colmap").mkdir(parents=True)
+    proc.extract_features(single, names, _NoProgress(), chunk=3)
+    assert len(set(cameras(single.output / "colmap" / "database.db").values())) == 1
+    assert proc.camera_groups(dataclasses.replace(cfg, exif_cameras=False), names) == []
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the mapping retry ladder, on stand-in models
+
+
+class _Model:
+    """What map_with_retries reads of a pycolmap Reconstruction: the registered names and the reprojection error."""
+
+    def __init__(self, names, err: float = 0.5):
+        self.names, self.err = list(names), err
+        self.images = {i: type("Image", (), {"name": n})() for i, n in enumerate(self.names)}
+
+    def num_reg_images(self) -> int:
+        return len(self.names)
+
+    def reg_image_ids(self):
+        return list(self.images)
+
+    def compute_mean_reprojection_error(self) -> float:
+        return self.err
+
+
+def _photos(n: int) -> list[str]:
+    return [f"{i:02d}.jpg" for i in range(n)]
+
+
+def _ladder(
+    results: dict[str | None, _Model | None],
+    global_model: _Model | None = None,
+    agree: bool = True,
+    total: int = 30,
+    mapper: str = "auto",
+    retry_below: float = 0.9,
+):
+    """map_with_retries with stand-in mappers: ``results`` maps a retry step's name (None: COLMAP's defaults) to its
+    model. Returns (kept model, attempts, steps run, whether the agreement check ran)."""
+    ran: list[str | None] = []
+    checked: list[bool] = []
+
+    def run_incremental(step):
+        ran.append(step and step.name)
+        return results.get(step and step.name)
+
+    def run_global():
+        ran.append("global")
+        return global_model
+
+    def agreement(a, b):
+        checked.append(True)
+        common = len(set(a.names) & set(b.names))
+        bad = 0.0 if agree else 30.0
+        return {"num_common": common, "median_rotation_error_deg": bad, "median_centre_error_pct": bad}
+
+    cfg = ProcessConfig(images=Path("in"), output=Path("out"), mapper=mapper, retry_below=retry_below)
+    chosen = "global" if mapper == "global" else "incremental"
+    rec, attempts = proc.map_with_retries(cfg, total, chosen, run_incremental, run_global, agreement)
+    return rec, attempts, ran, bool(checked)
+
+
+REG, INIT = (step.name for step in proc.RETRY_STEPS)
+
+
+def test_ladder_stops_once_enough_photos_are_placed():
+    full = _Model(_photos(30))
+    rec, attempts, ran, _ = _ladder({None: full})
+    assert rec is full and ran == [None] and [a["kept"] for a in attempts] == [True]
+    part = _Model(_photos(20))
+    rec, attempts, ran, _ = _ladder({None: part, REG: _Model(_photos(28))})
+    assert ran == [None, REG] and rec.num_reg_images() == 28  # 28 >= 0.9 * 30: no further step
+    assert [a["kept"] for a in attempts] == [False, True]
+
+
+def test_ladder_keeps_the_largest_model_and_skips_one_with_a_high_reprojection_error():
+    bad = _Model(_photos(25), err=proc.MAX_RETRY_REPROJECTION_PX + 1)
+    rec, attempts, ran, _ = _ladder(
+        {None: _Model(_photos(10)), REG: bad, INIT: _Model(_photos(18))}, mapper="incremental"
+    )
+    assert ran == [None, REG, INIT]  # --mapper incremental: no global mapper
+    assert rec.num_reg_images() == 18
+    assert [a["kept"] for a in attempts] == [False, False, True] and attempts[1]["note"]
+    # a retry that places fewer photos than the defaults does not replace them
+    rec, attempts, _, _ = _ladder({None: _Model(_photos(10)), REG: _Model(_photos(8))}, mapper="incremental")
+    assert rec.num_reg_images() == 10 and [a["kept"] for a in attempts] == [True, False, False]
+
+
+def test_global_mapper_is_used_only_when_it_agrees_with_the_incremental_model():
+    steps = {None: _Model(_photos(2)), REG: _Model(_photos(3)), INIT: _Model(_photos(21))}
+    everything = _Model(_photos(30))
+    rec, attempts, ran, checked = _ladder(steps, global_model=everything, agree=True)
+    assert ran == [None, REG, INIT, "global"] and checked and rec is everything
+    assert [a["kept"] for a in attempts] == [False, False, False, True]
+    rec, attempts, _, checked = _ladder(steps, global_model=everything, agree=False)
+    assert checked and rec.num_reg_images() == 21 and attempts[-1]["note"] and not attempts[-1]["kept"]
+    # an incremental model too small to check against: the global model is not used, and the note says how to force it
+    tiny = {None: _Model(_photos(2)), REG: None, INIT: _Model(_photos(proc.GLOBAL_CHECK_MIN_COMMON - 1))}
+    rec, attempts, _, checked = _ladder(tiny, global_model=everything)
+    assert not checked and rec.num_reg_images() == proc.GLOBAL_CHECK_MIN_COMMON - 1
+    assert "--mapper global" in attempts[-1]["note"]
+    # no incremental model at all: nothing is kept, every attempt is listed
+    rec, attempts, _, _ = _ladder({}, global_model=everything)
+    assert rec is None and [a["registered"] for a in attempts] == [0, 0, 0, 30]
+
+
+def test_ladder_off_and_global_mapper_run_once():
+    rec, attempts, ran, _ = _ladder({None: _Model(_photos(5))}, global_model=_Model(_photos(30)), retry_below=0)
+    assert ran == [None] and rec.num_reg_images() == 5
+    rec, attempts, ran, checked = _ladder({}, global_model=_Model(_photos(30)), mapper="global")
+    assert ran == ["global"] and not checked and rec.num_reg_images() == 30 and attempts[0]["kept"]
+
+
+def test_weak_photos_name_the_attempts_that_were_tried():
+    from willags_ns.tools.process import MIN_LINK_INLIERS, unregistered_reasons
+
+    links = {"A": {"B": 200, "D": MIN_LINK_INLIERS + 5}, "B": {"A": 200}, "D": {"A": MIN_LINK_INLIERS + 5}}
+    tried = ["default", REG, INIT, "global mapper"]
+    why = unregistered_reasons(links, {"A", "B"}, ["D"], tried=tried)
+    assert why["D"]["reason"] == "weak"
+    assert all(step in why["D"]["text"] for step in tried)
+    assert "--" not in why["D"]["text"]  # no option the run did not try
 
 
 # --------------------------------------------------------------------------------------------------------------------

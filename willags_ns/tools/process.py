@@ -2,13 +2,16 @@
 
 Structure-from-motion with pycolmap on CPU (a pip wheel: no COLMAP binary, no GPU), in four resumable stages:
 
-1. features: SIFT per image into `colmap/database.db`, one camera per image by default (tourist photos come from
-   many cameras), camera model SIMPLE_RADIAL (focal length, principal point, one radial term) or SIMPLE_PINHOLE;
+1. features: SIFT per image into `colmap/database.db`, one camera per EXIF camera (the photos of one phone or lens at
+   one zoom share intrinsics) and one per photo without an EXIF focal length (tourist photos come from many
+   cameras), camera model SIMPLE_RADIAL (focal length, principal point, one radial term) or SIMPLE_PINHOLE;
 2. matching: exhaustive up to `exhaustive_max_images` images (all n(n-1)/2 pairs); above that, image retrieval with
    a vocabulary tree built from the collection's own SIFT descriptors (no download) and each image matched with its
    `retrieval_neighbors` best-scoring images; every pair is verified geometrically;
 3. mapping: COLMAP's incremental mapper or GLOMAP (`--mapper`; auto: global from `global_min_images` images), fixed
-   seed; the largest model is kept;
+   seed; the largest model is kept. When the incremental mapper leaves out photos that match others, it is
+   retried with relaxed thresholds (RETRY_STEPS), then (auto) the global mapper is tried and used only if it agrees
+   with the incremental model; the summary lists every attempt;
 4. writing: SIMPLE_RADIAL models are undistorted to PINHOLE (images re-sampled, so the training images match a
    pinhole camera); SIMPLE_PINHOLE models are written as they are with the registered photos copied.
 
@@ -78,7 +81,12 @@ class ProcessConfig:
     SIMPLE_PINHOLE: no distortion; the photos are copied as they are."""
     single_camera: bool = False
     """Share one camera (intrinsics) between all images, for photos taken with one camera and zoom. Default: one
-    camera per image (tourist photos come from many cameras)."""
+    camera per image (tourist photos come from many cameras), or per EXIF camera with exif_cameras."""
+    exif_cameras: bool = True
+    """Photos whose EXIF gives the same camera make, model and focal length, at the same pixel size, share one camera
+    (intrinsics): one phone's photos at one zoom are one camera, photos without an EXIF focal length a camera each.
+    Why: with a camera per photo, each photo's focal length is free, and on a forward-moving walk (lund) focal length
+    and depth trade off, bending the model (docs/process.md)."""
     max_num_features: int = 8192
     """SIFT features kept per image."""
     max_feature_image_size: int = 1600
@@ -96,6 +104,12 @@ class ProcessConfig:
     large collections). auto: incremental up to global_min_images images, global above."""
     global_min_images: int = 500
     """auto mapper: the smallest collection mapped with the global mapper."""
+    retry_below: float = 1.0
+    """Incremental mapper: when its model holds fewer than this share of the photos that could be placed (those
+    with a verified pair of 15 inlier matches or more), mapping is retried with relaxed thresholds (a photo placed
+    from 15 inliers, not 30; then also a first pair at 4 deg, not 16) and, with --mapper auto, the global mapper, whose model is used only if it agrees with the
+    incremental one on the photos both placed; the model with the most photos is kept, and the summary lists every
+    attempt. 1: retry while any such photo is left out; 0: no retries. Each retry costs about one mapping stage."""
     seed: int = 0
     """Random seed of the mapper (RANSAC, image selection)."""
     num_threads: int = -1
@@ -327,7 +341,11 @@ def model_w2c(model_dir: Path) -> dict[str, np.ndarray]:
     """{image name: world-to-camera [4, 4]} of the registered images of a COLMAP model."""
     import pycolmap
 
-    rec = pycolmap.Reconstruction(str(model_dir))
+    return rec_w2c(pycolmap.Reconstruction(str(model_dir)))
+
+
+def rec_w2c(rec) -> dict[str, np.ndarray]:
+    """{image name: world-to-camera [4, 4]} of the registered images of a pycolmap Reconstruction."""
     out = {}
     for image_id in rec.reg_image_ids():
         im = rec.images[image_id]
@@ -392,9 +410,10 @@ def _progress():
     )
 
 
-def _options_stamp(cfg: ProcessConfig, capped: bool = False) -> dict[str, Any]:
+def _options_stamp(cfg: ProcessConfig, capped: bool = False, exif_grouped: bool = False) -> dict[str, Any]:
     """The options that decide what the database holds: a rerun with other values cannot reuse it. The size cap
-    only where it resized a photo (the database of a collection it leaves alone is the same either way)."""
+    only where it resized a photo, EXIF camera sharing only where photos share an EXIF camera (the database of a
+    collection they leave alone is the same either way)."""
     stamp = {
         "camera_model": cfg.camera_model,
         "single_camera": cfg.single_camera,
@@ -404,6 +423,8 @@ def _options_stamp(cfg: ProcessConfig, capped: bool = False) -> dict[str, Any]:
     }
     if capped:
         stamp["max_image_size"] = cfg.max_image_size
+    if exif_grouped:
+        stamp["exif_cameras"] = True
     return stamp
 
 
@@ -415,14 +436,14 @@ def _database_names(db: Path) -> set[str]:
         return {row[0] for row in con.execute("SELECT name FROM images")}
 
 
-def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = ()) -> None:
+def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = (), exif_grouped: bool = False) -> None:
     """Refuse a database made with options that change what it holds (_options_stamp), naming them. The size cap
     counts only for the photos it resizes: a database made when no photo was resized holds every photo at full size,
     so a photo added since and resized now (one big photo added to the folder) extends it; a resized photo the
     database already holds at full size does not."""
     stamp = cfg.output / OPTIONS_STAMP
     db = cfg.output / DATABASE
-    want = _options_stamp(cfg, capped=bool(resized))
+    want = _options_stamp(cfg, capped=bool(resized), exif_grouped=exif_grouped)
     if db.exists() and stamp.is_file():
         have = json.loads(stamp.read_text())
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
@@ -436,40 +457,117 @@ def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = ()) -
     stamp.write_text(json.dumps(want, indent=1) + "\n")
 
 
-def extract_features(cfg: ProcessConfig, names: Sequence[str], progress, chunk: int = 8) -> list[str]:
+EXIF_MAKE, EXIF_MODEL, EXIF_IFD, EXIF_FOCAL_LENGTH = 0x010F, 0x0110, 0x8769, 0x920A
+
+
+def exif_camera_key(path: Path) -> tuple[str, str, float, int, int] | None:
+    """(make, model, focal length in mm, width, height) from a photo's EXIF and size, or None without an EXIF focal
+    length: photos with the same key come from one camera and lens at one zoom."""
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            focal = exif.get_ifd(EXIF_IFD).get(EXIF_FOCAL_LENGTH)
+            if focal is None or float(focal) <= 0:
+                return None
+            make, model = (str(exif.get(tag, "")).strip("\x00 ") for tag in (EXIF_MAKE, EXIF_MODEL))
+            return make, model, round(float(focal), 3), im.width, im.height
+    except (OSError, ValueError, ZeroDivisionError, TypeError):  # unreadable EXIF: a camera of its own
+        return None
+
+
+def camera_groups(cfg: ProcessConfig, names: Sequence[str]) -> list[list[str]]:
+    """The photos that share one camera (intrinsics), each group sorted: every photo in one group with
+    --single-camera; with exif_cameras, the photos of one EXIF camera key (exif_camera_key) of two photos or more;
+    the photos in no group get a camera each."""
+    if cfg.single_camera:
+        return [sorted(names)]
+    if not cfg.exif_cameras:
+        return []
+    by_key: dict[tuple, list[str]] = {}
+    for name in names:
+        key = exif_camera_key(cfg.images / name)
+        if key is not None:
+            by_key.setdefault(key, []).append(name)
+    return sorted((sorted(g) for g in by_key.values() if len(g) > 1), key=lambda g: g[0])
+
+
+def camera_sharing_words(cfg: ProcessConfig, groups: Sequence[Sequence[str]], num_photos: int) -> str:
+    """How the photos share cameras, for the summary: ", one shared camera", ", 2 EXIF cameras for 40 photos, one
+    camera per other photo" or ", one camera per image"."""
+    if cfg.single_camera:
+        return ", one shared camera"
+    if not groups:
+        return ", one camera per image"
+    shared = sum(len(g) for g in groups)
+    rest = num_photos - shared
+    return f", {len(groups)} EXIF camera(s) for {shared} photos" + (
+        f", one camera per other photo ({rest})" if rest else ""
+    )
+
+
+def extract_features(
+    cfg: ProcessConfig, names: Sequence[str], progress, groups: Sequence[Sequence[str]] | None = None, chunk: int = 8
+) -> list[str]:
     """SIFT for every image of `names` not yet in the database, `chunk` images per call (progress and Ctrl-C between
-    calls; one image per call would cost ~0.4 s of set-up each). Returns the names with features in the database."""
+    calls; one image per call would cost ~0.4 s of set-up each). The photos of a camera group (camera_groups) share
+    the camera the group's first extracted photo got, across calls and reruns. Returns the names with features in
+    the database. ``groups``: camera_groups(cfg, names) when not given."""
     import pycolmap
 
     db_path = cfg.output / DATABASE
+    groups = camera_groups(cfg, names) if groups is None else groups
+    camera_of: dict[int, int] = {}  # group index -> camera id already in the database
     with pycolmap.Database.open(str(db_path)) as db:
         done = set()
         for name in names:
             im = db.read_image_with_name(name)
             if im is not None and db.exists_keypoints(im.image_id) and db.exists_descriptors(im.image_id):
                 done.add(name)
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = cfg.camera_model
+        for g, members in enumerate(groups):
+            for name in members:
+                im = db.read_image_with_name(name)
+                if im is not None:
+                    camera_of[g] = im.camera_id
+                    break
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = cfg.num_threads
     extraction.max_image_size = cfg.max_feature_image_size
     extraction.sift.max_num_features = cfg.max_num_features
-    mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.PER_IMAGE
     task = progress.add_task("feature extraction", total=len(names), completed=len(done))
-    todo = [n for n in names if n not in done]
-    for k in range(0, len(todo), chunk):
+    grouped = {n for members in groups for n in members}
+    calls: list[tuple[int | None, list[str]]] = []  # (group index or None: a camera per photo, names)
+    for g, members in enumerate(groups):
+        todo = [n for n in members if n not in done]
+        calls += [(g, todo[k : k + chunk]) for k in range(0, len(todo), chunk)]
+    todo = [n for n in names if n not in done and n not in grouped]
+    calls += [(None, todo[k : k + chunk]) for k in range(0, len(todo), chunk)]
+    order = {n: i for i, n in enumerate(names)}
+    calls.sort(key=lambda c: order[c[1][0]])  # the folder's order, as before groups existed
+    for g, batch in calls:
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = cfg.camera_model
+        mode = pycolmap.CameraMode.PER_IMAGE
+        if g is not None:
+            mode = pycolmap.CameraMode.SINGLE
+            if g in camera_of:
+                reader.existing_camera_id = camera_of[g]
         with _cancellable() as token:
             pycolmap.extract_features(
                 str(db_path),
                 str(cfg.images),
-                image_names=todo[k : k + chunk],
+                image_names=batch,
                 camera_mode=mode,
                 reader_options=reader,
                 extraction_options=extraction,
                 device=pycolmap.Device.cpu,
                 cancellation_token=token,
             )
-        progress.advance(task, len(todo[k : k + chunk]))
+        if g is not None and g not in camera_of:
+            with pycolmap.Database.open(str(db_path)) as db:
+                im = db.read_image_with_name(batch[0])
+                if im is not None:
+                    camera_of[g] = im.camera_id
+        progress.advance(task, len(batch))
     with pycolmap.Database.open(str(db_path)) as db:
         ok = []
         for name in names:
@@ -611,9 +709,12 @@ def match_vocab_tree(cfg: ProcessConfig, names: Sequence[str], progress, chunk: 
     return len(_matched_pairs(db_path))
 
 
-def incremental_mapping(cfg: ProcessConfig, num_images: int, progress, work: Path):
+def incremental_mapping(
+    cfg: ProcessConfig, num_images: int, progress, work: Path, relax: dict[str, float] | None = None, label: str = ""
+):
     """COLMAP's incremental mapper (fixed seed); returns the reconstruction with the most registered images, or
-    None when no model could be made."""
+    None when no model could be made. ``relax``: IncrementalMapperOptions fields set instead of COLMAP's defaults
+    (RETRY_STEPS); ``label`` names the attempt on its progress bar."""
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -623,8 +724,10 @@ def incremental_mapping(cfg: ProcessConfig, num_images: int, progress, work: Pat
     options.triangulation.random_seed = cfg.seed
     # COLMAP drops models under 10 images; a small collection's only model may be smaller and still usable
     options.min_model_size = max(3, min(10, cfg.min_registered))
+    for name, value in (relax or {}).items():
+        setattr(options.mapper, name, value)
     pycolmap.set_random_seed(cfg.seed)
-    task = progress.add_task("incremental mapping", total=num_images)
+    task = progress.add_task(f"incremental mapping{f' ({label})' if label else ''}", total=num_images)
     registered = [0]
 
     def on_init_pair() -> None:
@@ -681,6 +784,158 @@ def chosen_mapper(cfg: ProcessConfig, num_images: int) -> str:
     if cfg.mapper != "auto":
         return cfg.mapper
     return "global" if num_images >= cfg.global_min_images else "incremental"
+
+
+@dataclass(frozen=True)
+class RetryStep:
+    """One retry of the incremental mapper with relaxed thresholds (IncrementalMapperOptions fields)."""
+
+    name: str
+    """Short name, in the summary and the progress bar."""
+    what: str
+    """What it changes, in words (the summary prints it)."""
+    relax: dict[str, float]
+    """IncrementalMapperOptions field -> value, instead of COLMAP's default."""
+
+
+RETRY_STEPS = (
+    RetryStep(
+        "relaxed registration",
+        "a photo is placed from 15 inlier matches with the model's points (COLMAP: 30)",
+        {"abs_pose_min_num_inliers": 15},
+    ),
+    RetryStep(
+        "relaxed initialisation",
+        "as relaxed registration, and the first pair may have a 4 deg triangulation angle (COLMAP: 16) and move "
+        "straight forward (COLMAP: forward motion at most 0.95)",
+        {"abs_pose_min_num_inliers": 15, "init_min_tri_angle": 4.0, "init_max_forward_motion": 1.0},
+    ),
+)
+"""The incremental mapper's retries, in order, while a model holds fewer than retry_below of the photos. Why these
+(docs/process.md): tourist photos (liberty: 47-53 of 90 with COLMAP's defaults) fall apart into partial models that
+15 inliers join (75-86 of 90); a forward-moving street walk (lund) has no first pair with a 16 deg angle (2 of 29
+with COLMAP's defaults, 3-21 with relaxed registration, 21-26 with relaxed initialisation)."""
+
+MAX_RETRY_REPROJECTION_PX = 1.5
+"""A retry's model (or the global mapper's) is kept only if its mean reprojection error is at most this many px; the
+measured models had 0.3-0.8 px."""
+
+GLOBAL_CHECK_MIN_COMMON = 5
+"""The global mapper's model is checked against the incremental one on the photos both placed: at least this many."""
+GLOBAL_CHECK_MAX_ROTATION_DEG = 2.0
+"""... the median rotation error after a similarity alignment (compare_poses) must be at most this,"""
+GLOBAL_CHECK_MAX_CENTRE_PCT = 5.0
+"""... and the median centre error at most this % of the incremental model's extent. On liberty the global model
+places all 90 photos at 0.58 px yet is 41 deg off; on lund it agrees to 0.2 deg and 0.7 %."""
+
+
+def _registered_names(rec) -> set[str]:
+    return {rec.images[i].name for i in rec.reg_image_ids()}
+
+
+def models_agreement(a, b) -> dict[str, Any]:
+    """compare_poses of two reconstructions over the photos both placed, ``b`` as the reference."""
+    return compare_poses(rec_w2c(a), rec_w2c(b))
+
+
+def map_with_retries(
+    cfg: ProcessConfig,
+    num_images: int,
+    mapper: str,
+    run_incremental: Callable[[RetryStep | None], Any],
+    run_global: Callable[[], Any],
+    agreement: Callable[[Any, Any], dict[str, Any]] = models_agreement,
+) -> tuple[Any, list[dict[str, Any]]]:
+    """Mapping with the retry ladder: (the kept reconstruction or None, one entry per attempt).
+
+    ``mapper`` "global" (chosen or --mapper global): the global mapper once. Otherwise the incremental mapper with
+    COLMAP's defaults (``run_incremental(None)``), then, while the best model holds fewer than ``cfg.retry_below`` of
+    the ``num_images`` photos (those that could be placed), each of RETRY_STEPS (kept when it places more photos at a mean reprojection error of
+    at most MAX_RETRY_REPROJECTION_PX), then with --mapper auto the global mapper (``run_global()``), kept only if it
+    places more photos and agrees with the best incremental model on the photos both placed (GLOBAL_CHECK_*).
+    Each entry: step, what, registered, mean_reprojection_error_px, seconds, kept, note (why not kept, or the check).
+    """
+    attempts: list[dict[str, Any]] = []
+
+    def attempt(step: str, what: str, fn: Callable[[], Any]) -> tuple[Any, dict[str, Any]]:
+        t = time.time()
+        rec = fn()
+        entry = {
+            "step": step,
+            "what": what,
+            "registered": 0 if rec is None else int(rec.num_reg_images()),
+            "mean_reprojection_error_px": None if rec is None else float(rec.compute_mean_reprojection_error()),
+            "seconds": time.time() - t,
+            "kept": False,
+            "note": "no model" if rec is None else "",
+        }
+        attempts.append(entry)
+        return rec, entry
+
+    if mapper == "global":
+        rec, entry = attempt("global mapper", "GLOMAP: every photo positioned at once", run_global)
+        entry["kept"] = rec is not None
+        return rec, attempts
+    best, best_entry = attempt(
+        "default", "COLMAP's incremental mapper with its default thresholds", lambda: run_incremental(None)
+    )
+    retry = cfg.retry_below > 0
+
+    def enough() -> bool:
+        return best is not None and best.num_reg_images() >= cfg.retry_below * num_images
+
+    for step in RETRY_STEPS if retry else ():
+        if enough():
+            break
+        rec, entry = attempt(step.name, step.what, lambda step=step: run_incremental(step))
+        if rec is None:
+            continue
+        if entry["mean_reprojection_error_px"] > MAX_RETRY_REPROJECTION_PX:
+            entry["note"] = f"mean reprojection error above {MAX_RETRY_REPROJECTION_PX} px"
+        elif best is None or rec.num_reg_images() > best.num_reg_images():
+            best, best_entry = rec, entry
+        else:
+            entry["note"] = f"placed no more photos than {best_entry['step']}"
+    if retry and cfg.mapper == "auto" and not enough():
+        rec, entry = attempt("global mapper", "GLOMAP, checked against the incremental model", run_global)
+        if rec is not None:
+            ok, entry["note"] = _global_check(rec, best, agreement)
+            if ok:
+                best, best_entry = rec, entry
+    if best is not None:
+        best_entry["kept"] = True
+    return best, attempts
+
+
+def kept_mapper(attempts: Sequence[dict[str, Any]], mapper: str) -> str:
+    """The mapper whose model was kept, in words: "incremental", "incremental, relaxed registration", "global"."""
+    kept = next((a["step"] for a in attempts if a["kept"]), None)
+    if kept is None or kept == "default":
+        return mapper
+    if kept == "global mapper":
+        return "global" if mapper == "global" else "global (checked against the incremental model)"
+    return f"incremental, {kept}"
+
+
+def _global_check(rec, best, agreement: Callable[[Any, Any], dict[str, Any]]) -> tuple[bool, str]:
+    """(whether the global mapper's model ``rec`` replaces the incremental model ``best``, why in words)."""
+    placed = best.num_reg_images() if best is not None else 0
+    if rec.num_reg_images() <= placed:
+        return False, "placed no more photos than the incremental mapper"
+    if rec.compute_mean_reprojection_error() > MAX_RETRY_REPROJECTION_PX:
+        return False, f"mean reprojection error above {MAX_RETRY_REPROJECTION_PX} px"
+    common = len(_registered_names(rec) & _registered_names(best)) if best is not None else 0
+    if common < GLOBAL_CHECK_MIN_COMMON:
+        return False, (
+            f"not used: it shares {common} photo(s) with the incremental model and the check needs "
+            f"{GLOBAL_CHECK_MIN_COMMON}; --mapper global uses it unchecked"
+        )
+    cmp_ = agreement(rec, best)
+    rot, ctr = cmp_["median_rotation_error_deg"], cmp_["median_centre_error_pct"]
+    words = f"on the {cmp_['num_common']} photos both placed (median {rot:.1f} deg, {ctr:.1f} % of the extent)"
+    if rot > GLOBAL_CHECK_MAX_ROTATION_DEG or ctr > GLOBAL_CHECK_MAX_CENTRE_PCT:
+        return False, f"not used: it disagrees with the incremental model {words}"
+    return True, f"agrees with the incremental model {words}"
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -763,15 +1018,20 @@ def verified_links(db_path: Path) -> dict[str, dict[str, int]]:
 
 
 def unregistered_reasons(
-    links: dict[str, dict[str, int]], registered: set[str], unregistered: Sequence[str]
+    links: dict[str, dict[str, int]],
+    registered: set[str],
+    unregistered: Sequence[str],
+    tried: Sequence[str] = ("default",),
 ) -> dict[str, dict[str, str]]:
     """Why each photo of ``unregistered`` is not in the model, and what to try, from the verified pairs ``links``
-    ({photo: {other: inliers}}; pairs under MIN_LINK_INLIERS do not link). ``reason`` is one of:
+    ({photo: {other: inliers}}; pairs under MIN_LINK_INLIERS do not link). ``tried``: the mapping attempts that ran
+    (map_with_retries' steps), named in the ``weak`` text. ``reason`` is one of:
 
     - ``no-matches``: no verified pair with any photo (too little overlap, or another place);
     - ``other-component``: linked only to other unregistered photos: a separate group the model does not reach;
-    - ``weak``: linked to registered photos, yet the mapper could not place it (too few or badly spread matches).
+    - ``weak``: linked to registered photos, yet no mapping attempt could place it (too few or badly spread matches).
     """
+    tried_words = "tried: " + ", ".join(tried)
     strong = {a: {b for b, n in others.items() if n >= MIN_LINK_INLIERS} for a, others in links.items()}
     todo = set(unregistered)
     group: dict[str, list[str]] = {}
@@ -814,7 +1074,7 @@ def unregistered_reasons(
             out[name] = {
                 "reason": "weak",
                 "text": f"it matches {len(placed)} registered photo(s) (at most {best} inlier matches) but could not be "
-                "placed: add photos from nearby viewpoints, or try --camera-model SIMPLE_PINHOLE",
+                f"placed ({tried_words}): add photos from nearby viewpoints",
             }
     return out
 
@@ -830,6 +1090,16 @@ def reconstruction_stats(rec, all_names: Sequence[str]) -> dict[str, Any]:
         "mean_track_length": float(rec.compute_mean_track_length()),
         "unregistered": [n for n in all_names if n not in reg],
     }
+
+
+def attempt_words(a: dict[str, Any], total: int) -> str:
+    """One mapping attempt in words: "relaxed registration 86 / 90 at 0.56 px (111 s): kept"."""
+    err = a["mean_reprojection_error_px"]
+    words = f"{a['step']} {a['registered']} / {total}" + (f" at {err:.2f} px" if err is not None else "")
+    words += f" ({a['seconds']:.0f} s)"
+    if a["kept"]:
+        return words + ": kept" + (f", {a['note']}" if a["note"] else "")
+    return words + (f": {a['note']}" if a["note"] else "")
 
 
 MAX_REASONS_SHOWN = 12
@@ -849,6 +1119,9 @@ def print_summary(summary: dict[str, Any]) -> None:
     table.add_row("matching", f"{summary['matching']} ({summary['num_pairs']:,} pairs)")
     if "mapper" in summary:
         table.add_row("mapper", summary["mapper"])
+    attempts = summary.get("mapping_attempts") or []
+    if len(attempts) > 1:
+        table.add_row("mapping attempts", "; ".join(attempt_words(a, summary["total"]) for a in attempts))
     table.add_row("split", f"{summary['num_train']} train / {summary['num_test']} test ({summary['split_file']})")
     stages = ", ".join(f"{k} {v:.0f} s" for k, v in summary["stage_s"].items())
     table.add_row("wall time", f"{summary['wall_s']:.0f} s ({stages})")
@@ -861,6 +1134,15 @@ def print_summary(summary: dict[str, Any]) -> None:
     unreg = [n for n in summary["unregistered"] if n not in set(unreadable)]
     table.add_row("unregistered", ", ".join(unreg) if unreg else "none")
     CONSOLE.print(table)
+    kept = next((a for a in attempts if a["kept"]), None)
+    if kept is not None and kept is not attempts[0]:
+        more = kept["registered"] - attempts[0]["registered"]
+        CONSOLE.print(
+            f"  {kept['step']} placed {more} more photo(s) than {attempts[0]['step']}: {kept['what']}",
+            soft_wrap=True,
+            markup=False,
+            highlight=False,
+        )
     why = summary.get("unregistered_why") or {}
     shown = list(why.items())[:MAX_REASONS_SHOWN]
     for name, entry in shown:
@@ -881,6 +1163,8 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     cfg = dataclasses.replace(cfg, images=Path(cfg.images).expanduser(), output=Path(cfg.output).expanduser())
     if cfg.min_registered < 3:
         raise ProcessError(f"--min-registered must be >= 3, got {cfg.min_registered}")
+    if not 0 <= cfg.retry_below <= 1:
+        raise ProcessError(f"--retry-below must be a share between 0 (no retries) and 1, got {cfg.retry_below}")
     if cfg.test_every == 1 or cfg.test_every < 0:
         raise ProcessError(f"--test-every must be 0 (no test images) or >= 2, got {cfg.test_every}")
     names = list_images(cfg.images)
@@ -897,7 +1181,8 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         )
     cfg.output.mkdir(parents=True, exist_ok=True)
     photos, resized = cap_photos(cfg, readable)
-    _check_database_options(cfg, resized=list(resized))
+    groups = camera_groups(dataclasses.replace(cfg, images=photos), readable)
+    _check_database_options(cfg, resized=list(resized), exif_grouped=bool(groups) and not cfg.single_camera)
     for name, (w, h, w2, h2) in resized.items():
         log(f"{name}: {w}x{h} resized to {w2}x{h2} (--max-image-size {cfg.max_image_size}; 0 keeps full size)")
     given = cfg.images
@@ -908,7 +1193,7 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
     work = cfg.output / "colmap" / ".work"
     with _progress() as progress:
         t = time.time()
-        extracted = extract_features(cfg, readable, progress)
+        extracted = extract_features(cfg, readable, progress, groups)
         stage_s["extraction"] = time.time() - t
         for name in readable:
             if name not in extracted:
@@ -926,21 +1211,36 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         stage_s["matching"] = time.time() - t
         t = time.time()
         mapper = chosen_mapper(cfg, len(extracted))
-        mapping = global_mapping if mapper == "global" else incremental_mapping
-        rec = mapping(cfg, len(extracted), progress, work / "mapping")
+        n = len(extracted)
+        links = verified_links(cfg.output / DATABASE)
+        placeable = sum(any(k >= MIN_LINK_INLIERS for k in links.get(name, {}).values()) for name in extracted)
+        rec, attempts = map_with_retries(
+            cfg,
+            placeable,
+            mapper,
+            run_incremental=lambda step: incremental_mapping(
+                cfg, n, progress, work / "mapping", relax=step and step.relax, label=step.name if step else ""
+            ),
+            run_global=lambda: global_mapping(cfg, n, progress, work / "mapping"),
+        )
         stage_s["mapping"] = time.time() - t
     registered = 0 if rec is None else rec.num_reg_images()
     if rec is None or registered < cfg.min_registered:
         shutil.rmtree(work, ignore_errors=True)
+        tried = "; ".join(
+            f"{a['step']}: {a['registered']}" + (f" ({a['note']})" if a["note"] else "") for a in attempts
+        )
         raise ProcessError(
-            f"SfM registered {registered} of {len(names)} images, fewer than {cfg.min_registered}: the photos share "
-            "too few matching features (too little overlap or texture). Add overlapping photos of the same scene."
+            f"SfM registered {registered} of {len(names)} images, fewer than {cfg.min_registered} (tried {tried}): "
+            "the photos share too few matching features (too little overlap or texture). Add overlapping photos of "
+            "the same scene."
         )
     t = time.time()
     stats = reconstruction_stats(rec, names)
     reg_names = {rec.images[i].name for i in rec.reg_image_ids()}
     not_placed = [n for n in stats["unregistered"] if n not in bad]
-    why = unregistered_reasons(verified_links(cfg.output / DATABASE), reg_names, not_placed) if not_placed else {}
+    tried = [a["step"] for a in attempts]
+    why = unregistered_reasons(links, reg_names, not_placed, tried=tried) if not_placed else {}
     write_scene(cfg, rec, work)
     final = pycolmap.Reconstruction(str(cfg.output / MODEL_DIR))
     ids = {i: final.images[i].name for i in final.reg_image_ids()}
@@ -956,9 +1256,10 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
         "unregistered_why": why,
         "camera_model": cfg.camera_model
         + (" -> undistorted to PINHOLE" if cfg.camera_model == "SIMPLE_RADIAL" else "")
-        + (", one shared camera" if cfg.single_camera else ", one camera per image"),
+        + camera_sharing_words(cfg, groups, len(readable)),
         "matching": method,
-        "mapper": mapper,
+        "mapper": kept_mapper(attempts, mapper),
+        "mapping_attempts": attempts,
         "num_pairs": num_pairs,
         "num_train": sum(r[2] == "train" for r in rows),
         "num_test": sum(r[2] == "test" for r in rows),
