@@ -1,4 +1,4 @@
-"""willags-process (willags_ns.tools.process): SfM on views of the synthetic generator, resume after Ctrl-C, the
+"""willags-process (willags_ns.tools.sfm): SfM on views of the synthetic generator, resume after Ctrl-C, the
 output read by the project's dataparser, bad inputs, and the pure helpers (pairs, split, similarity alignment)."""
 
 import dataclasses
@@ -25,8 +25,8 @@ from willags_ns.data.synthetic import (  # noqa: E402
     to_uint8,
     trace,
 )
-from willags_ns.tools import process as proc  # noqa: E402
-from willags_ns.tools.process import ProcessConfig, ProcessError, compare_poses, umeyama  # noqa: E402
+from willags_ns.tools import sfm as proc  # noqa: E402
+from willags_ns.tools.sfm import ProcessConfig, ProcessError, compare_poses, umeyama  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -404,7 +404,7 @@ def test_a_huge_photo_is_capped_and_named_and_the_scene_trains_at_the_cap(tmp_pa
 def test_unregistered_reasons_tell_no_matches_from_another_group_and_weak_links():
     """Known answer on a hand-made match graph: A-B-C registered; D linked (weakly placed) to B; E-F linked only to
     each other; G with only sub-threshold matches."""
-    from willags_ns.tools.process import MIN_LINK_INLIERS, unregistered_reasons
+    from willags_ns.tools.sfm import MIN_LINK_INLIERS, unregistered_reasons
 
     strong, weak = MIN_LINK_INLIERS + 40, MIN_LINK_INLIERS - 1
     pairs = {("A", "B"): 200, ("B", "C"): 150, ("D", "B"): strong, ("E", "F"): strong, ("G", "A"): weak}
@@ -593,7 +593,7 @@ def test_ladder_off_and_global_mapper_run_once():
 
 
 def test_weak_photos_name_the_attempts_that_were_tried():
-    from willags_ns.tools.process import MIN_LINK_INLIERS, unregistered_reasons
+    from willags_ns.tools.sfm import MIN_LINK_INLIERS, unregistered_reasons
 
     links = {"A": {"B": 200, "D": MIN_LINK_INLIERS + 5}, "B": {"A": 200}, "D": {"A": MIN_LINK_INLIERS + 5}}
     tried = ["default", REG, INIT, "global mapper"]

@@ -1,6 +1,6 @@
 """`willags-process --images DIR --output DIR`: SfM on a folder of photos (pycolmap, CPU) -> a nerfstudio scene.
 
-Thin CLI over `willags_ns.tools.process` (options: `willags-process --help`). Exit status: 0 on success, 1 when the
+Thin CLI over `willags_ns.tools.sfm` (options: `willags-process --help`). Exit status: 0 on success, 1 when the
 input or the SfM result is unusable (the message says why), 130 when interrupted (what was done is kept; the same
 command resumes).
 """
@@ -9,7 +9,7 @@ import sys
 
 import tyro
 
-from willags_ns.tools.process import ProcessConfig, ProcessError, print_summary, run
+from willags_ns.tools.sfm import ProcessConfig, ProcessError, print_summary, run
 
 
 def main(cfg: ProcessConfig) -> int:
