@@ -639,3 +639,30 @@ def test_row_u16_the_resume_command_goes_on_in_the_same_run_folder_counting_to_i
     assert sorted({s for s, _ in rows}) == list(range(3, 8)), res.stdout[-3000:]  # the last one again at the end
     for s, pct in rows:
         assert pct == pytest.approx(100 * s / 8, abs=0.01), (s, pct)
+
+
+def test_the_end_of_a_run_waits_for_the_viewers_render_threads():
+    """A browser that leaves mid-frame: nerfstudio's render thread (a daemon) still draws that frame; the run's end
+    stops and joins it, so the interpreter never exits under a thread inside torch (status -6)."""
+    import threading
+
+    from nerfstudio.viewer.render_state_machine import RenderStateMachine
+
+    from willags_ns.engine.trainer import join_render_threads
+
+    class Drawing(RenderStateMachine):
+        def __init__(self):  # no viewer: only the thread and its loop flag
+            threading.Thread.__init__(self, daemon=True)
+            self.running = True
+            self.in_frame = threading.Event()
+
+        def run(self):
+            while self.running:
+                self.in_frame.set()
+                threading.Event().wait(0.05)  # a frame being drawn
+
+    thread = Drawing()
+    thread.start()
+    assert thread.in_frame.wait(30)
+    join_render_threads(timeout_s=30)
+    assert not thread.is_alive() and thread.running is False

@@ -22,6 +22,7 @@ When training ends the process ends, unless the viewer is kept (a browser connec
 import dataclasses
 import re
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -162,6 +163,22 @@ def drop_stale_local_writers(writers: list) -> None:
     tables = [w for w in writers if isinstance(w, writer.LocalWriter)]
     for w in tables[:-1]:
         writers.remove(w)
+
+
+RENDER_JOIN_S = 60.0
+"""How long the end of a run waits for a viewer render thread to finish its frame (a CPU frame takes seconds)."""
+
+
+def join_render_threads(timeout_s: float = RENDER_JOIN_S) -> None:
+    """Stop nerfstudio's viewer render threads and wait for each to finish the frame it is drawing. They are daemon
+    threads: one still inside torch when the interpreter exits aborts the process ("terminate called without an
+    active exception", status -6) after a run that completed, as when a browser left the viewer mid-frame."""
+    from nerfstudio.viewer.render_state_machine import RenderStateMachine
+
+    for thread in threading.enumerate():
+        if isinstance(thread, RenderStateMachine) and thread is not threading.current_thread():
+            thread.running = False
+            thread.join(timeout_s)
 
 
 class WillagsTrainer(Trainer):
@@ -376,12 +393,14 @@ class WillagsTrainer(Trainer):
 
     def shutdown(self) -> None:
         """nerfstudio's shutdown (stop training, stop the viewer's server), once: the viewer is stopped when training
-        ends, and a second stop of its server fails."""
+        ends, and a second stop of its server fails. Then the viewer's render threads are let finish the frame they
+        are drawing (join_render_threads)."""
         if getattr(self, "_shut_down", False):
             self.stop_training = True
             return
         self._shut_down = True
         super().shutdown()
+        join_render_threads()
 
     def _viewer_clients(self) -> int:
         """How many browsers are connected to the viewer now (0 without a viewer)."""
