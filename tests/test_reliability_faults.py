@@ -321,6 +321,27 @@ def test_row24_resume_command_parses_to_the_resumed_run():
     )
 
 
+def test_row24_a_budgeted_run_resumes_with_what_is_left_of_its_budget():
+    """Stopped 42 s into a 2-minute budget: the resume command asks for the 78 s left, not a new 2 minutes, so the
+    two parts train within the budget asked for."""
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    argv = ["ns-train", "willags", "--data", "/d", "--pipeline.time-budget-minutes", "2"]
+    cmd = resume_command(argv, "willags", Path("/c"), 500, budget_minutes_left=(120 - 42) / 60)
+    assert cmd == (
+        "ns-train willags --load-checkpoint /c --max-num-iterations 500 --pipeline.time-budget-minutes 1.30 --data /d"
+    )
+    config = tyro.cli(AnnotatedBaseConfigUnion, args=shlex.split(cmd)[1:])
+    assert config.pipeline.time_budget_minutes == 1.3
+    argv = ["ns-train", "willags", "--pipeline.time_budget_minutes=2"]  # the other spelling is replaced too
+    assert resume_command(argv, "willags", Path("/c"), 5, budget_minutes_left=0.0).endswith(
+        "--max-num-iterations 5 --pipeline.time-budget-minutes 0.01"
+    )
+    # a run without a budget keeps its options as they were
+    assert "--pipeline.time-budget-minutes" not in resume_command(["ns-train", "willags"], "willags", Path("/c"), 5)
+
+
 # ---- row 25: kill -9 during training -> the last save is intact; the written command resumes it to the planned end
 
 

@@ -473,10 +473,18 @@ def is_ns_train(argv: Sequence[str]) -> bool:
     return exe.name == "ns-train" or exe.as_posix().endswith("nerfstudio/scripts/train.py")
 
 
-def resume_command(argv: Sequence[str], method: str, checkpoint: Path, remaining_steps: int) -> str:
+BUDGET_FLAG = "--pipeline.time-budget-minutes"
+"""The time budget's option: a resumed run gets what is left of it, not the whole budget again."""
+
+
+def resume_command(
+    argv: Sequence[str], method: str, checkpoint: Path, remaining_steps: int, budget_minutes_left: float | None = None
+) -> str:
     """The shell command that resumes a run from ``checkpoint`` (a file) and trains its ``remaining_steps``
     (nerfstudio runs ``--max-num-iterations`` steps from the resumed one, so the count left, not the original plan,
-    ends the run at the planned step).
+    ends the run at the planned step). A run under a time budget passes ``budget_minutes_left``: the command's
+    ``--pipeline.time-budget-minutes`` is what the run had left of its budget when it stopped, so the two parts
+    together train within the budget asked for.
 
     The file is named (``--load-checkpoint``), not the newest of its directory (``--load-dir``), so the command and
     its step count always agree: the trainer writes the command of a new checkpoint after the checkpoint and before
@@ -487,6 +495,10 @@ def resume_command(argv: Sequence[str], method: str, checkpoint: Path, remaining
     earlier values of these and of ``--load-dir`` / ``--load-step`` removed. For another command line (a script
     driving the trainer), ``ns-train METHOD`` with the two options and a note to add the run's other options."""
     own = ["--load-checkpoint", str(checkpoint), "--max-num-iterations", str(int(remaining_steps))]
+    reset = RESET_FLAGS
+    if budget_minutes_left is not None:
+        own += [BUDGET_FLAG, f"{max(budget_minutes_left, 0.01):.2f}"]
+        reset = (*RESET_FLAGS, BUDGET_FLAG)
     if not is_ns_train(argv) or method not in argv[1:] or any(_flag_name(a) == "--load-config" for a in argv):
         return shlex.join(["ns-train", method, *own]) + "  (plus this run's other ns-train options)"
     args = list(argv[1:])
@@ -494,7 +506,7 @@ def resume_command(argv: Sequence[str], method: str, checkpoint: Path, remaining
     i = 0
     while i < len(args):
         a = args[i]
-        if _flag_name(a) in RESET_FLAGS:
+        if _flag_name(a) in reset:
             i += 1 if "=" in a else 2
             continue
         kept.append(a)

@@ -290,10 +290,13 @@ class WillagsTrainer(Trainer):
             self.save_checkpoint(step)  # nerfstudio's loop saves the steps_per_save steps itself
 
     def resume_command(self, saved_step: int) -> str:
-        """The command that resumes this run from the checkpoint of ``saved_step`` and ends at its planned step."""
+        """The command that resumes this run from the checkpoint of ``saved_step`` and ends at its planned step; under
+        a time budget, with what is left of the budget."""
         end = getattr(self, "planned_end", self._start_step + self.config.max_num_iterations)
         path = checkpoint_path(self.checkpoint_dir, saved_step)
-        return resume_command(sys.argv, str(self.config.method_name), path, end - saved_step - 1)
+        budget = getattr(self, "time_budget", None)
+        left = None if budget is None else (budget.budget_s - budget.elapsed()) / 60.0
+        return resume_command(sys.argv, str(self.config.method_name), path, end - saved_step - 1, left)
 
     @check_main_thread
     def save_checkpoint(self, step: int) -> None:
