@@ -14,7 +14,8 @@ willags' data parser (the peer too: benchmarks/peer.py), so a fold is a scene to
 
     python -m benchmarks cv folds --data ../shared/data/reichstag --folds 4 --out .gpu-cv   # the fold folders
     python -m benchmarks cv plan --root .gpu-cv --methods willags peer --steps 5000 --queues 12  # solo.sh queues
-    python -m benchmarks cv report                  # the tables from benchmarks/records/benchmarks.json
+    python -m benchmarks merge <records.json>       # fold runs go to benchmarks/records/cv.json
+    python -m benchmarks cv report                  # the tables from benchmarks/records/cv.json
 
 The tables are docs/results.md's cross-validated section (benchmarks/results.py calls :func:`cv_rows`).
 """
@@ -463,9 +464,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         total = sum(r.cost for q in qs for r in q)
         print(f"# {sum(map(len, qs))} runs in {len(qs)} queues, {total:.1f} run-units", file=sys.stderr)
         return 0
-    from benchmarks.records import RECORDS, load_records
+    from benchmarks.records import CV_RECORDS, load_records
 
-    print("\n".join(cv_rows(load_records(args.records or RECORDS), args.steps)))
+    print("\n".join(cv_rows(load_records(args.records or CV_RECORDS), args.steps)))
     return 0
 
 

@@ -34,8 +34,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from benchmarks.cv import parse_fold
 from benchmarks.methods import METHODS
-from benchmarks.records import RECORDS, REPO, load_records, merge_records, merged_records
+from benchmarks.records import CV_RECORDS, RECORDS, REPO, load_records, merge_records, merged_records, write_records
 from benchmarks.tables import write_outputs
 
 
@@ -361,6 +362,11 @@ def main(argv=None) -> int:
     out = args.out if args.out.is_absolute() else Path.cwd() / args.out
     if args.merge or args.render_only:
         recs = merged_records([out.with_suffix(".json"), *args.merge])
+        folds = [r for r in recs if parse_fold(str(r.get("scene", ""))) is not None]
+        if folds:  # the cross-validation's fold runs go to their own file
+            recs = [r for r in recs if parse_fold(str(r.get("scene", ""))) is None]
+            write_records(merge_records(load_records(CV_RECORDS), folds), CV_RECORDS)
+            print(f"{len(folds)} fold records -> {CV_RECORDS}")
         j, m = write_outputs(recs, out)
         print(f"{len(recs)} records -> {j}, {m}")
         return 0

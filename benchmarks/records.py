@@ -1,7 +1,7 @@
 """The records: where they are, a record's key, merging new records into old ones, reading and writing the JSON.
 
 ``benchmarks/records/benchmarks.json`` holds the merged records every generated page comes from (docs/benchmarks.md,
-docs/curves.md, docs/results.md); ``gpu_runs/`` and ``cpu_runs/`` the files runs brought back, as they wrote them;
+docs/curves.md, docs/results.md), ``cv.json`` those of the cross-validation's folds (docs/results.md); ``gpu_runs/`` and ``cpu_runs/`` the files runs brought back, as they wrote them;
 ``regions/`` the region scores (:mod:`benchmarks.regions`)."""
 
 import functools
@@ -15,6 +15,9 @@ RECORDS_DIR = REPO / "benchmarks" / "records"
 """The one place for run records (outside the package and outside docs/)."""
 RECORDS = RECORDS_DIR / "benchmarks.json"
 """The merged records."""
+CV_RECORDS = RECORDS_DIR / "cv.json"
+"""The merged records of the cross-validation's fold runs (benchmarks/cv.py), apart: each keeps every test photo's
+scores."""
 
 
 def record_key(rec: dict[str, Any]) -> tuple:

@@ -19,7 +19,7 @@ from typing import Any
 from benchmarks.curves import scene_points, step_curve, step_time
 from benchmarks.cv import cv_rows, parse_fold
 from benchmarks.methods import METHODS, configuration
-from benchmarks.records import RECORDS, REPO, load_records
+from benchmarks.records import CV_RECORDS, RECORDS, REPO, load_records
 from benchmarks.regions import REGIONS
 from benchmarks.tables import md_table
 
@@ -326,7 +326,7 @@ def region_rows(folder: Path = REGION_RECORDS) -> list[str]:
     return md_table(head, rows) if rows else ["No region record yet."]
 
 
-def render_markdown(records: list[dict[str, Any]]) -> str:
+def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str, Any]] = ()) -> str:
     by = side_by_side(records)
     protocol = sorted({int(r["protocol_steps"]) for rs in by.values() for r in rs if r.get("protocol_steps")})
     seeds = sorted({int(r.get("seed") or 42) for rs in by.values() for r in rs})
@@ -367,7 +367,7 @@ def render_markdown(records: list[dict[str, Any]]) -> str:
         "lease side by side on its GPUs, splatfacto's stock schedule, scored at the step count named. The goal: the "
         "default at least 1 dB above the stronger peer with the interval's lower end above +0.5 dB.",
         "",
-        *cv_section(records),
+        *cv_section([*records, *cv_records]),
         "",
         "## What the default was chosen over",
         "",
@@ -484,7 +484,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     records = load_records(args.records)
     outputs = {
-        RESULTS_MD: render_markdown(records),
+        RESULTS_MD: render_markdown(records, load_records(CV_RECORDS)),
         README: with_readme_block(README.read_text(), readme_block(records)),
     }
     stale = [p for p, text in outputs.items() if not p.is_file() or p.read_text() != text]

@@ -183,3 +183,19 @@ def test_run_noise_comes_from_replicates_and_widens_every_interval():
     half = 1.96 * sigma * np.sqrt(1 / 2 + 1 / 1)
     assert (low, high) == (pytest.approx(1.2 - half), pytest.approx(1.2 + half))
     assert cv.cv_rows(records, 5000)[0].startswith(f"Run noise: sigma = {sigma:.2f} dB")
+
+
+def test_merge_puts_the_fold_runs_in_their_own_file(tmp_path, monkeypatch):
+    import json
+
+    from benchmarks import grid
+
+    cv_file = tmp_path / "cv.json"
+    monkeypatch.setattr(grid, "CV_RECORDS", cv_file)
+    fresh = tmp_path / "fresh.json"
+    plain = {**_fold_rec("x", 1, 2, "peer", {"a.jpg": 1.0}), "scene": "reichstag"}
+    fresh.write_text(json.dumps([_fold_rec("scene", 1, 2, "willags", {"a.jpg": 20.0}), plain]))
+    assert grid.main(["--out", str(tmp_path / "bench"), "--merge", str(fresh)]) == 0
+    kept = json.loads((tmp_path / "bench.json").read_text())
+    folds = json.loads(cv_file.read_text())
+    assert [r["scene"] for r in kept] == ["reichstag"] and [r["scene"] for r in folds] == ["scene-cv1of2"]
