@@ -77,6 +77,17 @@ METHODS: dict[str, MethodSpec] = {
         (_AUTO, ("densification", "mcmc"), ("mcmc.cap_rule", "pixels")),
         note="the default, MCMC's cap from the training photos' megapixels (splats/mcmc.scene_cap)",
     ),
+    "willags-field": MethodSpec(
+        "willags",
+        (_AUTO, ("densification", "mcmc"), ("use_field", True)),
+        note="the default with the latent-conditioned tri-plane field on (its feature feeds the per-Gaussian residual)",
+        keep=("use_field",),
+    ),
+    "willags-lowpen": MethodSpec(
+        "willags",
+        (_AUTO, ("densification", "mcmc"), ("modulation.local_penalty", 0.001)),
+        note="the default with a tenth of the per-Gaussian residual's penalty (0.001)",
+    ),
     "willags-cap1m-mask": MethodSpec(
         "willags",
         (

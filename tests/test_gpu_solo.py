@@ -132,6 +132,24 @@ def test_no_run_starts_after_the_deadline(tree, tmp_path):
 
 
 @pytest.mark.timing
+def test_a_long_run_past_its_deadline_is_dropped_and_shorter_runs_still_start(tree, tmp_path):
+    root, env, solo = tree
+    started = _sh(
+        root,
+        env,
+        "start",
+        "reichstag:peer:15000 reichstag:willags:5000",
+        SOLO_DATA=".data-a",
+        SOLO_LONG_DEADLINE_S="-1",
+    )
+    assert started.returncode == 0
+    waited = _sh(root, env, "wait", str(tmp_path / "out"), "600")
+    assert "long-run deadline passed; not started: reichstag:peer:15000" in waited.stdout
+    trained = [ln.split()[2] for ln in (solo / "calls.log").read_text().splitlines() if ln.startswith("train ")]
+    assert trained == ["willags"]
+
+
+@pytest.mark.timing
 def test_queues_run_side_by_side_and_one_archive_brings_back_every_queue(tree, tmp_path):
     root, env, solo = tree
     queues = tmp_path / "queues"

@@ -12,7 +12,9 @@
 # list; SOLO_SCORE: only these); with budget_minutes under `--pipeline.time-budget-minutes`, scored where it stopped.
 # The queue runs detached (setsid) from a copy of the tree in $SOLO_DIR (/tmp/solo). Scenes are copied from the folders
 # in SOLO_DATA by `start` and by every `wait`; runs whose scene is missing wait at the back of the queue (up to
-# SOLO_WAIT_S, 900 s); no run starts after SOLO_DEADLINE_S (1560 s). Records: $SOLO_DIR/rec/long-<run>.json (tag
+# SOLO_WAIT_S, 900 s); no run starts after SOLO_DEADLINE_S (1560 s), and no run of SOLO_LONG_STEPS steps or more
+# (10000) after SOLO_LONG_DEADLINE_S (SOLO_DEADLINE_S): a long run that could not end inside the lease is dropped while
+# shorter runs behind it still start. Records: $SOLO_DIR/rec/long-<run>.json (tag
 # SOLO_TAG, default h200-curve; -s<seed> for other seeds, -knob<min> for budget runs), tarred by `wait` to
 # OUT/solo-records.tgz with the logs.
 #
@@ -98,6 +100,11 @@ loop() {
     run=""
     for r in "${todo[@]}"; do
       IFS=: read -r scene m steps seed bm <<< "$r"
+      if [ "$steps" -ge "${SOLO_LONG_STEPS:-10000}" ] \
+        && [ $(( $(date +%s) - t0 )) -gt "${SOLO_LONG_DEADLINE_S:-${SOLO_DEADLINE_S:-1560}}" ]; then
+        echo "gpu_solo: long-run deadline passed; not started: $r"
+        continue
+      fi
       if [ -z "$run" ] && [ -e "$S/data/$scene/.ready" ]; then run=$r; else left+=("$r"); fi
     done
     if [ -z "$run" ]; then
