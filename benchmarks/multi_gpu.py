@@ -9,7 +9,8 @@ A run is ``<devices>[x<machines>][:reference][:budget<M>][@<images>]``: ``4`` tr
 ``2x2`` on two "machines" of 2 GPUs each, started as two launches (``--machine.num-machines 2
 --machine.machine-rank 0|1 --machine.dist-url tcp://127.0.0.1:PORT``); ``:reference`` with the first data-parallel
 implementation (``--pipeline.data-parallel.reduction reference``) to compare on the same machine; ``:budget<M>``
-under ``--pipeline.time-budget-minutes M``; ``@N`` sees N images instead of ``--images``. A run of D devices in all
+under ``--pipeline.time-budget-minutes M``; ``@N`` sees N images instead of ``--images`` (a budget run without
+``@N``: at most the method's own steps, 30000, on every device). A run of D devices in all
 trains on the first D GPUs of ``--gpus`` (default: $CUDA_VISIBLE_DEVICES, else 0, 1, ...), machine m on the m-th
 group of them (CUDA_VISIBLE_DEVICES of each launch).
 
@@ -134,6 +135,18 @@ def steps_of(images: int, total_devices: int) -> int:
     if images % total_devices:
         raise ValueError(f"multi_gpu: {images} images are not a multiple of {total_devices} devices")
     return images // total_devices
+
+
+def images_of(run: Run, images: int, method: str) -> int:
+    """The images a run sees: its own ``@N``, else `images`; a budget run without ``@N`` is capped at the method's
+    own steps on each device (the budget never plans past them), so that the budget, not the cap, ends it."""
+    if run.images:
+        return run.images
+    if run.budget_minutes:
+        from benchmarks.methods import METHODS, base_trainer_config
+
+        return base_trainer_config(METHODS[method].base).max_num_iterations * run.total
+    return images
 
 
 def gpus_of_run(gpus: list[str], run: Run) -> list[list[str]]:
@@ -595,12 +608,16 @@ def cmd_run(args: argparse.Namespace) -> None:
     deadline = t0 + args.deadline_s
     out, work = Path(args.out), Path(args.work)
     runs = parse_runs(args.runs)
+    from benchmarks.methods import METHODS
+
+    if args.method not in METHODS:
+        raise ValueError(f"multi_gpu: unknown --method {args.method!r} (benchmarks/methods.py: {', '.join(METHODS)})")
     gpus = gpu_list(args.gpus, os.environ.get("CUDA_VISIBLE_DEVICES"), max(r.total for r in runs))
     cuda = args.device_type == "cuda"
     for run in runs:  # every run's GPUs and steps before anything trains
         if cuda:
             gpus_of_run(gpus, run)
-        steps_of(run.images or args.images, run.total)
+        steps_of(images_of(run, args.images, args.method), run.total)
     if args.commit is None:
         from benchmarks.grid import git_commit
 
@@ -612,7 +629,7 @@ def cmd_run(args: argparse.Namespace) -> None:
     python = sys.executable
     print(f"multi_gpu: GPUs {','.join(gpus) if cuda else '(cpu)'}, seed {args.seed}, commit {args.commit}")
     for run in runs:
-        images = run.images or args.images
+        images = images_of(run, args.images, args.method)
         res: dict[str, Any] = {
             "name": run.name,
             "num_devices": run.total,

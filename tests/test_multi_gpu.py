@@ -240,8 +240,11 @@ def test_the_command_line_checks_the_runs_and_gpus_before_training(tmp_path, cap
     assert main([*args, "--runs", "4", "--gpus", "2,3"]) == 2
     assert "needs 4 GPUs, --gpus gives 2" in capsys.readouterr().err
     assert main([*args, "--runs", "2:ddp"]) == 2
+    assert main([*args, "--runs", "1", "--method", "nope"]) == 2
+    assert "unknown --method 'nope'" in capsys.readouterr().err
+    # a budget run without @N is capped at the method's own 30000 steps per device, not at --images
     assert main([*args, "--runs", "1,2:budget1", "--gpus", "2,3", "--dry-run", "--commit", "abc"]) == 0
     out = capsys.readouterr().out
-    assert "gpus1: 1 GPUs (['2'])" in out and "gpus2-budget1: 2 GPUs (['2,3']), 4000 steps at most" in out
+    assert "gpus1: 1 GPUs (['2'])" in out and "gpus2-budget1: 2 GPUs (['2,3']), 30000 steps at most" in out
     records = json.loads((tmp_path / "out" / "multi_gpu_records.json").read_text())
     assert [(r["status"], r["commit"], r["seed"]) for r in records] == [("dry-run", "abc", 42)] * 2
