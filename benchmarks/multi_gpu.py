@@ -545,7 +545,9 @@ def record(result: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     }
     if result.get("budget_minutes"):
         rec["time_budget_minutes"] = result["budget_minutes"]
-        rec["images_cap"] = result["images"]
+        rec["images_cap"] = result["images"]  # the budget ended it: images are those seen
+        if result.get("steps_trained"):
+            rec["images"] = result["steps_trained"] * result["num_devices"]
         for key in ("last_steps", "same_last_step", "budget_s", "budget_elapsed_s", "budget_used", "train_span_s"):
             rec[key] = result.get(key)
         rec["budget_stopped_after_step"] = result.get("budget_stopped_after_step")

@@ -185,15 +185,10 @@ def test_a_budget_run_records_each_ranks_last_step_and_its_time(tmp_path, steps,
         )
 
     rec = record(res, Args)
-    assert (rec["num_devices"], rec["num_machines"], rec["images"], rec["seed"], rec["commit"]) == (
-        2,
-        1,
-        8000,
-        5,
-        "abc",
-    )
+    assert (rec["num_devices"], rec["num_machines"], rec["seed"], rec["commit"]) == (2, 1, 5, "abc")
     assert rec["tag"] == "t-gpus2-budget1" and rec["wall_s"] == 104.5 and rec["wall_s_means"] == WALL_MEANS
     assert rec["same_last_step"] is same and rec["images_cap"] == 8000 and rec["time_budget_minutes"] == 1.0
+    assert rec["images"] == 2 * min(steps)  # seen: the budget, not the cap, ended the run
     assert rec["images_per_s"] == pytest.approx(2000 / 13.0) and rec["steps"] == min(steps)
     summary = tables([res])
     assert f"same {same}" in summary and "elapsed 59.2 s of 60 s" in summary
