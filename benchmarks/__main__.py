@@ -5,6 +5,7 @@
     python -m benchmarks report                                    # every generated page from the records
     python -m benchmarks speed --out speed.json                    # the speed suite (GPU)
     python -m benchmarks profile --method willags --data ../shared/data/reichstag --out p.json
+    python -m benchmarks multi-gpu run --data .gpu-cv1/reichstag --out $OUT --runs 4,1,2,4:budget1 --gpus 0,1,2,3
     python -m benchmarks collections build lund --out /scenes/lund   # a real photo collection -> a scene
     python -m benchmarks scale run --source ../shared/data/reichstag --photos 100 300 1000 --work /tmp/scale
 
@@ -32,6 +33,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "long-run": ("long_run", "one long run: train (in segments, or under the time budget), score milestones, record"),
     "speed": ("speed", "the speed suite: train step, memory and render timings per variant (GPU)"),
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
+    "multi-gpu": ("multi_gpu", "runs on 1-4 GPUs, or under a budget: step breakdown, wall, PSNR, records"),
     "cv": ("cv", "cross-validation: every photo a test photo once (fold folders, GPU queues, tables with intervals)"),
     "scale": ("scale", "Photo-Tourism scale: start-up, memory, steps, ns-eval per photo count; docs/scale.md"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
