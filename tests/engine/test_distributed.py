@@ -10,6 +10,8 @@
 
 import itertools
 import socket
+import threading
+from functools import cached_property
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,6 +23,7 @@ import torch.multiprocessing as mp
 from willags_ns.engine.distributed import (
     DataParallelError,
     GradientAverager,
+    ImageCachePrefetch,
     RankSyncedStrategy,
     all_reduce_strategy_state,
     apply_latent_rows,
@@ -272,6 +275,33 @@ def test_image_cache_holds_only_the_rank_s_own_images():
     dm.cached_train = []
     with pytest.raises(DataParallelError, match="cached before"):
         shard_image_cache(dm, 0, 2)
+
+
+def test_image_cache_prefetch_caches_once_in_its_thread_and_raises_its_error():
+    """The cache is built once, in the background thread, and the pipeline's later reads get that same cache; a
+    failure while caching (an unreadable photo) is raised where the pipeline waits for it."""
+    threads = []
+
+    class Datamanager:
+        @cached_property
+        def cached_train(self):
+            threads.append(threading.current_thread().name)
+            return [{"image_idx": 0}]
+
+    dm = Datamanager()
+    prefetch = ImageCachePrefetch(dm, "cpu")
+    prefetch.wait()
+    first = dm.cached_train
+    assert threads == ["willags-image-cache"] and dm.cached_train is first and first == [{"image_idx": 0}]
+
+    class Unreadable:
+        @cached_property
+        def cached_train(self):
+            raise OSError("cannot identify image file 'frame_00003.jpg'")
+
+    prefetch = ImageCachePrefetch(Unreadable(), "cpu")
+    with pytest.raises(OSError, match="frame_00003.jpg"):
+        prefetch.wait()
 
 
 # ---------------------------------------------------------------------------------------------------- pure parts

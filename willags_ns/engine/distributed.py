@@ -9,7 +9,7 @@ Gaussians' parameters every `refine_every` steps, so WillagsPipeline does not wr
   (`broadcast_module`), after checking that every rank built the same parameter set;
 - each rank trains on its own share of the training images (`shard_train_images`: image i belongs to rank
   i mod N, shuffled per epoch), so one step sees N different images, and decodes only those when nerfstudio caches
-  them (`shard_image_cache`);
+  them (`shard_image_cache`), in a background thread while the model is built (`ImageCachePrefetch`);
 - after the backward pass and before the optimiser step, every gradient is summed over the ranks and divided by N
   (`GradientAverager`: one all-reduce through a buffer kept between steps, nothing read back on the host in a normal
   step; `average_gradients`, the first implementation, gives the same averages): one step is the single-process step
@@ -35,6 +35,7 @@ Every function here is a no-op or a plain computation for world_size == 1; the s
 """
 
 import itertools
+import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
@@ -192,6 +193,35 @@ def shard_image_cache(datamanager: Any, rank: int, world_size: int) -> None:
         return {"image_idx": image_idx, "image": image}
 
     dataset.get_data = own_or_placeholder
+
+
+class ImageCachePrefetch:
+    """This rank's training images cached in a background thread while the model is built: nerfstudio caches them
+    at the first access to `cached_train` (at the first step), one rank's share taking longer with several ranks per
+    host than the whole collection on one device; decoding, undistorting and copying to the device mostly wait on
+    files and native code, outside the interpreter lock. The cache is the same either way (the same images, the same
+    placeholders); `wait` returns once it is complete and raises what the caching raised."""
+
+    def __init__(self, datamanager: Any, device: Any):
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._run, args=(datamanager, device), name="willags-image-cache", daemon=True
+        )
+        self._thread.start()
+
+    def _run(self, datamanager: Any, device: Any) -> None:
+        try:
+            dev = torch.device(str(device))
+            if dev.type == "cuda" and dev.index is not None:
+                torch.cuda.set_device(dev)  # the current device is per thread: this rank's, not cuda:0
+            _ = datamanager.cached_train
+        except BaseException as e:  # noqa: BLE001 - raised by wait(), in the pipeline's thread
+            self._error = e
+
+    def wait(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
 
 
 def is_placeholder(image: Tensor) -> bool:

@@ -62,6 +62,7 @@ from willags_ns.engine.distributed import (
     DataParallelConfig,
     DataParallelError,
     GradientAverager,
+    ImageCachePrefetch,
     apply_latent_rows,
     average_gradients,
     broadcast_module,
@@ -318,7 +319,8 @@ class WillagsPipeline(VanillaPipeline):
         if checking:
             precheck_dataparser_config(config.datamanager)
         self._inspect_scene(config)
-        self._build(config, setup_kwargs, checking)
+        self._image_prefetch: ImageCachePrefetch | None = None
+        self._build(config, setup_kwargs, checking, world_size)
         self.world_size = world_size
         self.rank = rank_and_world_size()[0]
         self._tell_model_the_scene()
@@ -328,6 +330,11 @@ class WillagsPipeline(VanillaPipeline):
             self._setup_data_parallel(world_size)
             if self.step_profile is not None:
                 self.step_profile.phase("data_parallel_ready")
+            if self._image_prefetch is not None:
+                self._image_prefetch.wait()
+                self._image_prefetch = None
+                if self.step_profile is not None:
+                    self.step_profile.phase("images_cached")
 
     def _start_step_profile(self, config: WillagsPipelineConfig, setup_kwargs: dict, test_mode: str, world_size: int):
         """`data_parallel.step_profile` while training: the step profile, from this first phase on."""
@@ -389,11 +396,12 @@ class WillagsPipeline(VanillaPipeline):
         if self.step_profile is not None:
             self.step_profile.phase("scene_inspected")
 
-    def _build(self, config: WillagsPipelineConfig, setup_kwargs: dict, checking: bool) -> None:
+    def _build(self, config: WillagsPipelineConfig, setup_kwargs: dict, checking: bool, world_size: int) -> None:
         """VanillaPipeline's set-up, with the input checks between the parsed scene and the model. The model is built
         inside VanillaPipeline.__init__ right after the datamanager parses the scene; the outputs are validated in
-        between (a NaN pose would otherwise surface in the model's kNN as a sklearn error). The hook is an instance
-        attribute on this config only, removed again below."""
+        between (a NaN pose would otherwise surface in the model's kNN as a sklearn error). With several devices the
+        rank's share of the training images is then cached in the background while the model is built
+        (`_prefetch_images`). The hook is an instance attribute on this config only, removed again below."""
         model_config = config.model
         original_setup = model_config.setup
         self.input_warnings: list[str] = []  # the input checks' warnings: run folder's INPUT_WARNINGS_FILE
@@ -415,6 +423,8 @@ class WillagsPipeline(VanillaPipeline):
                     self.input_warnings = found
             if self.step_profile is not None:
                 self.step_profile.phase("inputs_checked")
+            if world_size > 1:
+                self._prefetch_images(setup_kwargs.get("device"), world_size)
             return original_setup(**model_kwargs)
 
         model_config.setup = setup_after_checks  # type: ignore[method-assign]
@@ -424,6 +434,18 @@ class WillagsPipeline(VanillaPipeline):
             del model_config.setup
         if self.step_profile is not None:
             self.step_profile.phase("model_built")
+
+    def _prefetch_images(self, device, world_size: int) -> None:
+        """Several devices, once the scene is parsed and checked: this rank's share of the training images (the
+        image cache sharded) starts caching in a background thread, so that it overlaps the model's construction
+        (joined at the end of the set-up: ImageCachePrefetch)."""
+        rank, _ = rank_and_world_size()
+        validate_train_images(len(self.datamanager.train_dataset), world_size)
+        if self.data_parallel.shard_image_cache:
+            shard_image_cache(self.datamanager, rank, world_size)
+        if self.step_profile is not None:
+            self.step_profile.phase("images_cache_start")
+        self._image_prefetch = ImageCachePrefetch(self.datamanager, device)
 
     def _tell_model_the_scene(self) -> None:
         """The model learns the training photos' names (the appearances users pick) and the test photos (a SPEC naming
@@ -444,9 +466,7 @@ class WillagsPipeline(VanillaPipeline):
         rank, _ = rank_and_world_size()
         num_images = len(self.datamanager.train_dataset)
         validate_train_images(num_images, world_size)
-        shard_train_images(self.datamanager, rank, world_size)
-        if self.data_parallel.shard_image_cache:
-            shard_image_cache(self.datamanager, rank, world_size)
+        shard_train_images(self.datamanager, rank, world_size)  # (the image cache is sharded: _prefetch_images)
         broadcast_module(self.model)  # nerfstudio seeds rank r with seed + r: rank 0's initialisation wins
         strategy = synced_strategy(self.model.strategy, draw_refine_seed(), world_size)
         # after an opacity reset gsplat waits one epoch (splatfacto: num_train_data + refine_every steps) before
