@@ -84,6 +84,14 @@ def resumed_run(config: TrainerConfig) -> Path | None:
     return ckpt_dir.parent
 
 
+def make_run_folder(base_dir: Path) -> None:
+    """The run folder, made before training on every rank. nerfstudio's Trainer.train writes
+    dataparser_transforms.json there on every rank after an exists-then-mkdir check, so ranks starting together race:
+    one made the folder between another's check and its mkdir, whose FileExistsError then stopped the whole run.
+    Made here with exist_ok, the check finds it on every rank."""
+    base_dir.mkdir(parents=True, exist_ok=True)
+
+
 @dataclass
 class WillagsTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py).
@@ -261,6 +269,7 @@ class WillagsTrainer(Trainer):
     # ---- checkpoints
 
     def train(self) -> None:
+        make_run_folder(Path(self.base_dir))
         # the step after the last one this run plans to train (nerfstudio: max_num_iterations from the start)
         self.planned_end = self._start_step + self.config.max_num_iterations
         self._save_timer = SaveTimer(self.config.save_every_minutes * 60.0, clock=self.clock)
