@@ -14,7 +14,9 @@ Each point says whether its time was measured alone on the GPU or shared with ot
 shared-GPU times are longer than the method's own cost, so they are drawn hollow and labelled. Records with a
 ``tree_note`` (not a clean record of their method) and failed runs are left out (and counted). Runs trained under
 willags' time budget (``time_budget_minutes``: the knob chose the preset and the last step and compressed the
-learning-rate schedules to it) are no point of their method's curve (docs/benchmarks.md lists them with the long runs).
+learning-rate schedules to it) are no point of their method's curve (docs/benchmarks.md lists them with the long runs),
+nor are runs on several devices (``num_devices`` > 1: a step there trains one image per device under schedules divided
+by the devices; docs/distributed.md and the several-GPU table of docs/benchmarks.md hold them).
 
 Writes a plot per scene with a curve (a method timed at two step counts or more; :func:`plot_scene`) and docs/curves.md:
 what the records hold and every run per scene. PSNR at each step count and at equal training time: docs/results.md.
@@ -101,7 +103,7 @@ class Point:
 
 
 def _usable(rec: dict[str, Any]) -> bool:
-    return rec.get("status", "ok") == "ok" and not rec.get("tree_note")
+    return rec.get("status", "ok") == "ok" and not rec.get("tree_note") and int(rec.get("num_devices") or 1) == 1
 
 
 def milestone_train_s(rec: dict[str, Any], milestone: str) -> float | None:

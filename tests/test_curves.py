@@ -100,6 +100,8 @@ def test_scene_points_from_milestones_and_grid_runs():
         _grid("peer", 5000, 19.5, 300.0, tag="a", seed=43),
         _grid("willags", 5000, 30.0, 10.0, tag="dirty", tree_note="not a clean record"),
         _grid("willags", 5000, 30.0, 10.0, tag="failed", status="failed"),
+        _grid("willags", 5000, 30.0, 10.0, tag="gpus2", num_devices=2),  # one image per device a step
+        _grid("willags", 5000, 30.0, 10.0, tag="gpus1", num_devices=1),
         _grid("willags", 5000, 30.0, 10.0, tag="other", scene="fox-wild"),
         {**_grid("willags", 5000, 30.0, 10.0, tag="cpu"), "device": "cpu"},
         _grid("willags-3dgs", 5000, 30.0, 10.0),  # not a method of the curves
@@ -113,12 +115,13 @@ def test_scene_points_from_milestones_and_grid_runs():
     pts = scene_points(records, "reichstag")
     got = [(p.method, p.steps, p.train_s, p.source, p.gpu, p.sharing.state) for p in pts]
     assert got == [
+        ("willags", 5000, 10.0, "grid", "H100", "unknown"),
         ("willags", 5000, 200.0, "grid", "H100", "shared"),
         ("willags", 7000, None, "long run", "H200", "alone"),
         ("willags", 30000, 420.0, "long run", "H200", "alone"),
         ("peer", 5000, 300.0, "grid", "H100", "unknown"),
     ]
-    assert [p.seed for p in pts] == [42, 42, 42, 43]  # a record without a seed ran with the default, 42
+    assert [p.seed for p in pts] == [42, 42, 42, 42, 43]  # a record without a seed ran with the default, 42
 
 
 def _p(method, steps, psnr, t, sharing=ALONE, gpu="H100", seed=42):
