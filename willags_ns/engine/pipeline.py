@@ -671,8 +671,9 @@ class WillagsPipeline(VanillaPipeline):
 
     def _report_rejected_mask(self) -> None:
         """Warn about the previous mask step's rejected mask, read one step late: reading the device flag in its
-        own step would stall there until the GPU has run VGG; here the queue is about to drain anyway (the step's
-        first host sync is the camera's intrinsics in get_outputs)."""
+        own step would stall there until the GPU has run VGG; here, before this step's work is queued, the read waits
+        for the previous step's work to finish (on a GPU, the one wait for the device in the step after a mask
+        step: the forward pass reads nothing from the device)."""
         pending, self._pending_rejected = self._pending_rejected, None
         if pending is not None and bool(pending[2]):
             self._warn_mask_rejected(pending[0], pending[1])
