@@ -95,3 +95,5 @@ def test_intrinsics_at_keeps_several_cameras_and_the_requested_device():
     c.rescale_output_resolution(1 / 4)
     K, W, H = intrinsics_at(cams, 4, torch.device("cpu"), (101, 81))
     assert K.shape == (3, 3, 3) and torch.equal(K, c.get_intrinsics_matrices()) and (W, H) == (25, 20)
+    with pytest.raises(ValueError, match="one camera at a time"):  # several sizes: which one is not for it to pick
+        intrinsics_at(cams, 4, "cpu")

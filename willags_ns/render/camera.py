@@ -44,8 +44,8 @@ def intrinsics_at(camera, scale_factor: float, device, size: tuple[int, int] | N
     scale_factor)` then `get_intrinsics_matrices()` give, without changing the camera.
 
     K is made on the camera's device from its fx, fy, cx, cy by device operations only: on a GPU, nerfstudio's path
-    copies the factor from the host and builds K on the host from the camera's values (six waits for the GPU per
-    call). `size`: the camera's (width, height) at its own resolution when the caller knows it on the host (the
+    copies the factor from the host and builds K on the host from the camera's values (each copy and each read a
+    wait for the GPU). `size`: the camera's (width, height) at its own resolution when the caller knows it on the host (the
     training images' sizes); otherwise the camera's width and height are read (one read, a wait on a GPU)."""
     factor = 1 / scale_factor
     intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)  # [*C, 1] each
@@ -58,6 +58,8 @@ def intrinsics_at(camera, scale_factor: float, device, size: tuple[int, int] | N
     K = torch.cat((fx, zero, cx, zero, fy, cy, zero, zero, one), dim=-1).to(torch.float32)
     K = K.reshape(*K.shape[:-1], 3, 3).to(device)
     if size is None:  # one camera: its width and height in one read
+        if camera.width.numel() != 1:
+            raise ValueError(f"willags renders one camera at a time without a given size; got {camera.width.numel()}")
         size = tuple(torch.stack((camera.width.reshape(()), camera.height.reshape(()))).tolist())
     W, H = scaled_size(size[0], size[1], factor)
     return K, W, H
