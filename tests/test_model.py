@@ -326,3 +326,40 @@ def test_modulated_with_gamma_bakes_by_least_squares_close_to_the_exact_render()
     assert not torch.equal(baked, exact)  # it is the fit, not the exact path
     sh = model.export_sh()
     assert sh.shape == (model.num_points, 16, 3) and torch.isfinite(sh).all()
+
+
+def test_a_training_forward_takes_its_cameras_size_from_the_training_sizes_and_nothing_else_does():
+    """While training, the camera's size comes from the training images' sizes by its cam_idx (no read of the
+    camera's width: a wait for the GPU there); at downscale 2 an odd size floors (49 x 33 -> 24 x 16) as nerfstudio's
+    rescale does. Outside training (a viewer or evaluation camera, whose cam_idx is no training index) and for a
+    camera whose cam_idx the sizes do not cover, the camera's own size is read."""
+    from tests.render.test_camera import unreadable_size
+
+    model = _tiny_model()
+    model.config.num_downscales, model.config.resolution_schedule = 1, 10**9  # downscale 2 at every step
+    model.set_train_image_sizes([(49, 33), (40, 30)])
+    model.train()
+    cam = unreadable_size(_camera(49, 33))
+    cam.metadata = {"cam_idx": 0}
+    image = (torch.rand(33, 49, 3, generator=torch.Generator().manual_seed(2)) * 255).to(torch.uint8)
+    batch = {"image": image, "image_idx": 0}
+    model.set_train_batch(batch)
+    out = model.get_outputs(cam)
+    assert out["rgb"].shape == (16, 24, 3) and model.last_size == (16, 24)
+    assert torch.isfinite(model.get_loss_dict(out, batch, {})["main_loss"])  # the photo downscales to the same size
+    model.end_step(0)
+    # a cam_idx the sizes do not cover, or none: the camera's size is read
+    for metadata in ({"cam_idx": 2}, {}):
+        model.set_train_batch({"image": image[:30, :40], "image_idx": 1})
+        unread, other = unreadable_size(_camera(40, 30)), _camera(40, 30)
+        unread.metadata, other.metadata = dict(metadata), dict(metadata)
+        with pytest.raises(AssertionError, match="size was read"):
+            model.get_outputs(unread)
+        assert model.get_outputs(other)["rgb"].shape == (15, 20, 3)
+        model.end_step(0)
+    # outside training the sizes are not used: an evaluation camera with cam_idx 0 renders at its own size
+    model.eval()
+    viewer = _camera(24, 16)
+    viewer.metadata = {"cam_idx": 0}
+    with torch.no_grad():
+        assert model.get_outputs(viewer)["rgb"].shape == (16, 24, 3)

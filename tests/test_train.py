@@ -102,6 +102,36 @@ def test_willags_trains_saves_and_reloads(tmp_path):
     assert torch.isfinite(rgb).all() and rgb.std() > 0.01  # renders a scene, not a flat background
 
 
+def test_training_steps_take_the_cameras_sizes_from_the_pipeline_and_never_read_them(tmp_path, monkeypatch):
+    """The pipeline tells the model the training images' sizes once, after the first next_train (nerfstudio caches
+    and undistorts the photos there, which can change a camera's size); no training step then reads a training
+    camera's width or height (a wait for the GPU there): here reading one fails. Downscale 2 at every step."""
+    from tests.render.test_camera import unreadable_size
+    from willags_ns.data.datamanager import WillagsDatamanager
+    from willags_ns.engine.pipeline import WillagsPipeline
+
+    next_train, tell = WillagsDatamanager.next_train, WillagsPipeline._tell_model_the_image_sizes
+    told = []
+
+    def cameras_without_a_readable_size(self, step):
+        camera, batch = next_train(self, step)
+        return unreadable_size(camera), batch
+
+    def spy(self):
+        told.append("cached_train" in vars(self.datamanager))  # the photos cached, the cameras final
+        tell(self)
+
+    monkeypatch.setattr(WillagsDatamanager, "next_train", cameras_without_a_readable_size)
+    monkeypatch.setattr(WillagsPipeline, "_tell_model_the_image_sizes", spy)
+    _, trainer, losses = _train(tmp_path, "willags", steps=4, num_downscales=1)
+    _check_finite(losses)
+    assert len(losses) == 4 and told == [True]
+    model, cameras = trainer.pipeline.model, trainer.pipeline.datamanager.train_dataset.cameras
+    sizes = [(int(w), int(h)) for w, h in zip(cameras.width.reshape(-1), cameras.height.reshape(-1), strict=True)]
+    assert model.train_image_sizes == sizes
+    assert model.last_size in {(h // 2, w // 2) for w, h in sizes}
+
+
 @pytest.mark.parametrize("switch", ["latent.kind", "use_field", "mask.enabled"])
 def test_each_ablation_switch_trains(tmp_path, switch):
     _, trainer, losses = _train(

@@ -26,6 +26,7 @@ CUDA (`populate_modules`, `get_outputs`) or downloads weights (LPIPS). `appearan
 (method `willags-3dgs`).
 """
 
+import numbers
 import os
 from typing import Any, Union
 
@@ -158,6 +159,7 @@ class WillagsModel(SplatfactoModel):
         self.mask_health = MaskHealth(cfg.mask.health)
         self._train_batch: dict | None = None  # this step's batch (set_train_batch), until the step ends
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
+        self.train_image_sizes: list[tuple[int, int]] | None = None  # (width, height) per training image (pipeline)
         self.test_photos: dict[str, str] = {}  # file name -> path of the run's test photos (set by the pipeline)
 
     # ------------------------------------------------------------------ latents (appearance/latents.py)
@@ -169,6 +171,12 @@ class WillagsModel(SplatfactoModel):
     def set_train_image_names(self, names: list[str]) -> None:
         """Training image file names, in dataset order (from the pipeline): the appearances users can pick."""
         self.image_names = list(names)
+
+    def set_train_image_sizes(self, sizes: list[tuple[int, int]] | None) -> None:
+        """(width, height) of each training image, in dataset order, as the training cameras give them (from the
+        pipeline, once its image cache has made them final): a training forward takes its camera's size from here,
+        on the host, instead of reading it from the camera (a wait for the GPU)."""
+        self.train_image_sizes = None if sizes is None else [(int(w), int(h)) for w, h in sizes]
 
     def set_test_photos(self, paths: list[str]) -> None:
         """The run's test photos (from the pipeline): an appearance SPEC naming one is told that it is a test photo
@@ -397,9 +405,21 @@ class WillagsModel(SplatfactoModel):
         if self.training and camera.shape[0] != 1:
             raise ValueError("willags trains on one camera at a time")
         c2w = self.camera_optimizer.apply_to_camera(camera) if self.training else camera.camera_to_worlds
-        view = camera_view(camera, c2w, self._get_downscale_factor(), self.device)
+        view = camera_view(camera, c2w, self._get_downscale_factor(), self.device, self._train_image_size(camera))
         self.last_size = (view.height, view.width)
         return view
+
+    def _train_image_size(self, camera: Cameras) -> tuple[int, int] | None:
+        """While training, the camera's (width, height) from the training images' sizes (set_train_image_sizes) by its
+        training image index (metadata "cam_idx"); None elsewhere: an evaluation, viewer or render camera's index
+        is no training index, and its size is read from the camera."""
+        sizes = self.train_image_sizes
+        if not self.training or sizes is None:
+            return None
+        idx = (camera.metadata or {}).get("cam_idx")
+        if isinstance(idx, bool) or not isinstance(idx, numbers.Integral) or not 0 <= idx < len(sizes):
+            return None
+        return sizes[idx]
 
     def _latents(self, camera: Cameras) -> tuple[Tensor | None, TeacherPass | None, dict]:
         """(z [D] of this view, None for appearance "sh"; how this training step renders the pseudo-GT, None on a step

@@ -325,6 +325,7 @@ class WillagsPipeline(VanillaPipeline):
         self.rank = rank_and_world_size()[0]
         self._tell_model_the_scene()
         self._pending_rejected: tuple | None = None  # (step, batch, flag tensor) of the last mask step
+        self._image_sizes_told = False  # the training images' sizes: told at the first step
         self._step_image_idx = -1
         if world_size > 1:
             self._setup_data_parallel(world_size)
@@ -460,6 +461,18 @@ class WillagsPipeline(VanillaPipeline):
         if getattr(self.model, "appearance_nets", None) is not None:
             self.viewer_controls = appearance_controls(self.model)
             self.viewer_controls.set_train_dataset(self.datamanager.train_dataset)
+
+    def _tell_model_the_image_sizes(self) -> None:
+        """The training images' (width, height) as the training cameras give them, for the model to know each training
+        camera's size on the host (a GPU camera's width read in every forward is a wait for the GPU). Told after the
+        first `next_train`: nerfstudio's full-image datamanager caches the images there, and undistorting a photo
+        changes its camera's size in the training dataset (OpenCV crops the undistorted image)."""
+        self._image_sizes_told = True
+        if not hasattr(self.model, "set_train_image_sizes"):
+            return
+        cameras = self.datamanager.train_dataset.cameras
+        widths, heights = cameras.width.reshape(-1).tolist(), cameras.height.reshape(-1).tolist()
+        self.model.set_train_image_sizes(list(zip(widths, heights, strict=True)))
 
     def _setup_data_parallel(self, world_size: int) -> None:
         """Same model on every rank, a share of the images per rank, densification that agrees over the ranks."""
@@ -629,6 +642,8 @@ class WillagsPipeline(VanillaPipeline):
             profile.mark("start")
         check_gaussians_alive(self.model.num_points, step)
         camera, batch = self.datamanager.next_train(step)
+        if not self._image_sizes_told:
+            self._tell_model_the_image_sizes()
         self._step_image_idx = int(batch.get("image_idx", -1))  # shared with the other ranks (several devices)
         if self.world_size > 1 and self._step_image_idx >= 0 and self._step_image_idx % self.world_size != self.rank:
             raise DataParallelError(
@@ -656,8 +671,9 @@ class WillagsPipeline(VanillaPipeline):
 
     def _report_rejected_mask(self) -> None:
         """Warn about the previous mask step's rejected mask, read one step late: reading the device flag in its
-        own step would stall there until the GPU has run VGG; here the queue is about to drain anyway (the step's
-        first host sync is the camera's intrinsics in get_outputs)."""
+        own step would stall there until the GPU has run VGG; here, before this step's work is queued, the read waits
+        for the previous step's work to finish (on a GPU, the one wait for the device in the step after a mask
+        step: the forward pass reads nothing from the device)."""
         pending, self._pending_rejected = self._pending_rejected, None
         if pending is not None and bool(pending[2]):
             self._warn_mask_rejected(pending[0], pending[1])

@@ -1,6 +1,7 @@
 """Camera conventions between nerfstudio and the rasteriser: the view matrix, the intrinsics at a render scale, and
 the two together as the `View` a forward pass renders."""
 
+import functools
 from typing import NamedTuple
 
 import torch
@@ -24,13 +25,43 @@ def viewmat_from_c2w(c2w: Tensor) -> Tensor:
     return viewmat
 
 
-def intrinsics_at(camera, scale_factor: float, device) -> tuple[Tensor, int, int]:
-    """(K [C, 3, 3] on `device`, width, height) of a nerfstudio `Cameras` rendered at 1 / scale_factor of its
-    resolution (splatfacto's resolution schedule); the camera is left at its own resolution."""
-    camera.rescale_output_resolution(1 / scale_factor)
-    K = camera.get_intrinsics_matrices().to(device)
-    W, H = int(camera.width.item()), int(camera.height.item())
-    camera.rescale_output_resolution(scale_factor)
+def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
+    """(width, height) of an image `width` x `height` at `factor` of its resolution, rounded as nerfstudio's
+    `Cameras.rescale_output_resolution` does by default (floor mode: size times the factor as a tensor of the default
+    dtype, cast to int64), computed on the host."""
+    return _scaled_size(int(width), int(height), float(factor), torch.get_default_dtype())
+
+
+@functools.lru_cache(maxsize=4096)
+def _scaled_size(width: int, height: int, factor: float, dtype: torch.dtype) -> tuple[int, int]:
+    w, h = (torch.tensor([width, height]) * torch.tensor([factor], dtype=dtype)).to(torch.int64).tolist()
+    return w, h
+
+
+def intrinsics_at(camera, scale_factor: float, device, size: tuple[int, int] | None = None) -> tuple[Tensor, int, int]:
+    """(K [*C, 3, 3] float32 on `device`, width, height) of a nerfstudio `Cameras` rendered at 1 / scale_factor of its
+    resolution (splatfacto's resolution schedule), bit for bit what nerfstudio's `rescale_output_resolution(1 /
+    scale_factor)` then `get_intrinsics_matrices()` give, without changing the camera.
+
+    K is made on the camera's device from its fx, fy, cx, cy by device operations only: on a GPU, nerfstudio's path
+    copies the factor from the host and builds K on the host from the camera's values (each copy and each read a
+    wait for the GPU). `size`: the camera's (width, height) at its own resolution when the caller knows it on the host (the
+    training images' sizes); otherwise the camera's width and height are read (one read, a wait on a GPU)."""
+    factor = 1 / scale_factor
+    intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)  # [*C, 1] each
+    if factor != 1:  # x * 1.0 is x: nothing to launch at full resolution
+        # nerfstudio multiplies by torch.tensor([factor]) (the default dtype); made here on the device, no copy
+        f = torch.full((1,), factor, dtype=torch.get_default_dtype(), device=camera.fx.device)
+        intrinsics = tuple(v * f for v in intrinsics)
+    fx, fy, cx, cy = intrinsics
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    K = torch.cat((fx, zero, cx, zero, fy, cy, zero, zero, one), dim=-1).to(torch.float32)
+    K = K.reshape(*K.shape[:-1], 3, 3).to(device)
+    if size is None:  # one camera: its width and height in one read
+        if camera.width.numel() != 1:
+            raise ValueError(f"willags renders one camera at a time without a given size; got {camera.width.numel()}")
+        size = tuple(torch.stack((camera.width.reshape(()), camera.height.reshape(()))).tolist())
+    W, H = scaled_size(size[0], size[1], factor)
     return K, W, H
 
 
@@ -52,8 +83,8 @@ class View(NamedTuple):
         return self.c2w[0, :3, 3]
 
 
-def camera_view(camera, c2w: Tensor, scale_factor: float, device) -> View:
+def camera_view(camera, c2w: Tensor, scale_factor: float, device, size: tuple[int, int] | None = None) -> View:
     """The `View` of a nerfstudio `Cameras` posed at `c2w` [C, 3, 4], rendered at 1 / scale_factor of its
-    resolution (intrinsics_at)."""
-    K, W, H = intrinsics_at(camera, scale_factor, device)
+    resolution (intrinsics_at; `size`: its (width, height) at its own resolution when known on the host)."""
+    K, W, H = intrinsics_at(camera, scale_factor, device, size)
     return View(c2w, viewmat_from_c2w(c2w), K, W, H)
