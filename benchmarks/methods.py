@@ -88,6 +88,11 @@ METHODS: dict[str, MethodSpec] = {
         (_AUTO, ("densification", "mcmc"), ("modulation.local_penalty", 0.001)),
         note="the default with a tenth of the per-Gaussian residual's penalty (0.001)",
     ),
+    "willags-staticres": MethodSpec(
+        "willags",
+        (_AUTO, ("densification", "mcmc"), ("modulation.latent_proj", 0)),
+        note="the default with a per-Gaussian residual that does not see the latent (a static colour scale and offset)",
+    ),
     "willags-cap1m-mask": MethodSpec(
         "willags",
         (

@@ -44,6 +44,21 @@ def _assert_same_grads(loss_got, loss_want, inputs, tol):
             torch.testing.assert_close(a, b, atol=tol, rtol=tol)
 
 
+@pytest.mark.parametrize("chunk", [0, 16])
+def test_a_residual_without_the_latent_projection_is_the_same_for_every_latent(chunk):
+    """latent_proj 0: the per-Gaussian residual sees only the Gaussian's own features (a static colour scale and
+    offset), while the global transform still follows z."""
+    torch.manual_seed(0)
+    m = ColorModulation(8, 4, 0, ColorModulationConfig(latent_proj=0, residual_chunk=chunk))
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0.0, 0.3)
+    f_s, base = torch.randn(30, 4), torch.rand(30, 3)
+    z1, z2 = torch.randn(8), torch.randn(8)
+    torch.testing.assert_close(m.local_residual(z1, f_s, None, 30), m.local_residual(z2, f_s, None, 30))
+    assert not torch.allclose(m(z1, base, f_s), m(z2, base, f_s))
+
+
 def test_identity_at_initialisation_and_the_penalty():
     m = ColorModulation(8, 4, 0, ColorModulationConfig())
     base = torch.rand(20, 3)

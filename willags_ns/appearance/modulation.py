@@ -51,7 +51,8 @@ class ColorModulationConfig:
     """Width of the hidden layer of the local residual MLP."""
     latent_proj: int = 16
     """z is projected to this size before it is concatenated to each Gaussian's features (keeps the per-Gaussian
-    MLP small: its input is f_s + latent_proj (+ f_d))."""
+    MLP small: its input is f_s + latent_proj (+ f_d)). 0: the residual does not see z at all, a static per-Gaussian
+    colour scale and offset, so that every change between photos goes through the global transform."""
     local_penalty: float = 0.01
     """Weight of mean(s^2 + o^2) in the loss: the local residual pays for what it adds, so appearance that a global
     transform explains stays global (and transfers across an image under the NeRF-W protocol)."""
