@@ -150,6 +150,31 @@ def test_a_long_run_past_its_deadline_is_dropped_and_shorter_runs_still_start(tr
 
 
 @pytest.mark.timing
+def test_a_queue_started_under_a_lock_does_not_keep_it(tree, tmp_path):
+    root, env, solo = tree
+    if shutil.which("flock") is None:
+        pytest.skip("needs flock")
+    lock = tmp_path / "lock"
+    started = subprocess.run(
+        ["flock", str(lock), "bash", "benchmarks/remote/solo.sh", "start", "reichstag:peer:2000"],
+        cwd=root,
+        env={**env, "SOLO_DATA": ".no-data"},  # the queue waits for its scene, alive
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert started.returncode == 0, started.stderr
+    # the running queue gives the lock's descriptor up as it starts (a guard against a hang, not a speed bound)
+    deadline = time.monotonic() + 300
+    while subprocess.run(["flock", "-n", str(lock), "true"], timeout=60).returncode != 0:
+        assert time.monotonic() < deadline, "the queue still holds its starter's lock"
+        time.sleep(0.2)
+    assert not (solo / "done").exists()  # and it is still running, waiting for its scene
+    waited = _sh(root, env, "wait", str(tmp_path / "out"), "600", SOLO_DATA=".data-a")  # its scene comes; it ends
+    assert "gpu_solo: done reichstag-peer-2000-s42" in waited.stdout
+
+
+@pytest.mark.timing
 def test_queues_run_side_by_side_and_one_archive_brings_back_every_queue(tree, tmp_path):
     root, env, solo = tree
     queues = tmp_path / "queues"

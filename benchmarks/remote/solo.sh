@@ -85,6 +85,13 @@ run_one() {
 }
 
 loop() {
+  # a detached queue keeps none of its starter's descriptors but stdio: a lock the starter held (`flock FILE solo.sh
+  # queues add ...`) would otherwise stay held as long as the queue runs, and the next `flock` would wait for it
+  local fd
+  for fd in /proc/self/fd/*; do
+    fd=${fd##*/}
+    [ "$fd" -gt 2 ] 2> /dev/null && eval "exec $fd>&-" 2> /dev/null
+  done
   cd "$S/wrk" || exit 1
   export PYTHONPATH=/tmp/site:$S/wrk/.whl-gpu/stub:$S/wrk
   python3 -c "from benchmarks.grid import warm_gsplat; warm_gsplat()" || { touch "$S/done"; exit 1; }
