@@ -237,16 +237,6 @@ def run_dir_of(spec: dict[str, Any]) -> Path:
 
 
 # ---------------------------------------------------------------------------------------------------- profiles
-def read_profile(run_dir: Path) -> dict[int, tuple[dict[str, Any], list[dict[str, Any]]]]:
-    """{global rank: (meta, per-step rows)} of a run's step profile."""
-    out = {}
-    for meta_path in sorted((run_dir / "step_profile").glob("rank*.json")):
-        rows_path = meta_path.with_suffix(".jsonl")
-        rows = [json.loads(x) for x in rows_path.read_text().splitlines()] if rows_path.is_file() else []
-        out[int(meta_path.stem[4:])] = (json.loads(meta_path.read_text()), rows)
-    return out
-
-
 def _median(values: list[float]) -> float | None:
     values = [v for v in values if v is not None]
     return statistics.median(values) if values else None
@@ -576,7 +566,9 @@ def collect(res: dict[str, Any], run_dir: Path, t_launch: float) -> None:
     """What a finished (or stopped) run left in `run_dir`, into its result `res`: the breakdown, the start-up, the
     wall time to the last checkpoint, each rank's last step and, under a budget, where and when it stopped."""
     res["run_dir"] = str(run_dir)
-    profile = read_profile(run_dir)
+    from willags_ns.engine.step_profile import read_step_profile
+
+    profile = read_step_profile(run_dir)
     res["breakdown"] = breakdown(profile)
     res["startup"] = startup(profile, t_launch)
     res.update(last_steps(profile))

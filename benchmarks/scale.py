@@ -326,8 +326,9 @@ def profile_measures(run_dir: Path) -> dict[str, Any]:
     """What the step profile of a finished run says: seconds from the process's start to each start-up phase and to
     the first step, the median step early (steps 2-6) and late (the last 5 before the final one, which also saves), the
     Gaussians at the end, the device's peak memory."""
-    meta = json.loads((run_dir / "step_profile" / "rank0.json").read_text())
-    rows = [json.loads(line) for line in (run_dir / "step_profile" / "rank0.jsonl").read_text().splitlines()]
+    from willags_ns.engine.step_profile import read_step_profile
+
+    meta, rows = read_step_profile(run_dir)[0]
     phases = meta.get("phases", {})
     t0 = phases.get("process_start")
     since = {

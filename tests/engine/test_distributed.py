@@ -42,6 +42,7 @@ from willags_ns.engine.distributed import (
     validate_data_parallel,
     validate_train_images,
 )
+from willags_ns.engine.step_profile import read_step_profile
 
 WORLD = 2
 
@@ -404,18 +405,6 @@ def _tiny_config(tmp_path: Path, scene: Path):
     return config
 
 
-def _read_profile(config) -> dict:
-    """The step profile's files of a run: {rank: (meta, [step rows])}."""
-    import json
-
-    out = {}
-    for meta_path in sorted((Path(config.get_base_dir()) / "step_profile").glob("rank*.json")):
-        rank = int(meta_path.stem[4:])
-        rows = [json.loads(line) for line in meta_path.with_suffix(".jsonl").read_text().splitlines()]
-        out[rank] = (json.loads(meta_path.read_text()), rows)
-    return out
-
-
 @pytest.fixture(scope="module")
 def launched_run(tmp_path_factory):
     """Launch a tiny willags run on 2 CPU ranks through nerfstudio's launcher; (config, [rank0 record, rank1])."""
@@ -432,7 +421,8 @@ def launched_run(tmp_path_factory):
     config.save_config()
     launch(main_func=train_and_record, num_devices_per_machine=WORLD, device_type="cpu", config=config)
     records = [torch.load(record_path(config, r), weights_only=False) for r in range(WORLD)]
-    for r, (meta, rows) in _read_profile(config).items():  # read now: the single-process reference writes rank 0's
+    profile = read_step_profile(Path(config.get_base_dir()))  # read now: the single-process reference writes rank 0's
+    for r, (meta, rows) in profile.items():
         records[r]["profile"] = (meta, rows)
     return config, records
 

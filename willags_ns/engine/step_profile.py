@@ -90,6 +90,17 @@ def peak_memory(cuda: bool) -> dict[str, int]:
     return out
 
 
+def read_step_profile(run_dir: Path) -> dict[int, tuple[dict[str, Any], list[dict[str, Any]]]]:
+    """{global rank: (rank<r>.json's meta, rank<r>.jsonl's per-step rows)} of the step profile a run wrote under
+    ``<run_dir>/step_profile/`` (no rows for a rank whose steps file is missing); {} without a profile."""
+    out = {}
+    for meta_path in sorted((Path(run_dir) / "step_profile").glob("rank*.json")):
+        rows_path = meta_path.with_suffix(".jsonl")
+        rows = [json.loads(x) for x in rows_path.read_text().splitlines()] if rows_path.is_file() else []
+        out[int(meta_path.stem[4:])] = (json.loads(meta_path.read_text()), rows)
+    return out
+
+
 def spans_ms(times: dict[str, float], scale: float = 1000.0) -> dict[str, float]:
     """Each span of SPANS whose two marks are in `times` (seconds), in milliseconds."""
     return {name: (times[b] - times[a]) * scale for name, (a, b) in SPANS.items() if a in times and b in times}
