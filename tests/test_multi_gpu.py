@@ -4,6 +4,7 @@ stop and the wall time to the last checkpoint, and its records."""
 
 import json
 import os
+from types import SimpleNamespace
 
 import pytest
 
@@ -23,6 +24,14 @@ from benchmarks.multi_gpu import (
     steps_of,
     tables,
 )
+
+
+def _args(runs: str, seed: int, commit: str | None) -> SimpleNamespace:
+    """The command line `record` reads: reichstag, willags on CUDA, tag "t", 8000 images."""
+    return SimpleNamespace(
+        data="/x/reichstag", method="willags", device_type="cuda", tag="t", images=8000, runs=runs, seed=seed,
+        commit=commit,
+    )  # fmt: skip
 
 
 def test_runs_name_devices_machines_reduction_budget_and_images():
@@ -172,19 +181,7 @@ def test_a_budget_run_records_each_ranks_last_step_and_its_time(tmp_path, steps,
     assert res["train_span_s"] == [60.0, 60.0] and res["startup"]["first_step"] == 40.0
     assert res["machine"] == "2x NVIDIA H200 (h, 64 CPUs)"
 
-    class Args:
-        data, method, device_type, tag, images, runs, seed, commit = (
-            "/x/reichstag",
-            "willags",
-            "cuda",
-            "t",
-            8000,
-            "2",
-            5,
-            "abc",
-        )
-
-    rec = record(res, Args)
+    rec = record(res, _args(runs="2", seed=5, commit="abc"))
     assert (rec["num_devices"], rec["num_machines"], rec["seed"], rec["commit"]) == (2, 1, 5, "abc")
     assert rec["tag"] == "t-gpus2-budget1" and rec["wall_s"] == 104.5 and rec["wall_s_means"] == WALL_MEANS
     assert rec["same_last_step"] is same and rec["images_cap"] == 8000 and rec["time_budget_minutes"] == 1.0
@@ -209,21 +206,10 @@ def test_summary_compares_with_the_one_gpu_run_and_states_the_goals():
 def test_records_of_several_gpus_have_their_own_table():
     from benchmarks.tables import devices_table, kind
 
-    class Args:
-        data, method, device_type, tag, images, runs, seed, commit = (
-            "/x/reichstag",
-            "willags",
-            "cuda",
-            "t",
-            8000,
-            "4,1",
-            42,
-            None,
-        )
-
+    args = _args(runs="4,1", seed=42, commit=None)
     base = {"machines": 1, "reduction": "buffer", "images": 8000, "status": "ok", "psnr": 19.4}
-    one = record({**base, "name": "gpus1", "num_devices": 1, "steps": 8000, "breakdown": {"iteration": 11.0}}, Args)
-    four = record({**base, "name": "gpus4", "num_devices": 4, "steps": 2000, "breakdown": {"iteration": 13.75}}, Args)
+    one = record({**base, "name": "gpus1", "num_devices": 1, "steps": 8000, "breakdown": {"iteration": 11.0}}, args)
+    four = record({**base, "name": "gpus4", "num_devices": 4, "steps": 2000, "breakdown": {"iteration": 13.75}}, args)
     assert (four["num_devices"], four["steps"], four["tag"], four["images_per_s"]) == (4, 2000, "t-gpus4", 4000 / 13.75)
     assert kind(four) == "devices" and four["seed"] == 42
     text = "\n".join(devices_table([four, one]))
