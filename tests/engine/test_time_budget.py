@@ -269,6 +269,24 @@ class FakeClock:
         return self.t
 
 
+def _trainer_on_a_fake_clock(monkeypatch, step_seconds) -> FakeClock:
+    """WillagsTrainer's clock made a FakeClock that advances `step_seconds(step)` after each training step, whatever
+    the machine's speed."""
+    from willags_ns.engine.trainer import WillagsTrainer
+
+    clock = FakeClock()
+    train_iteration = WillagsTrainer.train_iteration
+
+    def timed_steps(self, step):
+        out = train_iteration(self, step)
+        clock.t += step_seconds(step)
+        return out
+
+    monkeypatch.setattr(WillagsTrainer, "clock", staticmethod(clock))
+    monkeypatch.setattr(WillagsTrainer, "train_iteration", timed_steps)
+    return clock
+
+
 def _run(budget: TimeBudget, clock: FakeClock, step_s, start: int = 0, limit: int = 100000) -> int:
     """Drive the budget as nerfstudio's loop does; returns the last step trained."""
     for step in range(start, start + limit):
@@ -530,24 +548,14 @@ def test_budget_stops_a_real_cpu_run_and_prints_its_choice(tmp_path, monkeypatch
     splatfacto's densification) and willags (60 s, asked for MCMC's densification)."""
     from tests.test_train import _train
     from willags_ns import method_configs
-    from willags_ns.engine.trainer import WillagsTrainer
     from willags_ns.splats.mcmc import McmcDensification
 
     monkeypatch.setattr(tb, "WARMUP_STEPS", 3)
     monkeypatch.setattr(tb, "WINDOW_STEPS", 5)
     # the trainer's clock advances step_s seconds per training step, whatever the machine's speed: the budget
     # measures step_s and plans about 12 steps
-    clock = FakeClock()
     factors = _record_rates(monkeypatch)
-    train_iteration = WillagsTrainer.train_iteration
-
-    def fixed_time_steps(self, step):
-        out = train_iteration(self, step)
-        clock.t += step_s
-        return out
-
-    monkeypatch.setattr(WillagsTrainer, "clock", staticmethod(clock))
-    monkeypatch.setattr(WillagsTrainer, "train_iteration", fixed_time_steps)
+    _trainer_on_a_fake_clock(monkeypatch, lambda step: step_s)
     real_config = method_configs.willags_config
 
     def budgeted():
@@ -637,20 +645,10 @@ def test_the_step_table_of_a_budget_shows_time_left_and_a_share_that_only_grows(
     from tests.test_train import _train
     from willags_ns import method_configs
     from willags_ns.engine.time_budget import table_time
-    from willags_ns.engine.trainer import WillagsTrainer
 
     monkeypatch.setattr(tb, "WARMUP_STEPS", 3)
     monkeypatch.setattr(tb, "WINDOW_STEPS", 5)
-    clock = FakeClock()
-    train_iteration = WillagsTrainer.train_iteration
-
-    def timed_steps(self, step):
-        out = train_iteration(self, step)
-        clock.t += 1.0 if step < 8 else 0.5
-        return out
-
-    monkeypatch.setattr(WillagsTrainer, "clock", staticmethod(clock))
-    monkeypatch.setattr(WillagsTrainer, "train_iteration", timed_steps)
+    _trainer_on_a_fake_clock(monkeypatch, lambda step: 1.0 if step < 8 else 0.5)
     real_config = method_configs.willags_config
 
     def budgeted():
