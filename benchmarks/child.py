@@ -167,11 +167,25 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     if dump is not None:  # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
         dump.save(Path(regions_dir) / f"{_run_name(spec)}.npz", names, trainer if spec["method"] == REFERENCE else None)
     rec: dict[str, Any] = {**agg, "per_image": per_image, "eval_s": time.perf_counter() - t2}
+    rec.update(latent_spread(model))
     if int(spec.get("train_views", 0)) != 0:
         train_imgs = [d["image"] for d in dm.cached_train]
         rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
     rec["num_test_images"] = len(images)
     return rec
+
+
+def latent_spread(model) -> dict[str, float]:
+    """How far the training images' latents lie from their mean (the protocol's starting latent without an
+    encoder): `latent_spread` the mean distance, `latent_spread_max` the largest. Nothing for a model without an
+    appearance latent."""
+    if getattr(model.config, "appearance", "sh") != "willags":
+        return {}
+    lat, seen = model.image_latents()
+    if not bool(seen.any()):
+        return {}
+    d = (lat[seen] - lat[seen].mean(0)).norm(dim=1)
+    return {"latent_spread": float(d.mean()), "latent_spread_max": float(d.max())}
 
 
 RENDERS_ENV = "WILLAGS_BENCH_RENDERS"

@@ -48,13 +48,15 @@ def _save_state(run_dir: Path, state: dict[str, Any]) -> None:
     tmp.replace(run_dir / STATE)
 
 
-def _save_score(run_dir: Path, milestone: str, rec: dict[str, Any]) -> None:
+def _save_score(run_dir: Path, milestone: str, rec: dict[str, Any], variant: str | None = None) -> None:
     """Add one milestone's scores to the state, under a lock: `eval` runs one process per milestone at once (their
-    set-up, mostly CPU, overlaps), each re-reading the state so that none overwrites another's score."""
+    set-up, mostly CPU, overlaps), each re-reading the state so that none overwrites another's score. A `variant`'s
+    scores go to state["variants"][variant] (apart from the protocol's own, which the record is made of)."""
     with open(run_dir / (STATE + ".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         state = _state(run_dir)
-        state["scores"][milestone] = rec
+        where = state["scores"] if variant is None else state.setdefault("variants", {}).setdefault(variant, {})
+        where[milestone] = rec
         _save_state(run_dir, state)
 
 
@@ -261,8 +263,10 @@ def evaluate(args) -> int:
     state = _state(run_dir)
     milestones = _milestones(args.milestones, state)
     have = set(_ckpt_steps(run_dir))
+    variant = args.variant or None
+    done = state["scores"] if variant is None else state.get("variants", {}).get(variant, {})
     for m in milestones:
-        if str(m) in state["scores"] or (m - 1) not in have:
+        if str(m) in done or (m - 1) not in have:
             continue
         t = time.perf_counter()
         trainer = _setup(
@@ -272,21 +276,25 @@ def evaluate(args) -> int:
         spec = {
             "method": state["method"],  # protocol_scores picks the peer's adapter by method
             "scene_name": Path(state["data"]).name,  # names the run's pictures and region maps
-            "tag": f"s{state['seed']}-{m}",
-            "regions": m == state["steps"],  # region maps ($WILLAGS_BENCH_REGIONS) of the run's last milestone
+            "tag": f"s{state['seed']}-{m}" + (f"-{variant}" if variant else ""),
+            # region maps ($WILLAGS_BENCH_REGIONS) of the run's last milestone, under the protocol itself
+            "regions": m == state["steps"] and variant is None,
             "protocol_steps": args.protocol_steps,
-            "protocol_lr": 0.01,
+            "protocol_lr": args.protocol_lr,
+            "oracle": args.oracle,
             "max_test_images": -1,
             "train_views": args.train_views,
         }
         rec = protocol_scores(trainer, spec)
         rec["num_gaussians"] = int(trainer.pipeline.model.num_points)
-        if m == state["steps"]:  # the transient mask the run ended with
+        if m == state["steps"] and variant is None:  # the transient mask the run ended with
             rec.update(mask_record(trainer.pipeline.model, trainer.pipeline.datamanager.train_dataset))
         rec["eval_wall_s"] = time.perf_counter() - t
-        _save_score(run_dir, str(m), rec)
+        if variant:
+            rec["protocol"] = {"steps": args.protocol_steps, "lr": args.protocol_lr, "oracle": args.oracle}
+        _save_score(run_dir, str(m), rec, variant)
         print(
-            f"long_run: {state['method']} @ {m}: psnr {rec.get('psnr', float('nan')):.2f} "
+            f"long_run: {state['method']} @ {m}{' (' + variant + ')' if variant else ''}: psnr {rec.get('psnr', float('nan')):.2f} "
             f"(train views {rec.get('train_psnr', float('nan')):.2f})"
         )
         del trainer
@@ -301,6 +309,26 @@ def per_image_scores(per_image: list[dict[str, Any]]) -> list[dict[str, Any]]:
     (benchmarks/cv.py) pairs between methods photo by photo."""
     keys = ("image", "psnr", "ssim", "lpips")
     return [{k: r[k] for k in keys if k in r} for r in per_image]
+
+
+VARIANT_KEYS = ("psnr", "oracle_psnr", "encoder_psnr", "left_loss_after", "fit_shift")
+"""What a record keeps of a protocol variant's scores, over all test photos and per photo."""
+
+
+def variant_scores(variants: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The scores of `eval --variant` (state.json's variants: name -> milestone -> scores) as a record keeps them:
+    the protocol's settings, the means and each test photo's VARIANT_KEYS."""
+    return {
+        name: {
+            m: {
+                "protocol": v.get("protocol"),
+                **{k: v[k] for k in VARIANT_KEYS if k in v},
+                "per_image": [{k: r[k] for k in ("image", *VARIANT_KEYS) if k in r} for r in v.get("per_image", [])],
+            }
+            for m, v in sorted(by_step.items(), key=lambda kv: int(kv[0]))
+        }
+        for name, by_step in variants.items()
+    }
 
 
 def record(args) -> int:
@@ -327,7 +355,11 @@ def record(args) -> int:
         "concurrent_runs": max([args.concurrent, *shared]),  # the most runs on the GPU in any segment
         "milestones": {
             k: {
-                **{kk: v[kk] for kk in ("psnr", "ssim", "lpips", "train_psnr", "num_gaussians") if kk in v},
+                **{
+                    kk: v[kk]
+                    for kk in ("psnr", "ssim", "lpips", "train_psnr", "num_gaussians", "latent_spread")
+                    if kk in v
+                },
                 **({"train_s": times[k]} if k in times else {}),
                 **({"per_image": per_image_scores(v["per_image"])} if v.get("per_image") else {}),
             }
@@ -342,6 +374,8 @@ def record(args) -> int:
         rec["time_budget_minutes"] = state.get("time_budget_minutes")
         rec["time_budget"] = state["time_budget"]
         rec["end_step"] = state.get("end_step")
+    if state.get("variants"):
+        rec["protocol_variants"] = variant_scores(state["variants"])
     last = state["scores"].get(str(state.get("end_step") or state["steps"]))
     if last is not None:
         rec.update({k: last[k] for k in ("psnr", "ssim", "lpips") if k in last})
@@ -368,7 +402,16 @@ def main(argv=None) -> int:
     t.add_argument("--concurrent", type=int, default=1, help="runs on the GPU during this segment, itself included")
     t.add_argument("--budget-minutes", type=float, help="willags' --pipeline.time-budget-minutes; --steps is the cap")
     t.add_argument("--check-finite", action="store_true", help="anomaly mode; stop at a non-finite parameter or grad")
-    sub.choices["eval"].add_argument("--train-views", type=int, default=8)
+    e = sub.choices["eval"]
+    e.add_argument("--train-views", type=int, default=8)
+    e.add_argument("--protocol-lr", type=float, default=0.01, help="Adam learning rate of the latent fit")
+    e.add_argument("--oracle", action="store_true", help="also fit the latent on the whole test image (oracle_*)")
+    e.add_argument(
+        "--variant",
+        default="",
+        help="score under these protocol settings apart: state.json's variants[NAME], never the record's scores "
+        "(how the scores depend on the fit: more steps, another learning rate, the oracle)",
+    )
     r = sub.choices["record"]
     r.add_argument("--tag", required=True)
     r.add_argument("--out", required=True)

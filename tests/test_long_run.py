@@ -155,3 +155,35 @@ def test_check_finite_stops_at_the_first_non_finite_parameter(tmp_path, monkeypa
     argv = ["train", "--run-dir", str(tmp_path / "run"), "--method", "willags-3dgs", "--data", str(scene)]
     with pytest.raises(RuntimeError, match=r"non-finite at step 2: \['gauss_params.opacities'\]"):
         long_run.main([*argv, "--steps", "8", "--milestones", "8", "--budget-s", "1e9", "--check-finite"])
+
+
+def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_path):
+    """`eval --variant` scores a milestone under other fit settings (steps, the oracle) into state.json's variants:
+    the protocol's own scores (what the record's tables are made of) are neither skipped nor replaced, and the record
+    carries the variant beside them with each photo's fit."""
+    from tests._scenes import small_scene
+
+    data = small_scene(tmp_path / "appearance", appearance=1.0, transients=0.0)
+    run = tmp_path / "run"
+    argv = ["--run-dir", str(run), "--milestones", "4"]
+    assert (
+        long_run.main(["train", *argv, "--method", "willags", "--data", str(data), "--steps", "4", "--budget-s", "1e9"])
+        == 0
+    )
+    variant = ["--variant", "oracle2", "--protocol-steps", "2", "--oracle", "--train-views", "0"]
+    assert long_run.main(["eval", *argv, *variant]) == 0
+    state = json.loads((run / long_run.STATE).read_text())
+    assert state["scores"] == {} and list(state["variants"]) == ["oracle2"]
+    assert long_run.main(["eval", *argv, "--protocol-steps", "2", "--train-views", "0"]) == 0
+    state = json.loads((run / long_run.STATE).read_text())
+    own, other = state["scores"]["4"], state["variants"]["oracle2"]["4"]
+    assert "oracle_psnr" in other and "oracle_psnr" not in own
+    assert other["protocol"] == {"steps": 2, "lr": 0.01, "oracle": True}
+    assert own["latent_spread"] >= 0.0 and all(r["fit_shift"] > 0.0 for r in own["per_image"])
+    out = tmp_path / "rec.json"
+    assert long_run.main(["record", *argv, "--tag", "t", "--out", str(out)]) == 0
+    (rec,) = json.loads(out.read_text())
+    assert rec["psnr"] == own["psnr"] and rec["milestones"]["4"]["latent_spread"] == own["latent_spread"]
+    kept = rec["protocol_variants"]["oracle2"]["4"]
+    assert kept["oracle_psnr"] == other["oracle_psnr"] and len(kept["per_image"]) == len(other["per_image"])
+    assert set(kept["per_image"][0]) == {"image", "psnr", "oracle_psnr", "encoder_psnr", "left_loss_after", "fit_shift"}

@@ -276,7 +276,8 @@ def evaluate_model(
 
     Returns (aggregate dict, per-image list). Keys: `psnr`/`ssim`/`lpips` (right half, fitted latent: the
     headline numbers), `encoder_*` (right half, encoder latent, no optimisation), `full_*` (whole image, fitted
-    latent), `left_loss_before` / `left_loss_after`, `fit_scale` (the fit's downscale k). `on_prediction(i, pred,
+    latent), `left_loss_before` / `left_loss_after`, `fit_shift` (how far the fit moved the latent: the norm of
+    fitted minus initial), `fit_scale` (the fit's downscale k). `on_prediction(i, pred,
     gt)` sees each scored render (whole image, fitted latent) and its ground truth, e.g. to save pictures.
     `progress`: a rich-style progress (``add_task`` / ``advance``, e.g. willags_ns.tools.progress.Progress) given one task
     per image, advanced at each Adam step, and one for all images (its time left is the whole protocol's).
@@ -342,6 +343,7 @@ def evaluate_model(
                 with torch.enable_grad():
                     z, hist = fit_latent(render_fit, fit_gt, z0, fit_left, cfg.steps, cfg.lr, advance)
                 rec["left_loss_before"], rec["left_loss_after"] = hist[0], hist[-1]
+                rec["fit_shift"] = float((z - z0).norm())
                 if cfg.oracle:
                     with torch.enable_grad():
                         z_o, _ = fit_latent(render_fit, fit_gt, z0, slice(None), cfg.steps, cfg.lr, advance)
