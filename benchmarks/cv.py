@@ -417,6 +417,54 @@ def cv_rows(records: Sequence[dict[str, Any]], steps: int, default: str = "willa
     return out
 
 
+def fit_rows(records: Sequence[dict[str, Any]]) -> list[str]:
+    """The table of the protocol variants (`long_run eval --variant`): per run and milestone, the protocol's own
+    right-half PSNR, each variant's, the oracle's (the fit on the whole photo), and how many photos the variant moves
+    by more than 1 dB either way: whether the protocol's fit reaches a photo's appearance or stops short of it."""
+    from benchmarks.tables import md_table
+
+    rows = []
+    for r in sorted(records, key=lambda r: (str(r.get("scene")), str(r.get("method")), r.get("seed") or 0)):
+        for name, by_step in sorted((r.get("protocol_variants") or {}).items()):
+            for step, v in sorted(by_step.items(), key=lambda kv: int(kv[0])):
+                own = (r.get("milestones") or {}).get(step) or {}
+                if "psnr" not in own or "psnr" not in v:
+                    continue
+                mine = {p["image"]: p["psnr"] for p in own.get("per_image", [])}
+                moved = [p["psnr"] - mine[p["image"]] for p in v.get("per_image", []) if p.get("image") in mine]
+                proto = v.get("protocol") or {}
+                what = f"{proto.get('steps')} steps, lr {proto.get('lr')}" + (
+                    " + oracle" if proto.get("oracle") else ""
+                )
+                rows.append(
+                    [
+                        str(r["scene"]),
+                        str(r["method"]),
+                        str(r.get("seed")),
+                        step,
+                        f"{name} ({what})",
+                        f"{own['psnr']:.2f}",
+                        f"{v['psnr']:.2f} ({v['psnr'] - own['psnr']:+.2f})",
+                        f"{v['oracle_psnr']:.2f}" if "oracle_psnr" in v else "–",
+                        f"{sum(d > 1 for d in moved)} / {sum(d < -1 for d in moved)} of {len(moved)}",
+                    ]
+                )
+    if not rows:
+        return ["No run scored under a protocol variant yet."]
+    head = [
+        "scene",
+        "method",
+        "seed",
+        "step",
+        "variant",
+        "protocol (128 steps, lr 0.01)",
+        "variant (− protocol)",
+        "oracle",
+        "photos +1 dB / −1 dB",
+    ]
+    return md_table(head, rows)
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # the command line
 

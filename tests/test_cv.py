@@ -199,3 +199,28 @@ def test_merge_puts_the_fold_runs_in_their_own_file(tmp_path, monkeypatch):
     kept = json.loads((tmp_path / "bench.json").read_text())
     folds = json.loads(cv_file.read_text())
     assert [r["scene"] for r in kept] == ["reichstag"] and [r["scene"] for r in folds] == ["scene-cv1of2"]
+
+
+def test_the_fit_table_sets_each_variant_beside_the_protocols_own_score_photo_by_photo():
+    per = [{"image": "a.jpg", "psnr": 20.0}, {"image": "b.jpg", "psnr": 18.0}, {"image": "c.jpg", "psnr": 19.0}]
+    longer = [{"image": "a.jpg", "psnr": 20.2}, {"image": "b.jpg", "psnr": 22.0}, {"image": "c.jpg", "psnr": 17.5}]
+    rec = {
+        "scene": "reichstag-cv1of4",
+        "method": "willags",
+        "seed": 43,
+        "milestones": {"15000": {"psnr": 19.0, "per_image": per}},
+        "protocol_variants": {
+            "fit512": {
+                "15000": {"protocol": {"steps": 512, "lr": 0.01, "oracle": False}, "psnr": 19.9, "per_image": longer}
+            }
+        },
+    }
+    (row,) = [
+        line for line in cv.fit_rows([rec, {"scene": "x", "method": "peer", "milestones": {}}]) if "fit512" in line
+    ]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[:5] == ["reichstag-cv1of4", "willags", "43", "15000", "fit512 (512 steps, lr 0.01)"]
+    assert cells[5:] == ["19.00", "19.90 (+0.90)", "–", "1 / 1 of 3"]
+    assert cv.fit_rows([{"scene": "x", "method": "peer", "milestones": {}}]) == [
+        "No run scored under a protocol variant yet."
+    ]
