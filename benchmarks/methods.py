@@ -83,6 +83,16 @@ METHODS: dict[str, MethodSpec] = {
         note="the default with the latent-conditioned tri-plane field on (its feature feeds the per-Gaussian residual)",
         keep=("use_field",),
     ),
+    "willags-prior": MethodSpec(
+        "willags",
+        (_AUTO, ("densification", "mcmc"), ("latent.prior_weight", 0.02)),
+        note="the default with a Gaussian prior (weight 0.02, the VAE's KL pull) on the latent table's rows",
+    ),
+    "willags-prior-low": MethodSpec(
+        "willags",
+        (_AUTO, ("densification", "mcmc"), ("latent.prior_weight", 0.002)),
+        note="the default with a tenth of willags-prior's prior on the latent table's rows (0.002)",
+    ),
     "willags-lowpen": MethodSpec(
         "willags",
         (_AUTO, ("densification", "mcmc"), ("modulation.local_penalty", 0.001)),

@@ -46,6 +46,13 @@ class LatentConfig:
     and the sky."""
     embedding_init_std: float = 0.01
     """Init std of the embedding table (kind "embedding")."""
+    prior_weight: float = 0.0
+    """Weight w of a Gaussian prior on the embedding table's rows (kind "embedding"): each step adds
+    w * 0.5 * ||z_i - mean||^2 for its photo's row z_i, the mean of all rows held fixed (appearance/latents.latent_prior).
+    Why: a row a photo's gradient moves once per epoch keeps drifting in the directions the render barely feels, so
+    the rows spread with training length; a new photo's latent is fitted from the rows' mean (the NeRF-W protocol,
+    `--appearance photo:P`), and the further the rows lie, the more of that fit's steps it takes to reach one. 0.02 is
+    the pull the beta-VAE's KL puts on its posterior mean (latent.vae.weight 0.01 x beta 2). 0: no prior."""
     vae: VAEConfig = field(default_factory=VAEConfig)
     """The beta-VAE encoder/decoder and its loss weight (kind "vae")."""
 

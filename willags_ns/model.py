@@ -433,6 +433,9 @@ class WillagsModel(SplatfactoModel):
         lat = self.step_latent(camera)
         outputs: dict = {"image_idx": lat.image_idx, "latent": lat.z, "latent_mu": lat.mu}
         outputs.update({k: v for k, v in (("latent_logvar", lat.logvar), ("vae_in", lat.vae_in)) if v is not None})
+        table = self.appearance_nets.embeddings
+        if self.config.latent.prior_weight > 0 and table is not None:  # the prior's centre (objective/regularizers.py)
+            outputs["latent_center"] = table.weight.detach().mean(0)
         teacher = self.mask_step.teacher_pass(self.step, lat.image_idx, self.teacher is not None)
         if teacher in ("fused", "second"):
             assert self.teacher is not None

@@ -238,6 +238,13 @@ class AppearanceLatents:
         return z if z is not None else chosen()
 
 
+def latent_prior(z: Tensor, center: Tensor) -> Tensor:
+    """0.5 * ||z - center||^2: the negative log-density (up to a constant) of a unit Gaussian prior around `center`
+    ([D] each; the embedding table's row of the step and the rows' mean, held fixed by the caller), whose gradient
+    z - center pulls the row towards the others (latent.prior_weight)."""
+    return 0.5 * (z - center).square().sum()
+
+
 def latent_loss(
     vae: AppearanceVAE, z: Tensor, mu: Tensor, logvar: Tensor, vae_in: Tensor, beta: float, recon_reduction: str
 ) -> tuple[Tensor, dict, Tensor]:

@@ -2,6 +2,7 @@
 
     loss = reconstruction (losses.py, masked by the transient mask)
          + latent.vae.weight * L_VAE        the beta-VAE of the step's photo        appearance/latents.py, vae.py
+         + latent.prior_weight * prior      the table row of the step's photo       appearance/latents.py
          + sky.alpha_penalty * mean alpha   where the sky alone explains the photo  appearance/sky.py
          + the colour model's penalty (the modulation's: local_penalty * mean(s^2 + o^2))  appearance/color_model.py
          + splatfacto's scale penalty (every 10th step)                              losses.py
@@ -15,7 +16,7 @@ loss terms never import the appearance networks, so the latents can use the prot
 from jaxtyping import Float
 from torch import Tensor
 
-from willags_ns.appearance.latents import latent_loss
+from willags_ns.appearance.latents import latent_loss, latent_prior
 from willags_ns.appearance.sky import background_alpha_penalty
 from willags_ns.appearance.vae import AppearanceVAE
 from willags_ns.objective.losses import scale_regularization
@@ -38,10 +39,13 @@ def regularization_terms(
     photo for the logs (or None): ``(terms, metrics, recon)``.
 
     ``cfg``: the model's config (WillagsModelConfig); ``outputs``: the step's render with its intermediates
-    (``latent``, ``latent_mu``, ``latent_logvar``, ``vae_in`` of a VAE latent, ``color_penalty``: WillagsModel's
+    (``latent``, ``latent_mu``, ``latent_logvar``, ``vae_in`` of a VAE latent, ``latent_center`` of a table with a
+    prior, ``color_penalty``: WillagsModel's
     get_outputs). In the order the trainer sums them (the order of a float sum sets its last bits):
 
     - ``vae_loss``: latent.vae.weight * L_VAE of the step's photo (training with the VAE; metrics ``vae_kl``, ``vae_recon``);
+    - ``latent_prior``: latent.prior_weight * the Gaussian prior of the step's table row around the rows' mean
+      (``latent_center``; training with an embedding table and a prior);
     - ``sky_alpha``: sky.alpha_penalty * the mean alpha over pixels the sky alone reproduces (training with a sky);
     - ``appearance_local``: the colour model's weighted penalty of the step (ColorModel.penalty: the modulation's
       local_penalty * mean(s^2 + o^2) of its per-Gaussian residual; training);
@@ -59,6 +63,8 @@ def regularization_terms(
         terms["vae_loss"] = vcfg.weight * l_vae
         metrics["vae_kl"] = parts["vae_kl"].detach()
         metrics["vae_recon"] = parts["vae_recon"].detach()
+    if training and cfg.latent.prior_weight > 0 and outputs.get("latent_center") is not None:
+        terms["latent_prior"] = cfg.latent.prior_weight * latent_prior(outputs["latent"], outputs["latent_center"])
     if training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:
         acc, bg = outputs["accumulation"], outputs["background"]
         pen_sky = background_alpha_penalty(acc, gt_img, bg, cfg.sky.alpha_tol, mask)
