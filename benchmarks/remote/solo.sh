@@ -9,7 +9,8 @@
 # A run is scene:method:steps[:seed[:budget_minutes]]: a benchmarks/methods.py method trained to `steps` with
 # splatfacto's stock schedule (the learning-rate schedules do not depend on the step count, so the 15k point of a
 # 30k run is a 15k run), scored at 1000, 2000, 5000, 10000, 15000 and 30000 up to `steps` (SOLO_MILESTONES: another
-# list; SOLO_SCORE: only these); with budget_minutes under `--pipeline.time-budget-minutes`, scored where it stopped.
+# list; SOLO_SCORE: only these; SOLO_VARIANTS: the last one also under other fit settings, see run_one); with
+# budget_minutes under `--pipeline.time-budget-minutes`, scored where it stopped.
 # The queue runs detached (setsid) from a copy of the tree in $SOLO_DIR (/tmp/solo). Scenes are copied from the folders
 # in SOLO_DATA by `start` and by every `wait`; runs whose scene is missing wait at the back of the queue (up to
 # SOLO_WAIT_S, 900 s); no run starts after SOLO_DEADLINE_S (1560 s), and no run of SOLO_LONG_STEPS steps or more
@@ -72,6 +73,15 @@ run_one() {
     # SOLO_SCORE: the milestones to score ("none", or a list; default: every timed one)
     [ -n "${SOLO_SCORE:-}" ] && [[ " $SOLO_SCORE " != *" $k "* ]] && continue
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$k" >> "$d.eval-$k.log" 2>&1 &
+  done
+  # SOLO_VARIANTS: "NAME:STEPS:LR[:oracle] ...", the run's last milestone scored again under each of these fit
+  # settings beside the protocol's own (`long_run eval --variant`; the record carries them as protocol_variants)
+  local last=${timed##* } v vname vsteps vlr vo
+  for v in ${SOLO_VARIANTS:-}; do
+    [ -n "$last" ] || break
+    IFS=: read -r vname vsteps vlr vo <<< "$v"
+    python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$last" --variant "$vname" \
+      --protocol-steps "$vsteps" --protocol-lr "$vlr" ${vo:+--oracle} --train-views 0 >> "$d.eval-$last-$vname.log" 2>&1 &
   done
   wait
   python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent "$(sharing)" --milestones all \
