@@ -31,7 +31,7 @@ import torch
 import yaml
 
 from benchmarks.child import mask_record, patch_offline, protocol_scores, sync
-from benchmarks.grid import git_commit, machine_description
+from benchmarks.grid import downscaled_scene, git_commit, machine_description
 from benchmarks.methods import METHODS, build_config, is_peer
 
 STATE = "state.json"
@@ -96,11 +96,13 @@ def _setup(
     load_step: int | None,
     test_mode: str,
     budget_minutes: float | None = None,
+    downscale: int | None = None,
 ):
     """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given). ``budget_minutes``:
     `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and fits the
     densification and mask schedules into it, and a plan under 2000 steps its learning rates; ``steps`` is then the
-    cap, as --max-num-iterations is)."""
+    cap, as --max-num-iterations is). ``downscale`` > 1: the photos `downscale` times smaller (a resampled mirror of
+    the scene, as the grid's runs use; a CPU can then train a real collection for thousands of steps)."""
     base = METHODS[method].base
     patch_offline(base)  # as the grid runs do (offline LPIPS; the peer's package on the path)
     if base == "splatfacto":
@@ -111,8 +113,10 @@ def _setup(
         import splatfactow.splatfactow_model as pm  # type: ignore[import-not-found]
 
         _patch_resume(pm.SplatfactoWModel)
+    if downscale is not None and downscale > 1:
+        data = downscaled_scene(data, downscale)
     config = build_config(
-        method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, None, "default", run_dir / "out"
+        method, steps, "cuda" if torch.cuda.is_available() else "cpu", data, downscale, "default", run_dir / "out"
     )
     config.machine.seed = seed
     if load_step is not None:  # the model its checkpoints hold, resumed from the one of load_step
@@ -173,6 +177,8 @@ def train(args) -> int:
     run_dir.mkdir(parents=True, exist_ok=True)
     state = _state(run_dir)
     state.update({"method": args.method, "data": str(args.data), "steps": args.steps, "seed": args.seed})
+    if args.downscale > 1:  # the photos resampled once into a mirror of the scene (benchmarks/grid.py)
+        state["downscale"] = args.downscale
     done = _ckpt_steps(run_dir)
     start = done[-1] if done else None
     if start is not None and start >= args.steps - 1:
@@ -184,7 +190,17 @@ def train(args) -> int:
         raise SystemExit("long_run: a time-budget run is trained in one segment (the knob plans from its first step)")
     if args.budget_minutes is not None:
         state["time_budget_minutes"] = args.budget_minutes
-    trainer = _setup(args.method, Path(args.data), run_dir, args.steps, args.seed, start, "val", args.budget_minutes)
+    trainer = _setup(
+        args.method,
+        Path(args.data),
+        run_dir,
+        args.steps,
+        args.seed,
+        start,
+        "val",
+        args.budget_minutes,
+        state.get("downscale"),
+    )
     _ = trainer.pipeline.datamanager.cached_train
     setup_s = time.perf_counter() - t_setup
     device = trainer.pipeline.model.device
@@ -270,7 +286,14 @@ def evaluate(args) -> int:
             continue
         t = time.perf_counter()
         trainer = _setup(
-            _eval_method(state), Path(state["data"]), run_dir, state["steps"], state["seed"], m - 1, "test"
+            _eval_method(state),
+            Path(state["data"]),
+            run_dir,
+            state["steps"],
+            state["seed"],
+            m - 1,
+            "test",
+            downscale=state.get("downscale"),
         )
         # (no budget at evaluation: the checkpoint holds the model the knob chose, its config.yml the preset)
         spec = {
@@ -402,6 +425,7 @@ def main(argv=None) -> int:
     t.add_argument("--concurrent", type=int, default=1, help="runs on the GPU during this segment, itself included")
     t.add_argument("--budget-minutes", type=float, help="willags' --pipeline.time-budget-minutes; --steps is the cap")
     t.add_argument("--check-finite", action="store_true", help="anomaly mode; stop at a non-finite parameter or grad")
+    t.add_argument("--downscale", type=int, default=1, help="train and score on photos this many times smaller")
     e = sub.choices["eval"]
     e.add_argument("--train-views", type=int, default=8)
     e.add_argument("--protocol-lr", type=float, default=0.01, help="Adam learning rate of the latent fit")

@@ -187,3 +187,25 @@ def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_pa
     kept = rec["protocol_variants"]["oracle2"]["4"]
     assert kept["oracle_psnr"] == other["oracle_psnr"] and len(kept["per_image"]) == len(other["per_image"])
     assert set(kept["per_image"][0]) == {"image", "psnr", "oracle_psnr", "encoder_psnr", "left_loss_after", "fit_shift"}
+
+
+def test_a_downscaled_run_trains_and_is_scored_on_the_smaller_photos(tmp_path, monkeypatch):
+    """--downscale k: the run's photos k times smaller (a resampled mirror of the scene), kept in the state so that
+    every later segment and every scoring process sees the same photos."""
+    from tests._scenes import small_scene
+
+    monkeypatch.setenv("WILLAGS_CACHE", str(tmp_path / "cache"))
+    data = small_scene(tmp_path / "appearance", appearance=1.0, transients=0.0)
+    run = tmp_path / "run"
+    argv = ["train", "--run-dir", str(run), "--method", "willags-3dgs", "--data", str(data), "--steps", "2"]
+    assert long_run.main([*argv, "--milestones", "2", "--budget-s", "1e9", "--downscale", "2"]) == 0
+    state = json.loads((run / long_run.STATE).read_text())
+    assert state["downscale"] == 2 and state["data"] == str(data)
+    full = long_run._setup("willags-3dgs", data, tmp_path / "full", 2, 42, None, "test")
+    small = long_run._setup("willags-3dgs", data, run, 2, 42, 1, "test", downscale=state["downscale"])
+    w, h = (
+        int(full.pipeline.datamanager.eval_dataset.cameras.width[0]),
+        int(full.pipeline.datamanager.eval_dataset.cameras.height[0]),
+    )
+    cams = small.pipeline.datamanager.eval_dataset.cameras
+    assert (int(cams.width[0]), int(cams.height[0])) == (w // 2, h // 2)
