@@ -99,16 +99,16 @@ def test_the_goals_are_met_or_missed_by_a_number():
     assert "**missed** (1,000 photos: training failed, exit 1)" in scale.cpu_goal(crashed)[0]
     small = {"machine": machine, "long_side": 64, "runs": started["runs"]}
     assert scale.cpu_goal(small)[0].endswith("not measured")  # not 800 px photos
-    gpu = {"machine": {"device": "cuda"}, "runs": [
+    gpu = {"machine": {"device": "cuda"}, "steps": 20, "runs": [
         _run(100, first_step_s=30.0, peak_host_gb=3.0, peak_gpu_gb=4.0, step_s_late=0.020, eval_s=20.0, eval_photos=12),
         _run(1000, first_step_s=70.0, peak_host_gb=6.0, peak_gpu_gb=9.0, step_s_late=0.021, eval_s=32.0, eval_photos=124),
         _run(2000, first_step_s=110.0, peak_host_gb=17.0, peak_gpu_gb=14.0, step_s_late=0.023, eval_s=45.0,
-             eval_photos=250),
+             eval_photos=250, gaussians=18700),
     ]}  # fmt: skip
     goals = "\n".join(scale.gpu_goals(gpu))
     assert (
-        "2,000 photos within 24 GB GPU / 16 GB host memory: **missed** (2,000 photos: GPU 14.00 GB, host 17.00 GB)"
-        in goals
+        "2,000 photos within 24 GB GPU / 16 GB host memory: **missed** at 20 steps (2,000 photos: GPU 14.00 GB, "
+        "host 17.00 GB, 18,700 Gaussians: the photos' share of memory, not a model grown to its cap)" in goals
     )
     assert "step within 10 % of the 100-photo step: **missed** (worst +15% at 2,000 photos" in goals
     assert (
