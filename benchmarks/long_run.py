@@ -101,8 +101,8 @@ def _setup(
     """A set-up nerfstudio Trainer for the run (resumed from load_step's checkpoint when given). ``budget_minutes``:
     `--pipeline.time-budget-minutes` (willags' knob: it chooses the preset and the last step, and fits the
     densification and mask schedules into it, and a plan under 2000 steps its learning rates; ``steps`` is then the
-    cap, as --max-num-iterations is). ``downscale`` > 1: the photos `downscale` times smaller (a resampled mirror of
-    the scene, as the grid's runs use; a CPU can then train a real collection for thousands of steps)."""
+    cap, as --max-num-iterations is). ``downscale`` > 1: the photos `downscale` times smaller (the resampled mirror
+    of the scene the grid's runs use)."""
     base = METHODS[method].base
     patch_offline(base)  # as the grid runs do (offline LPIPS; the peer's package on the path)
     if base == "splatfacto":
