@@ -6,8 +6,8 @@
 # - gsplat 1.4.0 JIT-compiles its CUDA code on a fresh machine (~3.5 min). With .gpu-cache/gsplat_cuda.so.gz (the
 #   .so an earlier machine of the same image built: /tmp/tex/gsplat_cuda/gsplat_cuda.so, gzipped) it loads that
 #   build instead, through benchmarks/remote/gsplat_csrc_shim.py (~6 s);
-# - writes willags' entry points (ns-train / ns-eval find the methods) and exports PYTHONPATH, MAX_JOBS and
-#   TORCH_EXTENSIONS_DIR=/tmp/tex (where a JIT build lands).
+# - writes willags' entry points (ns-train / ns-eval find the methods) and console scripts (/tmp/site/bin) and exports
+#   PATH, PYTHONPATH, MAX_JOBS and TORCH_EXTENSIONS_DIR=/tmp/tex (where a JIT build lands).
 # A copy of the tree without .git cannot name its commit: export WILLAGS_COMMIT=<git rev-parse --short HEAD> first so
 # the records name it. GPU_ENV_REUSE=1 on a machine set up earlier whose runs still go on: only the exports
 # (installing the wheels or gsplat's build again under running processes would break them).
@@ -19,7 +19,7 @@ reuse=0
   .whl-gpu/*.whl >/dev/null 2>&1 || { echo "gpu_env: wheel install failed (needs .whl-gpu/*.whl from ../shared/gpu/prepare_wheels.sh)"; return 1; }
 # MAX_JOBS: the JIT build's compile jobs (every core by default); OMP_NUM_THREADS: each training process's CPU threads
 # (runs side by side on a machine of many cores would otherwise each start a thread per core)
-export PYTHONPATH=/tmp/site:$PWD/.whl-gpu/stub:$PWD MAX_JOBS=${MAX_JOBS:-$(nproc)} PYTHONUNBUFFERED=1 \
+export PATH=/tmp/site/bin:$PATH PYTHONPATH=/tmp/site:$PWD/.whl-gpu/stub:$PWD MAX_JOBS=${MAX_JOBS:-$(nproc)} PYTHONUNBUFFERED=1 \
   TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 TORCH_EXTENSIONS_DIR=/tmp/tex OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 if [ $reuse = 1 ]; then
   [ -f /tmp/gsplat_cuda.so ] && export WILLAGS_GSPLAT_SO=/tmp/gsplat_cuda.so
@@ -40,5 +40,14 @@ info.mkdir(parents=True, exist_ok=True)
 groups = project["entry-points"]
 text = "".join(f"[{g}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) + "\n" for g, eps in groups.items())
 (info / "entry_points.txt").write_text(text)
+# and willags' console scripts (willags-inspect, willags-process, ...) beside the wheels' own (ns-train, ns-eval) in
+# /tmp/site/bin, which PATH holds: the benchmarks that start them as programs (benchmarks/scale.py) find them
+bindir = pathlib.Path("/tmp/site/bin")
+bindir.mkdir(parents=True, exist_ok=True)
+for name, target in project["scripts"].items():
+    module, func = target.split(":")
+    script = bindir / name
+    script.write_text(f"#!/usr/bin/env python3\nimport sys\nfrom {module} import {func}\nsys.exit({func}())\n")
+    script.chmod(0o755)
 PY
 [ $reuse = 1 ] || python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA module:', _C)"
