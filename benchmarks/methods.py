@@ -34,6 +34,14 @@ def is_peer(base: str) -> bool:
 
 
 _AUTO = ("auto_config", True)
+
+
+def _default_on_gpu(*overrides: tuple[str, Any], note: str, keep: tuple[str, ...] = ()) -> MethodSpec:
+    """The default as a GPU trains it (the scene inspected, MCMC's densification) with `overrides` on top: one
+    switch changed against `willags-mcmc`."""
+    return MethodSpec("willags", (_AUTO, ("densification", "mcmc"), *overrides), note=note, keep=keep)
+
+
 METHODS: dict[str, MethodSpec] = {
     # The base "willags" is the full model without inspection (base_trainer_config); the method `willags` itself
     # (ns-train willags) inspects the scene first (auto_config).
@@ -62,45 +70,31 @@ METHODS: dict[str, MethodSpec] = {
         note="the default with the transient mask on every scene, by the colour residual to the teacher",
         keep=("mask.enabled",),
     ),
-    "willags-cap150k": MethodSpec(
-        "willags",
-        (_AUTO, ("densification", "mcmc"), ("mcmc.cap_max", 150_000)),
-        note="the default, MCMC capped at 150k",
-    ),
-    "willags-cap1m": MethodSpec(
-        "willags",
-        (_AUTO, ("densification", "mcmc"), ("mcmc.cap_max", 1_000_000)),
-        note="the default, MCMC capped at 1M",
-    ),
-    "willags-capscene": MethodSpec(
-        "willags",
-        (_AUTO, ("densification", "mcmc"), ("mcmc.cap_rule", "pixels")),
+    "willags-cap150k": _default_on_gpu(("mcmc.cap_max", 150_000), note="the default, MCMC capped at 150k"),
+    "willags-cap1m": _default_on_gpu(("mcmc.cap_max", 1_000_000), note="the default, MCMC capped at 1M"),
+    "willags-capscene": _default_on_gpu(
+        ("mcmc.cap_rule", "pixels"),
         note="the default, MCMC's cap from the training photos' megapixels (splats/mcmc.scene_cap)",
     ),
-    "willags-field": MethodSpec(
-        "willags",
-        (_AUTO, ("densification", "mcmc"), ("use_field", True)),
+    "willags-field": _default_on_gpu(
+        ("use_field", True),
         note="the default with the latent-conditioned tri-plane field on (its feature feeds the per-Gaussian residual)",
         keep=("use_field",),
     ),
-    "willags-prior": MethodSpec(
-        "willags",
-        (_AUTO, ("densification", "mcmc"), ("latent.prior_weight", 0.02)),
+    "willags-prior": _default_on_gpu(
+        ("latent.prior_weight", 0.02),
         note="the default with a Gaussian prior (weight 0.02, the VAE's KL pull) on the latent table's rows",
     ),
-    "willags-prior-low": MethodSpec(
-        "willags",
-        (_AUTO, ("densification", "mcmc"), ("latent.prior_weight", 0.002)),
+    "willags-prior-low": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
         note="the default with a tenth of willags-prior's prior on the latent table's rows (0.002)",
     ),
-    "willags-lowpen": MethodSpec(
-        "willags",
-        (_AUTO, ("densification", "mcmc"), ("modulation.local_penalty", 0.001)),
+    "willags-lowpen": _default_on_gpu(
+        ("modulation.local_penalty", 0.001),
         note="the default with a tenth of the per-Gaussian residual's penalty (0.001)",
     ),
-    "willags-staticres": MethodSpec(
-        "willags",
-        (_AUTO, ("densification", "mcmc"), ("modulation.latent_proj", 0)),
+    "willags-staticres": _default_on_gpu(
+        ("modulation.latent_proj", 0),
         note="the default with a per-Gaussian residual that does not see the latent (a static colour scale and offset)",
     ),
     "willags-cap1m-mask": MethodSpec(
