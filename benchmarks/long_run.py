@@ -327,10 +327,11 @@ def evaluate(args) -> int:
     return 0
 
 
-def per_image_scores(per_image: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Each test photo's name and right-half scores, as a record keeps them: what the cross-validation
-    (benchmarks/cv.py) pairs between methods photo by photo."""
-    keys = ("image", "psnr", "ssim", "lpips")
+def per_image_scores(
+    per_image: list[dict[str, Any]], keys: tuple[str, ...] = ("image", "psnr", "ssim", "lpips")
+) -> list[dict[str, Any]]:
+    """Each test photo's `keys` (by default its name and right-half scores), as a record keeps them: what the
+    cross-validation (benchmarks/cv.py) pairs between methods photo by photo."""
     return [{k: r[k] for k in keys if k in r} for r in per_image]
 
 
@@ -346,7 +347,7 @@ def variant_scores(variants: dict[str, dict[str, Any]]) -> dict[str, dict[str, A
             m: {
                 "protocol": v.get("protocol"),
                 **{k: v[k] for k in VARIANT_KEYS if k in v},
-                "per_image": [{k: r[k] for k in ("image", *VARIANT_KEYS) if k in r} for r in v.get("per_image", [])],
+                "per_image": per_image_scores(v.get("per_image", []), ("image", *VARIANT_KEYS)),
             }
             for m, v in sorted(by_step.items(), key=lambda kv: int(kv[0]))
         }
