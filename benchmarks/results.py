@@ -364,8 +364,9 @@ def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str
         "(every photo of a fold shares its run), so the noise of one run's mean is measured on replicate pairs (the "
         "same model run twice) and added in quadrature. A difference whose interval holds 0 is no difference. "
         "Seed 42 on every fold (reichstag's default also seed 43, and its peer at 5000 steps, averaged photo by "
-        "photo), the runs of a lease side by side on its GPUs, splatfacto's stock schedule, scored at the step count named. The goal: the "
-        "default at least 1 dB above the stronger peer with the interval's lower end above +0.5 dB.",
+        "photo), the runs of a lease side by side on its GPUs, splatfacto's stock schedule, scored at the step count "
+        "named. The goal: the default at least 1 dB above the stronger peer with the interval's lower end above "
+        "+0.5 dB.",
         "",
         *cv_section([*records, *cv_records]),
         "",
