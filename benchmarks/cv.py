@@ -322,6 +322,39 @@ def paired(a: MethodCV, b: MethodCV, sigma: float | None = None) -> tuple[float,
     return mean, low, high, len(common)
 
 
+def pooled(pairs: Sequence[tuple[MethodCV, MethodCV]], sigma: float | None = None) -> tuple[float, float, float, int]:
+    """(mean, low, high, photos) of a - b over several collections at once, each `(a, b)` pair one collection and
+    every collection weighing the same (a 128-photo collection does not outvote a 14-photo one): the mean of the
+    collections' paired means, its 95 % interval from a bootstrap that resamples the photos within each collection,
+    widened in quadrature by the run noise of that mean, 1.96 sigma sqrt(sum (1/seeds_a + 1/seeds_b)) / collections.
+    """
+    if not pairs:
+        raise ValueError("cv: no collection to pool")
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    means, boots, var, photos = [], np.zeros(BOOTSTRAP_SAMPLES), 0.0, 0
+    for a, b in pairs:
+        common = sorted(set(a.per_photo) & set(b.per_photo))
+        if not common:
+            raise ValueError("cv: a pooled collection has no photo both methods scored")
+        d = np.asarray([a.per_photo[p] - b.per_photo[p] for p in common], dtype=np.float64)
+        means.append(d.mean())
+        boots += d[rng.integers(0, d.size, size=(BOOTSTRAP_SAMPLES, d.size))].mean(axis=1)
+        var += 1 / a.seeds + 1 / b.seeds
+        photos += d.size
+    n = len(pairs)
+    mean = float(np.mean(means))
+    low, high = (float(x) for x in np.percentile(boots / n, [2.5, 97.5]))
+    if sigma:
+        extra = 1.96 * sigma * float(np.sqrt(var)) / n
+        low, high = mean - float(np.hypot(mean - low, extra)), mean + float(np.hypot(high - mean, extra))
+    return mean, low, high, photos
+
+
+def verdict(low: float, high: float) -> str:
+    """What an interval of a difference says: above 0, below 0, or no change (a change inside it is none)."""
+    return "better" if low > 0 else "worse" if high < 0 else "no change"
+
+
 def _cell(cv: MethodCV | None) -> str:
     if cv is None:
         return "–"
@@ -414,6 +447,31 @@ def cv_rows(records: Sequence[dict[str, Any]], steps: int, default: str = "willa
     out = [noise, "", *md_table(head, rows)]
     if cand_rows:
         out += ["", *md_table(["scene", "method", "mean (fold means)", f"− {default} [95 % CI] (photos)"], cand_rows)]
+    pooled_rows = pooled_rows_of(by_scene, sigma, default)
+    if pooled_rows:
+        out += [
+            "",
+            f"Every collection at once (each collection weighing the same; only methods with every fold of every "
+            f"collection where {default} has them; `cv.pooled`):",
+            "",
+            *md_table(["method", "collections", "photos", f"− {default} [95 % CI]", "verdict"], pooled_rows),
+        ]
+    return out
+
+
+def pooled_rows_of(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, default: str) -> list[list[str]]:
+    """One row per method scored completely on every collection (at least two) where `default` is complete: its
+    pooled difference from the default and the verdict of that interval."""
+    scenes = [s for s, by in sorted(by_scene.items()) if default in by and by[default].complete]
+    if len(scenes) < 2:
+        return []
+    methods = sorted({m for s in scenes for m in by_scene[s]} - {default})
+    out = []
+    for m in methods:
+        if not all(m in by_scene[s] and by_scene[s][m].complete for s in scenes):
+            continue
+        mean, low, high, n = pooled([(by_scene[s][m], by_scene[s][default]) for s in scenes], sigma)
+        out.append([m, str(len(scenes)), str(n), f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]", verdict(low, high)])
     return out
 
 

@@ -224,3 +224,43 @@ def test_the_fit_table_sets_each_variant_beside_the_protocols_own_score_photo_by
     assert cv.fit_rows([{"scene": "x", "method": "peer", "milestones": {}}]) == [
         "No run scored under a protocol variant yet."
     ]
+
+
+def test_pooled_weighs_each_collection_the_same_and_says_whether_the_interval_holds_zero():
+    def method(scores: dict[str, float], seeds: int = 1) -> cv.MethodCV:
+        return cv.MethodCV(folds=1, per_photo=scores, fold_means={1: float(np.mean(list(scores.values())))}, runs=seeds)
+
+    big_a = method({f"p{i}.jpg": 21.0 + 0.1 * (i % 3) for i in range(100)})
+    big_b = method({f"p{i}.jpg": 21.0 + 0.1 * (i % 3) for i in range(100)})  # no difference on 100 photos
+    small_a, small_b = method({"x.jpg": 12.0, "y.jpg": 14.0}), method({"x.jpg": 10.0, "y.jpg": 12.0})  # +2 on 2
+    mean, low, high, photos = cv.pooled([(big_a, big_b), (small_a, small_b)])
+    assert mean == pytest.approx(1.0) and photos == 102  # (0 + 2) / 2, not (0 * 100 + 2 * 2) / 102
+    assert (low, high) == (pytest.approx(1.0), pytest.approx(1.0))  # no spread within either collection
+    mean, low, high, _ = cv.pooled([(big_a, big_b), (small_a, small_b)], sigma=0.5)
+    half = 1.96 * 0.5 * np.sqrt(2 + 2) / 2  # each collection's run noise, averaged over the two
+    assert (low, high) == (pytest.approx(1.0 - half), pytest.approx(1.0 + half))
+    assert cv.verdict(low, high) == "better"
+    assert cv.verdict(-0.3, 0.2) == "no change" and cv.verdict(-0.5, -0.1) == "worse"
+    rng = np.random.default_rng(3)
+    noisy = {f"q{i}.jpg": float(v) for i, v in enumerate(rng.normal(0, 1, 40))}
+    m, lo, hi, _ = cv.pooled([(method(noisy), method(dict.fromkeys(noisy, 0.0))), (small_a, small_b)])
+    assert lo < m < hi and m == pytest.approx((np.mean(list(noisy.values())) + 2) / 2)
+    with pytest.raises(ValueError, match="no collection"):
+        cv.pooled([])
+    with pytest.raises(ValueError, match="no photo both"):
+        cv.pooled([(small_a, method({"z.jpg": 1.0}))])
+
+
+def test_cv_rows_pool_only_the_methods_complete_on_every_collection():
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+    recs = []
+    for scene in ("one", "two"):
+        for k, p in photos.items():
+            recs.append(_fold_rec(scene, k, 2, "willags", p))
+            recs.append(_fold_rec(scene, k, 2, "willags-x", {n: v + 0.5 for n, v in p.items()}))
+            if scene == "one":  # willags-y misses a collection: not pooled
+                recs.append(_fold_rec(scene, k, 2, "willags-y", {n: v + 9.0 for n, v in p.items()}))
+    rows = cv.cv_rows(recs, 5000)
+    pooled = [r for r in rows if r.startswith("| willags-")]
+    assert pooled == ["| willags-x | 2 | 8 | +0.50 [+0.50, +0.50] | better |"]
+    assert not any("Every collection at once" in r for r in cv.cv_rows(recs[:6], 5000))  # one collection: none
