@@ -89,6 +89,18 @@ METHODS: dict[str, MethodSpec] = {
         ("latent.prior_weight", 0.002),
         note="the default with a tenth of willags-prior's prior on the latent table's rows (0.002)",
     ),
+    "willags-prior-low-mask": MethodSpec(
+        "willags",
+        (
+            _AUTO,
+            ("mask.enabled", True),
+            ("mask.distance", "residual"),
+            ("densification", "mcmc"),
+            ("latent.prior_weight", 0.002),
+        ),
+        note="willags-prior-low with the transient mask on every scene, by the colour residual to the teacher",
+        keep=("mask.enabled",),
+    ),
     "willags-lowpen": _default_on_gpu(
         ("modulation.local_penalty", 0.001),
         note="the default with a tenth of the per-Gaussian residual's penalty (0.001)",

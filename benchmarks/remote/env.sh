@@ -51,3 +51,7 @@ for name, target in project["scripts"].items():
     script.chmod(0o755)
 PY
 [ $reuse = 1 ] || python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA module:', _C)"
+# every call that starts runs says which commit its records will name (each call carries its own copy of the tree)
+if [ -z "${WILLAGS_COMMIT:-}" ] && ! git rev-parse --short HEAD >/dev/null 2>&1; then
+  echo "gpu_env: WILLAGS_COMMIT is not set and this copy has no .git: the records of runs started here name no commit"
+fi
