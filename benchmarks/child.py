@@ -127,7 +127,8 @@ def patch_offline(base: str) -> list[str]:
 
 def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     """The NeRF-W protocol on the test split of a set-up trainer (spec: protocol_steps, protocol_lr,
-    max_test_images, oracle, train_views): aggregate scores, per_image, eval_s and the train-view scores."""
+    max_test_images, oracle, start_candidates, train_views): aggregate scores, per_image, eval_s and the train-view
+    scores."""
     from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
 
     dm = trainer.pipeline.datamanager
@@ -147,6 +148,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         lr=spec["protocol_lr"],
         max_images=spec["max_test_images"],
         oracle=bool(spec.get("oracle", False)),
+        start_candidates=int(spec.get("start_candidates", 0)),
     )
     shown: list[tuple[Any, Any]] = []
     renders_dir, regions_dir = os.environ.get(RENDERS_ENV), os.environ.get(REGIONS_ENV)

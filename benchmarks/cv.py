@@ -221,9 +221,17 @@ def milestone(rec: dict[str, Any], steps: int) -> dict[str, Any] | None:
     return rec if int(rec.get("steps", -1)) == steps and rec.get("per_image") else None
 
 
-def collect(records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None):
+def variant_milestone(rec: dict[str, Any], steps: int, variant: str) -> dict[str, Any] | None:
+    """A record's scores at `steps` under the protocol variant `variant` (`long_run eval --variant`), if scored."""
+    return ((rec.get("protocol_variants") or {}).get(variant) or {}).get(str(steps))
+
+
+def collect(
+    records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None, variant: str | None = None
+):
     """{scene: {method: MethodCV}} from the fold runs scored at `steps` (records with per-photo scores; `tags`: only
-    records whose tag starts with one of these)."""
+    records whose tag starts with one of these; `variant`: their scores under that protocol variant instead of the
+    protocol's own)."""
     from benchmarks.methods import configuration
 
     photos: dict[tuple[str, int, str], dict[int, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(dict))
@@ -234,7 +242,7 @@ def collect(records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] |
             continue
         if tags is not None and not any(str(rec.get("tag") or "").startswith(t) for t in tags):
             continue
-        ms = milestone(rec, steps)
+        ms = milestone(rec, steps) if variant is None else variant_milestone(rec, steps, variant)
         if ms is None or not ms.get("per_image"):
             continue
         scene, k, folds = fold
@@ -394,12 +402,37 @@ def stronger_peer(by_method: dict[str, MethodCV]) -> str | None:
     return max(complete or peers, key=lambda m: by_method[m].mean) if peers else None
 
 
-def cv_rows(records: Sequence[dict[str, Any]], steps: int, default: str = "willags", tags=None) -> list[str]:
+def compared_variants(records: Sequence[dict[str, Any]], steps: int, default: str = "willags") -> list[str]:
+    """The protocol variants under which, on some collection, both the default and a peer have every fold scored at
+    `steps`: the ones a table can compare the methods under."""
+    names = sorted(
+        {
+            name
+            for r in records
+            if parse_fold(str(r.get("scene", ""))) is not None
+            for name in (r.get("protocol_variants") or {})
+        }
+    )
+    out = []
+    for name in names:
+        for by_method in collect(records, steps, variant=name).values():
+            peer = stronger_peer(by_method)
+            if default in by_method and by_method[default].complete and peer and by_method[peer].complete:
+                out.append(name)
+                break
+    return out
+
+
+def cv_rows(
+    records: Sequence[dict[str, Any]], steps: int, default: str = "willags", tags=None, variant: str | None = None
+) -> list[str]:
     """The markdown tables of the cross-validated section: per collection the photos, each method's mean (fold
-    means), the default against the stronger peer, then every other method against the default."""
+    means), the default against the stronger peer, then every other method against the default, and every method
+    against the default over every collection at once. `variant`: each run's scores under that protocol variant
+    (the run noise still the protocol's own)."""
     from benchmarks.tables import md_table
 
-    by_scene = collect(records, steps, tags)
+    by_scene = collect(records, steps, tags, variant)
     if not by_scene:
         return [f"No cross-validated run scored at {steps} steps yet."]
     sigma, pairs = run_noise(records, steps)
@@ -491,8 +524,10 @@ def fit_rows(records: Sequence[dict[str, Any]]) -> list[str]:
                 mine = {p["image"]: p["psnr"] for p in own.get("per_image", [])}
                 moved = [p["psnr"] - mine[p["image"]] for p in v.get("per_image", []) if p.get("image") in mine]
                 proto = v.get("protocol") or {}
-                what = f"{proto.get('steps')} steps, lr {proto.get('lr')}" + (
-                    " + oracle" if proto.get("oracle") else ""
+                what = (
+                    f"{proto.get('steps')} steps, lr {proto.get('lr')}"
+                    + (f", best of {proto['start_candidates']} + 1 starts" if proto.get("start_candidates") else "")
+                    + (" + oracle" if proto.get("oracle") else "")
                 )
                 rows.append(
                     [

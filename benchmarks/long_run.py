@@ -305,6 +305,7 @@ def evaluate(args) -> int:
             "protocol_steps": args.protocol_steps,
             "protocol_lr": args.protocol_lr,
             "oracle": args.oracle,
+            "start_candidates": args.protocol_start_candidates,
             "max_test_images": -1,
             "train_views": args.train_views,
         }
@@ -314,7 +315,12 @@ def evaluate(args) -> int:
             rec.update(mask_record(trainer.pipeline.model, trainer.pipeline.datamanager.train_dataset))
         rec["eval_wall_s"] = time.perf_counter() - t
         if variant:
-            rec["protocol"] = {"steps": args.protocol_steps, "lr": args.protocol_lr, "oracle": args.oracle}
+            rec["protocol"] = {
+                "steps": args.protocol_steps,
+                "lr": args.protocol_lr,
+                "oracle": args.oracle,
+                "start_candidates": args.protocol_start_candidates,
+            }
         _save_score(run_dir, str(m), rec, variant)
         print(
             f"long_run: {state['method']} @ {m}{' (' + variant + ')' if variant else ''}: psnr {rec.get('psnr', float('nan')):.2f} "
@@ -335,7 +341,7 @@ def per_image_scores(
     return [{k: r[k] for k in keys if k in r} for r in per_image]
 
 
-VARIANT_KEYS = ("psnr", "oracle_psnr", "encoder_psnr", "left_loss_after", "fit_shift")
+VARIANT_KEYS = ("psnr", "oracle_psnr", "encoder_psnr", "left_loss_after", "fit_shift", "start_pick")
 """What a record keeps of a protocol variant's scores, over all test photos and per photo."""
 
 
@@ -432,10 +438,16 @@ def main(argv=None) -> int:
     e.add_argument("--protocol-lr", type=float, default=0.01, help="Adam learning rate of the latent fit")
     e.add_argument("--oracle", action="store_true", help="also fit the latent on the whole test image (oracle_*)")
     e.add_argument(
+        "--protocol-start-candidates",
+        type=int,
+        default=0,
+        help="training latents also tried as the fit's start (EvalProtocolConfig.start_candidates; 0: the mean alone)",
+    )
+    e.add_argument(
         "--variant",
         default="",
         help="score under these protocol settings apart: state.json's variants[NAME], never the record's scores "
-        "(how the scores depend on the fit: more steps, another learning rate, the oracle)",
+        "(how the scores depend on the fit: more steps, another learning rate, the oracle, the start)",
     )
     r = sub.choices["record"]
     r.add_argument("--tag", required=True)

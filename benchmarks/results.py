@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.curves import scene_points, step_curve, step_time
-from benchmarks.cv import cv_rows, fit_rows, parse_fold
+from benchmarks.cv import compared_variants, cv_rows, fit_rows, parse_fold
 from benchmarks.methods import METHODS, configuration
 from benchmarks.records import CV_RECORDS, RECORDS, REPO, load_records
 from benchmarks.regions import REGIONS
@@ -473,6 +473,14 @@ def cv_section(records: list[dict[str, Any]]) -> list[str]:
     out: list[str] = []
     for n in steps:
         out += [f"**{n} steps.**", "", *cv_rows(records, n), ""]
+        for name in compared_variants(records, n):
+            out += [
+                f"**{n} steps, every run scored again under the protocol variant `{name}`** (its settings: the table "
+                "below, \"Does the protocol's fit reach each photo's appearance?\"; the peers' runs alike).",
+                "",
+                *cv_rows(records, n, variant=name),
+                "",
+            ]
     return out[:-1]
 
 

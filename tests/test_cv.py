@@ -224,6 +224,10 @@ def test_the_fit_table_sets_each_variant_beside_the_protocols_own_score_photo_by
     assert cv.fit_rows([{"scene": "x", "method": "peer", "milestones": {}}]) == [
         "No run scored under a protocol variant yet."
     ]
+    start = {"protocol": {"steps": 128, "lr": 0.01, "oracle": False, "start_candidates": 16}, "psnr": 19.5}
+    rec["protocol_variants"] = {"start16": {"15000": {**start, "per_image": longer}}}
+    (row,) = [line for line in cv.fit_rows([rec]) if "start16" in line]
+    assert "start16 (128 steps, lr 0.01, best of 16 + 1 starts)" in row
 
 
 def test_pooled_weighs_each_collection_the_same_and_says_whether_the_interval_holds_zero():
@@ -264,3 +268,24 @@ def test_cv_rows_pool_only_the_methods_complete_on_every_collection():
     pooled = [r for r in rows if r.startswith("| willags-")]
     assert pooled == ["| willags-x | 2 | 8 | +0.50 [+0.50, +0.50] | better |"]
     assert not any("Every collection at once" in r for r in cv.cv_rows(recs[:6], 5000))  # one collection: none
+
+
+def test_a_protocol_variant_gets_its_own_tables_once_the_default_and_a_peer_are_scored_under_it():
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+    recs = []
+    for k, p in photos.items():
+        for method, shift, under in (("willags", 0.0, 2.0), ("peer", -1.0, 0.5)):
+            rec = _fold_rec("hall", k, 2, method, {n: v + shift for n, v in p.items()})
+            per = [{"image": n, "psnr": v + shift + under} for n, v in p.items()]
+            rec["protocol_variants"] = {"start16": {"5000": {"psnr": 0.0, "per_image": per}}}
+            if method == "peer" and k == 2:
+                rec["protocol_variants"]["half"] = rec["protocol_variants"]["start16"]  # one fold: no table
+            recs.append(rec)
+    assert cv.compared_variants(recs, 5000) == ["start16"]
+    assert cv.compared_variants(recs, 15000) == []
+    by = cv.collect(recs, 5000, variant="start16")["hall"]
+    assert by["willags"].mean == pytest.approx(23.0) and by["peer"].mean == pytest.approx(20.5)
+    (row,) = [r for r in cv.cv_rows(recs, 5000, variant="start16") if r.startswith("| hall |")]
+    assert "peer: +2.50 [+2.50, +2.50] (n=4)" in row  # under the variant: +1 + (2.0 - 0.5)
+    (row,) = [r for r in cv.cv_rows(recs, 5000) if r.startswith("| hall |")]
+    assert "peer: +1.00 [+1.00, +1.00] (n=4)" in row  # the protocol's own scores untouched

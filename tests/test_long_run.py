@@ -170,7 +170,8 @@ def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_pa
         long_run.main(["train", *argv, "--method", "willags", "--data", str(data), "--steps", "4", "--budget-s", "1e9"])
         == 0
     )
-    variant = ["--variant", "oracle2", "--protocol-steps", "2", "--oracle", "--train-views", "0"]
+    variant = ["--variant", "oracle2", "--protocol-steps", "2", "--oracle", "--protocol-start-candidates", "3"]
+    variant += ["--train-views", "0"]
     assert long_run.main(["eval", *argv, *variant]) == 0
     state = json.loads((run / long_run.STATE).read_text())
     assert state["scores"] == {} and list(state["variants"]) == ["oracle2"]
@@ -178,7 +179,8 @@ def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_pa
     state = json.loads((run / long_run.STATE).read_text())
     own, other = state["scores"]["4"], state["variants"]["oracle2"]["4"]
     assert "oracle_psnr" in other and "oracle_psnr" not in own
-    assert other["protocol"] == {"steps": 2, "lr": 0.01, "oracle": True}
+    assert other["protocol"] == {"steps": 2, "lr": 0.01, "oracle": True, "start_candidates": 3}
+    assert all(0 <= r["start_pick"] <= 3 for r in other["per_image"]) and "start_pick" not in own
     assert own["latent_spread"] >= 0.0 and all(r["fit_shift"] > 0.0 for r in own["per_image"])
     out = tmp_path / "rec.json"
     assert long_run.main(["record", *argv, "--tag", "t", "--out", str(out)]) == 0
@@ -186,7 +188,15 @@ def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_pa
     assert rec["psnr"] == own["psnr"] and rec["milestones"]["4"]["latent_spread"] == own["latent_spread"]
     kept = rec["protocol_variants"]["oracle2"]["4"]
     assert kept["oracle_psnr"] == other["oracle_psnr"] and len(kept["per_image"]) == len(other["per_image"])
-    assert set(kept["per_image"][0]) == {"image", "psnr", "oracle_psnr", "encoder_psnr", "left_loss_after", "fit_shift"}
+    assert set(kept["per_image"][0]) == {
+        "image",
+        "psnr",
+        "oracle_psnr",
+        "encoder_psnr",
+        "left_loss_after",
+        "fit_shift",
+        "start_pick",
+    }
 
 
 def test_a_downscaled_run_trains_and_is_scored_on_the_smaller_photos(tmp_path, monkeypatch):

@@ -268,3 +268,59 @@ def test_a_uint8_test_image_scores_as_the_training_loss_sees_it():
     from_float, _ = evaluate_model(model, cam, [gt8.float() / 255.0], cfg)
     assert from_uint8 == from_float
     assert train_view_scores(model, cam, [gt8]) == train_view_scores(model, cam, [gt8.float() / 255.0])
+
+
+# ---------------------------------------------------------------- the fit's start among the training latents
+
+
+def test_spread_picks_start_with_the_usual_start_then_take_the_farthest_rows_first():
+    from willags_ns.eval.protocol import spread_picks
+
+    table = torch.tensor([[0.0, 0.0], [1.0, 0.0], [10.0, 0.0], [10.1, 0.0]])
+    first = torch.zeros(2)
+    assert torch.equal(spread_picks(table, first, 0), first[None])
+    two = spread_picks(table, first, 2)
+    assert torch.equal(two, torch.stack([first, table[3], table[1]]))  # the far end, then the row farthest from both
+    every = spread_picks(table, first, 10)
+    assert every.shape == (5, 2) and sorted(every[1:, 0].tolist()) == sorted(table[:, 0].tolist())
+    assert torch.equal(spread_picks(table[:0], first, 3), first[None])  # no training latent: the usual start alone
+
+
+def test_best_start_picks_the_candidate_the_left_half_prefers_and_keeps_the_usual_start_on_ties():
+    from willags_ns.eval.protocol import best_start
+
+    H, W = 16, 24
+    left, right = split_halves(W)
+
+    def render(z):
+        return torch.sigmoid(z).view(1, 1, 3).expand(H, W, 3)
+
+    cands = torch.tensor([[0.0, 0.0, 0.0], [-2.0, 0.0, 2.0], [2.0, 2.0, 2.0]])
+    gt = torch.empty(H, W, 3)
+    gt[:, left] = torch.sigmoid(cands[1])
+    gt[:, right] = torch.sigmoid(cands[2])  # the right half would prefer another: it is never seen
+    z, i, losses = best_start(render, gt, left, cands)
+    assert i == 1 and torch.equal(z, cands[1]) and len(losses) == 3 and losses[1] == min(losses)
+    _, i, _ = best_start(render, gt, left, torch.stack([cands[1], cands[1]]))
+    assert i == 0
+
+
+def test_protocol_starts_a_far_photo_from_the_training_latent_its_left_half_matches():
+    model = _tiny_model(use_vae=False)
+    cam = _camera()
+    model.eval()
+    table = model.appearance_nets.embeddings.weight
+    z_far = 3.0 * torch.randn(8, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        table[0] = z_far  # a training photo of the far appearance ...
+        table[1] = -z_far  # ... and one of the opposite: their mean, the usual start, is neither
+    gt = _render_under(model, cam, z_far)
+    plain, _ = evaluate_model(model, cam, [gt], EvalProtocolConfig(steps=3, lr=0.01))
+    before = _state(model)
+    agg, per_image = evaluate_model(model, cam, [gt], EvalProtocolConfig(steps=3, lr=0.01, start_candidates=2))
+    assert per_image[0]["start_pick"] == 1  # the far row (the first picked: both rows are as far from the mean)
+    assert agg["psnr"] > plain["psnr"] + 3  # three small steps from the right start beat three from the mean
+    assert agg["left_loss_before"] < plain["left_loss_before"]
+    for k, v in before.items():
+        assert torch.equal(v, model.state_dict()[k]), k
+    assert "start_pick" not in plain

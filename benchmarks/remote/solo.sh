@@ -74,14 +74,22 @@ run_one() {
     [ -n "${SOLO_SCORE:-}" ] && [[ " $SOLO_SCORE " != *" $k "* ]] && continue
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$k" >> "$d.eval-$k.log" 2>&1 &
   done
-  # SOLO_VARIANTS: "NAME:STEPS:LR[:oracle] ...", the run's last milestone scored again under each of these fit
-  # settings beside the protocol's own (`long_run eval --variant`; the record carries them as protocol_variants)
-  local last=${timed##* } v vname vsteps vlr vo
+  # SOLO_VARIANTS: "NAME:STEPS:LR[:oracle][:startK] ...", the run's last milestone scored again under each of these
+  # fit settings beside the protocol's own (`long_run eval --variant`; the record carries them as protocol_variants);
+  # startK: the fit starts from the best of the usual start and K training latents (--protocol-start-candidates K)
+  local last=${timed##* } v vname vsteps vlr vflags f extra
   for v in ${SOLO_VARIANTS:-}; do
     [ -n "$last" ] || break
-    IFS=: read -r vname vsteps vlr vo <<< "$v"
+    IFS=: read -r vname vsteps vlr vflags <<< "$v"
+    extra=()
+    for f in ${vflags//:/ }; do
+      case $f in
+        oracle) extra+=(--oracle) ;;
+        start*) extra+=(--protocol-start-candidates "${f#start}") ;;
+      esac
+    done
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$last" --variant "$vname" \
-      --protocol-steps "$vsteps" --protocol-lr "$vlr" ${vo:+--oracle} --train-views 0 >> "$d.eval-$last-$vname.log" 2>&1 &
+      --protocol-steps "$vsteps" --protocol-lr "$vlr" ${extra[@]+"${extra[@]}"} --train-views 0 >> "$d.eval-$last-$vname.log" 2>&1 &
   done
   wait
   python3 -m benchmarks.long_run record --run-dir "$d" --tag "$tag" --concurrent "$(sharing)" --milestones all \

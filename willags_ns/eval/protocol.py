@@ -5,7 +5,9 @@ A test image's appearance (exposure, weather, camera) is unknown to the model, s
 
 1. freeze the scene (every Gaussian parameter and network weight);
 2. initialise the latent from the VAE encoder's mean of the left half (models without a VAE: the mean training
-   embedding), then optimise only the latent with Adam on the left half (0.8 L1 + 0.2 D-SSIM, the training loss);
+   embedding; with `start_candidates` K: whichever of it and K training latents spread over the table renders the
+   left half with the lowest loss), then optimise only the latent with Adam on the left half (0.8 L1 + 0.2 D-SSIM,
+   the training loss);
 3. score the right half: PSNR, SSIM, and LPIPS when its weights can be loaded (else reported as unavailable).
 
 Also reported, so each number's meaning is visible: the encoder latent without optimisation (right half) and
@@ -42,6 +44,13 @@ class EvalProtocolConfig:
     oracle: bool = False
     """Also fit the latent on the *whole* test image and score its right half (`oracle_*`): the gap to the
     headline number is what inferring the appearance from half an image costs (a diagnosis, not the protocol)."""
+    start_candidates: int = 0
+    """Training latents also tried as the fit's start (0 = the encoder's or the mean latent alone). K > 0: K of the
+    training images' latents, picked spread over the table (farthest first from the usual start: `spread_picks`),
+    each rendered once at the fit's resolution; the fit starts from whichever, the usual start included, has the
+    lowest loss on the left half (`best_start`: only the left half is seen, as the fit sees it). A photo whose
+    appearance lies far from the training mean (night, a storm) then starts near the training photo most like it
+    instead of 128 Adam steps away; the cost is K renders without gradients per test photo."""
     fit_max_side: int = 0
     """Longest side (px) of the image the latent is fitted on (the right half is always scored at full resolution):
     0 = full resolution; N > 0 = downscaled by the smallest integer that brings it to N px or less; -1 = automatic,
@@ -188,6 +197,38 @@ def fit_latent(
     return z.detach(), history
 
 
+def spread_picks(latents: Tensor, first: Tensor, k: int) -> Tensor:
+    """[1 + min(k, N), D]: `first` [D], then `k` rows of `latents` [N, D] picked farthest-first (each the row
+    farthest from every pick so far; ties to the lower index): candidates that cover the table's spread, the far
+    appearances first. All N rows (in that order) when k >= N."""
+    picks = [first.detach()]
+    if k <= 0 or latents.shape[0] == 0:
+        return picks[0][None]
+    lat = latents.detach().to(first.device, first.dtype)
+    dist = (lat - picks[0]).norm(dim=1)
+    taken = torch.zeros(lat.shape[0], dtype=torch.bool, device=lat.device)
+    for _ in range(min(k, lat.shape[0])):
+        i = int(torch.where(taken, torch.full_like(dist, -1.0), dist).argmax())
+        taken[i] = True
+        picks.append(lat[i])
+        dist = torch.minimum(dist, (lat - lat[i]).norm(dim=1))
+    return torch.stack(picks)
+
+
+@torch.no_grad()
+def best_start(
+    render_fn: Callable[[Tensor], Tensor], gt: Tensor, cols: slice, candidates: Tensor
+) -> tuple[Tensor, int, list[float]]:
+    """(z, index, losses): of the `candidates` [M, D], the one whose render matches `gt` on the columns `cols` best
+    (the fit's own loss), its index (0: the first, the usual start, also on ties) and every candidate's loss."""
+    target = gt[:, cols].permute(2, 0, 1)[None]
+    losses = [
+        float(reconstruction_loss(render_fn(z)[:, cols].permute(2, 0, 1)[None], target, None)) for z in candidates
+    ]
+    best = min(range(len(losses)), key=lambda i: (losses[i], i))
+    return candidates[best].clone(), best, losses
+
+
 class frozen:
     """Context manager: parameters of `module` get requires_grad=False inside, restored on exit."""
 
@@ -277,7 +318,8 @@ def evaluate_model(
     Returns (aggregate dict, per-image list). Keys: `psnr`/`ssim`/`lpips` (right half, fitted latent: the
     headline numbers), `encoder_*` (right half, encoder latent, no optimisation), `full_*` (whole image, fitted
     latent), `left_loss_before` / `left_loss_after`, `fit_shift` (how far the fit moved the latent: the norm of
-    fitted minus initial), `fit_scale` (the fit's downscale k). `on_prediction(i, pred,
+    fitted minus initial), `fit_scale` (the fit's downscale k), `start_pick` (with `start_candidates`: which
+    candidate the fit started from, 0 the usual start). `on_prediction(i, pred,
     gt)` sees each scored render (whole image, fitted latent) and its ground truth, e.g. to save pictures.
     `progress`: a rich-style progress (``add_task`` / ``advance``, e.g. willags_ns.tools.progress.Progress) given one task
     per image, advanced at each Adam step, and one for all images (its time left is the whole protocol's).
@@ -338,6 +380,11 @@ def evaluate_model(
                 with torch.no_grad():
                     enc = render_fn(z0)
                 rec.update({f"encoder_{k}": v for k, v in image_scores(enc[:, right], gt[:, right], lpips_fn).items()})
+                if cfg.start_candidates > 0 and hasattr(model, "image_latents"):
+                    lat, known = model.image_latents()
+                    cands = spread_picks(lat[known], z0, cfg.start_candidates)
+                    z0, picked, _ = best_start(render_fit, fit_gt, fit_left, cands)
+                    rec["start_pick"] = float(picked)
                 if fitting:
                     start()
                 with torch.enable_grad():
