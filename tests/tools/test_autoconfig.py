@@ -315,9 +315,12 @@ def test_the_pixels_rule_sets_mcmcs_cap_from_the_training_photos_unless_the_user
     cfg = willags_model_config()
     assert cfg.mcmc.cap_rule == "fixed"
     fixed = apply_auto_config(cfg, scenes["appearance"])
-    assert cfg.mcmc.cap_max == McmcConfig().cap_max and "capacity" not in fixed["reasons"]  # the default: as set
+    assert cfg.mcmc.cap_max == McmcConfig().cap_max  # the default: as set, and said why, with the other rule's cap
     mpx = fixed["report"]["facts"]["train_megapixels"]
     assert mpx == pytest.approx(20 * 96 * 72 / 1e6, abs=0.01)  # 20 training photos of 96 x 72 px
+    assert fixed["reasons"]["capacity"].startswith(f"at most {McmcConfig().cap_max:,} Gaussians (rule fixed")
+    assert f"cap-rule pixels would allow {scene_cap(mpx, cfg.mcmc)[0]:,} for these" in fixed["reasons"]["capacity"]
+    assert "capacity (MCMC's cap, rule fixed; where MCMC densifies" in format_summary(fixed)
 
     ruled = willags_model_config()
     ruled.mcmc.cap_rule = "pixels"
@@ -326,7 +329,7 @@ def test_the_pixels_rule_sets_mcmcs_cap_from_the_training_photos_unless_the_user
     want, _ = scene_cap(mpx, ruled.mcmc)
     assert ruled.mcmc.cap_max == want == round(12_500 * mpx / 1000) * 1000
     assert s["settings"]["mcmc.cap_max"] == want and "Mpx of training photos" in s["reasons"]["capacity"]
-    assert "capacity (MCMC's cap, rule pixels)" in format_summary(s)
+    assert "capacity (MCMC's cap, rule pixels; " in format_summary(s)
 
     mine = willags_model_config()
     mine.mcmc.cap_rule, mine.mcmc.cap_max = "pixels", 123_000

@@ -502,3 +502,14 @@ def test_the_estimate_counts_the_photos_at_the_size_training_reads_them(scenes, 
     half = insp.inspect_scene(InspectConfig(data=scenes[(True, True)], downscale_factor=2))["facts"]["estimate"]
     assert (full["downscale_factor"], half["downscale_factor"]) == (1, 2)  # the synthetic photos are small
     np.testing.assert_allclose(seen[1], seen[0] / 2)
+
+
+def test_the_report_says_how_many_gaussians_the_method_trains_and_what_the_other_rule_would_allow(plane_reports):
+    from willags_ns.splats.mcmc import McmcConfig, scene_cap
+
+    report = plane_reports[True]
+    mpx = report["facts"]["train_megapixels"]
+    (line,) = [ln for ln in format_report(report).splitlines() if ln.startswith("  capacity: ")]
+    assert f"MCMC grows to at most {McmcConfig().cap_max:,} Gaussians (rule fixed" in line
+    assert f"cap-rule pixels would allow {scene_cap(mpx, McmcConfig())[0]:,} for these {mpx:.1f} Mpx" in line
+    assert "on a CPU splatfacto's densification" in line

@@ -94,6 +94,24 @@ def scene_cap(train_megapixels: float, cfg: McmcConfig) -> tuple[int, str]:
     return cap, reason
 
 
+def cap_and_reason(cfg: McmcConfig, train_megapixels: float | None) -> tuple[int, str]:
+    """(cap, reason): MCMC's cap for training photos of `train_megapixels` in all (None: not measured) under
+    `cfg.cap_rule`, and why: the "pixels" rule's (`scene_cap`), or `cap_max` as set, with what the "pixels" rule
+    would allow beside it (what a user weighs when choosing the rule)."""
+    if cfg.cap_rule == "pixels" and train_megapixels is not None:
+        return scene_cap(train_megapixels, cfg)
+    if cfg.cap_rule == "pixels":
+        return cfg.cap_max, f"at most {cfg.cap_max:,} Gaussians (rule pixels, but no megapixels measured: as set)"
+    reason = (
+        f"at most {cfg.cap_max:,} Gaussians (rule fixed, as set: over five cross-validated collections a cap from "
+        "the photos' pixels scored no better, docs/design.md)"
+    )
+    if train_megapixels is not None:
+        alt, _ = scene_cap(train_megapixels, cfg)
+        reason += f"; --pipeline.model.mcmc.cap-rule pixels would allow {alt:,} for these {train_megapixels:.1f} Mpx"
+    return cfg.cap_max, reason
+
+
 def relocation(opacities: Tensor, scales: Tensor, ratios: Tensor, n_max: int = N_MAX) -> tuple[Tensor, Tensor]:
     """Opacity [M] and scales [M, 3] of each of the `ratios` [M] copies that replace a Gaussian of opacity
     `opacities` [M] and scales `scales` [M, 3] (the paper's Eq. 9):

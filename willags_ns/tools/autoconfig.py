@@ -32,7 +32,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from willags_ns.splats.mcmc import scene_cap
+from willags_ns.splats.mcmc import cap_and_reason, scene_cap
 from willags_ns.tools.inspection import InspectConfig, InspectError, inspect_scene, sky_settings
 
 AUTO_CONFIG_FILE = "auto_config.json"
@@ -165,8 +165,11 @@ def apply_auto_config(
         k: rec[k]["reason"] for k in ("appearance_latent", "mask", "teacher", "triplane_field", "sky", "latent_dim")
     }
     reasons["preset"] = rec["preset"]["reason"]
+    mcmc = getattr(model_config, "mcmc", None)
     if capacity is not None:
         reasons["capacity"] = capacity[1] + ("" if "mcmc.cap_max" in overrides else "; kept as you set it")
+    elif mcmc is not None:  # the cap as set, and what the pixels rule would allow: the inspector says both
+        reasons["capacity"] = cap_and_reason(mcmc, report["facts"].get("train_megapixels"))[1]
     switches = {k: bool(rec[k]["on"]) for k in ("appearance_latent", "mask", "teacher", "triplane_field")}
     # the user's switches stand: report the components as the model will build them
     mine = {
@@ -198,6 +201,7 @@ def apply_auto_config(
         # none); beside "switches", whose four keys earlier auto_config.json files and their readers rely on
         "sky": model_config.appearance == "willags" and bool(model_config.sky.enabled),
         "command": rec["command"],
+        "capacity_rule": None if mcmc is None else mcmc.cap_rule,
         "report": report,
     }
 
@@ -219,7 +223,9 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f"  {k}: {'ON' if v else 'off'} - {summary['reasons'][k]}")
     lines.append(f"  latent_dim: {summary['reasons']['latent_dim']}")
     if "capacity" in summary["reasons"]:
-        lines.append(f"  capacity (MCMC's cap, rule pixels): {summary['reasons']['capacity']}")
+        rule = summary.get("capacity_rule") or "pixels"
+        where = "where MCMC densifies: on a GPU unless --pipeline.model.densification says otherwise"
+        lines.append(f"  capacity (MCMC's cap, rule {rule}; {where}): {summary['reasons']['capacity']}")
     if summary.get("kept"):
         lines.append("  kept (your flags win): " + ", ".join(f"{k}={v}" for k, v in summary["kept"].items()))
     if summary["changes"]:

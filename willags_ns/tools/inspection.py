@@ -958,6 +958,18 @@ def inspect_scene(cfg: InspectConfig) -> dict[str, Any]:
     return report
 
 
+def capacity_line(train_megapixels: float | None) -> str:
+    """How many Gaussians the willags method trains for these photos, and why: MCMC's cap on a GPU
+    (splats/mcmc.cap_and_reason, the method's own McmcConfig), splatfacto's densification on a CPU."""
+    from willags_ns.splats.mcmc import McmcConfig, cap_and_reason
+
+    _, reason = cap_and_reason(McmcConfig(), train_megapixels)
+    return (
+        f"on a GPU MCMC grows to {reason}; on a CPU splatfacto's densification grows by the gradients "
+        "(short runs: MCMC's growth of 5 % a refinement leaves them too few, docs/design.md)"
+    )
+
+
 def format_report(report: dict[str, Any]) -> str:
     """The human-readable summary the CLI prints."""
     f, e, r = report["facts"], report["evidence"], report["recommendation"]
@@ -986,6 +998,7 @@ def format_report(report: dict[str, Any]) -> str:
         mode = f" {r[key]['mode']}" if key == "sky" and r[key]["on"] else ""
         lines.append(f"  {key}: {'ON ' if r[key]['on'] else 'off'}{mode}  ({r[key]['reason']})")
     lines.append(f"  latent_dim: {r['latent_dim']['value']}  ({r['latent_dim']['reason']})")
+    lines.append(f"  capacity: {capacity_line(f.get('train_megapixels'))}")
     lines.append(f"  preset: {r['preset']['value']}  ({r['preset']['reason']})")
     lines.append(f"  command: {r['command']}")
     return "\n".join(lines)
