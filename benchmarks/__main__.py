@@ -8,6 +8,7 @@
     python -m benchmarks multi-gpu run --data .gpu-cv1/reichstag --out $OUT --runs 4,1,2,4:budget1 --gpus 0,1,2,3
     python -m benchmarks collections build lund --out /scenes/lund   # a real photo collection -> a scene
     python -m benchmarks scale run --source ../shared/data/reichstag --photos 100 300 1000 --work /tmp/scale
+    python -m benchmarks placement --truth SRC/colmap/sparse/0 --model SCENE/colmap/sparse/0
 
 Each verb runs one module's ``main`` with the rest of the command line; the GPU machine's side is
 benchmarks/remote/ (its README).
@@ -37,6 +38,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "cv": ("cv", "cross-validation: every photo a test photo once (fold folders, GPU queues, tables with intervals)"),
     "scale": ("scale", "Photo-Tourism scale: start-up, memory, steps, ns-eval per photo count; docs/scale.md"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
+    "placement": ("placement", "an SfM model's cameras against the true poses: registered, placed, errors"),
     "collections": ("collections", "real photo collections: list them, or rebuild one from its public source"),
 }
 """verb -> (module under benchmarks/ whose ``main`` it runs, what it does)."""

@@ -225,10 +225,16 @@ def make_collection(source: Source, photos: int, dst: Path, long_side: int = LON
     return dst
 
 
-def synthetic_source(dst: Path, views: int = 40, long_side: int = LONG_SIDE, points: int = 8000) -> Path:
+def synthetic_source(
+    dst: Path, views: int = 40, long_side: int = LONG_SIDE, points: int = 8000, unique_texture: float = 0.8
+) -> Path:
     """The built-in synthetic scene (willags_ns/data/synthetic.py: appearance changes and transients) written as a
     COLMAP source of ``views`` photos (every 8th a test photo) at ``long_side`` x 3/4 px: JPEG photos, one pinhole
-    camera each, its seed points as the 3D points, each observed where it projects into a photo."""
+    camera each, its seed points as the 3D points, each observed where it projects into a photo.
+
+    ``unique_texture`` (the scene config's field) overlays a non-repeating pattern on every surface, so that SfM run on
+    these photos (willags-process) can place them against their true poses; 0 gives the plain scene, whose repeated
+    textures make SIFT match the wrong copies."""
     from PIL import Image
 
     from willags_ns.data.synthetic import SyntheticSceneConfig, make_scene, project
@@ -238,7 +244,8 @@ def synthetic_source(dst: Path, views: int = 40, long_side: int = LONG_SIDE, poi
         return dst
     num_test = max(1, views // 8)
     cfg = SyntheticSceneConfig(num_train=views - num_test, num_test=num_test, width=long_side,
-                               height=max(1, long_side * 3 // 4), num_points=points, supersample=1)  # fmt: skip
+                               height=max(1, long_side * 3 // 4), num_points=points, supersample=1,
+                               unique_texture=unique_texture)  # fmt: skip
     scene = make_scene(cfg)
     tmp = dst.with_name(f".{dst.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -425,7 +432,8 @@ def run(args: argparse.Namespace) -> int:
 
     work = Path(args.work)
     if args.source == "synthetic":
-        source_dir = synthetic_source(work / "source-synthetic", views=args.synthetic_views, long_side=args.long_side)
+        source_dir = synthetic_source(work / "source-synthetic", views=args.synthetic_views, long_side=args.long_side,
+                                      unique_texture=args.synthetic_unique_texture)  # fmt: skip
         name = "synthetic"
     else:
         source_dir, name = Path(args.source), Path(args.source).name
@@ -671,6 +679,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     r.add_argument("--no-eval", dest="eval", action="store_false", help="skip ns-eval")
     r.add_argument("--method", default="willags", help="the method ns-train trains")
     r.add_argument("--synthetic-views", type=int, default=40, help="views of the synthetic source")
+    r.add_argument("--synthetic-unique-texture", type=float, default=0.8,
+                   help="contrast of the synthetic source's non-repeating texture (0: the plain, repeating one)")  # fmt: skip
     r.add_argument("--train-args", default="", help="more ns-train arguments, one string (after the method's)")
     r.add_argument("--note", default="", help="a note on the machine (shared, alone, ...) kept in the record")
     r.add_argument("--out", help="the record (default benchmarks/records/{gpu,cpu}_runs/scale_<source>.json)")

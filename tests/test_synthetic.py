@@ -274,3 +274,47 @@ def test_our_rays_match_nerfstudio_cameras(scene, written):
     torch.testing.assert_close(
         rays.directions.double(), torch.from_numpy(np.ascontiguousarray(d[:, :, 0])), atol=1e-5, rtol=0
     )
+
+
+def _ground_patch_detail(objects: list, x0: float, y0: float, seed: int = 0, n: int = 16) -> np.ndarray:
+    """Luminance of the ground seen straight down over [x0, x0 + 0.2] x [y0, y0 + 0.2] (inside one checker cell),
+    minus its best-fitting plane: the patch's fine detail, what a feature descriptor sees beyond the cell's colour."""
+    u = np.linspace(0.02, 0.18, n)
+    gx, gy = np.meshgrid(x0 + u, y0 + u)
+    o = np.stack([gx.ravel(), gy.ravel(), np.ones(n * n)], -1)
+    d = np.broadcast_to([0.0, 0.0, -1.0], o.shape)
+    _, ids, rgb = trace(o, d, objects, seed)
+    assert (np.asarray([objects[i]["type"] for i in ids]) == "ground").all()
+    lum = rgb.mean(-1)
+    design = np.stack([gx.ravel(), gy.ravel(), np.ones(n * n)], -1)
+    return lum - design @ np.linalg.lstsq(design, lum, rcond=None)[0]
+
+
+def test_unique_texture_makes_repeated_surfaces_distinct():
+    """Two same-colour checker cells 1 m apart (two periods): without the texture, each patch is flat but for a
+    smooth gradient and the two copies look alike to a descriptor; with it, each carries fine detail of its own."""
+    plain = make_objects(SyntheticSceneConfig())
+    textured = make_objects(SyntheticSceneConfig(unique_texture=0.8))
+    assert all("unique_texture" not in obj for obj in plain)
+    assert {o["type"] for o in textured if "unique_texture" in o} == {"ground", "dome", "sphere", "box"}
+    for objects, distinct in ((plain, False), (textured, True)):
+        a = _ground_patch_detail(objects, 3.05, 3.05)
+        b = _ground_patch_detail(objects, 4.05, 3.05)
+        if distinct:
+            assert a.std() > 0.01 and b.std() > 0.01
+            assert (a - b).std() > 0.5 * max(a.std(), b.std())
+            assert np.corrcoef(a, b)[0, 1] < 0.5
+        else:
+            assert a.std() < 0.005 and b.std() < 0.005
+
+
+def test_unique_texture_off_keeps_the_scene_and_its_cache_key():
+    """The field's default leaves the default scene's objects, images and cache key as they are without it."""
+    cfg = replace(SMALL, num_train=2, num_test=1)
+    # the default scene's cache key as it was before the field existed (a GENERATOR_VERSION bump changes it)
+    assert SyntheticSceneConfig().params_hash() == "cc398114e3d8"
+    assert replace(cfg, unique_texture=0.8).params_hash() != cfg.params_hash()
+    plain, textured = make_scene(cfg), make_scene(replace(cfg, unique_texture=0.8))
+    assert np.abs(textured.clean.astype(int) - plain.clean.astype(int)).mean() > 5
+    assert (textured.masks == plain.masks).all()
+    np.testing.assert_allclose(textured.c2w, plain.c2w)

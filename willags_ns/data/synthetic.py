@@ -96,10 +96,18 @@ class SyntheticSceneConfig:
     """Range of the fraction of an occluded image covered by the union of its occluders."""
     max_occluders: int = 3
     """Maximum number of occluders in one image."""
+    unique_texture: float = 0.0
+    """Contrast of a non-repeating multi-scale value-noise pattern multiplied into every surface's albedo (ground,
+    dome, spheres, boxes), 0 = off. The plain textures repeat (checkers, stripes, bricks), so feature matching (SIFT)
+    pairs a patch with the wrong copy and SfM folds the cameras; about 0.8 makes every patch distinct, so SfM places
+    them (benchmarks/scale.synthetic_source uses it). Off, the scene is byte-identical to the scene without it."""
 
     def params_hash(self) -> str:
         """Short stable hash of all parameters and the generator version (the cache key)."""
-        payload = json.dumps({"version": GENERATOR_VERSION, **asdict(self)}, sort_keys=True)
+        params = asdict(self)
+        if not self.unique_texture:  # off: the same key as a config without the field (the cached scenes stay valid)
+            del params["unique_texture"]
+        payload = json.dumps({"version": GENERATOR_VERSION, **params}, sort_keys=True)
         return hashlib.sha256(payload.encode()).hexdigest()[:12]
 
 
@@ -219,6 +227,11 @@ def make_objects(cfg: SyntheticSceneConfig) -> list[dict[str, Any]]:
             }
         )
     objects.append({"type": "light", "direction": light.tolist(), "ambient": 0.35})
+    if cfg.unique_texture:
+        for k, obj in enumerate(objects):
+            if obj["type"] != "light":  # the dome is seen from about twice as far: a coarser pattern there
+                obj["unique_texture"] = {"contrast": cfg.unique_texture, "stream": 100 + k,
+                                         "frequency": 1.5 if obj["type"] == "dome" else 3.0}  # fmt: skip
     return objects
 
 
@@ -259,6 +272,42 @@ def _noise(p: np.ndarray, seed: int, scale: float) -> np.ndarray:
     w = _normalize(rng.normal(size=(6, 3))) * rng.uniform(0.6, 1.6, size=(6, 1)) * scale
     phase = rng.uniform(0, 2 * math.pi, size=6)
     return np.sin(p @ w.T + phase).mean(axis=1) * 1.6
+
+
+_HASH_PRIMES = np.array([73856093, 19349663, 83492791], dtype=np.int64)
+_NOISE_TABLE_BITS = 18
+
+
+def unique_pattern(p: np.ndarray, seed: int, stream: int, frequency: float, octaves: int = 4) -> np.ndarray:
+    """Non-repeating multi-scale 3D value noise at the points p [R, 3] -> [R] in [0, 1] (mean about 0.5).
+
+    Octave k has lattice cells of 1 / (frequency * 2**k) world units; each lattice vertex draws its value from a
+    random table through an integer hash of its coordinates, values are blended trilinearly with a smoothstep, so the
+    pattern is smooth within a cell and differs everywhere (no period within the scene). Octaves weigh 1, 0.8, 0.64...
+    and the sum is stretched back to about the range of one octave.
+    """
+    rng = _rng(seed, stream)
+    table = rng.random(1 << _NOISE_TABLE_BITS)
+    offsets = rng.uniform(0, 1000, size=(octaves, 3))
+    mask = (1 << _NOISE_TABLE_BITS) - 1
+    total = np.zeros(len(p))
+    weights = 0.8 ** np.arange(octaves)
+    for k in range(octaves):
+        x = p * (frequency * 2**k) + offsets[k]
+        cell = np.floor(x)
+        f = x - cell
+        f = f * f * (3 - 2 * f)
+        hashed = cell.astype(np.int64) * _HASH_PRIMES  # [R, 3]: per axis, the hash term of the lower corner
+        hx, hy, hz = ((hashed[:, a], hashed[:, a] + _HASH_PRIMES[a]) for a in range(3))
+        wx, wy, wz = ((1 - f[:, a], f[:, a]) for a in range(3))
+        for i in (0, 1):
+            for j in (0, 1):
+                hxy, wxy = hx[i] + hy[j], wx[i] * wy[j]
+                for m in (0, 1):
+                    h = hxy + hz[m]
+                    total += weights[k] * (wxy * wz[m]) * table[(h ^ (h >> 15)) & mask]
+    n = total / weights.sum()
+    return np.clip(0.5 + (n - 0.5) * 2.0, 0.0, 1.0)
 
 
 def trace(
@@ -338,6 +387,10 @@ def trace(
             cells = np.floor(ql / (half / 1.5 + 1e-9) + 10).sum(axis=1) % 2  # a 3x3 checker per face
             albedo[sel] = np.asarray(obj["color"]) * (0.7 + 0.25 * cells)[:, None]
             normal[sel] = nl @ rot
+        tex = obj.get("unique_texture")
+        if tex:
+            pattern = unique_pattern(q, seed, tex["stream"], tex["frequency"])
+            albedo[sel] *= np.clip(1.0 + tex["contrast"] * (pattern - 0.5) * 2.0, 0.05, 2.0)[:, None]
 
     light = next(obj for obj in objects if obj["type"] == "light")
     ldir, ambient = np.asarray(light["direction"]), light["ambient"]
