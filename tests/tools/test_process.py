@@ -716,3 +716,27 @@ def test_reichstag_subset_registers_close_to_the_shared_model(shared_data, tmp_p
     err = compare_poses(proc.model_w2c(cfg.output / "colmap" / "sparse" / "0"), proc.model_w2c(ref_dir))
     assert err["median_rotation_error_deg"] < 2.0, err
     assert err["median_centre_error_pct"] < 5.0
+
+
+def test_ctrl_c_during_a_pycolmap_call_stops_with_keyboardinterrupt_however_the_call_reports_it():
+    """Ctrl-C cancels the token; the call then returns (mapping) or raises InterruptedError (vocabulary-tree
+    matching): either way the stage stops with KeyboardInterrupt, which willags-process turns into one line and 130."""
+    import signal
+    import time
+
+    from willags_ns.tools.sfm import cancellable
+
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        with cancellable() as token:
+            os.kill(os.getpid(), signal.SIGINT)  # the handler cancels the token instead of raising here
+            time.sleep(0.05)
+            assert token.is_cancelled
+            raise InterruptedError("Operation cancelled")  # what match_vocabtree raises once cancelled
+    with pytest.raises(KeyboardInterrupt):
+        with cancellable() as token:
+            token.cancel()  # a call that returns after the cancellation
+    with pytest.raises(InterruptedError, match="not ours"):
+        with cancellable():
+            raise InterruptedError("not ours")  # without a cancellation it is not swallowed
+    assert signal.getsignal(signal.SIGINT) == before

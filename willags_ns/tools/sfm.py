@@ -360,8 +360,9 @@ def rec_w2c(rec) -> dict[str, np.ndarray]:
 
 
 @contextmanager
-def _cancellable() -> Iterator[Any]:
-    """A pycolmap CancellationToken cancelled by Ctrl-C; KeyboardInterrupt is raised once the C++ call returns.
+def cancellable() -> Iterator[Any]:
+    """A pycolmap CancellationToken cancelled by Ctrl-C; KeyboardInterrupt is raised once the C++ call returns
+    (also where the call reports the cancellation as InterruptedError, as vocabulary-tree matching does).
 
     Why: while pycolmap runs C++ code, Python's own SIGINT handler only runs when the call returns (minutes for
     matching or mapping). The token makes COLMAP stop at its next check (next image, pair block or registration),
@@ -382,6 +383,9 @@ def _cancellable() -> Iterator[Any]:
     signal.signal(signal.SIGINT, handler)
     try:
         yield token
+    except InterruptedError:  # pycolmap's "Operation cancelled": ours when the token was cancelled
+        if not token.is_cancelled:
+            raise
     finally:
         signal.signal(signal.SIGINT, previous)
     if token.is_cancelled:
@@ -551,7 +555,7 @@ def extract_features(
             mode = pycolmap.CameraMode.SINGLE
             if g in camera_of:
                 reader.existing_camera_id = camera_of[g]
-        with _cancellable() as token:
+        with cancellable() as token:
             pycolmap.extract_features(
                 str(db_path),
                 str(cfg.images),
@@ -610,7 +614,7 @@ def match_exhaustive(cfg: ProcessConfig, names: Sequence[str], progress) -> int:
     if any(any(c.isspace() for c in n) for n in names):
         # COLMAP's pair lists are space-separated: names with spaces can only go through its own exhaustive matcher
         task = progress.add_task("matching (exhaustive)", total=None)
-        with _cancellable() as token:
+        with cancellable() as token:
             pycolmap.match_exhaustive(
                 str(db_path),
                 matching_options=_matching_options(cfg),
@@ -626,7 +630,7 @@ def match_exhaustive(cfg: ProcessConfig, names: Sequence[str], progress) -> int:
         todo = [p for p in block if tuple(sorted(p)) not in done]
         if todo:
             pairs_file.write_text("".join(f"{a} {b}\n" for a, b in todo))
-            with _cancellable() as token:
+            with cancellable() as token:
                 pycolmap.match_image_pairs(
                     str(db_path),
                     matching_options=_matching_options(cfg),
@@ -694,7 +698,7 @@ def match_vocab_tree(cfg: ProcessConfig, names: Sequence[str], progress, chunk: 
             pairing.num_images = cfg.retrieval_neighbors + 1  # the query itself is its own best match
             pairing.match_list_path = str(list_file)
             pairing.num_threads = cfg.num_threads
-            with _cancellable() as token:
+            with cancellable() as token:
                 pycolmap.match_vocabtree(
                     str(db_path),
                     matching_options=_matching_options(cfg),
@@ -740,7 +744,7 @@ def incremental_mapping(
 
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    with _cancellable() as token:
+    with cancellable() as token:
         models = pycolmap.incremental_mapping(
             str(cfg.output / DATABASE),
             str(cfg.images),
@@ -978,7 +982,7 @@ def write_scene(cfg: ProcessConfig, rec, work: Path) -> None:
         model_tmp = raw
     else:
         und = work / "undistorted"
-        with _cancellable() as token:
+        with cancellable() as token:
             pycolmap.undistort_images(
                 str(und),
                 str(raw),
