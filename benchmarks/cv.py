@@ -319,6 +319,11 @@ def run_noise(records: Sequence[dict[str, Any]], steps: int) -> tuple[float | No
     return float(np.sqrt(np.mean(np.square(diffs)) / 2)), len(diffs)
 
 
+def widened(mean: float, low: float, high: float, extra: float) -> tuple[float, float]:
+    """(low, high) of an interval about `mean`, each side widened in quadrature by `extra` (the run noise)."""
+    return mean - float(np.hypot(mean - low, extra)), mean + float(np.hypot(high - mean, extra))
+
+
 def paired(a: MethodCV, b: MethodCV, sigma: float | None = None) -> tuple[float, float, float, int]:
     """(mean, low, high, photos) of a - b over the photos both scored: bootstrap_interval's, each side widened in
     quadrature by the run noise 1.96 sigma sqrt(1/seeds_a + 1/seeds_b) when `sigma` (run_noise) is known."""
@@ -326,7 +331,7 @@ def paired(a: MethodCV, b: MethodCV, sigma: float | None = None) -> tuple[float,
     mean, low, high = bootstrap_interval([a.per_photo[p] - b.per_photo[p] for p in common])
     if sigma:
         extra = 1.96 * sigma * float(np.sqrt(1 / a.seeds + 1 / b.seeds))
-        low, high = mean - float(np.hypot(mean - low, extra)), mean + float(np.hypot(high - mean, extra))
+        low, high = widened(mean, low, high, extra)
     return mean, low, high, len(common)
 
 
@@ -354,7 +359,7 @@ def pooled(pairs: Sequence[tuple[MethodCV, MethodCV]], sigma: float | None = Non
     low, high = (float(x) for x in np.percentile(boots / n, [2.5, 97.5]))
     if sigma:
         extra = 1.96 * sigma * float(np.sqrt(var)) / n
-        low, high = mean - float(np.hypot(mean - low, extra)), mean + float(np.hypot(high - mean, extra))
+        low, high = widened(mean, low, high, extra)
     return mean, low, high, photos
 
 

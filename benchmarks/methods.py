@@ -36,6 +36,16 @@ def is_peer(base: str) -> bool:
 _AUTO = ("auto_config", True)
 
 
+_RESIDUAL_MASK = (("mask.enabled", True), ("mask.distance", "residual"))
+"""The transient mask on every scene, by the colour residual to the teacher (the inspector keeps it: keep=...)."""
+
+
+def _masked_on_gpu(*overrides: tuple[str, Any], note: str) -> MethodSpec:
+    """The default as a GPU trains it with the residual mask forced on every scene, and `overrides` on top."""
+    return MethodSpec("willags", (_AUTO, *_RESIDUAL_MASK, ("densification", "mcmc"), *overrides), note=note,
+                      keep=("mask.enabled",))  # fmt: skip
+
+
 def _default_on_gpu(*overrides: tuple[str, Any], note: str, keep: tuple[str, ...] = ()) -> MethodSpec:
     """The default as a GPU trains it (the scene inspected, MCMC's densification) with `overrides` on top: one
     switch changed against `willags-mcmc`."""
@@ -64,11 +74,8 @@ METHODS: dict[str, MethodSpec] = {
         note="willags-splitclone with the transient mask on every scene, by the colour residual to the teacher",
         keep=("mask.enabled",),
     ),
-    "willags-mask": MethodSpec(
-        "willags",
-        (_AUTO, ("mask.enabled", True), ("mask.distance", "residual"), ("densification", "mcmc")),
-        note="the default with the transient mask on every scene, by the colour residual to the teacher",
-        keep=("mask.enabled",),
+    "willags-mask": _masked_on_gpu(
+        note="the default with the transient mask on every scene, by the colour residual to the teacher"
     ),
     "willags-cap150k": _default_on_gpu(("mcmc.cap_max", 150_000), note="the default, MCMC capped at 150k"),
     "willags-cap1m": _default_on_gpu(("mcmc.cap_max", 1_000_000), note="the default, MCMC capped at 1M"),
@@ -89,17 +96,9 @@ METHODS: dict[str, MethodSpec] = {
         ("latent.prior_weight", 0.002),
         note="the default with a tenth of willags-prior's prior on the latent table's rows (0.002)",
     ),
-    "willags-prior-low-mask": MethodSpec(
-        "willags",
-        (
-            _AUTO,
-            ("mask.enabled", True),
-            ("mask.distance", "residual"),
-            ("densification", "mcmc"),
-            ("latent.prior_weight", 0.002),
-        ),
+    "willags-prior-low-mask": _masked_on_gpu(
+        ("latent.prior_weight", 0.002),
         note="willags-prior-low with the transient mask on every scene, by the colour residual to the teacher",
-        keep=("mask.enabled",),
     ),
     "willags-lowpen": _default_on_gpu(
         ("modulation.local_penalty", 0.001),
@@ -109,17 +108,9 @@ METHODS: dict[str, MethodSpec] = {
         ("modulation.latent_proj", 0),
         note="the default with a per-Gaussian residual that does not see the latent (a static colour scale and offset)",
     ),
-    "willags-cap1m-mask": MethodSpec(
-        "willags",
-        (
-            _AUTO,
-            ("mask.enabled", True),
-            ("mask.distance", "residual"),
-            ("densification", "mcmc"),
-            ("mcmc.cap_max", 1_000_000),
-        ),
+    "willags-cap1m-mask": _masked_on_gpu(
+        ("mcmc.cap_max", 1_000_000),
         note="willags-cap1m with the transient mask on every scene, by the colour residual to the teacher",
-        keep=("mask.enabled",),
     ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
     # antialiased: gsplat's opacity compensation for the 2D dilation, consistent renders across resolutions

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from willags_ns.tools.sfm import umeyama
+from willags_ns.tools.sfm import rotation_errors_deg, umeyama
 
 HOW = (
     "camera centres similarity-aligned (Umeyama) to the scene's true centres; errors relative to the true centres'"
@@ -49,10 +49,7 @@ def placement(
     scale, rot, shift = umeyama(x, y)
     radius = float(np.median(np.linalg.norm(y - y.mean(0), axis=1)))
     err = np.linalg.norm(scale * x @ rot.T + shift - y, axis=1) / max(radius, 1e-12)
-    rel = np.einsum("nji,njk->nik", true_c2w[:, :3, :3], rot @ est_c2w[:, :3, :3])
-    # angle from both the trace (cos) and the skew part (sin): arccos alone loses precision near 0
-    skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
-    rot_err = np.degrees(np.arctan2(np.linalg.norm(skew, axis=-1) / 2, (np.trace(rel, axis1=1, axis2=2) - 1) / 2))
+    rot_err = rotation_errors_deg(true_c2w[:, :3, :3], rot @ est_c2w[:, :3, :3])
     iu = np.triu_indices(len(names), 1)
     dx = np.linalg.norm(x[:, None] - x[None], axis=-1)[iu]
     dy = np.linalg.norm(y[:, None] - y[None], axis=-1)[iu]

@@ -271,6 +271,14 @@ def rotation_mean(rotations: np.ndarray) -> np.ndarray:
     return u @ sign @ vt
 
 
+def rotation_errors_deg(ref_rot: np.ndarray, est_rot: np.ndarray) -> np.ndarray:
+    """[N] angles in degrees of R_ref_i^T R_est_i for camera-to-world rotations [N, 3, 3] already in one frame."""
+    rel = np.einsum("nji,njk->nik", ref_rot, est_rot)
+    # angle from both the trace (cos) and the skew part (sin): arccos alone loses precision near 0
+    skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
+    return np.degrees(np.arctan2(np.linalg.norm(skew, axis=-1) / 2, (np.trace(rel, axis1=1, axis2=2) - 1) / 2))
+
+
 def compare_poses(
     est_w2c: dict[str, np.ndarray],
     ref_w2c: dict[str, np.ndarray],
@@ -316,11 +324,7 @@ def compare_poses(
     if keep.sum() >= 3:
         s, rot, t = fit(keep)
     centre_err = np.linalg.norm(s * src @ rot.T + t - dst, axis=1)
-    r_est = rot @ est_c2w[:, :3, :3]
-    rel = np.einsum("nji,njk->nik", ref_c2w[:, :3, :3], r_est)
-    # angle from both the trace (cos) and the skew part (sin): arccos alone loses precision near 0
-    skew = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
-    rot_err = np.degrees(np.arctan2(np.linalg.norm(skew, axis=-1) / 2, (np.trace(rel, axis1=1, axis2=2) - 1) / 2))
+    rot_err = rotation_errors_deg(ref_c2w[:, :3, :3], rot @ est_c2w[:, :3, :3])
     extent = float(np.max(np.linalg.norm(dst[:, None] - dst[None], axis=-1)))
     return {
         "align": align,
