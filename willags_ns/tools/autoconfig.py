@@ -32,7 +32,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from willags_ns.splats.mcmc import cap_and_reason, scene_cap
+from willags_ns.splats.mcmc import cap_and_reason
 from willags_ns.tools.inspection import InspectConfig, InspectError, inspect_scene, sky_settings
 
 AUTO_CONFIG_FILE = "auto_config.json"
@@ -76,13 +76,13 @@ AUTO_SWITCHES = (
 
 
 def capacity_override(model_config, facts: dict[str, Any]) -> tuple[int, str] | None:
-    """(cap, reason) of MCMC's cap under the "pixels" rule (splats/mcmc.scene_cap) from the inspector's facts, or
+    """(cap, reason) of MCMC's cap under the "pixels" rule (splats/mcmc.cap_and_reason) from the inspector's facts, or
     None where the model keeps its own cap (rule "fixed", or no megapixels measured)."""
     mcmc = getattr(model_config, "mcmc", None)
     mpx = facts.get("train_megapixels")
     if mcmc is None or mcmc.cap_rule != "pixels" or mpx is None:
         return None
-    return scene_cap(float(mpx), mcmc)
+    return cap_and_reason(mcmc, float(mpx))
 
 
 def user_switches(model_config, preset_model_config, argv: list[str] | None = None) -> tuple[str, ...]:
