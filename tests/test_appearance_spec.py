@@ -333,3 +333,31 @@ def test_photo_on_an_embedding_model_is_fitted_without_refine_steps(tmp_path):
     z_ref = resolve_latent(spec, model, refine=RefineOptions(steps=PHOTO_FIT_STEPS), cameras=_camera(48, 32))
     torch.testing.assert_close(z, z_ref)  # the same fit as --refine-steps PHOTO_FIT_STEPS
     assert not torch.allclose(z, model.image_latents()[0].mean(0))
+
+
+def test_photo_fit_starts_from_the_training_latent_whose_render_is_closest():
+    """A photo whose appearance is a far training row's: the fit starts from that row (RefineOptions.start_candidates)
+    rather than the mean, so a short fit lands on it; with no candidates it starts from the mean and stays far."""
+    from tests.test_mask_eval import _tiny_model as tiny
+    from willags_ns.appearance_spec import _render_at, refine_photo_latent
+
+    model = tiny(use_vae=False)
+    model.eval()
+    model.set_train_image_names(["a.png", "b.png", "c.png"][: model.train_latents.shape[0]])
+    with torch.no_grad():
+        model.appearance_nets.modulation.global_mlp[-1].weight.normal_(0.0, 0.3)
+        model.appearance_nets.embeddings.weight.normal_(0.0, 0.1)
+        model.appearance_nets.embeddings.weight[1] = 2.0  # one photo far from the rest
+    lat = model.image_latents()[0]
+    cam = _camera(48, 32)
+    with torch.no_grad():
+        photo = _render_at(model, cam, lat[1], 128).clone()
+    mean = lat.mean(0)
+    z_far = refine_photo_latent(model, photo, mean, cam, RefineOptions(steps=1, lr=1e-3, view="0"))
+    z_mean = refine_photo_latent(model, photo, mean, cam, RefineOptions(steps=1, lr=1e-3, view="0", start_candidates=0))
+    assert float((z_far - lat[1]).norm()) < 0.05
+    assert float((z_mean - lat[1]).norm()) > 1.0
+    with torch.no_grad():
+        err_far = float((_render_at(model, cam, z_far, 128) - photo).abs().mean())
+        err_mean = float((_render_at(model, cam, z_mean, 128) - photo).abs().mean())
+    assert err_far < 0.5 * err_mean, (err_far, err_mean)

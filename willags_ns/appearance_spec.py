@@ -18,7 +18,7 @@ This module imports neither the model nor the viewer (both import it), so there 
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Union
 
@@ -308,6 +308,11 @@ class RefineOptions:
     whose render is closest to the photo (L1 at 48 px)."""
     max_size: int = 128
     """Refine at most at this many pixels on the longer side (the photo and the render are downscaled)."""
+    start_candidates: int = 16
+    """Training latents also tried as the fit's start, spread over the table farthest-first: whichever of them and
+    the usual start (the encoder's latent, or the mean) renders the photo's view closest to the photo starts the
+    Adam steps, so a photo whose appearance lies far from the mean (night, snow) is not fitted from the mean with
+    too few steps to get there. One render each at `max_size`, no gradients; 0: the usual start alone."""
 
 
 def _resized(img: Tensor, h: int, w: int) -> Tensor:
@@ -338,9 +343,11 @@ def refine_photo_latent(model, photo: Tensor, z0: Tensor, cameras: "Cameras", op
     """The latent z0 optimised so the model's render of the photo's view matches the photo (scene frozen).
 
     A photo carries no pose: its view is a training camera (opts.view, or the one whose render under z0 looks most
-    like the photo). The loss and optimiser are the NeRF-W protocol's (`fit_latent`), on the whole image.
+    like the photo). The fit starts from z0 or one of `opts.start_candidates` training latents, whichever renders
+    that view closest to the photo. The loss and optimiser are the NeRF-W protocol's (`fit_latent`), on the whole
+    image.
     """
-    from willags_ns.eval.protocol import fit_latent, frozen
+    from willags_ns.eval.protocol import best_start, fit_latent, frozen, spread_picks
 
     if opts.view is not None:
         idx = image_index(opts.view, list(model.image_names), context="--refine-view")
@@ -352,6 +359,10 @@ def refine_photo_latent(model, photo: Tensor, z0: Tensor, cameras: "Cameras", op
     with torch.no_grad():
         h, w = _render_at(model, cam, z0, opts.max_size).shape[:2]
     gt = _resized(photo, h, w).to(model.device)
+    if opts.start_candidates > 0 and hasattr(model, "image_latents"):
+        lat, seen = model.image_latents()
+        cands = spread_picks(lat[seen], z0, opts.start_candidates)
+        z0, _, _ = best_start(lambda z: _render_at(model, cam, z, opts.max_size), gt, slice(None), cands)
     with frozen(model), torch.enable_grad():
         z, _ = fit_latent(lambda z: _render_at(model, cam, z, opts.max_size), gt, z0, slice(None), opts.steps, opts.lr)
     model.train(was_training)
@@ -392,7 +403,12 @@ def resolve_latent(
         z = load_latent_file(spec.path, dim, context).to(device)
     elif isinstance(spec, PhotoSpec):
         steps = refine.steps if refine is not None else 0
-        key = (str(spec.path), steps, refine.view if refine is not None else None)
+        key = (
+            str(spec.path),
+            steps,
+            refine.view if refine is not None else None,
+            refine.start_candidates if refine is not None else None,
+        )
         if cache is not None and key in cache:
             return cache[key]
         photo = load_photo(spec.path, context)
@@ -402,7 +418,9 @@ def resolve_latent(
             z = mean_latent(model)  # no encoder (embedding-table model): the latent is fitted, from the mean
             if steps == 0:
                 steps = PHOTO_FIT_STEPS
-                refine = RefineOptions(steps=steps, view=refine.view if refine is not None else None)
+                refine = (
+                    replace(refine, steps=steps) if refine is not None else RefineOptions(steps=steps)
+                )
         if steps > 0:
             if cameras is None:
                 raise AppearanceSpecError(

@@ -71,6 +71,18 @@ _OPTION_FIELDS = [
                 help="photo: refinement: training image (name, stem or index) seen from the photo's viewpoint; "
                 "default: the training view whose render looks most like the photo."
             ),
+    (
+        "refine_starts",
+        Annotated[
+            int,
+            tyro.conf.arg(
+                help="photo: refinement: training appearances also tried as the fit's start (spread over the "
+                "training photos' latents); the one rendering the photo's view closest to it starts the fit. "
+                "0 = start from the encoder's latent or the mean."
+            ),
+        ],
+        16,
+    ),
         ],
         None,
     ),
@@ -78,8 +90,8 @@ _OPTION_FIELDS = [
 
 
 def with_appearance_options(cls: type, module: Any = ns_render) -> type:
-    """nerfstudio's command dataclass `cls` (defined in `module`) plus the options --appearance, --refine-steps and
-    --refine-view; its own `main()` runs inside :func:`appearance_hooks`.
+    """nerfstudio's command dataclass `cls` (defined in `module`) plus the options --appearance, --refine-steps,
+    --refine-view and --refine-starts; its own `main()` runs inside :func:`appearance_hooks`.
 
     A generated subclass (rather than a hand-written one per command) keeps the options identical everywhere."""
 
@@ -238,7 +250,9 @@ def describe_appearance(spec: Any, model, opts: Any) -> str:
     if isinstance(spec, PhotoSpec):
         steps = opts.refine_steps
         if model.appearance_nets is not None and model.appearance_nets.vae is None:
-            how = f"fitted {steps or PHOTO_FIT_STEPS} steps from the mean latent (the model has no encoder)"
+            starts = getattr(opts, "refine_starts", 0)
+            start = f"the closest of the mean and {starts} training latents" if starts else "the mean latent"
+            how = f"fitted {steps or PHOTO_FIT_STEPS} steps from {start} (the model has no encoder)"
         else:
             how = "the encoder's latent" + (f", refined {steps} steps" if steps else "")
         return f"{spec} ({how})"
@@ -258,6 +272,15 @@ def _training_cameras(pipeline):
     return None if ds is None else ds.cameras
 
 
+def _refine_options(opts) -> RefineOptions:
+    """The photo: fit's settings from a command's --refine-* options."""
+    return RefineOptions(
+        steps=opts.refine_steps,
+        view=opts.refine_view,
+        start_candidates=getattr(opts, "refine_starts", RefineOptions.start_candidates),
+    )
+
+
 def choose_appearance(pipeline, opts, context: str = "--appearance") -> InterpSpec | None:
     """Set the model's appearance from `opts` (a command with the appearance options). Returns the SPEC when it is a sweep (interp
     without T: each frame needs its own latent), else None."""
@@ -269,7 +292,7 @@ def choose_appearance(pipeline, opts, context: str = "--appearance") -> InterpSp
     if isinstance(spec, MeanSpec):
         model.render_latent = None
         return None
-    refine = RefineOptions(steps=opts.refine_steps, view=opts.refine_view)
+    refine = _refine_options(opts)
     model.render_latent = resolve_latent(
         spec, model, refine=refine, cameras=_training_cameras(pipeline), context=context
     )
@@ -279,7 +302,7 @@ def choose_appearance(pipeline, opts, context: str = "--appearance") -> InterpSp
 def sweep_latents(pipeline, spec: InterpSpec, n: int, opts, context: str = "--appearance") -> torch.Tensor:
     """Latents [n, D] for n frames: T = 0 at the first frame, 1 at the last."""
     model = pipeline.model
-    refine = RefineOptions(steps=opts.refine_steps, view=opts.refine_view)
+    refine = _refine_options(opts)
     cams = _training_cameras(pipeline)
     za = resolve_latent(spec.a, model, refine=refine, cameras=cams, context=context)
     zb = resolve_latent(spec.b, model, refine=refine, cameras=cams, context=context)
