@@ -104,10 +104,11 @@ def test_cli_photo_with_refinement_and_bad_specs_name_the_bad_part(appearance_ru
     Image.fromarray((np.random.default_rng(2).random((40, 60, 3)) * 255).astype(np.uint8)).save(photo)
     cmd = [sys.executable, "-m", "willags_ns.scripts.render", "dataset", "--load-config", str(cfg), "--split", "test"]
     cmd += ["--rendered-output-names", "rgb", "--image-format", "png", "--output-path", str(tmp_path / "photo")]
-    cmd += ["--appearance", f"photo:{photo}", "--refine-steps", "3", "--refine-view", "0"]
+    cmd += ["--appearance", f"photo:{photo}", "--refine-steps", "3", "--refine-view", "0", "--refine-starts", "4"]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, (res.stdout[-2000:], res.stderr[-2000:])
     assert _frames(tmp_path / "photo")
+    assert "and 4 training latents" in res.stdout + res.stderr  # --refine-starts reached the fit's description
 
     # syntax errors fail before the checkpoint loads; resolution errors name the bad part too
     with pytest.raises(SystemExit, match="seed must be an integer, got '1.5'"):

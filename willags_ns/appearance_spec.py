@@ -418,9 +418,7 @@ def resolve_latent(
             z = mean_latent(model)  # no encoder (embedding-table model): the latent is fitted, from the mean
             if steps == 0:
                 steps = PHOTO_FIT_STEPS
-                refine = (
-                    replace(refine, steps=steps) if refine is not None else RefineOptions(steps=steps)
-                )
+                refine = replace(refine, steps=steps) if refine is not None else RefineOptions(steps=steps)
         if steps > 0:
             if cameras is None:
                 raise AppearanceSpecError(

@@ -71,6 +71,9 @@ _OPTION_FIELDS = [
                 help="photo: refinement: training image (name, stem or index) seen from the photo's viewpoint; "
                 "default: the training view whose render looks most like the photo."
             ),
+        ],
+        None,
+    ),
     (
         "refine_starts",
         Annotated[
@@ -82,9 +85,6 @@ _OPTION_FIELDS = [
             ),
         ],
         16,
-    ),
-        ],
-        None,
     ),
 ]
 
@@ -238,6 +238,11 @@ def written_path(opts: Any) -> Any:
     return path.parent / path.stem
 
 
+def _fit_start(opts: Any, usual: str) -> str:
+    starts = getattr(opts, "refine_starts", RefineOptions.start_candidates)
+    return f"the closest of {usual} and {starts} training latents" if starts else usual
+
+
 def describe_appearance(spec: Any, model, opts: Any) -> str:
     """What a SPEC resolved to for `model`, in words: the training image (index and file name), the photo and how
     its latent was found, the seed, the file; for interp, both ends and the weight (or the sweep)."""
@@ -250,11 +255,11 @@ def describe_appearance(spec: Any, model, opts: Any) -> str:
     if isinstance(spec, PhotoSpec):
         steps = opts.refine_steps
         if model.appearance_nets is not None and model.appearance_nets.vae is None:
-            starts = getattr(opts, "refine_starts", 0)
-            start = f"the closest of the mean and {starts} training latents" if starts else "the mean latent"
-            how = f"fitted {steps or PHOTO_FIT_STEPS} steps from {start} (the model has no encoder)"
+            how = f"fitted {steps or PHOTO_FIT_STEPS} steps from {_fit_start(opts, 'the mean latent')} (no encoder)"
         else:
-            how = "the encoder's latent" + (f", refined {steps} steps" if steps else "")
+            how = (
+                f"{_fit_start(opts, 'the encoder latent')}, refined {steps} steps" if steps else "the encoder's latent"
+            )
         return f"{spec} ({how})"
     if isinstance(spec, SampleSpec):
         return f"{spec} (a random latent, the same for the same seed)"
