@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from willags_ns.tools.sfm import rotation_errors_deg, umeyama
+from willags_ns.tools.sfm import model_w2c, rotation_errors_deg, umeyama
 
 HOW = (
     "camera centres similarity-aligned (Umeyama) to the scene's true centres; errors relative to the true centres'"
@@ -77,8 +77,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--tolerance", type=float, default=0.05, help="centre error allowed, share of the radius")
     parser.add_argument("--max-rotation-deg", type=float, default=5.0, help="rotation error allowed, degrees")
     args = parser.parse_args(list(argv) if argv is not None else sys.argv[1:])
-    from willags_ns.tools.sfm import model_w2c
-
     models = {}
     for what in ("truth", "model"):
         try:

@@ -347,7 +347,7 @@ def refine_photo_latent(model, photo: Tensor, z0: Tensor, cameras: "Cameras", op
     that view closest to the photo. The loss and optimiser are the NeRF-W protocol's (`fit_latent`), on the whole
     image.
     """
-    from willags_ns.eval.protocol import best_start, fit_latent, frozen, spread_picks
+    from willags_ns.eval.protocol import fit_latent, frozen, training_start
 
     if opts.view is not None:
         idx = image_index(opts.view, list(model.image_names), context="--refine-view")
@@ -359,12 +359,13 @@ def refine_photo_latent(model, photo: Tensor, z0: Tensor, cameras: "Cameras", op
     with torch.no_grad():
         h, w = _render_at(model, cam, z0, opts.max_size).shape[:2]
     gt = _resized(photo, h, w).to(model.device)
-    if opts.start_candidates > 0 and hasattr(model, "image_latents"):
-        lat, seen = model.image_latents()
-        cands = spread_picks(lat[seen], z0, opts.start_candidates)
-        z0, _, _ = best_start(lambda z: _render_at(model, cam, z, opts.max_size), gt, slice(None), cands)
+
+    def render(z: Tensor) -> Tensor:
+        return _render_at(model, cam, z, opts.max_size)
+
+    z0, _ = training_start(model, render, gt, slice(None), z0, opts.start_candidates)
     with frozen(model), torch.enable_grad():
-        z, _ = fit_latent(lambda z: _render_at(model, cam, z, opts.max_size), gt, z0, slice(None), opts.steps, opts.lr)
+        z, _ = fit_latent(render, gt, z0, slice(None), opts.steps, opts.lr)
     model.train(was_training)
     return z
 

@@ -229,6 +229,19 @@ def best_start(
     return candidates[best].clone(), best, losses
 
 
+def training_start(
+    model, render_fn: Callable[[Tensor], Tensor], gt: Tensor, cols: slice, z0: Tensor, k: int
+) -> tuple[Tensor, int | None]:
+    """(z, index): the fit's start, `z0` or whichever of it and `k` of `model`'s training latents (spread over its
+    table, `spread_picks`) renders `gt`'s columns `cols` best (`best_start`); index None where no choice was made
+    (`k` is 0, or the model keeps no training latents)."""
+    if k <= 0 or not hasattr(model, "image_latents"):
+        return z0, None
+    lat, known = model.image_latents()
+    z, picked, _ = best_start(render_fn, gt, cols, spread_picks(lat[known], z0, k))
+    return z, picked
+
+
 class frozen:
     """Context manager: parameters of `module` get requires_grad=False inside, restored on exit."""
 
@@ -380,10 +393,8 @@ def evaluate_model(
                 with torch.no_grad():
                     enc = render_fn(z0)
                 rec.update({f"encoder_{k}": v for k, v in image_scores(enc[:, right], gt[:, right], lpips_fn).items()})
-                if cfg.start_candidates > 0 and hasattr(model, "image_latents"):
-                    lat, known = model.image_latents()
-                    cands = spread_picks(lat[known], z0, cfg.start_candidates)
-                    z0, picked, _ = best_start(render_fit, fit_gt, fit_left, cands)
+                z0, picked = training_start(model, render_fit, fit_gt, fit_left, z0, cfg.start_candidates)
+                if picked is not None:
                     rec["start_pick"] = float(picked)
                 if fitting:
                     start()

@@ -239,7 +239,7 @@ def written_path(opts: Any) -> Any:
 
 
 def _fit_start(opts: Any, usual: str) -> str:
-    starts = getattr(opts, "refine_starts", RefineOptions.start_candidates)
+    starts = _refine_options(opts).start_candidates
     return f"the closest of {usual} and {starts} training latents" if starts else usual
 
 
@@ -257,9 +257,8 @@ def describe_appearance(spec: Any, model, opts: Any) -> str:
         if model.appearance_nets is not None and model.appearance_nets.vae is None:
             how = f"fitted {steps or PHOTO_FIT_STEPS} steps from {_fit_start(opts, 'the mean latent')} (no encoder)"
         else:
-            how = (
-                f"{_fit_start(opts, 'the encoder latent')}, refined {steps} steps" if steps else "the encoder's latent"
-            )
+            encoder = "the encoder's latent"
+            how = f"{_fit_start(opts, encoder)}, refined {steps} steps" if steps else encoder
         return f"{spec} ({how})"
     if isinstance(spec, SampleSpec):
         return f"{spec} (a random latent, the same for the same seed)"
