@@ -67,6 +67,7 @@ from willags_ns.mask.step import (
     mask_networks,
     teacher_latent,
 )
+from willags_ns.mask.store import PackedMasks
 from willags_ns.mask.teacher import ema_update_
 from willags_ns.mask.transient import PerceptualFeatures
 from willags_ns.objective.losses import reconstruction_loss
@@ -262,8 +263,9 @@ class WillagsModel(SplatfactoModel):
         self.mask_step.observations = obs
 
     @property
-    def last_masks(self) -> dict[int, Tensor]:
-        """Each image's last perceptual mask (MaskStep.masks), for looking at what the mask did."""
+    def last_masks(self) -> PackedMasks:
+        """Each image's last perceptual mask (MaskStep.masks: {image index: bool [H, W]}, stored packed), for looking
+        at what the mask did."""
         return self.mask_step.masks
 
     # ------------------------------------------------------------------ what nerfstudio's exporter reads

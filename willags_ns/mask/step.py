@@ -11,8 +11,8 @@ distance to the photo, the threshold, and the static-scene safeguard.
     static = ~transient | SfM support (pixels near points many photos saw; willags_ns/mask/static_support.py)
 
 :func:`mask_networks` builds the teacher and the VGG features. :class:`MaskStep` holds the per-image state (each
-image's last mask, its visit count, its support grid and the scene's SfM observations) and reads the model's config;
-the teacher networks, the VGG features and the step arrive as arguments.
+image's last mask at one bit a pixel, its visit count, its support grid and the scene's SfM observations) and reads
+the model's config; the teacher networks, the VGG features and the step arrive as arguments.
 """
 
 from typing import Literal, NamedTuple, cast
@@ -24,6 +24,7 @@ from torch import Tensor
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.mask.rule import compare_to_teacher, mask_active
 from willags_ns.mask.static_support import apply_support, support_map
+from willags_ns.mask.store import PackedMasks
 from willags_ns.mask.teacher import make_teacher
 from willags_ns.mask.transient import PerceptualFeatures
 
@@ -66,8 +67,9 @@ class MaskStep:
         after construction count."""
         self.observations = observations
         """SfM observations per training image (COLMAP scenes; None elsewhere): the safeguard's input."""
-        self.masks: dict[int, Tensor] = {}
-        """Each image's last perceptual mask (True = static), before the support."""
+        self.masks = PackedMasks()
+        """Each image's last perceptual mask (True = static), before the support; kept at one bit a pixel
+        (willags_ns/mask/store.py), since every training image's stays for the whole run."""
         self.visits: dict[int, int] = {}
         self.support_cache: dict[int, Tensor | None] = {}
 
