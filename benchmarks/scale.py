@@ -15,7 +15,9 @@ scene as such a source first. Then, one after the other and each in its own proc
   time from the process's start to its first step (and the start-up phases in between), the process's peak host
   memory (its rusage), the GPU's peak (``torch.cuda.max_memory_allocated``, from the profile), the median step early
   (steps 2-6) and late (the last 5 before the final one, which also saves), the Gaussians, the checkpoint's size;
-- ``ns-eval`` of that run: wall time, per test photo, and its peak host memory.
+- ``ns-eval`` of that run: wall time, per test photo, and its peak host memory;
+- the viewer's start on that run (benchmarks/viewer_start.py: what ``ns-viewer --load-config`` does, timed to its
+  scene set up, then stopped): seconds, peak host memory, the frustums it draws of the training cameras.
 
 The device is CUDA when torch sees one, else the CPU. The record goes to
 ``benchmarks/records/{gpu_runs,cpu_runs}/scale_<source>.json`` (``--out`` to choose), and ``report`` writes
@@ -294,16 +296,17 @@ def _tool(name: str) -> str:
     return str(path) if path.exists() else name
 
 
-def run_process(cmd: list[str], log: Path, marker: str | None = None) -> dict[str, Any]:
-    """Run ``cmd`` to its end with its output in ``log``: exit code, wall time, the process's peak resident memory
-    (its own rusage: ru_maxrss) and, with ``marker``, the seconds until a line starting with it was printed."""
+def run_process(cmd: list[str], log: Path, marker: str | None = None, cwd: Path | None = None) -> dict[str, Any]:
+    """Run ``cmd`` (in ``cwd``) to its end with its output in ``log``: exit code, wall time, the process's peak
+    resident memory (its own rusage: ru_maxrss) and, with ``marker``, the seconds until a line starting with it was
+    printed."""
     log.parent.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     seen = None
     with open(log, "w") as out:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}  # each line as printed: the marker's time is when it came
         proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace", env=env
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace", env=env, cwd=cwd
         )
         assert proc.stdout is not None
         for line in proc.stdout:
@@ -399,7 +402,21 @@ def measure(collection: Path, out: Path, args: argparse.Namespace) -> dict[str, 
             rec["eval_photos"] = scored
             scoring = ev["wall_s"] - (ev["marker_s"] or 0.0)
             rec["eval_s_per_test_photo"] = round(scoring / max(1, scored), 3)
+    rec.update(viewer_measures(run_dir / "config.yml", out / "viewer.log"))
     return rec
+
+
+def viewer_measures(config: Path, log: Path) -> dict[str, Any]:
+    """The viewer's start on a trained run (benchmarks/viewer_start.py, in its own process): seconds until its scene
+    is set up, its peak host memory, the training cameras and the frustums it draws of them."""
+    cmd = [sys.executable, "-m", "benchmarks.viewer_start", str(config)]
+    run = run_process(cmd, log, cwd=REPO)
+    out: dict[str, Any] = {"viewer_rc": run["rc"], "viewer_peak_host_gb": run["peak_host_gb"]}
+    for line in reversed(log.read_text().splitlines()):
+        if line.startswith("{"):
+            out.update(json.loads(line))
+            break
+    return out
 
 
 def machine() -> dict[str, Any]:
@@ -482,6 +499,8 @@ MEASURES = (
     ("eval_s_per_test_photo", "ns-eval s / test photo", ".2f", 1000.0, "ms"),
     ("eval_peak_host_gb", "ns-eval host peak GB", ".2f", 1024.0, "MB"),
     ("inspect_s", "willags-inspect s", ".1f", 1000.0, "ms"),
+    ("viewer_ready_s", "viewer ready s", ".1f", 1000.0, "ms"),
+    ("viewer_peak_host_gb", "viewer host peak GB", ".2f", 1024.0, "MB"),
 )
 """(field, column, format, factor to the slope's unit, the slope's unit per photo)."""
 
@@ -604,7 +623,8 @@ def gpu_goals(record: dict[str, Any]) -> list[str]:
         margin, r = max(over, key=lambda t: t[0])
         out.append(f"- time to the first step < 60 s + 20 ms/photo: **{'met' if margin < 0 else 'missed'}** (worst: "
                    f"{r['first_step_s']:.1f} s at {r['photos']:,} photos, bound {60 + 0.02 * r['photos']:.1f} s)")  # fmt: skip
-    evals = sorted((r for r in runs if r.get("eval_photos")), key=lambda r: r["eval_photos"])
+    by_count = {r["eval_photos"]: r for r in runs if r.get("eval_photos")}  # distinct counts of scored photos
+    evals = [by_count[k] for k in sorted(by_count)]
     if len(evals) >= 3:
         marginal = [(b["eval_s"] - a["eval_s"]) / max(1, b["eval_photos"] - a["eval_photos"]) for a, b in
                     zip(evals, evals[1:], strict=False)]  # fmt: skip
@@ -613,7 +633,8 @@ def gpu_goals(record: dict[str, Any]) -> list[str]:
                    f"further test photo between successive runs: {', '.join(f'{m:.2f}' for m in marginal)}; largest "
                    f"over smallest {spread:.2f}, linear within 1.25)")  # fmt: skip
     else:
-        out.append("- ns-eval linear in the test photos: not measured (fewer than three runs)")
+        out.append("- ns-eval linear in the test photos: not measured (fewer than three runs scoring different numbers "
+                   "of test photos)")  # fmt: skip
     return out
 
 
@@ -633,7 +654,9 @@ def render_page(records: list[tuple[Path, dict[str, Any]]]) -> str:
         "(inspection, input checks, model, image cache); *host peak*: the process's peak resident memory; *step "
         "early / late*: median of steps 2-6 / of the five before the last; *fastest step*: the least disturbed on a "
         "shared machine; *ns-eval start*: until it has loaded the model and the test photos; *ns-eval s / test "
-        "photo*: the rest of its run over the photos it scored. The slope row is a least-squares slope over the "
+        "photo*: the rest of its run over the photos it scored; *viewer ready*: `ns-viewer --load-config` on the trained "
+        "run until its scene is set up (the training cameras' frustums, at most 512 of them, and the panels). The "
+        "slope row is a least-squares slope over the "
         "runs, per photo of the collection.",
     ]
     for path, rec in records:

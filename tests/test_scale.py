@@ -77,9 +77,11 @@ def test_the_verb_measures_a_tiny_collection_and_writes_the_page(source, tmp_pat
     assert run["eval_photos"] == 1 and 0 < run["eval_startup_s"] < run["eval_s"] and run["inspect_s"] > 0
     assert run["eval_s_per_test_photo"] == pytest.approx(run["eval_s"] - run["eval_startup_s"], abs=0.01)
     assert 0 < run["step_s_fastest"] <= run["step_s_late"]
+    assert run["viewer_rc"] == 0 and (run["viewer_cameras"], run["viewer_frustums"]) == (5, 5)
+    assert 0 < run["viewer_load_s"] < run["viewer_ready_s"] and run["viewer_peak_host_gb"] > 0.1
     assert main(["scale", "report", "--records", str(record), "--page", str(page)]) == 0
     text = page.read_text()
-    assert "| 6 (5 / 1) |" in text and "| slope per photo |" in text
+    assert "| 6 (5 / 1) |" in text and "| slope per photo |" in text and "| viewer ready s |" in text
     assert "The time to the first step, phase by phase" in text and "\n| 6 | " in text
     assert "1,000 photos at 800 px start training without running out of memory: not measured" in text
 
@@ -116,3 +118,22 @@ def test_the_goals_are_met_or_missed_by_a_number():
         in goals
     )
     assert "ns-eval linear in the test photos: **met**" in goals  # 0.107 then 0.102 s per further photo
+
+
+def test_ns_eval_linearity_needs_different_numbers_of_test_photos():
+    """Runs that each scored the same few test photos (--pipeline.eval-protocol.max-images) say nothing about it."""
+    runs = [
+        _run(n, first_step_s=30.0, peak_host_gb=3.0, eval_s=10.0 + n / 100, eval_photos=3) for n in (100, 1000, 2000)
+    ]
+    goals = "\n".join(scale.gpu_goals({"machine": {"device": "cuda"}, "steps": 20, "runs": runs}))
+    assert "ns-eval linear in the test photos: not measured (fewer than three runs scoring different numbers" in goals
+
+
+def test_the_viewer_start_names_a_missing_config(tmp_path, capsys):
+    from benchmarks.viewer_start import main
+
+    assert main([str(tmp_path / "run" / "config.yml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"benchmarks.viewer_start: {tmp_path / 'run' / 'config.yml'} is not a file (a trained run's config.yml)"
+    ]
