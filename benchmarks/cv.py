@@ -489,8 +489,9 @@ def cv_rows(
     if pooled_rows:
         out += [
             "",
-            f"Every collection at once (each collection weighing the same; only methods with every fold of every "
-            f"collection where {default} has them; `cv.pooled`):",
+            f"Every collection at once (each collection weighing the same; `cv.pooled`; a method with every fold of "
+            f"only some of the collections where {default} has them is pooled over those, and its verdict waits for "
+            f"the rest):",
             "",
             *md_table(["method", "collections", "photos", f"− {default} [95 % CI]", "verdict"], pooled_rows),
         ]
@@ -498,18 +499,26 @@ def cv_rows(
 
 
 def pooled_rows_of(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, default: str) -> list[list[str]]:
-    """One row per method scored completely on every collection (at least two) where `default` is complete: its
-    pooled difference from the default and the verdict of that interval."""
+    """One row per method scored completely on at least two of the collections where `default` is complete: its
+    pooled difference from the default over those collections and the verdict of that interval. A method missing
+    some of them is pooled over the ones it has, its row naming how many and its verdict withheld: a default is
+    decided on every collection at once."""
     scenes = [s for s, by in sorted(by_scene.items()) if default in by and by[default].complete]
     if len(scenes) < 2:
         return []
     methods = sorted({m for s in scenes for m in by_scene[s]} - {default})
     out = []
     for m in methods:
-        if not all(m in by_scene[s] and by_scene[s][m].complete for s in scenes):
+        have = [s for s in scenes if m in by_scene[s] and by_scene[s][m].complete]
+        if len(have) < 2:
             continue
-        mean, low, high, n = pooled([(by_scene[s][m], by_scene[s][default]) for s in scenes], sigma)
-        out.append([m, str(len(scenes)), str(n), f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]", verdict(low, high)])
+        mean, low, high, n = pooled([(by_scene[s][m], by_scene[s][default]) for s in have], sigma)
+        if len(have) == len(scenes):
+            where, said = str(len(have)), verdict(low, high)
+        else:
+            where = f"{len(have)} of {len(scenes)} ({', '.join(have)})"
+            said = f"none yet ({verdict(low, high)} on these)"
+        out.append([m, where, str(n), f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]", said])
     return out
 
 

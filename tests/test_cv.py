@@ -268,6 +268,14 @@ def test_cv_rows_pool_only_the_methods_complete_on_every_collection():
     pooled = [r for r in rows if r.startswith("| willags-")]
     assert pooled == ["| willags-x | 2 | 8 | +0.50 [+0.50, +0.50] | better |"]
     assert not any("Every collection at once" in r for r in cv.cv_rows(recs[:6], 5000))  # one collection: none
+    for k, p in photos.items():  # a third collection where willags-x has not run: pooled over two, no verdict
+        recs.append(_fold_rec("three", k, 2, "willags", p))
+        recs.append(_fold_rec("three", k, 2, "willags-y", {n: v - 1.0 for n, v in p.items()}))
+    pooled = [r for r in cv.cv_rows(recs, 5000) if r.startswith("| willags-")]
+    assert pooled == [
+        "| willags-x | 2 of 3 (one, two) | 8 | +0.50 [+0.50, +0.50] | none yet (better on these) |",
+        "| willags-y | 2 of 3 (one, three) | 8 | +4.00 [+4.00, +4.00] | none yet (better on these) |",
+    ]
 
 
 def test_a_protocol_variant_gets_its_own_tables_once_the_default_and_a_peer_are_scored_under_it():
