@@ -67,3 +67,12 @@ def test_a_reused_mask_is_the_mask_the_teacher_step_made():
     reused = model.step_static_mask({"image_idx": 0}, gt)
     assert reused.distance is None and reused.mask is not None
     assert torch.equal(reused.mask, made.mask)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_masks_pack_and_unpack_on_the_gpu_as_on_the_cpu():
+    g = torch.Generator().manual_seed(7)
+    mask = torch.rand(301, 467, generator=g) < 0.5
+    packed = pack_bits(mask.cuda())
+    assert packed.is_cuda and torch.equal(packed.cpu(), pack_bits(mask))
+    assert torch.equal(unpack_bits(packed, mask.shape).cpu(), mask)
