@@ -654,10 +654,9 @@ def render_page(records: list[tuple[Path, dict[str, Any]]]) -> str:
         "(inspection, input checks, model, image cache); *host peak*: the process's peak resident memory; *step "
         "early / late*: median of steps 2-6 / of the five before the last; *fastest step*: the least disturbed on a "
         "shared machine; *ns-eval start*: until it has loaded the model and the test photos; *ns-eval s / test "
-        "photo*: the rest of its run over the photos it scored; *viewer ready*: `ns-viewer --load-config` on the trained "
-        "run until its scene is set up (the training cameras' frustums, at most 512 of them, and the panels). The "
-        "slope row is a least-squares slope over the "
-        "runs, per photo of the collection.",
+        "photo*: the rest of its run over the photos it scored; *viewer ready*: `ns-viewer --load-config` on the "
+        "trained run until its scene is set up (the training cameras' frustums, at most 512 of them, and the "
+        "panels). The slope row is a least-squares slope over the runs, per photo of the collection.",
     ]
     for path, rec in records:
         m = rec["machine"]
