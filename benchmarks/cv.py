@@ -446,6 +446,8 @@ def cv_rows(
         ref = by_method.get(default)
         peer_name = stronger_peer(by_method)
         peer = by_method.get(peer_name) if peer_name else None
+        if ref is None and peer is None:  # only candidates scored here: nothing to set them against
+            continue
         photos = max(len(cv.per_photo) for cv in by_method.values())
         folds = max(cv.folds for cv in by_method.values())
         rows.append(

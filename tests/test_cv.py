@@ -297,3 +297,11 @@ def test_a_protocol_variant_gets_its_own_tables_once_the_default_and_a_peer_are_
     assert "peer: +2.50 [+2.50, +2.50] (n=4)" in row  # under the variant: +1 + (2.0 - 0.5)
     (row,) = [r for r in cv.cv_rows(recs, 5000) if r.startswith("| hall |")]
     assert "peer: +1.00 [+1.00, +1.00] (n=4)" in row  # the protocol's own scores untouched
+    for k, p in photos.items():  # a collection where only a candidate was scored under the variant
+        rec = _fold_rec("yard", k, 2, "willags-x", p)
+        rec["protocol_variants"] = {
+            "start16": {"5000": {"psnr": 0.0, "per_image": rec["milestones"]["5000"]["per_image"]}}
+        }
+        recs.append(rec)
+    assert not [r for r in cv.cv_rows(recs, 5000, variant="start16") if r.startswith("| yard")]  # no row: no reference
+    assert [r for r in cv.cv_rows(recs, 5000, variant="start16") if r.startswith("| hall |")]
