@@ -11,7 +11,6 @@ scale benchmark (benchmarks/scale.py) runs it in its own process, so the peak me
 
 import argparse
 import json
-import socket
 import sys
 import time
 from collections.abc import Sequence
@@ -19,17 +18,10 @@ from pathlib import Path
 from threading import Lock
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 nothing listens on now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="benchmarks.viewer_start", description=__doc__.split("\n\n")[0])
     parser.add_argument("config", help="a trained run's config.yml")
-    parser.add_argument("--port", type=int, default=0, help="the viewer's port (0: a free one)")
+    parser.add_argument("--port", type=int, default=0, help="the viewer's port (0: a free one, as ns-viewer picks it)")
     args = parser.parse_args(list(argv) if argv is not None else sys.argv[1:])
     config_path = Path(args.config)
     if not config_path.is_file():
@@ -41,7 +33,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     config, pipeline, _, step = eval_setup(config_path, eval_num_rays_per_chunk=None, test_mode="test")
     loaded = time.perf_counter()
-    config.viewer.websocket_port = args.port or free_port()
+    config.viewer.websocket_port = args.port or None  # None: nerfstudio's Viewer takes a free port
     viewer = Viewer(
         config.viewer,
         log_filename=config.get_base_dir() / config.viewer.relative_log_filename,
