@@ -22,7 +22,8 @@ scene as such a source first. Then, one after the other and each in its own proc
 The device is CUDA when torch sees one, else the CPU. The record goes to
 ``benchmarks/records/{gpu_runs,cpu_runs}/scale_<source>.json`` (``--out`` to choose), and ``report`` writes
 docs/scale.md from every ``scale_*.json`` there: a table per record, a slope per measure (least squares over the
-photo counts) and the issue's goals met or missed by a number.
+photo counts), the goals met or missed by a number, and docs/scale.png (start-up, host memory, the viewer's start and
+the inspection against the photos, a line per record).
 """
 
 import argparse
@@ -638,8 +639,57 @@ def gpu_goals(record: dict[str, Any]) -> list[str]:
     return out
 
 
-def render_page(records: list[tuple[Path, dict[str, Any]]]) -> str:
-    """docs/scale.md: per record its settings, table and goals."""
+PLOTTED = (
+    ("first_step_s", "time to the first step (s)"),
+    ("peak_host_gb", "host peak memory (GB)"),
+    ("viewer_ready_s", "viewer ready (s)"),
+    ("inspect_s", "willags-inspect (s)"),
+)
+"""The measures the page's plot draws against the photos, one panel each."""
+
+
+def record_label(rec: dict[str, Any]) -> str:
+    """"<source>, CPU" or "<source>, <GPU name>": a record's heading on the page and its line in the plot."""
+    m = rec["machine"]
+    return f"{rec['source']}, {m['device_name'] if m['device'] == 'cuda' else 'CPU'}"
+
+
+def plot_records(records: list[tuple[Path, dict[str, Any]]], path: Path) -> Path | None:
+    """The page's plot: each measure of PLOTTED against the photos (log axis), a line per record. None when no
+    record has a measure at two photo counts (nothing to draw a line through)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def series(rec: dict[str, Any], key: str) -> tuple[list[int], list[float]]:
+        pts = sorted((r["photos"], r[key]) for r in rec["runs"] if r.get(key) is not None)
+        return [p for p, _ in pts], [v for _, v in pts]
+
+    if not any(len(series(rec, key)[0]) >= 2 for _, rec in records for key, _ in PLOTTED):
+        return None
+    fig, axes = plt.subplots(1, len(PLOTTED), figsize=(4.0 * len(PLOTTED), 3.4))
+    for ax, (key, title) in zip(axes, PLOTTED, strict=True):
+        for _, rec in records:
+            xs, ys = series(rec, key)
+            if xs:
+                ax.plot(xs, ys, marker="o", label=record_label(rec))
+        ax.set_xscale("log")
+        ax.set_xlabel("photos")
+        ax.set_title(title, fontsize=10)
+        ax.set_ylim(bottom=0)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def render_page(records: list[tuple[Path, dict[str, Any]]], plot: str | None = None) -> str:
+    """docs/scale.md: per record its settings, table and goals; `plot`, the plot's file name beside the page, after
+    the introduction."""
     lines = [
         "# Photo-Tourism scale",
         "",
@@ -658,9 +708,11 @@ def render_page(records: list[tuple[Path, dict[str, Any]]]) -> str:
         "trained run until its scene is set up (the training cameras' frustums, at most 512 of them, and the "
         "panels). The slope row is a least-squares slope over the runs, per photo of the collection.",
     ]
+    if plot:
+        lines += ["", f"![The measures against the photos, a line per machine]({plot})"]
     for path, rec in records:
         m = rec["machine"]
-        lines += ["", f"## {rec['source']}, {m['device_name'] if m['device'] == 'cuda' else 'CPU'}", ""]
+        lines += ["", f"## {record_label(rec)}", ""]
         lines.append(
             f"`{rec['method']}`, {rec['steps']} training steps (viewer off), ns-eval with {rec['eval_protocol_steps']} "
             f"protocol step{'s' if rec['eval_protocol_steps'] != 1 else ''} per test photo"
@@ -683,8 +735,9 @@ def report(args: argparse.Namespace) -> int:
         print("benchmarks scale: no scale records (run `python -m benchmarks scale run` first)", file=sys.stderr)
         return 1
     page = Path(args.page)
-    page.write_text(render_page(records))
-    print(f"benchmarks scale: {page}")
+    plot = plot_records(records, page.with_suffix(".png"))
+    page.write_text(render_page(records, plot.name if plot else None))
+    print(f"benchmarks scale: {page}" + (f", {plot}" if plot else ""))
     return 0
 
 

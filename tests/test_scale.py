@@ -120,6 +120,19 @@ def test_the_goals_are_met_or_missed_by_a_number():
     assert "ns-eval linear in the test photos: **met**" in goals  # 0.107 then 0.102 s per further photo
 
 
+def test_the_page_draws_a_plot_where_a_record_has_two_photo_counts(tmp_path):
+    machine = {"device": "cpu", "cpu_count": 2, "host_memory_gb": 24.0}
+    one = {"source": "tiny", "machine": machine, "method": "willags", "steps": 2, "eval_protocol_steps": 1,
+           "runs": [_run(100, first_step_s=12.0, peak_host_gb=1.5)]}  # fmt: skip
+    assert scale.plot_records([(tmp_path / "a.json", one)], tmp_path / "one.png") is None  # no line to draw
+    two = {**one, "runs": [*one["runs"], _run(300, first_step_s=18.0, peak_host_gb=2.2, viewer_ready_s=11.0)]}
+    png = scale.plot_records([(tmp_path / "a.json", one), (tmp_path / "b.json", two)], tmp_path / "two.png")
+    assert png == tmp_path / "two.png" and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+    page = scale.render_page([(tmp_path / "b.json", two)], png.name)
+    assert "![The measures against the photos, a line per machine](two.png)" in page
+    assert "![" not in scale.render_page([(tmp_path / "b.json", two)])
+
+
 def test_ns_eval_linearity_needs_different_numbers_of_test_photos():
     """Runs that each scored the same few test photos (--pipeline.eval-protocol.max-images) say nothing about it."""
     runs = [
