@@ -649,7 +649,7 @@ PLOTTED = (
 
 
 def record_label(rec: dict[str, Any]) -> str:
-    """The heading "<source>, CPU" or "<source>, <GPU name>" of a record's heading on the page and its line in the plot."""
+    """A record's name, "<source>, CPU" or "<source>, <GPU name>": its heading on the page, its line in the plot."""
     m = rec["machine"]
     return f"{rec['source']}, {m['device_name'] if m['device'] == 'cuda' else 'CPU'}"
 
