@@ -497,6 +497,19 @@ def cv_rows(
             "",
             *md_table(["method", "collections", "photos", f"− {default} [95 % CI]", "verdict"], pooled_rows),
         ]
+    switches = switch_rows(by_scene, sigma, default)
+    if switches:
+        head = ["method", "against", "the settings it adds", "collection", "method − against [95 % CI] (photos)",
+                "verdict"]  # fmt: skip
+        out += [
+            "",
+            "What a setting is worth: a method against the one whose settings it extends (`cv.switch_pairs`), on each "
+            "collection where both have every fold, and at once over those. The settings are the methods' own: on a "
+            "collection where the inspector already set one of them for the other method (the mask on "
+            "sacre-coeur-mini), the pair differs by less than the column says:",
+            "",
+            *md_table(head, switches),
+        ]
     return out
 
 
@@ -521,6 +534,40 @@ def pooled_rows_of(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None
             where = f"{len(have)} of {len(scenes)} ({', '.join(have)})"
             said = f"none yet ({verdict(low, high)} on these)"
         out.append([m, where, str(n), f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]", said])
+    return out
+
+
+def switch_pairs(methods: Sequence[str], default: str = "willags") -> list[tuple[str, str, list[str]]]:
+    """(method, base, the settings it adds) for every two benchmarked methods where the one is the other with more
+    settings (benchmarks.methods METHODS: the same base config, a strict superset of its overrides): what those
+    settings are worth, measured as a pair. The default and the peers are left out (every method is set against the
+    default already)."""
+    from benchmarks.methods import METHODS
+
+    names = sorted(m for m in set(methods) if m in METHODS and m != default and not m.startswith("peer"))
+    out = []
+    for b in names:
+        for a in names:
+            sa, sb = set(METHODS[a].overrides), set(METHODS[b].overrides)
+            if a != b and METHODS[a].base == METHODS[b].base and sa < sb:
+                out.append((b, a, [f"{k}={v}" for k, v in sorted(sb - sa, key=str)]))
+    return out
+
+
+def switch_rows(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, default: str) -> list[list[str]]:
+    """Per pair of :func:`switch_pairs`, a row per collection where both have every fold, then, on two or more,
+    the pair over those collections at once (:func:`pooled`) with its verdict."""
+    methods = sorted({m for by in by_scene.values() for m in by})
+    out = []
+    for b, a, added in switch_pairs(methods, default):
+        scenes = [s for s, by in sorted(by_scene.items()) if a in by and b in by and by[a].complete and by[b].complete]
+        for s in scenes:
+            out.append([b, a, ", ".join(added), s, _diff(by_scene[s][b], by_scene[s][a], sigma), ""])
+        if len(scenes) >= 2:
+            mean, low, high, n = pooled([(by_scene[s][b], by_scene[s][a]) for s in scenes], sigma)
+            at_once = f"**{len(scenes)} at once**"
+            out.append([b, a, ", ".join(added), at_once, f"{mean:+.2f} [{low:+.2f}, {high:+.2f}] (n={n})",
+                        verdict(low, high)])  # fmt: skip
     return out
 
 

@@ -305,3 +305,27 @@ def test_a_protocol_variant_gets_its_own_tables_once_the_default_and_a_peer_are_
         recs.append(rec)
     assert not [r for r in cv.cv_rows(recs, 5000, variant="start16") if r.startswith("| yard")]  # no row: no reference
     assert [r for r in cv.cv_rows(recs, 5000, variant="start16") if r.startswith("| hall |")]
+
+
+def test_a_method_is_set_against_the_one_whose_settings_it_extends():
+    pairs = {(b, a): added for b, a, added in cv.switch_pairs(["willags", "peer", "willags-prior-low",
+                                                                "willags-prior-low-mask", "willags-capscene"])}  # fmt: skip
+    assert pairs == {("willags-prior-low-mask", "willags-prior-low"): ["mask.distance=residual", "mask.enabled=True"]}
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+    recs = []
+    for scene, gain in (("one", 1.0), ("two", -0.5)):
+        for k, p in photos.items():
+            recs.append(_fold_rec(scene, k, 2, "willags", p))
+            recs.append(_fold_rec(scene, k, 2, "willags-prior-low", p))
+            recs.append(_fold_rec(scene, k, 2, "willags-prior-low-mask", {n: v + gain for n, v in p.items()}))
+    rows = [r for r in cv.cv_rows(recs, 5000) if r.startswith("| willags-prior-low-mask | willags-prior-low |")]
+    added = "mask.distance=residual, mask.enabled=True"
+    assert rows == [
+        f"| willags-prior-low-mask | willags-prior-low | {added} | one | +1.00 [+1.00, +1.00] (n=4) |  |",
+        f"| willags-prior-low-mask | willags-prior-low | {added} | two | -0.50 [-0.50, -0.50] (n=4) |  |",
+        f"| willags-prior-low-mask | willags-prior-low | {added} | **2 at once** | +0.25 [+0.25, +0.25] (n=8) "
+        "| better |",
+    ]
+    only_one = [r for r in recs if not r["scene"].startswith("two") or r["method"] == "willags"]
+    rows = [r for r in cv.cv_rows(only_one, 5000) if r.startswith("| willags-prior-low-mask | willags-prior-low |")]
+    assert len(rows) == 1 and "| one |" in rows[0]  # one collection: no row at once
