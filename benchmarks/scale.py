@@ -472,6 +472,7 @@ def run(args: argparse.Namespace) -> int:
             f"{args.method}, {args.steps} training steps, ns-eval with {args.eval_steps} protocol steps per test photo",
             "machine": {**env, "note": args.note},
             "source": name,
+            "title": args.title or old.get("title", ""),
             "long_side": args.long_side,
             "method": args.method,
             "steps": args.steps,
@@ -624,19 +625,24 @@ def gpu_goals(record: dict[str, Any]) -> list[str]:
         margin, r = max(over, key=lambda t: t[0])
         out.append(f"- time to the first step < 60 s + 20 ms/photo: **{'met' if margin < 0 else 'missed'}** (worst: "
                    f"{r['first_step_s']:.1f} s at {r['photos']:,} photos, bound {60 + 0.02 * r['photos']:.1f} s)")  # fmt: skip
+    out.append(eval_linearity_goal(runs))
+    return out
+
+
+def eval_linearity_goal(runs: list[dict[str, Any]]) -> str:
+    """ns-eval linear in the test photos: the seconds each further test photo costs between runs that scored
+    different numbers of them (at least three such runs), their largest over their smallest within 1.25."""
     by_count = {r["eval_photos"]: r for r in runs if r.get("eval_photos")}  # distinct counts of scored photos
     evals = [by_count[k] for k in sorted(by_count)]
-    if len(evals) >= 3:
-        marginal = [(b["eval_s"] - a["eval_s"]) / max(1, b["eval_photos"] - a["eval_photos"]) for a, b in
-                    zip(evals, evals[1:], strict=False)]  # fmt: skip
-        spread = max(marginal) / min(marginal) if min(marginal) > 0 else float("inf")
-        out.append(f"- ns-eval linear in the test photos: **{'met' if spread <= 1.25 else 'missed'}** (seconds per "
-                   f"further test photo between successive runs: {', '.join(f'{m:.2f}' for m in marginal)}; largest "
-                   f"over smallest {spread:.2f}, linear within 1.25)")  # fmt: skip
-    else:
-        out.append("- ns-eval linear in the test photos: not measured (fewer than three runs scoring different numbers "
-                   "of test photos)")  # fmt: skip
-    return out
+    if len(evals) < 3:
+        return ("- ns-eval linear in the test photos: not measured (fewer than three runs scoring different numbers "
+                "of test photos)")  # fmt: skip
+    marginal = [(b["eval_s"] - a["eval_s"]) / max(1, b["eval_photos"] - a["eval_photos"]) for a, b in
+                zip(evals, evals[1:], strict=False)]  # fmt: skip
+    spread = max(marginal) / min(marginal) if min(marginal) > 0 else float("inf")
+    return (f"- ns-eval linear in the test photos: **{'met' if spread <= 1.25 else 'missed'}** (seconds per further "
+            f"test photo between successive runs: {', '.join(f'{m:.2f}' for m in marginal)}; largest over smallest "
+            f"{spread:.2f}, linear within 1.25)")  # fmt: skip
 
 
 PLOTTED = (
@@ -649,9 +655,11 @@ PLOTTED = (
 
 
 def record_label(rec: dict[str, Any]) -> str:
-    """A record's name, "<source>, CPU" or "<source>, <GPU name>": its heading on the page, its line in the plot."""
+    """A record's name, "<source>, CPU" or "<source>, <GPU name>" and its title if it has one: its heading on the
+    page, its line in the plot."""
     m = rec["machine"]
-    return f"{rec['source']}, {m['device_name'] if m['device'] == 'cuda' else 'CPU'}"
+    title = f" ({rec['title']})" if rec.get("title") else ""
+    return f"{rec['source']}, {m['device_name'] if m['device'] == 'cuda' else 'CPU'}{title}"
 
 
 def plot_records(records: list[tuple[Path, dict[str, Any]]], path: Path) -> Path | None:
@@ -724,7 +732,8 @@ def render_page(records: list[tuple[Path, dict[str, Any]]], plot: str | None = N
         )
         lines += ["", *table(rec), "", "The time to the first step, phase by phase (seconds):", "", *phase_table(rec)]
         lines += ["", "Goals:", ""]
-        lines += cpu_goal(rec) if m["device"] == "cpu" else gpu_goals(rec)
+        runs = [r for r in rec["runs"] if r.get("first_step_s") is not None]
+        lines += [*cpu_goal(rec), eval_linearity_goal(runs)] if m["device"] == "cpu" else gpu_goals(rec)
     return "\n".join(lines) + "\n"
 
 
@@ -758,6 +767,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="contrast of the synthetic source's non-repeating texture (0: the plain, repeating one)")  # fmt: skip
     r.add_argument("--train-args", default="", help="more ns-train arguments, one string (after the method's)")
     r.add_argument("--note", default="", help="a note on the machine (shared, alone, ...) kept in the record")
+    r.add_argument("--title", default="", help="what the record is for, beside its source and device on the page")
     r.add_argument("--out", help="the record (default benchmarks/records/{gpu,cpu}_runs/scale_<source>.json)")
     p = sub.add_parser("report", help="write docs/scale.md from the scale records")
     p.add_argument("--records", nargs="*", help="record files (default every benchmarks/records/*/scale_*.json)")

@@ -131,6 +131,9 @@ def test_the_page_draws_a_plot_where_a_record_has_two_photo_counts(tmp_path):
     page = scale.render_page([(tmp_path / "b.json", two)], png.name)
     assert "![The measures against the photos, a line per machine](two.png)" in page
     assert "![" not in scale.render_page([(tmp_path / "b.json", two)])
+    assert "## tiny, CPU (every test photo)\n" in scale.render_page(
+        [(tmp_path / "c.json", {**two, "title": "every test photo"})]
+    )
 
 
 def test_ns_eval_linearity_needs_different_numbers_of_test_photos():
