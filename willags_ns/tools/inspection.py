@@ -59,7 +59,12 @@ the horizon: a textureless plaza, crowds (on reichstag about half of the uncover
 image, docs/inspect.md). Where the subject stands against the sky matters too (`surround_score`): per image,
 the share of its covered cells that have open background connected to the image's top on both sides in their row
 (`surround_fraction`), median over the images: a statue or a tower seen against the sky scores high, a building under
-the sky (open background above its roofline only) low. Without SfM points neither is measured (None).
+the sky (open background above its roofline only) low. What is uncovered but not reached from the top (`ground_score`:
+per image the share of cells uncovered and enclosed by covered ones from above, `enclosed_fraction`, median over the
+images) is ground SfM did not reconstruct under the subject: a plaza where crowds stand (docs/inspect.md gives each
+shared scene's). It is measured and printed, and not part of the recommendation: the
+transient score does not see crowds where SfM has no points, and whether this does is for collections it was not
+found on to say. Without SfM points none of these is measured (None).
 
 The recommendation (see `recommend`): appearance latent on when appearance_score >= `appearance_threshold`; mask (with
 its EMA teacher) on when transient_score >= `transient_threshold`; tri-plane field always off (measured: it did not
@@ -650,12 +655,19 @@ def surround_fraction(covered: np.ndarray) -> float:
     return float((covered & left & right).sum()) / n if n else 0.0
 
 
+def enclosed_fraction(covered: np.ndarray) -> float:
+    """Share of an image's cells that no SfM point covers and that are not reached from the image's top through
+    uncovered cells (`open_from_top`): open background under covered scene, not sky."""
+    return float((~covered & ~open_from_top(covered)).mean())
+
+
 def open_background_evidence(scene: SceneViews, images: np.ndarray, cfg: InspectConfig) -> dict[str, Any]:
-    """Evidence 4 (module docstring): the median over the selected images of the uncovered share and of the
-    surround share (`surround_fraction`), their means and the per-image values."""
+    """Evidence 4 (module docstring): the median over the selected images of the uncovered share, of the surround
+    share (`surround_fraction`) and of the enclosed uncovered share (`enclosed_fraction`), and the per-image values."""
     maps = coverage_maps(scene, images, cfg.background_grid)
     frac = np.array([1.0 - float(c.mean()) for c in maps])
     surround = np.array([surround_fraction(c) for c in maps])
+    ground = np.array([enclosed_fraction(c) for c in maps])
     return {
         "background_score": float(np.median(frac)),
         "background_fraction_mean": float(np.mean(frac)),
@@ -663,6 +675,8 @@ def open_background_evidence(scene: SceneViews, images: np.ndarray, cfg: Inspect
         "surround_fraction_mean": float(np.mean(surround)),
         "per_image_background_fraction": frac.tolist(),
         "per_image_surround_fraction": surround.tolist(),
+        "ground_score": float(np.median(ground)),
+        "per_image_ground_fraction": ground.tolist(),
     }
 
 
@@ -992,7 +1006,8 @@ def format_report(report: dict[str, Any]) -> str:
         + ("not measured" if ts is None else f"{ts:.2f} of the images occluded")
         + ", open background "
         + ("not measured" if bg is None else f"{bg:.2f} of the image (median)")
-        + ("" if e.get("surround_score") is None else f", subject against it {e['surround_score']:.2f} (median)"),
+        + ("" if e.get("surround_score") is None else f", subject against it {e['surround_score']:.2f} (median)")
+        + ("" if e.get("ground_score") is None else f", ground under it {e['ground_score']:.2f} (median)"),
     ]
     for key in ("appearance_latent", "mask", "teacher", "triplane_field", "sky"):
         mode = f" {r[key]['mode']}" if key == "sky" and r[key]["on"] else ""
