@@ -644,21 +644,23 @@ def open_from_top(covered: np.ndarray) -> np.ndarray:
         reach = grown
 
 
-def surround_fraction(covered: np.ndarray) -> float:
-    """Share of an image's covered cells with open background (`open_from_top`) both to their left and to their
-    right in the same row: how much of what SfM reconstructed stands against the sky (a statue: most of it; a
-    building under the sky: only its roofline). 0 for an image without covered cells."""
-    sky = open_from_top(covered)
+def surround_fraction(covered: np.ndarray, sky: np.ndarray | None = None) -> float:
+    """Share of an image's covered cells with open background (`open_from_top`, or `sky` when the caller has it)
+    both to their left and to their right in the same row: how much of what SfM reconstructed stands against the sky
+    (a statue: most of it; a building under the sky: only its roofline). 0 for an image without covered cells."""
+    sky = open_from_top(covered) if sky is None else sky
     left = np.maximum.accumulate(sky, axis=1)
     right = np.maximum.accumulate(sky[:, ::-1], axis=1)[:, ::-1]
     n = int(covered.sum())
     return float((covered & left & right).sum()) / n if n else 0.0
 
 
-def enclosed_fraction(covered: np.ndarray) -> float:
+def enclosed_fraction(covered: np.ndarray, sky: np.ndarray | None = None) -> float:
     """Share of an image's cells that no SfM point covers and that are not reached from the image's top through
-    uncovered cells (`open_from_top`): open background under covered scene, not sky."""
-    return float((~covered & ~open_from_top(covered)).mean())
+    uncovered cells (`open_from_top`, or `sky` when the caller has it): open background under covered scene, not
+    sky."""
+    sky = open_from_top(covered) if sky is None else sky
+    return float((~covered & ~sky).mean())
 
 
 def open_background_evidence(scene: SceneViews, images: np.ndarray, cfg: InspectConfig) -> dict[str, Any]:
@@ -666,8 +668,9 @@ def open_background_evidence(scene: SceneViews, images: np.ndarray, cfg: Inspect
     share (`surround_fraction`) and of the enclosed uncovered share (`enclosed_fraction`), and the per-image values."""
     maps = coverage_maps(scene, images, cfg.background_grid)
     frac = np.array([1.0 - float(c.mean()) for c in maps])
-    surround = np.array([surround_fraction(c) for c in maps])
-    ground = np.array([enclosed_fraction(c) for c in maps])
+    skies = [open_from_top(c) for c in maps]  # each map's flood fill once, for both shares
+    surround = np.array([surround_fraction(c, sky) for c, sky in zip(maps, skies, strict=True)])
+    ground = np.array([enclosed_fraction(c, sky) for c, sky in zip(maps, skies, strict=True)])
     return {
         "background_score": float(np.median(frac)),
         "background_fraction_mean": float(np.mean(frac)),
