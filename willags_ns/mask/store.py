@@ -9,6 +9,7 @@ image's last mask stays in memory for the whole run, on the training device. As 
     PackedMasks: {image index: bool [H, W]}, stored packed
 """
 
+import math
 from collections.abc import Iterator, MutableMapping
 
 import torch
@@ -32,9 +33,7 @@ def pack_bits(mask: Tensor) -> Tensor:
 
 def unpack_bits(packed: Tensor, shape: tuple[int, ...]) -> Tensor:
     """The bool tensor of `shape` that `pack_bits` packed into `packed`."""
-    numel = 1
-    for s in shape:
-        numel *= int(s)
+    numel = math.prod(int(s) for s in shape)
     if packed.numel() * _BITS < numel:
         raise ValueError(f"unpack_bits: {packed.numel()} bytes hold fewer than the {numel} pixels of shape {shape}")
     bits = (packed[:, None] >> _shifts(packed.device)) & 1
