@@ -100,6 +100,12 @@ METHODS: dict[str, MethodSpec] = {
         ("latent.prior_weight", 0.002),
         note="willags-prior-low with the transient mask on every scene, by the colour residual to the teacher",
     ),
+    "willags-prior-low-mask-expected": _masked_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("mask.residual.expected", True),
+        note="willags-prior-low-mask thresholding the residual beyond the scene's expected residual at each pixel "
+        "(mask/expected.py: a level per Gaussian fitted over every photo)",
+    ),
     "willags-lowpen": _default_on_gpu(
         ("modulation.local_penalty", 0.001),
         note="the default with a tenth of the per-Gaussian residual's penalty (0.001)",

@@ -80,7 +80,7 @@ def _camera(width, height):
     )
 
 
-def _tiny_model(use_vae: bool, color_mode: str = "modulated", **overrides):
+def _tiny_model(use_vae: bool, color_mode: str = "modulated", mask_fields: dict | None = None, **overrides):
     from nerfstudio.data.scene_box import SceneBox
 
     from tests._configs import all_components, latent, mask
@@ -98,7 +98,7 @@ def _tiny_model(use_vae: bool, color_mode: str = "modulated", **overrides):
             triplane=TriplaneConfig(resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16),
             intrinsic_dim=8,
             color_mode=color_mode,
-            mask=mask(vgg_weights="seeded"),
+            mask=mask(vgg_weights="seeded", **(mask_fields or {})),
             backend="torch",
             background_color="black",
             num_downscales=0,

@@ -66,6 +66,7 @@ def _optimizers(max_steps: int) -> dict[str, dict]:
         "features_dc": adam(0.0025),
         "features_rest": adam(0.0025 / 20),
         "features": adam(0.0025),
+        "residual_level": adam(0.005),  # each Gaussian's expected residual (mask.residual.expected): mask/expected.py
         "appearance": {
             "optimizer": FusedAdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps, warmup_steps=100),

@@ -58,7 +58,9 @@ from willags_ns.appearance_spec import latent_from_env
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import make_lpips
+from willags_ns.mask.expected import LEVEL, expected_on, initial_levels, level_channels, level_loss
 from willags_ns.mask.health import MaskHealth
+from willags_ns.mask.residual import colour_residual
 from willags_ns.mask.step import (
     MaskStep,
     StepMask,
@@ -114,6 +116,8 @@ class WillagsModel(SplatfactoModel):
         self.mcmc_on = uses_mcmc(cfg.densification, self.kwargs.get("device") or "cpu")
         layout = gaussian_layout(cfg)  # the per-Gaussian tensors the colour model reads (SH, f_s)
         self.gauss_params = nn.ParameterDict(initial_gauss_params(cfg, means, seed_rgb, avg_dist, layout, self.mcmc_on))
+        if expected_on(cfg):  # each Gaussian's expected residual, densified and saved with the rest (mask/expected.py)
+            self.gauss_params[LEVEL] = nn.Parameter(initial_levels(means.shape[0]))
 
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         from pytorch_msssim import SSIM
@@ -247,7 +251,8 @@ class WillagsModel(SplatfactoModel):
         """This step's static mask (MaskStep.static_mask) of the image get_outputs rendered (`outputs`)."""
         idx = int(outputs.get("image_idx", -1))
         teacher_rgb = outputs.get("teacher_rgb")
-        return self.mask_step.static_mask(self.step, idx, gt_img, teacher_rgb, self.perceptual, self.device)
+        expected = outputs.get("expected_residual")
+        return self.mask_step.static_mask(self.step, idx, gt_img, teacher_rgb, self.perceptual, self.device, expected)
 
     def static_support(self, idx: int, height: int, width: int) -> Tensor | None:
         """Training image `idx`'s SfM support grid (True = vouched static), or None (MaskStep.support)."""
@@ -388,6 +393,7 @@ class WillagsModel(SplatfactoModel):
         colors, sh_degree, teacher_colors = self._colors(camera, gp, view, z, teacher, outputs)  # color_path.py
         render, alpha = self._rasterize(gp, colors, view, sh_degree)  # splats/gaussians.py
         teacher_raster = self._teacher_raster(teacher, render, alpha, gp, teacher_colors, view)
+        outputs.update(self._level_maps(render, teacher, gp))  # mask/expected.py
         outputs.update(self._composite(view, render, alpha, z, teacher_raster, outputs))  # appearance/sky.py
         return outputs
 
@@ -470,13 +476,30 @@ class WillagsModel(SplatfactoModel):
         if penalty is not None:
             outputs["color_penalty"] = penalty
         if teacher not in ("fused", "second"):
-            return student.rgb, None, None
+            return self._with_levels(student.rgb, teacher, gp), None, None
         assert self.teacher is not None
         sh_base = student.sh_base.detach() if student.sh_base is not None else None
         t_colors = teacher_colors(self.teacher, outputs["teacher_latent"], gp, center, self.color_context(), sh_base)
         if teacher == "fused":  # student RGB | teacher RGB (detached) in one rasterisation: channels 0:3 | 3:6
-            return torch.cat([student.rgb, t_colors], dim=-1), None, None
-        return student.rgb, None, t_colors
+            return self._with_levels(torch.cat([student.rgb, t_colors], dim=-1), teacher, gp), None, None
+        return self._with_levels(student.rgb, teacher, gp), None, t_colors
+
+    @staticmethod
+    def _with_levels(colors: Tensor, teacher: TeacherPass | None, gp: dict) -> Tensor:
+        """`colors` and, on a step that computes a mask with the expected residual on, the two channels of the
+        Gaussians' levels after them (mask/expected.level_channels)."""
+        if teacher is None or LEVEL not in gp:
+            return colors
+        return torch.cat([colors, level_channels(gp[LEVEL])], dim=-1)
+
+    @staticmethod
+    def _level_maps(render: Tensor, teacher: TeacherPass | None, gp: dict) -> dict[str, Tensor]:
+        """The expected residual E [H, W] and its probe Q [H, W] from the channels `_with_levels` appended (after the
+        student's colours and, fused, the teacher's); empty on a step without them."""
+        if teacher is None or LEVEL not in gp:
+            return {}
+        c = 6 if teacher == "fused" else 3
+        return {"expected_residual": render[0, ..., c], "expected_probe": render[0, ..., c + 1]}
 
     def _render_mode(self) -> str:
         """gsplat's render mode: the expected depth after the colours while rendering (or when asked to train)."""
@@ -596,6 +619,9 @@ class WillagsModel(SplatfactoModel):
         pred_b, gt_b = pred_img.permute(2, 0, 1)[None], gt_img.permute(2, 0, 1)[None]
         mask_b = None if mask is None else mask[None]
         loss_dict = {"main_loss": reconstruction_loss(pred_b, gt_b, mask_b, ssim_lambda=cfg.ssim_lambda)}
+        if "expected_probe" in outputs and "teacher_rgb" in outputs:  # 0 in value: fits the levels (mask/expected.py)
+            r = colour_residual(gt_img, outputs["teacher_rgb"])
+            loss_dict[LEVEL] = level_loss(outputs["expected_residual"], outputs["expected_probe"], r)
         if mask is not None and metrics_dict is not None:
             metrics_dict["masked_fraction"] = 1.0 - mask.mean().detach()
             if step_mask.rejected is not None:

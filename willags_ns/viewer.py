@@ -131,7 +131,7 @@ def training_view_panels(model: "WillagsModel", train_dataset, idx: int, max_wid
     comparison of mask.distance with the teacher render (VGG features or colour residual), its threshold and the
     rejection of mostly-flagged images).
     """
-    from willags_ns.eval.mask_eval import teacher_render, training_view
+    from willags_ns.eval.mask_eval import expected_render, teacher_render, training_view
     from willags_ns.mask.rule import compare_to_teacher
 
     cam, image, _ = training_view(train_dataset, idx)
@@ -139,7 +139,8 @@ def training_view_panels(model: "WillagsModel", train_dataset, idx: int, max_wid
     teacher = teacher_render(model, cam, gt, idx)
     cfg = model.config
     if model.perceptual is not None:  # the comparison of mask.distance; a rejected mask is all False
-        transient, _, _ = compare_to_teacher(cfg.mask, model.step, gt, teacher, model.perceptual)
+        expected = expected_render(model, cam, idx)  # the scene's expected residual, when it has one
+        transient, _, _ = compare_to_teacher(cfg.mask, model.step, gt, teacher, model.perceptual, expected=expected)
     else:  # mask.enabled False: no mask, every pixel is supervised
         transient = torch.zeros(gt.shape[:2], dtype=torch.bool, device=gt.device)
     overlay = gt.clone()

@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
+from willags_ns.mask.expected import LEVEL
 from willags_ns.mask.rule import compare_to_teacher, step_threshold, transient_mask
 from willags_ns.render.camera import View, viewmat_from_c2w
 
@@ -169,18 +170,34 @@ def teacher_render(model, camera, image: Tensor, image_idx: int) -> Tensor:
 
     nets = model.teacher if model.teacher is not None else model.appearance_nets
     z = teacher_latent(nets, image.permute(2, 0, 1).float().to(model.device), image_idx)
-    cam = camera.to(model.device)
-    cam.metadata = dict(cam.metadata or {})
-    cam.metadata["cam_idx"] = image_idx
-    c2w = model.camera_optimizer.apply_to_camera(cam)
-    K = cam.get_intrinsics_matrices().to(model.device)
-    view = View(c2w, viewmat_from_c2w(c2w), K, int(cam.width.item()), int(cam.height.item()))
+    view = _training_camera_view(model, camera, image_idx)
+    c2w, K = view.c2w, view.K
     gp = model.gauss_params
     colors = teacher_colors(nets, z, gp, view.center, model.color_context(), None)
     dirs = pixel_directions(c2w[0], K[0], view.width, view.height) if nets.sky is not None else None
     bg = background(nets.sky, z, dirs, model.background_color.to(model.device))
     render, alpha = model.render_teacher(gp, colors, view)
     return composite(render, alpha, bg).squeeze(0)
+
+
+def _training_camera_view(model, camera, image_idx: int) -> View:
+    """The View of training camera `image_idx` as a training step renders it (after the camera optimiser)."""
+    cam = camera.to(model.device)
+    cam.metadata = dict(cam.metadata or {})
+    cam.metadata["cam_idx"] = image_idx
+    c2w = model.camera_optimizer.apply_to_camera(cam)
+    K = cam.get_intrinsics_matrices().to(model.device)
+    return View(c2w, viewmat_from_c2w(c2w), K, int(cam.width.item()), int(cam.height.item()))
+
+
+def expected_render(model, camera, image_idx: int) -> Tensor | None:
+    """The scene's expected residual [H, W] on training camera `image_idx` (willags_ns/mask/expected.py: the
+    Gaussians' levels rendered), which the rule subtracts; None for a model without levels."""
+    if LEVEL not in model.gauss_params:
+        return None
+    gp = model.gauss_params
+    render, _ = model.render_teacher(gp, gp[LEVEL].detach(), _training_camera_view(model, camera, image_idx))
+    return render[0, ..., 0]
 
 
 def mask_scores(
@@ -227,7 +244,8 @@ def mask_scores(
             cam, image, gt_mask = training_view(train_dataset, i, gt_mask)
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
             render = teacher_render(model, cam, img, i)
-            pred, rejected_t, d = compare_to_teacher(cfg.mask, model.step, img, render, model.perceptual, thr)
+            expected = expected_render(model, cam, i)
+            pred, rejected_t, d = compare_to_teacher(cfg.mask, model.step, img, render, model.perceptual, thr, expected)
             rejected = bool(rejected_t)
             if gt_mask is None:  # no ground truth: every pixel static
                 gt_t = torch.zeros_like(pred, dtype=torch.bool)

@@ -47,6 +47,10 @@ class ResidualConfig:
     of a patch whose outlier share reaches patch_fraction (a blob, not scattered texture)."""
     patch_fraction: float = 0.5
     """Share of outlier pixels that makes a patch a transient patch."""
+    expected: bool = False
+    """Threshold the residual beyond the scene's expected residual at each pixel (willags_ns/mask/expected.py: a
+    level per Gaussian fitted to the residuals it is rendered over, in every photo) instead of the residual itself,
+    so that static scene the model fits badly in every photo is not taken for a transient."""
 
 
 def colour_residual(photo: Float[Tensor, "H W 3"], render: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W"]:

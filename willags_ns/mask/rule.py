@@ -17,6 +17,7 @@ from typing import Literal
 from jaxtyping import Bool, Float
 from torch import Tensor
 
+from willags_ns.mask.expected import excess_residual
 from willags_ns.mask.health import MaskHealthConfig
 from willags_ns.mask.residual import ResidualConfig, colour_residual, residual_transient
 from willags_ns.mask.static_support import StaticSupportConfig
@@ -177,15 +178,20 @@ def compare_to_teacher(
     render: Tensor,
     perceptual: PerceptualFeatures | None,
     threshold: float | None = None,
+    expected: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """``(transient [H, W] bool, rejected 0-d bool, D [H, W])`` of a photo [H, W, 3] against the teacher's render
     of it at `step`, by the comparison mask_cfg.distance names: "vgg" (perceptual D, its threshold rule;
     willags_ns/mask/transient.py for D) or "residual" (colour residual, robust bar, coherence;
     willags_ns/mask/residual.py). The one rule of training, the mask evaluation and the viewer. `threshold`: the bar
-    instead of the step's (:func:`step_threshold`), for an evaluation at another one."""
+    instead of the step's (:func:`step_threshold`), for an evaluation at another one. `expected` [H, W]: the scene's
+    expected residual at each pixel (willags_ns/mask/expected.py); with "residual", the rule and D are the residual
+    beyond it."""
     thr = step_threshold(mask_cfg, step) if threshold is None else threshold
     if mask_cfg.distance == "residual":
         d = colour_residual(photo, render)
+        if expected is not None:
+            d = excess_residual(d, expected)
         transient, rejected = residual_transient(d, thr, mask_cfg.residual, mask_cfg.max_masked_fraction)
         return transient, rejected, d
     if mask_cfg.distance != "vgg":

@@ -103,16 +103,18 @@ class MaskStep:
         teacher_rgb: Tensor | None,
         perceptual: PerceptualFeatures | None,
         device,
+        expected: Tensor | None = None,
     ) -> StepMask:
         """The static mask of image `idx` at this step. With this step's teacher render, a new mask (with its D and
-        rejection flag); without, the image's last one at the current resolution."""
+        rejection flag); without, the image's last one at the current resolution. `expected` [H, W]: the scene's
+        expected residual on this step's render (willags_ns/mask/expected.py), or None."""
         cfg = self.cfg.mask
         if not self.active(step):
             return StepMask(None, None, None)
         H, W = gt_img.shape[:2]
         d = rejected = None
         if teacher_rgb is not None:
-            transient, flag, d = compare_to_teacher(cfg, step, gt_img, teacher_rgb, perceptual)
+            transient, flag, d = compare_to_teacher(cfg, step, gt_img, teacher_rgb, perceptual, expected=expected)
             mask = ~transient  # a rejected mask supervises every pixel rather than none
             rejected = flag.float()  # a device tensor: no wait for VGG here
             self.masks[idx] = mask
