@@ -13,12 +13,13 @@ rasterisation after the colours (and the teacher's, when fused):
     channel e = render of h, detached:      E[p]  = sum_g w_g(p) h_g        the expected residual at pixel p
     channel q = render of h - h.detach():   Q[p]  = 0 in value              its gradient reaches h alone
 
-and the loss gains ``mean_p (E - r)[p] * Q[p]`` with E and r detached: 0 in value, 0 in the gradient of every
-Gaussian's geometry and colour (Q's inputs are zeros), and ``mean_p w_g(p) (E - r)[p]`` in h_g's gradient: the
-gradient of the least-squares fit of E to the residual r, so h follows each Gaussian's residual over the photos
-that see it. The rule then thresholds the excess ``max(r - max(E, 0), 0)`` in place of r. A Gaussian seen in one
-photo only learns that photo's residual; a transient's pixels are explained by no Gaussian's level as long as the
-other photos see the Gaussians behind them. Measured numbers: docs/design.md, "A weight-free transient mask".
+and the loss gains ``mean_p sign(E - r)[p] * Q[p]`` with E and r detached: 0 in value, 0 in the gradient of every
+Gaussian's geometry and colour (Q's inputs are zeros), and ``mean_p w_g(p) sign(E - r)[p]`` in h_g's gradient: the
+gradient of the least-absolute-deviations fit of E to the residual r, so h follows the median of each Gaussian's
+residuals over the photos that see it. The median, not the mean: a passer-by's large residual in a few of the
+photos does not raise the level of the facade behind them, a detail missed in most photos does. The rule then thresholds the excess ``max(r - max(E, 0), 0)`` in place of r. A Gaussian seen in one
+photo only learns that photo's residual; a transient's pixels are explained by no Gaussian's level as long as most
+of the photos that see the Gaussians behind it show them unoccluded. Measured numbers: docs/design.md, "A weight-free transient mask".
 
 Pure functions; the model appends the channels (model.py), the rule subtracts (mask/rule.py).
 """
@@ -58,6 +59,6 @@ def excess_residual(r: Float[Tensor, "H W"], expected: Float[Tensor, "H W"]) -> 
 def level_loss(
     expected: Float[Tensor, "H W"], probe: Float[Tensor, "H W"], r: Float[Tensor, "H W"]
 ) -> Float[Tensor, ""]:
-    """mean_p (E - r)[p] * Q[p] with E and r detached: 0 in value, the least-squares gradient of the levels through
-    the probe channel Q (module docstring)."""
-    return ((expected.detach() - r.detach()) * probe).mean()
+    """mean_p sign(E - r)[p] * Q[p] with E and r detached: 0 in value, the gradient of mean_p |E - r| (the levels'
+    least-absolute-deviations fit) through the probe channel Q (module docstring)."""
+    return (torch.sign(expected.detach() - r.detach()) * probe).mean()

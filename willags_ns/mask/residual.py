@@ -49,8 +49,8 @@ class ResidualConfig:
     """Share of outlier pixels that makes a patch a transient patch."""
     expected: bool = False
     """Threshold the residual beyond the scene's expected residual at each pixel (willags_ns/mask/expected.py: a
-    level per Gaussian fitted to the residuals it is rendered over, in every photo) instead of the residual itself,
-    so that static scene the model fits badly in every photo is not taken for a transient."""
+    level per Gaussian, the median of the residuals it is rendered over in the photos that see it) instead of the
+    residual itself, so that static scene the model fits badly in every photo is not taken for a transient."""
 
 
 def colour_residual(photo: Float[Tensor, "H W 3"], render: Float[Tensor, "H W 3"]) -> Float[Tensor, "H W"]:
