@@ -37,6 +37,7 @@ def test_the_rule_keeps_what_every_photo_gets_wrong_and_still_finds_the_occluder
     assert beyond[HARD].float().mean() < 0.05, "the hard static region is masked although every photo shows it so"
     torch.testing.assert_close(d, excess_residual(d_plain, expected))
     assert (d >= 0).all() and torch.equal(d[OCCLUDER], d_plain[OCCLUDER])
+    assert not (beyond & ~plain).any(), "beyond the expected residual masks a subset of the plain rule's pixels"
 
 
 def test_level_loss_is_zero_in_value_and_the_absolute_deviations_gradient_in_the_probe():

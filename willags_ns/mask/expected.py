@@ -17,9 +17,11 @@ and the loss gains ``mean_p sign(E - r)[p] * Q[p]`` with E and r detached: 0 in 
 Gaussian's geometry and colour (Q's inputs are zeros), and ``mean_p w_g(p) sign(E - r)[p]`` in h_g's gradient: the
 gradient of the least-absolute-deviations fit of E to the residual r, so h follows the median of each Gaussian's
 residuals over the photos that see it. The median, not the mean: a passer-by's large residual in a few of the
-photos does not raise the level of the facade behind them, a detail missed in most photos does. The rule then thresholds the excess ``max(r - max(E, 0), 0)`` in place of r. A Gaussian seen in one
-photo only learns that photo's residual; a transient's pixels are explained by no Gaussian's level as long as most
-of the photos that see the Gaussians behind it show them unoccluded. Measured numbers: docs/design.md, "A weight-free transient mask".
+photos does not raise the level of the facade behind them, a detail missed in most photos does. The rule then
+holds the excess ``max(r - max(E, 0), 0)`` to the bar of r (the image's own statistics) in place of r, so it masks a
+subset of what the plain rule masks. A Gaussian seen in one photo only learns that photo's residual; a transient's
+pixels are explained by no Gaussian's level as long as most of the photos that see the Gaussians behind it show them
+unoccluded. Measured numbers: docs/design.md, "A weight-free transient mask".
 
 Pure functions; the model appends the channels (model.py), the rule subtracts (mask/rule.py).
 """

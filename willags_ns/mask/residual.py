@@ -98,13 +98,19 @@ def blob_patches(mask: Bool[Tensor, "H W"], patch: int, fraction: float) -> Bool
 
 
 def residual_transient(
-    r: Float[Tensor, "H W"], floor: float, cfg: ResidualConfig, max_masked_fraction: float = 1.0
+    r: Float[Tensor, "H W"],
+    floor: float,
+    cfg: ResidualConfig,
+    max_masked_fraction: float = 1.0,
+    excess: Float[Tensor, "H W"] | None = None,
 ) -> tuple[Bool[Tensor, "H W"], Bool[Tensor, ""]]:
     """``(transient [H, W], rejected)`` of one image's residual ``r`` (see the module docstring). ``floor``: the
     bar's floor at this step (inf before the warm-up: nothing is transient). More than ``max_masked_fraction``
-    transient: rejected (all False), as the perceptual mask. ``rejected`` is a 0-d bool tensor on r's device."""
+    transient: rejected (all False), as the perceptual mask. ``rejected`` is a 0-d bool tensor on r's device.
+    ``excess``: the residual beyond the scene's expected residual (willags_ns/mask/expected.py), held to the bar of
+    ``r`` in place of ``r``: a subset of the plain rule's outliers, those the scene does not usually show there."""
     bar = residual_threshold(r, floor, cfg.k)
-    outlier = r > bar
+    outlier = (r if excess is None else excess) > bar
     transient = majority(outlier, cfg.pixel_window) & blob_patches(outlier, cfg.patch_size, cfg.patch_fraction)
     rejected = transient.float().mean() > max_masked_fraction
     return transient & ~rejected, rejected

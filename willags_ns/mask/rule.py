@@ -185,15 +185,14 @@ def compare_to_teacher(
     willags_ns/mask/transient.py for D) or "residual" (colour residual, robust bar, coherence;
     willags_ns/mask/residual.py). The one rule of training, the mask evaluation and the viewer. `threshold`: the bar
     instead of the step's (:func:`step_threshold`), for an evaluation at another one. `expected` [H, W]: the scene's
-    expected residual at each pixel (willags_ns/mask/expected.py); with "residual", the rule and D are the residual
-    beyond it."""
+    expected residual at each pixel (willags_ns/mask/expected.py); with "residual", D is the residual beyond it,
+    held to the bar of the plain residual."""
     thr = step_threshold(mask_cfg, step) if threshold is None else threshold
     if mask_cfg.distance == "residual":
         d = colour_residual(photo, render)
-        if expected is not None:
-            d = excess_residual(d, expected)
-        transient, rejected = residual_transient(d, thr, mask_cfg.residual, mask_cfg.max_masked_fraction)
-        return transient, rejected, d
+        excess = None if expected is None else excess_residual(d, expected)
+        transient, rejected = residual_transient(d, thr, mask_cfg.residual, mask_cfg.max_masked_fraction, excess)
+        return transient, rejected, d if excess is None else excess
     if mask_cfg.distance != "vgg":
         raise ValueError(f"mask.distance {mask_cfg.distance!r}: expected vgg | residual")
     assert perceptual is not None
