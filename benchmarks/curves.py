@@ -34,13 +34,16 @@ from benchmarks.methods import configuration
 from benchmarks.records import RECORDS, REPO, merged_records
 from benchmarks.tables import gpu, md_table
 
-CURVE_METHODS = ("willags-lite", "willags", "willags-full", "willags-paper", "peer-full", "peer", "splatfacto")
+CURVE_METHODS = (
+    "willags-lite", "willags", "willags-noprior", "willags-full", "willags-paper", "peer-full", "peer", "splatfacto"
+)  # fmt: skip
 """The methods of the curves (benchmarks/methods.py METHODS names; a record's configuration,
-benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`)."""
+benchmarks.methods.configuration: `willags` records from before the default inspected the scene are `willags-full`,
+from before its latent prior `willags-noprior`)."""
 REAL_SCENES = ("reichstag", "sacre-coeur-mini", "south-building")
 SCENES = (*REAL_SCENES, "fox-wild")
 """The curves' scenes: the real photo collections and fox-wild, in this order."""
-COLORS = {"willags": "C0", "willags-full": "C9", "willags-lite": "C2", "willags-paper": "C4"}
+COLORS = {"willags": "C0", "willags-noprior": "C5", "willags-full": "C9", "willags-lite": "C2", "willags-paper": "C4"}
 COLORS.update({"peer": "C1", "splatfacto": "C7"})  # any other method (peer-full) in black
 
 

@@ -260,7 +260,7 @@ def collect(
     return dict(out)
 
 
-EQUIVALENT = {("willags-capscene", "willags"): "MCMC's cap not reached on any fold: the same model"}
+EQUIVALENT = {("willags-capscene", "willags-noprior"): "MCMC's cap not reached on any fold: the same model"}
 """Method pairs that train the same model where their runs end with the same number of Gaussians on every fold (the
 pair's runs then differ only by the GPU's non-deterministic sums): replicates for the run noise."""
 
@@ -428,6 +428,53 @@ def compared_variants(records: Sequence[dict[str, Any]], steps: int, default: st
     return out
 
 
+def headline_table(
+    by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, steps: int, default: str = "willags"
+) -> list[str]:
+    """The markdown table of the collections: per collection its folds and photos, both peers' and the default's
+    means (fold means), the default against the stronger peer with its interval, and the goal."""
+    from benchmarks.tables import md_table
+
+    rows = []
+    for scene, by_method in sorted(by_scene.items()):
+        ref = by_method.get(default)
+        peer_name = stronger_peer(by_method)
+        peer = by_method.get(peer_name) if peer_name else None
+        if ref is None and peer is None:  # only candidates scored here: nothing to set them against
+            continue
+        rows.append(
+            [
+                scene,
+                f"{steps // 1000}k" if steps % 1000 == 0 else str(steps),
+                str(max(cv.folds for cv in by_method.values())),
+                str(max(len(cv.per_photo) for cv in by_method.values())),
+                _cell(by_method.get("peer")),
+                _cell(by_method.get("peer-full")),
+                _cell(ref),
+                (f"{peer_name}: " if peer_name else "") + _diff(ref, peer, sigma),
+                goal_cell(ref, peer, sigma),
+            ]
+        )
+    head = [
+        "scene",
+        "steps",
+        "folds",
+        "photos",
+        "peer",
+        "peer-full",
+        f"**{default}**",
+        f"{default} − stronger peer [95 % CI] (photos)",
+        f"goal (+{GOAL_DB:g} dB, CI above +{GOAL_LOW_DB:g})",
+    ]
+    return md_table(head, rows)
+
+
+def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "willags") -> list[str]:
+    """headline_table of the fold runs scored at `steps`, with the run noise of those runs (README's table)."""
+    sigma, _ = run_noise(records, steps)
+    return headline_table(collect(records, steps), sigma, steps, default)
+
+
 def cv_rows(
     records: Sequence[dict[str, Any]], steps: int, default: str = "willags", tags=None, variant: str | None = None
 ) -> list[str]:
@@ -441,50 +488,22 @@ def cv_rows(
     if not by_scene:
         return [f"No cross-validated run scored at {steps} steps yet."]
     sigma, pairs = run_noise(records, steps)
-    rows, cand_rows = [], []
+    cand_rows = []
     for scene, by_method in sorted(by_scene.items()):
         ref = by_method.get(default)
-        peer_name = stronger_peer(by_method)
-        peer = by_method.get(peer_name) if peer_name else None
-        if ref is None and peer is None:  # only candidates scored here: nothing to set them against
+        if ref is None and stronger_peer(by_method) is None:  # only candidates here: nothing to set them against
             continue
-        photos = max(len(cv.per_photo) for cv in by_method.values())
-        folds = max(cv.folds for cv in by_method.values())
-        rows.append(
-            [
-                scene,
-                f"{steps // 1000}k" if steps % 1000 == 0 else str(steps),
-                str(folds),
-                str(photos),
-                _cell(by_method.get("peer")),
-                _cell(by_method.get("peer-full")),
-                _cell(ref),
-                (f"{peer_name}: " if peer_name else "") + _diff(ref, peer, sigma),
-                goal_cell(ref, peer, sigma),
-            ]
-        )
         for method, cv in sorted(by_method.items()):
             if method in (default, "peer", "peer-full"):
                 continue
             cand_rows.append([scene, method, _cell(cv), _diff(cv, ref, sigma)])
-    head = [
-        "scene",
-        "steps",
-        "folds",
-        "photos",
-        "peer",
-        "peer-full",
-        f"**{default}**",
-        f"{default} − stronger peer [95 % CI] (photos)",
-        f"goal (+{GOAL_DB:g} dB, CI above +{GOAL_LOW_DB:g})",
-    ]
     noise = (
         f"Run noise: sigma = {sigma:.2f} dB, the standard deviation of one run's cross-validated mean, from {pairs} "
         "replicate pair(s) (`cv.run_noise`); every interval below is the photo bootstrap's widened by it."
         if sigma is not None
         else "Run noise: no replicate pair yet; the intervals below are the photo bootstrap's alone and too narrow."
     )
-    out = [noise, "", *md_table(head, rows)]
+    out = [noise, "", *headline_table(by_scene, sigma, steps, default)]
     if cand_rows:
         out += ["", *md_table(["scene", "method", "mean (fold means)", f"− {default} [95 % CI] (photos)"], cand_rows)]
     pooled_rows = pooled_rows_of(by_scene, sigma, default)

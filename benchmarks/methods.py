@@ -36,6 +36,11 @@ def is_peer(base: str) -> bool:
 _AUTO = ("auto_config", True)
 
 
+_NO_PRIOR = ("latent.prior_weight", 0.0)
+"""The latent table without its prior (the default's is 0.002): the configurations measured without it name it, so
+that their records say what they measured."""
+
+
 _RESIDUAL_MASK = (("mask.enabled", True), ("mask.distance", "residual"))
 """The transient mask on every scene, by the colour residual to the teacher (the inspector keeps it: keep=...)."""
 
@@ -56,7 +61,7 @@ METHODS: dict[str, MethodSpec] = {
     # The base "willags" is the full model without inspection (base_trainer_config); the method `willags` itself
     # (ns-train willags) inspects the scene first (auto_config).
     "willags": MethodSpec("willags", (_AUTO,), note="the default: the full model with the scene inspected first"),
-    "willags-full": MethodSpec("willags", note="every component, no inspection"),
+    "willags-full": MethodSpec("willags", (_NO_PRIOR,), note="every component, no inspection, no latent prior"),
     "willags-paper": MethodSpec("willags-paper", note="the paper: beta-VAE, colour decoder over tri-plane + f_s"),
     "willags-lite": MethodSpec("willags-lite", note="fast preset"),
     "willags-3dgs": MethodSpec(
@@ -65,40 +70,49 @@ METHODS: dict[str, MethodSpec] = {
     "willags-mcmc": MethodSpec(
         "willags", (_AUTO, ("densification", "mcmc")), note="the default named in full on a GPU (MCMC densification)"
     ),
+    "willags-noprior": _default_on_gpu(_NO_PRIOR, note="the default without the latent prior on its table's rows"),
     "willags-splitclone": MethodSpec(
-        "willags", (_AUTO, ("densification", "splatfacto")), note="the default with splatfacto's split / clone / prune"
+        "willags",
+        (_AUTO, ("densification", "splatfacto"), _NO_PRIOR),
+        note="willags-noprior with splatfacto's split / clone / prune",
     ),
     "willags-residual": MethodSpec(
         "willags",
-        (_AUTO, ("mask.enabled", True), ("mask.distance", "residual"), ("densification", "splatfacto")),
+        (_AUTO, ("mask.enabled", True), ("mask.distance", "residual"), ("densification", "splatfacto"), _NO_PRIOR),
         note="willags-splitclone with the transient mask on every scene, by the colour residual to the teacher",
         keep=("mask.enabled",),
     ),
     "willags-mask": _masked_on_gpu(
-        note="the default with the transient mask on every scene, by the colour residual to the teacher"
+        _NO_PRIOR, note="willags-noprior with the transient mask on every scene, by the colour residual to the teacher"
     ),
-    "willags-cap150k": _default_on_gpu(("mcmc.cap_max", 150_000), note="the default, MCMC capped at 150k"),
-    "willags-cap1m": _default_on_gpu(("mcmc.cap_max", 1_000_000), note="the default, MCMC capped at 1M"),
+    "willags-cap150k": _default_on_gpu(
+        ("mcmc.cap_max", 150_000), _NO_PRIOR, note="willags-noprior, MCMC capped at 150k"
+    ),
+    "willags-cap1m": _default_on_gpu(("mcmc.cap_max", 1_000_000), _NO_PRIOR, note="willags-noprior, MCMC capped at 1M"),
     "willags-capscene": _default_on_gpu(
         ("mcmc.cap_rule", "pixels"),
-        note="the default, MCMC's cap from the training photos' megapixels (splats/mcmc.scene_cap)",
+        _NO_PRIOR,
+        note="willags-noprior, MCMC's cap from the training photos' megapixels (splats/mcmc.scene_cap)",
     ),
     "willags-field": _default_on_gpu(
         ("use_field", True),
-        note="the default with the latent-conditioned tri-plane field on (its feature feeds the per-Gaussian residual)",
+        _NO_PRIOR,
+        note="willags-noprior with the latent-conditioned tri-plane field on (its feature feeds the per-Gaussian "
+        "residual)",
         keep=("use_field",),
     ),
     "willags-prior": _default_on_gpu(
         ("latent.prior_weight", 0.02),
-        note="the default with a Gaussian prior (weight 0.02, the VAE's KL pull) on the latent table's rows",
+        note="the default with ten times its latent prior (0.02, the pull the VAE's KL puts on its latent)",
     ),
     "willags-prior-low": _default_on_gpu(
         ("latent.prior_weight", 0.002),
-        note="the default with a tenth of willags-prior's prior on the latent table's rows (0.002)",
+        note="the default's own prior weight named (0.002, a tenth of willags-prior's): the same model as willags",
     ),
     "willags-prior-low-mask": _masked_on_gpu(
         ("latent.prior_weight", 0.002),
-        note="willags-prior-low with the transient mask on every scene, by the colour residual to the teacher",
+        note="the default (its prior weight named) with the transient mask on every scene, by the colour residual to "
+        "the teacher",
     ),
     "willags-prior-low-mask-expected": _masked_on_gpu(
         ("latent.prior_weight", 0.002),
@@ -108,14 +122,18 @@ METHODS: dict[str, MethodSpec] = {
     ),
     "willags-lowpen": _default_on_gpu(
         ("modulation.local_penalty", 0.001),
-        note="the default with a tenth of the per-Gaussian residual's penalty (0.001)",
+        _NO_PRIOR,
+        note="willags-noprior with a tenth of the per-Gaussian residual's penalty (0.001)",
     ),
     "willags-staticres": _default_on_gpu(
         ("modulation.latent_proj", 0),
-        note="the default with a per-Gaussian residual that does not see the latent (a static colour scale and offset)",
+        _NO_PRIOR,
+        note="willags-noprior with a per-Gaussian residual that does not see the latent (a static colour scale and "
+        "offset)",
     ),
     "willags-cap1m-mask": _masked_on_gpu(
         ("mcmc.cap_max", 1_000_000),
+        _NO_PRIOR,
         note="willags-cap1m with the transient mask on every scene, by the colour residual to the teacher",
     ),
     "splatfacto": MethodSpec("splatfacto", note="stock nerfstudio splatfacto (gsplat)", needs_cuda=True),
@@ -174,11 +192,12 @@ def set_nested(obj, dotted: str, value) -> None:
 def configuration(rec: dict[str, Any]) -> str:
     """The method name of the configuration a record measured: the ``configuration`` it carries where the name it ran
     as meant another one then (`willags` before the default inspected the scene: `willags-full`; before it densified
-    by MCMC, and `willags-auto` runs of that time: `willags-splitclone`), `willags` for `willags-mcmc` (the
-    default named in full), else its own."""
+    by MCMC, and `willags-auto` runs of that time: `willags-splitclone`; before its latent prior:
+    `willags-noprior`), `willags` for `willags-mcmc` and `willags-prior-low` (the default named in full), else its
+    own."""
     if rec.get("configuration"):
         return str(rec["configuration"])
-    return "willags" if rec.get("method") == "willags-mcmc" else str(rec.get("method"))
+    return "willags" if rec.get("method") in ("willags-mcmc", "willags-prior-low") else str(rec.get("method"))
 
 
 def base_trainer_config(base: str):

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.curves import scene_points, step_curve, step_time
-from benchmarks.cv import compared_variants, cv_rows, fit_rows, parse_fold
+from benchmarks.cv import compared_variants, cv_headline, cv_rows, fit_rows, parse_fold
 from benchmarks.methods import METHODS, configuration
 from benchmarks.records import CV_RECORDS, RECORDS, REPO, load_records
 from benchmarks.regions import REGIONS
@@ -36,7 +36,10 @@ SYNTHETIC = ("fox-clean", "fox-appearance-only", "fox-transient-only", "fox-wild
 """Rendered scenes (willags_ns/data/synthetic.py's generator): known transients and appearance changes."""
 ALL_SCENES = (*REAL_SCENES, *SYNTHETIC)
 """The real collections first, then the synthetic ones."""
-STEP_METHODS = ("willags", "peer-full", "peer", "splatfacto")
+GRID_DEFAULT = "willags-noprior"
+"""The configuration the side-by-side grid's runs measured in the default's place: every choice of the default but
+the latent prior (latent.prior_weight 0), which the cross-validated runs decide."""
+STEP_METHODS = (GRID_DEFAULT, "peer-full", "peer", "splatfacto")
 """Methods of the step-count table (the curves' methods a user compares)."""
 STEP_COUNTS = (1000, 2000, 5000, 10000, 15000, 30000)
 
@@ -69,15 +72,15 @@ EQUAL_TIME_TAGS = ("h200x4",)
 """The lease whose times the equal-time table reads: times compare only between runs that shared one machine."""
 SIDE_BY_SIDE_STEPS = {"fox-clean": 5000, "fox-wild": 5000}
 """Steps each scene of the side-by-side grid was scored at (15000 where not named)."""
-HEADLINE = ("peer", "peer-full", "willags")
-"""The headline's columns: both peers and the default."""
+HEADLINE = ("peer", "peer-full", GRID_DEFAULT)
+"""The grid's columns: both peers and the grid's default."""
 CANDIDATES = (
-    ("willags", None),
-    ("willags-splitclone", "willags"),
+    (GRID_DEFAULT, None),
+    ("willags-splitclone", GRID_DEFAULT),
     ("willags-residual", "willags-splitclone"),
-    ("willags-mask", "willags"),
-    ("willags-cap150k", "willags"),
-    ("willags-cap1m", "willags"),
+    ("willags-mask", GRID_DEFAULT),
+    ("willags-cap150k", GRID_DEFAULT),
+    ("willags-cap1m", GRID_DEFAULT),
     ("willags-cap1m-mask", "willags-cap1m"),
 )
 """The default and the alternatives it was chosen over, from the same runs: (method, the method its difference is
@@ -177,7 +180,7 @@ def headline_rows(records: list[dict[str, Any]]) -> list[str]:
             if (sc, m) not in by and (runs := earlier_runs(records, sc, m)):
                 by[(sc, m)] = runs
                 marked.add((sc, m))
-    head = ["scene", "steps", "peer", "peer-full", "**willags**", "willags − stronger peer"]
+    head = ["scene", "steps", "peer", "peer-full", f"**{GRID_DEFAULT}**", f"{GRID_DEFAULT} − stronger peer"]
     rows = []
     for sc in _scenes(by):
         cols = [by.get((sc, m), []) for m in HEADLINE]
@@ -267,7 +270,7 @@ def equal_time_rows(records: list[dict[str, Any]]) -> list[str]:
         if pts:
             runs.setdefault((r["scene"], configuration(r)), []).append(pts)
     for sc in REAL_SCENES:
-        ref = [next((t for t, _, s in pts if s == 15000), None) for pts in runs.get((sc, "willags"), [])]
+        ref = [next((t for t, _, s in pts if s == 15000), None) for pts in runs.get((sc, GRID_DEFAULT), [])]
         ref = [t for t in ref if t is not None]
         if not ref:
             continue
@@ -282,7 +285,7 @@ def equal_time_rows(records: list[dict[str, Any]]) -> list[str]:
             psnr, steps = sum(a[0] for a in at) / len(at), sum(a[1] for a in at) / len(at)
             cells.append(f"{psnr:.2f} ({steps / 1000:.1f}k steps, n={len(at)})")
         rows.append([sc, f"{t:.0f} s", *cells])
-    return md_table(["scene", "willags' time for 15k (shared GPU)", *HEADLINE], rows) if rows else []
+    return md_table(["scene", f"{GRID_DEFAULT}'s time for 15k (shared GPU)", *HEADLINE], rows) if rows else []
 
 
 def _step_cell(s) -> str:
@@ -350,7 +353,9 @@ def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str
         "to step 3000, 1/2 to 6000, full after), the real collections to 15000 steps, the fox scenes (rendered: "
         "their transients and appearance changes are known) to 5000. A cell marked * holds a method that was not in "
         "those leases: its runs of the same step count from earlier grids (docs/benchmarks.md), counted for the "
-        "stronger peer too. The same table is in README.md.",
+        f"stronger peer too. The grid's default, **{GRID_DEFAULT}**, is the default without its latent prior "
+        "(`latent.prior_weight` 0); the prior was decided by the cross-validated runs below, and README.md's table is "
+        "theirs.",
         "",
         *headline_rows(records),
         "",
@@ -363,8 +368,10 @@ def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str
         "resamples) widened by the run noise: two runs of one model differ by more than the photos' spread explains "
         "(every photo of a fold shares its run), so the noise of one run's mean is measured on replicate pairs (the "
         "same model run twice) and added in quadrature. A difference whose interval holds 0 is no difference. "
-        "Seed 42 on every fold (reichstag's default also seed 43, and its peer at 5000 steps, averaged photo by "
-        "photo), the runs of a lease side by side on its GPUs, splatfacto's stock schedule, scored at the step count "
+        "Seed 42 on every fold (the default also seed 43 on every fold; on reichstag willags-noprior also seeds 43 "
+        "and 44 and the peer 43 and 44, on sacre-coeur-mini both also seed 43 at 5000 steps; seeds averaged photo by "
+        "photo), the runs of "
+        "a lease side by side on its GPUs, splatfacto's stock schedule, scored at the step count "
         "named. The goal: the default at least 1 dB above the stronger peer with the interval's lower end above "
         "+0.5 dB.",
         "",
@@ -383,11 +390,11 @@ def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str
         "",
         "## What the default was chosen over",
         "",
-        "The same runs: **willags-splitclone** is the default with splatfacto's densification (split / clone / prune "
-        "with opacity resets) instead of MCMC's; **willags-residual** is willags-splitclone with the transient mask "
-        "on every scene, comparing the photo with the EMA teacher's render by colour residual (no downloaded "
-        "weights); **willags-mask** is the default with that mask on every scene; **willags-cap150k** and "
-        "**willags-cap1m** are the default with MCMC's cap on the number of Gaussians at 150,000 and 1,000,000 "
+        f"The same runs: **willags-splitclone** is {GRID_DEFAULT} with splatfacto's densification (split / clone / "
+        "prune with opacity resets) instead of MCMC's; **willags-residual** is willags-splitclone with the transient "
+        "mask on every scene, comparing the photo with the EMA teacher's render by colour residual (no downloaded "
+        f"weights); **willags-mask** is {GRID_DEFAULT} with that mask on every scene; **willags-cap150k** and "
+        f"**willags-cap1m** are {GRID_DEFAULT} with MCMC's cap on the number of Gaussians at 150,000 and 1,000,000 "
         "instead of 300,000; **willags-cap1m-mask** is willags-cap1m with the residual mask on every scene. Each cell: "
         "the mean, then its difference to the configuration it changes one thing of (named in the column). Why the "
         "default is what it is: [design.md](design.md).",
@@ -484,8 +491,13 @@ def cv_section(records: list[dict[str, Any]]) -> list[str]:
     return out[:-1]
 
 
-def readme_block(records: list[dict[str, Any]]) -> str:
-    return "\n".join([README_BEGIN, *headline_rows(records), README_END])
+README_STEPS = 15000
+"""The step count of README's table: the cross-validated runs of the real collections at that count."""
+
+
+def readme_block(records: list[dict[str, Any]], cv_records: Sequence[dict[str, Any]] = ()) -> str:
+    """README's table: the default against both peers on every real collection, cross-validated (cv.cv_headline)."""
+    return "\n".join([README_BEGIN, *cv_headline([*records, *cv_records], README_STEPS), README_END])
 
 
 def with_readme_block(readme: str, block: str) -> str:
@@ -505,7 +517,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     records = load_records(args.records)
     outputs = {
         RESULTS_MD: render_markdown(records, load_records(CV_RECORDS)),
-        README: with_readme_block(README.read_text(), readme_block(records)),
+        README: with_readme_block(README.read_text(), readme_block(records, load_records(CV_RECORDS))),
     }
     stale = [p for p, text in outputs.items() if not p.is_file() or p.read_text() != text]
     if args.check:

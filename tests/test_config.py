@@ -66,6 +66,22 @@ def test_splatfacto_knobs_that_do_nothing_here_are_refused(knob, value):
         check_settings(cfg)
 
 
+def test_the_expected_residual_without_the_residual_distance_is_refused_by_name():
+    """mask.residual.expected is the colour residual's level: with the VGG distance nothing would learn or use it, so
+    the config says which switch it needs instead of training without it."""
+    from willags_ns.mask.residual import ResidualConfig
+    from willags_ns.mask.rule import MaskConfig
+
+    with pytest.raises(
+        ValueError, match=r"mask\.residual\.expected True needs --pipeline\.model\.mask\.distance residual"
+    ):
+        WillagsModelConfig(mask=MaskConfig(residual=ResidualConfig(expected=True)))
+    cfg = WillagsModelConfig(mask=MaskConfig(distance="residual", residual=ResidualConfig(expected=True)))
+    cfg.mask.distance = "vgg"  # a later edit is refused when the model is built
+    with pytest.raises(ValueError, match="'vgg'"):
+        check_settings(cfg)
+
+
 def test_building_the_model_leaves_its_config_as_it_was():
     """A sky above the skyline on a scene without keypoints is not built, and the config still says what was asked
     (config.yml is what trains)."""

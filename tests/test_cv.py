@@ -162,15 +162,16 @@ def test_run_noise_comes_from_replicates_and_widens_every_interval():
         return out
 
     records = runs("willags", 0.0) + runs("willags", 0.4, seed=43) + runs("peer", -1.0)
-    records += runs("willags-capscene", -0.2)  # the cap not reached: the same model as willags, a replicate
+    records += runs("willags-noprior", 0.1)
+    records += runs("willags-capscene", -0.1)  # the cap not reached: the same model as willags-noprior, a replicate
     diffs = {what: d for _, what, d in cv.replicate_differences(records, 5000)}
     assert diffs == {
         "willags seeds 43 - 42": pytest.approx(0.4),
-        "willags-capscene - willags (seed 42, equal Gaussians)": pytest.approx(-0.2),
+        "willags-capscene - willags-noprior (seed 42, equal Gaussians)": pytest.approx(-0.2),
     }
     sigma, n = cv.run_noise(records, 5000)
     assert n == 2 and sigma == pytest.approx(np.sqrt((0.4**2 + 0.2**2) / 2 / 2))
-    more = records[:-2] + runs("willags-capscene", -0.2, gaussians=5000)  # a larger model: not a replicate
+    more = records[:-2] + runs("willags-capscene", -0.1, gaussians=5000)  # a larger model: not a replicate
     assert len(cv.replicate_differences(more, 5000)) == 1
     assert cv.run_noise(runs("willags", 0.0), 5000) == (None, 0)
 
@@ -308,24 +309,27 @@ def test_a_protocol_variant_gets_its_own_tables_once_the_default_and_a_peer_are_
 
 
 def test_a_method_is_set_against_the_one_whose_settings_it_extends():
-    pairs = {(b, a): added for b, a, added in cv.switch_pairs(["willags", "peer", "willags-prior-low",
+    pairs = {(b, a): added for b, a, added in cv.switch_pairs(["willags", "peer", "willags-noprior", "willags-mask",
                                                                 "willags-prior-low-mask", "willags-capscene"])}  # fmt: skip
-    assert pairs == {("willags-prior-low-mask", "willags-prior-low"): ["mask.distance=residual", "mask.enabled=True"]}
+    # willags-prior-low-mask sets the prior another way than willags-noprior: not one of its extensions
+    assert pairs == {
+        ("willags-mask", "willags-noprior"): ["mask.distance=residual", "mask.enabled=True"],
+        ("willags-capscene", "willags-noprior"): ["mcmc.cap_rule=pixels"],
+    }
     photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
     recs = []
     for scene, gain in (("one", 1.0), ("two", -0.5)):
         for k, p in photos.items():
             recs.append(_fold_rec(scene, k, 2, "willags", p))
-            recs.append(_fold_rec(scene, k, 2, "willags-prior-low", p))
-            recs.append(_fold_rec(scene, k, 2, "willags-prior-low-mask", {n: v + gain for n, v in p.items()}))
-    rows = [r for r in cv.cv_rows(recs, 5000) if r.startswith("| willags-prior-low-mask | willags-prior-low |")]
+            recs.append(_fold_rec(scene, k, 2, "willags-noprior", p))
+            recs.append(_fold_rec(scene, k, 2, "willags-mask", {n: v + gain for n, v in p.items()}))
+    rows = [r for r in cv.cv_rows(recs, 5000) if r.startswith("| willags-mask | willags-noprior |")]
     added = "mask.distance=residual, mask.enabled=True"
     assert rows == [
-        f"| willags-prior-low-mask | willags-prior-low | {added} | one | +1.00 [+1.00, +1.00] (n=4) |  |",
-        f"| willags-prior-low-mask | willags-prior-low | {added} | two | -0.50 [-0.50, -0.50] (n=4) |  |",
-        f"| willags-prior-low-mask | willags-prior-low | {added} | **2 at once** | +0.25 [+0.25, +0.25] (n=8) "
-        "| better |",
+        f"| willags-mask | willags-noprior | {added} | one | +1.00 [+1.00, +1.00] (n=4) |  |",
+        f"| willags-mask | willags-noprior | {added} | two | -0.50 [-0.50, -0.50] (n=4) |  |",
+        f"| willags-mask | willags-noprior | {added} | **2 at once** | +0.25 [+0.25, +0.25] (n=8) | better |",
     ]
     only_one = [r for r in recs if not r["scene"].startswith("two") or r["method"] == "willags"]
-    rows = [r for r in cv.cv_rows(only_one, 5000) if r.startswith("| willags-prior-low-mask | willags-prior-low |")]
+    rows = [r for r in cv.cv_rows(only_one, 5000) if r.startswith("| willags-mask | willags-noprior |")]
     assert len(rows) == 1 and "| one |" in rows[0]  # one collection: no row at once

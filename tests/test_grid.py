@@ -1,6 +1,7 @@
 """benchmarks/grid.py and what a grid run uses: grid parsing, scenes, the methods' configs and schedules, record
 merging, docs/benchmarks.md's tables; the child's pictures and the peer's adapter; one tiny end-to-end run."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -118,16 +119,21 @@ def test_short_schedule_is_the_same_for_every_method(method, tmp_path):
 
 
 def test_the_default_inspects_and_its_candidates_change_the_full_model(tmp_path):
-    """METHODS' `willags` is the default (auto_config); `willags-full` is the full model without inspection, the
-    candidates the default with one change (benchmarks/methods.py base_trainer_config)."""
-    methods = ("willags", "willags-full", "willags-mcmc", "willags-splitclone")
+    """METHODS' `willags` is the default (auto_config, the latent prior); `willags-full` is the full model without
+    inspection and, as its records measured it, without the prior; the candidates the default with one change, or
+    willags-noprior with one (benchmarks/methods.py base_trainer_config)."""
+    methods = ("willags", "willags-full", "willags-mcmc", "willags-noprior", "willags-splitclone", "willags-prior-low")
     built = {m: build_config(m, 300, "cpu", None, None, "short", tmp_path).pipeline.model for m in methods}
     assert built["willags"].auto_config is True and built["willags-full"].auto_config is False
-    assert vars(built["willags-full"]) == {**vars(built["willags"]), "auto_config": False}
+    assert built["willags"].latent.prior_weight == 0.002
+    noprior = dataclasses.replace(built["willags"].latent, prior_weight=0.0)
+    assert vars(built["willags-full"]) == {**vars(built["willags"]), "auto_config": False, "latent": noprior}
     # the default names its densification by device ("auto": MCMC on a GPU); the candidates name theirs
     assert built["willags"].densification == "auto"
     assert vars(built["willags-mcmc"]) == {**vars(built["willags"]), "densification": "mcmc"}
-    assert vars(built["willags-splitclone"]) == {**vars(built["willags"]), "densification": "splatfacto"}
+    assert vars(built["willags-prior-low"]) == vars(built["willags-mcmc"])  # the default's prior named
+    assert vars(built["willags-noprior"]) == {**vars(built["willags-mcmc"]), "latent": noprior}
+    assert vars(built["willags-splitclone"]) == {**vars(built["willags-noprior"]), "densification": "splatfacto"}
 
 
 @pytest.mark.parametrize(
@@ -137,6 +143,9 @@ def test_the_default_inspects_and_its_candidates_change_the_full_model(tmp_path)
         ({"method": "willags", "configuration": "willags-splitclone"}, "willags-splitclone"),  # before MCMC
         ({"method": "willags", "date": "2026-11-28T09:00:00"}, "willags"),
         ({"method": "willags-mcmc", "date": "2026-11-27T16:00:00"}, "willags"),  # the default named in full
+        ({"method": "willags", "configuration": "willags-noprior"}, "willags-noprior"),  # before the latent prior
+        ({"method": "willags-prior-low", "configuration": "willags"}, "willags"),  # the default's prior named
+        ({"method": "willags-prior-low"}, "willags"),
         ({"method": "willags-auto", "configuration": "willags-splitclone"}, "willags-splitclone"),
         ({"method": "willags-auto"}, "willags-auto"),  # an older full model under it
         ({"method": "peer", "date": "2026-11-25T19:00:00"}, "peer"),

@@ -30,12 +30,13 @@ def test_headline_row_means_margin_over_the_stronger_peer_and_goal():
         _rec("reichstag", "peer", 19.0, 42),
         _rec("reichstag", "peer", 19.4, 43),
         _rec("reichstag", "peer-full", 18.0, 42),
-        _rec("reichstag", "willags", 20.0, 42),
-        _rec("reichstag", "willags", 20.6, 43),
-        _rec("reichstag", "willags", 25.0, 44, tag="h100-r44"),  # another grid: not side by side
+        _rec("reichstag", "willags-noprior", 20.0, 42),
+        _rec("reichstag", "willags-noprior", 20.6, 43),
+        _rec("reichstag", "willags-noprior", 25.0, 44, tag="h100-r44"),  # another grid: not side by side
+        _rec("reichstag", "willags", 30.0, 42),  # not the configuration the grid trained as its default
     ]
     head, rule, row = results.headline_rows(records)
-    assert head.startswith("| scene | steps | peer | peer-full | **willags** |") and rule.startswith("|---|")
+    assert head.startswith("| scene | steps | peer | peer-full | **willags-noprior** |") and rule.startswith("|---|")
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells == [
         "reichstag (real photos: 54 train / 8 test)",
@@ -55,7 +56,7 @@ def test_headline_row_means_margin_over_the_stronger_peer_and_goal():
 def test_equal_time_reads_each_method_at_the_defaults_time():
     ms = lambda *pts: {str(s): {"psnr": p, "train_s": t} for s, t, p in pts}  # noqa: E731
     records = [
-        _rec("reichstag", "willags", 19.0, 42, milestones=ms((5000, 100.0, 18.0), (15000, 300.0, 19.0))),
+        _rec("reichstag", "willags-noprior", 19.0, 42, milestones=ms((5000, 100.0, 18.0), (15000, 300.0, 19.0))),
         _rec("reichstag", "peer-full", 18.0, 42, milestones=ms((5000, 200.0, 17.0), (10000, 400.0, 18.0))),
         _rec("reichstag", "peer", 18.0, 42, milestones=ms((5000, 400.0, 18.0))),  # not at 300 s yet
     ]
@@ -70,6 +71,28 @@ def test_readme_block_is_replaced_between_its_markers():
     assert out == f"intro\n{results.README_BEGIN}\nnew\n{results.README_END}\noutro\n"
     with pytest.raises(SystemExit, match="no generated results block"):
         results.with_readme_block("no markers here", "x")
+
+
+def test_readmes_table_is_the_cross_validated_default_against_the_peers():
+    """README's table: per collection the default (two seeds averaged photo by photo) against the peer, with the
+    interval and the goal, from the fold runs; a fold record relabelled `willags` by its configuration counts as
+    the default, one of another configuration does not."""
+    ps = lambda base: [{"image": f"p{i}.jpg", "psnr": base + 0.1 * i} for i in range(4)]  # noqa: E731
+
+    def fold(k, method, base, seed=42, **kw):
+        ms = {"15000": {"psnr": base, "per_image": [{**p, "image": f"f{k}{p['image']}"} for p in ps(base)]}}
+        return {"scene": f"lund-cv{k}of2", "method": method, "device": "cuda", "steps": 15000, "seed": seed,
+                "tag": "t", "status": "ok", "milestones": ms, **kw}  # fmt: skip
+
+    records = [fold(k, "peer", 15.0) for k in (1, 2)]
+    records += [fold(k, "willags-prior-low", 17.0, configuration="willags") for k in (1, 2)]
+    records += [fold(k, "willags", 18.0, seed=43) for k in (1, 2)]
+    records += [fold(k, "willags", 30.0, configuration="willags-noprior") for k in (1, 2)]
+    block = results.readme_block(records).splitlines()
+    assert block[0] == results.README_BEGIN and block[-1] == results.README_END
+    cells = [c.strip() for c in block[3].strip("|").split("|")]
+    assert cells[:7] == ["lund", "15k", "2", "8", "15.15 (15.15 / 15.15)", "–", "17.65 (17.65 / 17.65)"]
+    assert cells[7].startswith("peer: +2.50 [") and cells[8] == "met"
 
 
 def test_the_generated_pages_match_the_records():

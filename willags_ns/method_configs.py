@@ -105,9 +105,10 @@ def willags_model_config() -> WillagsModelConfig:
     """The full `willags` model without inspecting the scene: WillagsModelConfig's defaults (each choice and the
     measurement behind it: docs/design.md) with auto_config off.
 
-    - appearance latent: a 64-d per-image embedding table (lr 0.02), not the paper's beta-VAE encoder. A new photo's
-      appearance is fitted to it (`willags-render --appearance photo:P --refine-steps N`);
-      `--pipeline.model.latent.kind vae` brings the encoder back;
+    - appearance latent: a 64-d per-image embedding table (lr 0.02), not the paper's beta-VAE encoder, its rows
+      pulled towards their mean by a small Gaussian prior (latent.prior_weight) so that they stay within reach of a
+      new photo's fit. A new photo's appearance is fitted to it (`willags-render --appearance photo:P
+      --refine-steps N`); `--pipeline.model.latent.kind vae` brings the encoder back;
     - the EMA teacher and the perceptual mask of the paper, the mask refreshed on every 4th visit of an image with
       VGG at 256 px (the paper: every step at full size), for a fraction of the step time;
     - colour: each Gaussian's SH colour under a global colour transform of z plus a penalised per-Gaussian
