@@ -590,6 +590,63 @@ def switch_rows(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, d
     return out
 
 
+FIXED_SPLIT_STEPS = {"fox-clean": 5000, "fox-wild": 5000}
+"""The synthetic scenes, scored on their own split (rendered: their test photos, transients and appearance changes are
+known, so they are not dealt into folds), and the step count their runs are compared at."""
+
+
+def fixed_split(records: Sequence[dict[str, Any]], scene: str, steps: int) -> dict[str, MethodCV]:
+    """{configuration: MethodCV} of the GPU runs of `scene` on its own split scored at `steps` photo by photo (one
+    fold: every test photo; seeds averaged photo by photo)."""
+    from benchmarks.methods import configuration
+
+    scores: dict[str, dict[str, list[float]]] = defaultdict(dict)
+    runs: dict[str, int] = defaultdict(int)
+    for rec in records:
+        if rec.get("scene") != scene or rec.get("device") != "cuda" or rec.get("status", "ok") != "ok":
+            continue
+        ms = milestone(rec, steps)
+        if ms is None or not ms.get("per_image"):
+            continue
+        method = configuration(rec)
+        runs[method] += 1
+        for p in ms["per_image"]:
+            scores[method].setdefault(p["image"], []).append(float(p["psnr"]))
+    out = {}
+    for method, by_photo in scores.items():
+        per_photo = {name: float(np.mean(v)) for name, v in by_photo.items()}
+        out[method] = MethodCV(1, per_photo, {1: float(np.mean(list(per_photo.values())))}, runs[method])
+    return out
+
+
+def fixed_split_rows(
+    records: Sequence[dict[str, Any]], methods: Sequence[str], sigma: dict[int, float | None], default: str = "willags"
+) -> list[str]:
+    """The synthetic scenes' table: per scene (FIXED_SPLIT_STEPS) the default's mean and runs, then each of `methods`
+    and the peers scored there against it, photo by photo, the interval widened by the run noise of that step count
+    (`sigma`: steps -> sigma, as `paired`)."""
+    from benchmarks.tables import md_table
+
+    rows = []
+    for scene, steps in FIXED_SPLIT_STEPS.items():
+        by_method = fixed_split(records, scene, steps)
+        ref = by_method.get(default)
+        if ref is None:
+            continue
+        rows.append(
+            [scene, str(steps), str(len(ref.per_photo)), f"**{default}**", str(ref.runs), f"{ref.mean:.2f}", ""]
+        )
+        for m in [*dict.fromkeys([*methods, "peer", "peer-full"])]:
+            cv = by_method.get(m)
+            if m == default or cv is None:
+                continue
+            mean, low, high, n = paired(cv, ref, sigma.get(steps))
+            rows.append([scene, str(steps), str(n), m, str(cv.runs), f"{cv.mean:.2f}",
+                         f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]"])  # fmt: skip
+    head = ["scene", "steps", "photos", "method", "runs", "mean", f"− {default} [95 % CI]"]
+    return md_table(head, rows) if rows else []
+
+
 def fit_rows(records: Sequence[dict[str, Any]]) -> list[str]:
     """The table of the protocol variants (`long_run eval --variant`): per run and milestone, the protocol's own
     right-half PSNR, each variant's, the oracle's (the fit on the whole photo), and how many photos the variant moves

@@ -333,3 +333,31 @@ def test_a_method_is_set_against_the_one_whose_settings_it_extends():
     only_one = [r for r in recs if not r["scene"].startswith("two") or r["method"] == "willags"]
     rows = [r for r in cv.cv_rows(only_one, 5000) if r.startswith("| willags-mask | willags-noprior |")]
     assert len(rows) == 1 and "| one |" in rows[0]  # one collection: no row at once
+
+
+def test_the_synthetic_scenes_are_compared_photo_by_photo_on_their_own_split():
+    """fox-wild keeps its split: the default's seeds averaged photo by photo, each compared method and the peer set
+    against it with the run noise of their step count; CPU runs, other step counts and other scenes left out."""
+    photos = {"a.jpg": 20.0, "b.jpg": 22.0, "c.jpg": 24.0}
+
+    def run(method, shift, seed=42, **kw):
+        rec = _fold_rec("x", 1, 2, method, {n: v + shift for n, v in photos.items()})
+        return {**rec, "scene": "fox-wild", "seed": seed, **kw}
+
+    records = [run("willags", 0.0), run("willags", 1.0, seed=43), run("peer", -2.0), run("willags-noprior", -0.5)]
+    at = lambda steps, rec: {**rec, "milestones": {str(steps): rec["milestones"]["5000"]}}  # noqa: E731
+    records += [run("willags-noprior", 9.0, device="cpu"), at(300, run("willags", 9.0, scene="fox-clean"))]
+    records += [at(15000, run("willags-lowpen", 5.0))]
+    by = cv.fixed_split(records, "fox-wild", 5000)
+    assert set(by) == {"willags", "peer", "willags-noprior"} and by["willags"].runs == 2
+    assert by["willags"].per_photo == {"a.jpg": 20.5, "b.jpg": 22.5, "c.jpg": 24.5}
+    rows = cv.fixed_split_rows(records, ["willags-noprior", "willags-lowpen"], {5000: None})
+    cells = [[c.strip() for c in r.strip("|").split("|")] for r in rows[2:]]
+    assert cells == [
+        ["fox-wild", "5000", "3", "**willags**", "2", "22.50", ""],
+        ["fox-wild", "5000", "3", "willags-noprior", "1", "21.50", "-1.00 [-1.00, -1.00]"],
+        ["fox-wild", "5000", "3", "peer", "1", "20.00", "-2.50 [-2.50, -2.50]"],
+    ]
+    wide = cv.fixed_split_rows(records, ["willags-noprior"], {5000: 0.5})
+    low, high = (float(x) for x in wide[3].split("[")[1].split("]")[0].split(", "))
+    assert low < -1.0 < high  # the run noise widens the photo bootstrap's interval
