@@ -120,6 +120,16 @@ METHODS: dict[str, MethodSpec] = {
         note="willags-prior-low-mask thresholding the residual beyond the scene's expected residual at each pixel "
         "(mask/expected.py: a level per Gaussian fitted over every photo)",
     ),
+    "willags-prior-low-cap1m": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("mcmc.cap_max", 1_000_000),
+        note="the default (its prior weight named) with MCMC's cap at 1M Gaussians instead of 300,000",
+    ),
+    "willags-prior-low-lowpen": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("modulation.local_penalty", 0.001),
+        note="the default (its prior weight named) with a tenth of the per-Gaussian residual's penalty (0.001)",
+    ),
     "willags-lowpen": _default_on_gpu(
         ("modulation.local_penalty", 0.001),
         _NO_PRIOR,
