@@ -368,12 +368,14 @@ def verdict(low: float, high: float) -> str:
     return "better" if low > 0 else "worse" if high < 0 else "no change"
 
 
-def _cell(cv: MethodCV | None) -> str:
+def _cell(cv: MethodCV | None, fold_means: bool = True) -> str:
+    """The mean over every photo, then (`fold_means`) the mean of each fold; a note where folds are missing."""
     if cv is None:
         return "–"
-    folds = " / ".join(f"{cv.fold_means[k]:.2f}" for k in sorted(cv.fold_means))
-    note = "" if cv.complete else f"; {len(cv.fold_means)} of {cv.folds} folds"
-    return f"{cv.mean:.2f} ({folds}{note})"
+    folds = " / ".join(f"{cv.fold_means[k]:.2f}" for k in sorted(cv.fold_means)) if fold_means else ""
+    note = "" if cv.complete else f"{len(cv.fold_means)} of {cv.folds} folds"
+    inside = "; ".join(x for x in (folds, note) if x)
+    return f"{cv.mean:.2f} ({inside})" if inside else f"{cv.mean:.2f}"
 
 
 def _diff(a: MethodCV | None, b: MethodCV | None, sigma: float | None = None) -> str:
@@ -429,10 +431,15 @@ def compared_variants(records: Sequence[dict[str, Any]], steps: int, default: st
 
 
 def headline_table(
-    by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, steps: int, default: str = "willags"
+    by_scene: dict[str, dict[str, MethodCV]],
+    sigma: float | None,
+    steps: int,
+    default: str = "willags",
+    fold_means: bool = True,
 ) -> list[str]:
     """The markdown table of the collections: per collection its folds and photos, both peers' and the default's
-    means (fold means), the default against the stronger peer with its interval, and the goal."""
+    means (and, with `fold_means`, each fold's), the default against the stronger peer with its interval, and the
+    goal."""
     from benchmarks.tables import md_table
 
     rows = []
@@ -448,9 +455,9 @@ def headline_table(
                 f"{steps // 1000}k" if steps % 1000 == 0 else str(steps),
                 str(max(cv.folds for cv in by_method.values())),
                 str(max(len(cv.per_photo) for cv in by_method.values())),
-                _cell(by_method.get("peer")),
-                _cell(by_method.get("peer-full")),
-                _cell(ref),
+                _cell(by_method.get("peer"), fold_means),
+                _cell(by_method.get("peer-full"), fold_means),
+                _cell(ref, fold_means),
                 (f"{peer_name}: " if peer_name else "") + _diff(ref, peer, sigma),
                 goal_cell(ref, peer, sigma),
             ]
@@ -470,9 +477,10 @@ def headline_table(
 
 
 def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "willags") -> list[str]:
-    """headline_table of the fold runs scored at `steps`, with the run noise of those runs (README's table)."""
+    """headline_table of the fold runs scored at `steps`, with the run noise of those runs, without the fold means
+    (README's table)."""
     sigma, _ = run_noise(records, steps)
-    return headline_table(collect(records, steps), sigma, steps, default)
+    return headline_table(collect(records, steps), sigma, steps, default, fold_means=False)
 
 
 def cv_rows(
