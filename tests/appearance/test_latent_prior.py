@@ -44,3 +44,14 @@ def test_a_training_step_adds_the_prior_of_its_own_row_and_moves_no_other_row():
 def test_without_a_prior_weight_no_term_and_no_centre():
     _, losses = _step_terms(0.0)
     assert "latent_prior" not in losses
+
+
+def test_an_extreme_weight_stays_finite_and_a_lone_row_feels_no_pull():
+    """At a weight a million times the default's the term and its gradient stay finite; a table of one photo is its
+    own mean, so the prior adds nothing there."""
+    model, losses = _step_terms(2000.0)
+    table = model.appearance_nets.embeddings.weight
+    (g,) = torch.autograd.grad(losses["latent_prior"], table)
+    assert torch.isfinite(losses["latent_prior"]) and torch.isfinite(g).all() and g.abs().max() > 0
+    row = torch.randn(1, 5, requires_grad=True)
+    assert float(latent_prior(row[0], row.detach().mean(0))) == 0.0
