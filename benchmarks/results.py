@@ -434,7 +434,8 @@ def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str
         "",
         *equal_time_rows(records),
         "",
-        "Each method's score once it had trained as long as the default needed for 15000 steps, read off its 5k, "
+        f"Each method's score once it had trained as long as {GRID_DEFAULT} needed for 15000 steps (the prior adds "
+        "one term over one table row a step), read off its 5k, "
         "10k and 15k milestones (linear between them). The runs of a scene shared one GPU throughout, so their times "
         "compare within a scene. Alone on an H100, 3000 steps of reichstag took splatfacto 37-39 s, peer 47 s, "
         "willags 52 s (49 s with splatfacto's densification) and peer-full 75 s, and 15000 steps splatfacto 201 s and "
