@@ -378,8 +378,8 @@ def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str
         "(every photo of a fold shares its run), so the noise of one run's mean is measured on replicate pairs (the "
         "same model run twice) and added in quadrature. A difference whose interval holds 0 is no difference. "
         "Seed 42 on every fold (the default also seed 43 on every fold; on reichstag willags-noprior also seeds 43 "
-        "and 44 and the peer 43 and 44, on sacre-coeur-mini both also seed 43 at 5000 steps; seeds averaged photo by "
-        "photo), the runs of "
+        "and 44 and the peer 43 at 5000 steps and 44 at 15000, on sacre-coeur-mini both also seed 43 at 5000 steps; "
+        "seeds averaged photo by photo), the runs of "
         "a lease side by side on its GPUs, splatfacto's stock schedule, scored at the step count "
         "named. The goal: the default at least 1 dB above the stronger peer with the interval's lower end above "
         "+0.5 dB.",
