@@ -4,6 +4,7 @@ benchmarks/records/benchmarks.json and regenerate docs/benchmarks.md.
     python -m benchmarks run --grid configs/benchmark_cpu.json             # --dry-run lists the runs
     python -m benchmarks run --grid configs/benchmark_cpu.json --out /tmp/b   # /tmp/b.json, /tmp/b.md
     python -m benchmarks merge gpu_out/records.json                        # records fetched from a GPU machine
+    python -m benchmarks merge queues.tgz --keep benchmarks/records/gpu_runs/NAME.json   # a queues archive
 
 Each run is a subprocess (``python -m benchmarks.child SPEC RESULT``), so peak memory and the global state nerfstudio
 keeps belong to that run alone. Records merge into the existing JSON (:mod:`benchmarks.records`) and the markdown is
@@ -36,7 +37,16 @@ from typing import Any
 
 from benchmarks.cv import parse_fold
 from benchmarks.methods import METHODS
-from benchmarks.records import CV_RECORDS, RECORDS, REPO, load_records, merge_records, merged_records, write_records
+from benchmarks.records import (
+    CV_RECORDS,
+    RECORDS,
+    REPO,
+    load_records,
+    merge_records,
+    merged_records,
+    queue_records,
+    write_records,
+)
 from benchmarks.tables import write_outputs
 
 
@@ -357,9 +367,27 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, help="override every run's seed")
     ap.add_argument("--concurrent", type=int, help="runs on the GPU at once, this one included (recorded)")
     ap.add_argument("--render-only", action="store_true", help="regenerate the markdown from <out>.json and exit")
-    ap.add_argument("--merge", nargs="*", type=Path, default=[], help="merge these record files into <out>.json")
+    ap.add_argument(
+        "--merge",
+        nargs="*",
+        type=Path,
+        default=[],
+        help="merge these record files into <out>.json; a queues archive (queues.tgz) needs --keep",
+    )
+    ap.add_argument(
+        "--keep",
+        type=Path,
+        help="with a queues archive in --merge: the file its records are kept in (benchmarks/records/gpu_runs/...)",
+    )
     args = ap.parse_args(argv)
     out = args.out if args.out.is_absolute() else Path.cwd() / args.out
+    archives = [p for p in args.merge if p.name.endswith((".tgz", ".tar.gz"))]
+    if archives:
+        if args.keep is None:
+            ap.error(f"{archives[0]} is a queues archive: name the file its records are kept in with --keep")
+        write_records([r for a in archives for r in queue_records(a)], args.keep)
+        print(f"{args.keep}: the records of {', '.join(map(str, archives))}")
+        args.merge = [p for p in args.merge if p not in archives] + [args.keep]
     if args.merge or args.render_only:
         recs = merged_records([out.with_suffix(".json"), *args.merge])
         folds = [r for r in recs if parse_fold(str(r.get("scene", ""))) is not None]

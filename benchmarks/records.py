@@ -6,6 +6,7 @@ docs/curves.md, docs/results.md), ``cv.json`` those of the cross-validation's fo
 
 import functools
 import json
+import tarfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,25 @@ def merge_records(existing: list[dict[str, Any]], new: list[dict[str, Any]]) -> 
         fresh[record_key(r)] = r
     kept = [r for r in existing if record_key(r) not in fresh]
     return kept + list(fresh.values())
+
+
+def queue_records(archive: Path) -> list[dict[str, Any]]:
+    """The records in a queues archive (`benchmarks/remote/solo.sh queues wait` packs every queue's
+    `rec/long-<run>.json`, each a list of records, into queues.tgz), in the members' name order."""
+    try:
+        tf = tarfile.open(archive, "r:gz")
+    except (OSError, tarfile.TarError) as e:
+        raise SystemExit(f"benchmarks: {archive}: not a queues archive ({e})") from None
+    out: list[dict[str, Any]] = []
+    with tf:
+        for m in sorted(tf.getmembers(), key=lambda m: m.name):
+            name = Path(m.name)
+            if m.isfile() and name.parent.name == "rec" and name.name.startswith("long-") and name.suffix == ".json":
+                data = json.load(tf.extractfile(m))  # type: ignore[arg-type]
+                out += data if isinstance(data, list) else [data]
+    if not out:
+        raise SystemExit(f"benchmarks: {archive} holds no rec/long-*.json records")
+    return out
 
 
 def load_records(path: Path) -> list[dict[str, Any]]:

@@ -63,7 +63,8 @@ COMMANDS = [
     "bash benchmarks/remote/solo.sh queues wait $OUT 540   # again until done: records and logs in queues.tgz, region "
     "maps in regions.tgz",
     "# here: merge the records brought back, then regenerate every generated page",
-    "python -m benchmarks merge <records.json ...>   # into benchmarks/records/benchmarks.json",
+    "python -m benchmarks merge queues.tgz --keep benchmarks/records/gpu_runs/<n>.json   # its records kept there, "
+    "merged into benchmarks/records/benchmarks.json (fold runs: cv.json)",
     "python -m benchmarks regions report <maps> --pictures docs/regions --json benchmarks/records/regions/<n>.json",
     "python -m benchmarks report                     # every generated page: benchmarks.md, results.md, curves.md",
 ]

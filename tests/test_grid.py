@@ -420,3 +420,46 @@ def test_long_run_resume_resizes_the_gaussians_in_place_so_the_optimisers_keep_t
         assert p is params[name] and torch.equal(p, saved.gauss_params[name])  # the objects the optimiser holds
     assert torch.equal(model.embed.weight, saved.embed.weight) and model.step == 30000
     assert all(p is q for p, q in zip(optimiser.param_groups[0]["params"], params.values(), strict=True))
+
+
+def test_a_queues_archive_is_read_as_its_records_and_needs_a_file_to_keep_them(tmp_path, capsys):
+    """`benchmarks merge queues.tgz --keep FILE`: every queue's rec/long-*.json (lists) in name order, the logs and
+    anything else left out; without --keep it stops with one line naming the archive, and a broken archive says so."""
+    import io
+    import tarfile
+
+    from benchmarks.records import queue_records
+
+    archive = tmp_path / "queues.tgz"
+    members = {
+        "tmp/queues/q2/rec/long-b.json": [{"scene": "b-cv1of2", "method": "willags"}],
+        "tmp/queues/q1/rec/long-a.json": [
+            {"scene": "a-cv1of2", "method": "peer"},
+            {"scene": "a-cv2of2", "method": "peer"},
+        ],
+        "tmp/queues/q1/queue.log": "not json",
+        "tmp/queues/q1/rec/other.json": [{"scene": "x"}],
+    }
+    with tarfile.open(archive, "w:gz") as tf:
+        for name, body in members.items():
+            data = (body if isinstance(body, str) else json.dumps(body)).encode()
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+    assert [r["scene"] for r in queue_records(archive)] == ["a-cv1of2", "a-cv2of2", "b-cv1of2"]
+    with pytest.raises(SystemExit):
+        grid.main(["--merge", str(archive), "--out", str(tmp_path / "out")])
+    said = capsys.readouterr().err.strip().splitlines()[-1]
+    assert str(archive) in said and "--keep" in said
+    rec = _rec("fox-wild", "willags", 5000, 22.0, tag="q-test")
+    with tarfile.open(tmp_path / "one.tgz", "w:gz") as tf:
+        data = json.dumps([rec]).encode()
+        info = tarfile.TarInfo("tmp/queues/q1/rec/long-fox.json")
+        info.size = len(data)
+        tf.addfile(info, io.BytesIO(data))
+    keep, out = tmp_path / "gpu_runs" / "kept.json", tmp_path / "out"
+    assert grid.main(["--merge", str(tmp_path / "one.tgz"), "--keep", str(keep), "--out", str(out)]) == 0
+    assert load_records(keep) == [rec] and rec in load_records(out.with_suffix(".json"))
+    (tmp_path / "broken.tgz").write_bytes(b"not a gzip")
+    with pytest.raises(SystemExit, match="not a queues archive"):
+        queue_records(tmp_path / "broken.tgz")
