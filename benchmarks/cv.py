@@ -252,12 +252,17 @@ def collect(
             photos[key][k].setdefault(p["image"], []).append(float(p["psnr"]))
     out: dict[str, dict[str, MethodCV]] = defaultdict(dict)
     for (scene, folds, method), by_fold in sorted(photos.items()):
-        per_photo = {name: float(np.mean(v)) for fold in by_fold.values() for name, v in fold.items()}
-        fold_means = {k: float(np.mean([np.mean(v) for v in fold.values()])) for k, fold in sorted(by_fold.items())}
         prev = out[scene].get(method)
         if prev is None or folds > prev.folds:  # one fold count per scene and method: the finer split
-            out[scene][method] = MethodCV(folds, per_photo, fold_means, runs[(scene, folds, method)])
+            out[scene][method] = method_cv(by_fold, folds, runs[(scene, folds, method)])
     return dict(out)
+
+
+def method_cv(by_fold: dict[int, dict[str, list[float]]], folds: int, runs: int) -> MethodCV:
+    """A method's MethodCV from its scores {fold: {photo: [PSNR of each run]}}: runs averaged photo by photo."""
+    per_photo = {name: float(np.mean(v)) for fold in by_fold.values() for name, v in fold.items()}
+    fold_means = {k: float(np.mean([np.mean(v) for v in fold.values()])) for k, fold in sorted(by_fold.items())}
+    return MethodCV(folds, per_photo, fold_means, runs)
 
 
 EQUIVALENT = {("willags-capscene", "willags-noprior"): "MCMC's cap not reached on any fold: the same model"}
@@ -620,11 +625,7 @@ def fixed_split(records: Sequence[dict[str, Any]], scene: str, steps: int) -> di
         runs[method] += 1
         for p in ms["per_image"]:
             scores[method].setdefault(p["image"], []).append(float(p["psnr"]))
-    out = {}
-    for method, by_photo in scores.items():
-        per_photo = {name: float(np.mean(v)) for name, v in by_photo.items()}
-        out[method] = MethodCV(1, per_photo, {1: float(np.mean(list(per_photo.values())))}, runs[method])
-    return out
+    return {method: method_cv({1: by_photo}, 1, runs[method]) for method, by_photo in scores.items()}
 
 
 def fixed_split_rows(
@@ -644,7 +645,7 @@ def fixed_split_rows(
         rows.append(
             [scene, str(steps), str(len(ref.per_photo)), f"**{default}**", str(ref.runs), f"{ref.mean:.2f}", ""]
         )
-        for m in [*dict.fromkeys([*methods, "peer", "peer-full"])]:
+        for m in dict.fromkeys([*methods, "peer", "peer-full"]):
             cv = by_method.get(m)
             if m == default or cv is None:
                 continue
