@@ -5,10 +5,12 @@ data-parallel step's time goes, the wall time to the last checkpoint, the protoc
     python -m benchmarks multi-gpu run --data .gpu-cv1/reichstag --out $OUT --images 8000 --runs 4,1,2,4:reference
     python -m benchmarks multi-gpu run --data .gpu-cv1/reichstag --out $OUT --runs 1 --gpus 2   # on GPU 2 only
 
-A run is ``<devices>[x<machines>][:reference][:budget<M>][@<images>]``: ``4`` trains on 4 GPUs of one machine;
+A run is ``<devices>[x<machines>][:reference][:noshard][:budget<M>][@<images>]``: ``4`` trains on 4 GPUs of one machine;
 ``2x2`` on two "machines" of 2 GPUs each, started as two launches (``--machine.num-machines 2
 --machine.machine-rank 0|1 --machine.dist-url tcp://127.0.0.1:PORT``); ``:reference`` with the first data-parallel
-implementation (``--pipeline.data-parallel.reduction reference``) to compare on the same machine; ``:budget<M>``
+implementation (``--pipeline.data-parallel.reduction reference``) to compare on the same machine; ``:noshard`` with
+every rank caching every training image (``--pipeline.data-parallel.shard-image-cache False``: what the sharded
+cache saves, in each rank's peak host memory); ``:budget<M>``
 under ``--pipeline.time-budget-minutes M``; ``@N`` sees N images instead of ``--images`` (a budget run without
 ``@N``: at most the method's own steps, 30000, on every device). A run of D devices in all
 trains on the first D GPUs of ``--gpus`` (default: $CUDA_VISIBLE_DEVICES, else 0, 1, ...), machine m on the m-th
@@ -82,6 +84,8 @@ class Run:
     """Images seen (None: the script's --images); under a budget, the most images."""
     budget_minutes: float | None = None
     """--pipeline.time-budget-minutes (None: none)."""
+    shard: bool = True
+    """--pipeline.data-parallel.shard-image-cache: each rank caches only its own training images."""
 
     @property
     def total(self) -> int:
@@ -92,7 +96,8 @@ class Run:
         shape = f"{self.devices}x{self.machines}" if self.machines > 1 else f"{self.devices}"
         ref = "-reference" if self.reduction == "reference" else ""
         budget = f"-budget{self.budget_minutes:g}" if self.budget_minutes else ""
-        return f"gpus{shape}{ref}{budget}" + (f"-{self.images}" if self.images else "")
+        noshard = "" if self.shard else "-noshard"
+        return f"gpus{shape}{ref}{noshard}{budget}" + (f"-{self.images}" if self.images else "")
 
 
 def parse_runs(text: str) -> list[Run]:
@@ -106,10 +111,12 @@ def parse_runs(text: str) -> list[Run]:
                 raise ValueError(f"multi_gpu: images {n!r} in --runs must be a positive integer")
             images = int(n)
         shape, *mods = token.split(":")
-        reduction, budget = "buffer", None
+        reduction, budget, shard = "buffer", None, True
         for mod in mods:
             if mod in ("buffer", "reference"):
                 reduction = mod
+            elif mod == "noshard":
+                shard = False
             elif mod.startswith("budget"):
                 try:
                     budget = float(mod[len("budget") :])
@@ -118,14 +125,14 @@ def parse_runs(text: str) -> list[Run]:
                 if not budget > 0:
                     raise ValueError(f"multi_gpu: {mod!r} in --runs: the budget must be > 0 minutes")
             else:
-                raise ValueError(f"multi_gpu: unknown modifier {mod!r} in --runs (reference, budget<minutes>)")
+                raise ValueError(f"multi_gpu: unknown modifier {mod!r} in --runs (reference, noshard, budget<minutes>)")
         try:
             devices, machines = (int(x) for x in shape.split("x")) if "x" in shape else (int(shape), 1)
         except ValueError:
             raise ValueError(f"multi_gpu: run {token!r} in --runs: <devices>[x<machines>]") from None
         if devices < 1 or machines < 1:
             raise ValueError(f"multi_gpu: run {token!r} in --runs: devices and machines must be >= 1")
-        runs.append(Run(devices, machines, reduction, images, budget))
+        runs.append(Run(devices, machines, reduction, images, budget, shard))
     if not runs:
         raise ValueError(f"multi_gpu: no run in --runs {text!r}")
     return runs
@@ -223,6 +230,9 @@ def build_config(spec: dict[str, Any]) -> Any:
     config.viewer.quit_on_train_completion = True
     config.pipeline.data_parallel.reduction = spec["reduction"]
     config.pipeline.data_parallel.step_profile = True
+    config.pipeline.data_parallel.shard_image_cache = spec.get("shard_image_cache", True)
+    if spec.get("eval_max_images"):
+        config.pipeline.eval_protocol.max_images = spec["eval_max_images"]
     if spec.get("budget_minutes"):
         config.pipeline.time_budget_minutes = spec["budget_minutes"]
     else:
@@ -286,6 +296,21 @@ def breakdown(profile: dict[int, tuple[dict[str, Any], list[dict[str, Any]]]]) -
     out["gaussians_end"] = first[steps[-1]].get("gaussians")
     out["host_iteration"] = _median([first[s].get("h_iteration") for s in steady])
     return out
+
+
+def peak_memory(profile: dict[int, tuple[dict[str, Any], list[dict[str, Any]]]]) -> dict[str, Any]:
+    """Each rank's peak memory at the end of training (the step profile's meta, ranks in order), GB: host (its
+    resident set) and device (torch's largest allocation); None for a rank that did not record it."""
+
+    def gb(meta: dict[str, Any], key: str) -> float | None:
+        v = meta.get(key)
+        return round(v / 1e9, 3) if isinstance(v, (int, float)) else None
+
+    metas = [meta for _, (meta, _) in sorted(profile.items())]
+    return {
+        "peak_host_gb": [gb(m, "peak_host_bytes") for m in metas],
+        "peak_device_gb": [gb(m, "peak_device_bytes") for m in metas],
+    }
 
 
 def startup(profile: dict[int, tuple[dict[str, Any], list[dict[str, Any]]]], t_launch: float) -> dict[str, float]:
@@ -463,6 +488,12 @@ def tables(results: list[dict[str, Any]]) -> str:
         s = r.get("startup") or {}
         cells = " ".join(_f(s.get(p), "6.1f") for p in phases)
         lines.append(f"{r['name']:<28} {cells} {_f(r.get('wall_s'), '6.1f')}")
+    lines += ["", "peak memory per rank at the end of training, GB: host (resident set) / device (torch's allocations)"]
+    for r in results:
+        host, dev = r.get("peak_host_gb") or [], r.get("peak_device_gb") or []
+        if host or dev:
+            cells = ", ".join(f"{_f(h, '.2f')} / {_f(d, '.2f')}" for h, d in zip(host, dev, strict=False))
+            lines.append(f"{r['name']:<28} {cells}  (host, all ranks: {_f(sum(h or 0 for h in host), '.2f')})")
     budgeted = [r for r in results if r.get("budget_minutes")]
     if budgeted:
         lines += ["", "budget runs: each rank's last step, same on all, training time (time_budget.json) vs budget"]
@@ -509,6 +540,9 @@ def record(result: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
         "num_machines": result["machines"],
         "images": result["images"],
         "reduction": result["reduction"],
+        "shard_image_cache": result.get("shard", True),
+        "peak_host_gb_per_rank": result.get("peak_host_gb"),
+        "peak_device_gb_per_rank": result.get("peak_device_gb"),
         "status": result["status"],
         "psnr": result.get("psnr"),
         "ssim": result.get("ssim"),
@@ -529,9 +563,12 @@ def record(result: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
         "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "command": (
             f"python -m benchmarks multi-gpu run --data {args.data} --images {args.images} --runs {args.runs} "
-            f"--seed {args.seed} (run {result['name']})"
+            f"--seed {args.seed}"
+            + (f" --eval-max-images {args.eval_max_images}" if getattr(args, "eval_max_images", 0) else "")
+            + f" (run {result['name']})"
         ),
         "seed": args.seed,
+        "eval_max_images": getattr(args, "eval_max_images", 0) or None,
     }
     if result.get("budget_minutes"):
         rec["time_budget_minutes"] = result["budget_minutes"]
@@ -570,6 +607,7 @@ def collect(res: dict[str, Any], run_dir: Path, t_launch: float) -> None:
 
     profile = read_step_profile(run_dir)
     res["breakdown"] = breakdown(profile)
+    res.update(peak_memory(profile))
     res["startup"] = startup(profile, t_launch)
     res.update(last_steps(profile))
     trained = [s for s in res["last_steps"] if s is not None]
@@ -629,6 +667,7 @@ def cmd_run(args: argparse.Namespace) -> None:
             "num_devices": run.total,
             "machines": run.machines,
             "reduction": run.reduction,
+            "shard": run.shard,
             "budget_minutes": run.budget_minutes,
             "images": images,
             "steps": steps_of(images, run.total),
@@ -649,6 +688,8 @@ def cmd_run(args: argparse.Namespace) -> None:
             "seed": args.seed,
             "steps": res["steps"],
             "reduction": run.reduction,
+            "shard_image_cache": run.shard,
+            "eval_max_images": args.eval_max_images,
             "budget_minutes": run.budget_minutes,
             "output_dir": str(work / "runs"),
             "dist_url": f"tcp://127.0.0.1:{_free_port()}" if run.machines > 1 else "auto",
@@ -722,6 +763,7 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--eval-reserve-s", type=float, default=70.0, help="kept for the evaluations at the end")
     run.add_argument("--eval-gpus", type=int, default=4, help="evaluations at once, one per GPU")
     run.add_argument("--skip-eval", action="store_true", help="no ns-eval (no PSNR in the records)")
+    run.add_argument("--eval-max-images", type=int, default=0, help="ns-eval scores the first N test photos (0: all)")
     run.add_argument("--dry-run", action="store_true", help="print the runs, GPUs, steps and schedules; train nothing")
     run.set_defaults(func=cmd_run)
     train = sub.add_parser("train", help="(internal) one launch of a run")

@@ -56,6 +56,16 @@ def test_runs_name_devices_machines_reduction_budget_and_images():
         parse_runs(" , ")
 
 
+def test_a_noshard_run_caches_every_image_on_every_rank_and_says_so_in_its_name():
+    runs = parse_runs("2,2:noshard,2:reference:noshard@400")
+    assert [r.shard for r in runs] == [True, False, False]
+    assert [r.name for r in runs] == ["gpus2", "gpus2-noshard", "gpus2-reference-noshard-400"]
+    assert build_config(_spec(2)).pipeline.data_parallel.shard_image_cache is True
+    config = build_config(_spec(2) | {"shard_image_cache": False, "eval_max_images": 32})
+    assert config.pipeline.data_parallel.shard_image_cache is False
+    assert config.pipeline.eval_protocol.max_images == 32  # what ns-eval scores, read from the run's config.yml
+
+
 def test_a_run_takes_the_first_gpus_of_the_list_and_each_machine_its_group():
     assert gpu_list("2,3", "0,1,2,3", 4) == ["2", "3"]  # --gpus wins
     assert gpu_list(None, "1, 3", 4) == ["1", "3"]  # else what the environment gives
@@ -155,6 +165,8 @@ def _write_run(run_dir, steps_per_rank: list[int], t_launch: float) -> None:
     for rank, n in enumerate(steps_per_rank):
         meta = {"rank": rank, "device": "NVIDIA H200", "host": "h", "cpu_count": 64}
         meta["phases"] = {"first_step": t_launch + 40.0 + rank, "train_end": t_launch + 100.0 + rank}
+        if rank == 0:
+            meta |= {"peak_host_bytes": 2.5e9, "peak_device_bytes": 7.5e8}
         (prof / f"rank{rank}.json").write_text(json.dumps(meta))
         (prof / f"rank{rank}.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _rows(rank, n)))
     run = {"budget_s": 60.0, "elapsed_s": 59.2, "stopped_after_step": steps_per_rank[0] - 1, "stop_reason": "budget"}
@@ -189,6 +201,10 @@ def test_a_budget_run_records_each_ranks_last_step_and_its_time(tmp_path, steps,
     assert rec["images_per_s"] == pytest.approx(2000 / 13.0) and rec["steps"] == min(steps)
     summary = tables([res])
     assert f"same {same}" in summary and "elapsed 59.2 s of 60 s" in summary
+    # each rank's peak memory, from its step profile (rank 1 wrote none of it)
+    assert res["peak_host_gb"] == [2.5, None] and res["peak_device_gb"] == [0.75, None]
+    assert rec["peak_host_gb_per_rank"] == [2.5, None] and rec["shard_image_cache"] is True
+    assert "2.50 / 0.75, - / -  (host, all ranks: 2.50)" in summary
 
 
 def test_summary_compares_with_the_one_gpu_run_and_states_the_goals():
