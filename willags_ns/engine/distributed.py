@@ -165,6 +165,15 @@ def shard_train_images(datamanager: Any, rank: int, world_size: int) -> None:
     datamanager.train_unseen_cameras = rank_images(datamanager.train_unseen_cameras, rank, world_size)
 
 
+class Placeholder(torch.Tensor):
+    """Another rank's training image in this rank's image cache: one value broadcast over the image's size. Pinning
+    it returns it as it is: nerfstudio pins a host cache (past 500 training images) image by image, a broadcast
+    tensor cannot be pinned, and none is needed (no step of this rank copies it to the device)."""
+
+    def pin_memory(self, *args: Any, **kwargs: Any) -> Tensor:
+        return self
+
+
 def shard_image_cache(datamanager: Any, rank: int, world_size: int) -> None:
     """Make nerfstudio's full-image datamanager decode only this rank's training images when it caches them.
 
@@ -189,7 +198,9 @@ def shard_image_cache(datamanager: Any, rank: int, world_size: int) -> None:
         dtype = torch.uint8 if image_type == "uint8" else torch.float32
         distortion = cameras.distortion_params
         flat = distortion is None or bool(torch.all(distortion[image_idx] == 0))
-        image = torch.zeros((1, 1, 3), dtype=dtype).expand(h, w, 3) if flat else torch.zeros((h, w, 3), dtype=dtype)
+        if not flat:
+            return {"image_idx": image_idx, "image": torch.zeros((h, w, 3), dtype=dtype)}
+        image = torch.zeros((1, 1, 3), dtype=dtype).expand(h, w, 3).as_subclass(Placeholder)
         return {"image_idx": image_idx, "image": image}
 
     dataset.get_data = own_or_placeholder
