@@ -49,6 +49,11 @@ LONG_SIDE = 800
 """The long side of a PT collection's photos, px."""
 PAGE = REPO / "docs" / "scale.md"
 RECORD_GLOB = "scale_*.json"
+DEVICES_GLOB = "multi_gpu_*.json"
+"""Records of `python -m benchmarks multi-gpu run` on a scale collection (a list of its records, each with
+``photos``): the page's section on several GPUs."""
+DEVICES_GOAL = {2: 1.8, 4: 3.2}
+"""Images per second on N GPUs over one GPU's, at equal images seen."""
 
 # --------------------------------------------------------------------------------------------------- COLMAP model
 
@@ -700,9 +705,81 @@ def plot_records(records: list[tuple[Path, dict[str, Any]]], path: Path) -> Path
     return path
 
 
-def render_page(records: list[tuple[Path, dict[str, Any]]], plot: str | None = None) -> str:
+def _gb_list(values: Any) -> str:
+    return " / ".join(_cell(v, ".2f") for v in values) if values else "–"
+
+
+def devices_section(path: Path, runs: list[dict[str, Any]]) -> list[str]:
+    """One multi-gpu record file on a scale collection: a row per run (the steady state's step and images per
+    second, the training span from the first step to the end, the start-up, each rank's peak memory) and the goal
+    on several GPUs against the 1-GPU run at equal images seen; a run that failed is listed with its note."""
+    ok = [r for r in runs if r.get("status") == "ok"]
+    base = next((r for r in ok if r["num_devices"] == 1), None)
+    first = runs[0]
+    lines = [
+        "",
+        f"## {first['scene']}: {first['photos']:,} photos ({first.get('train_photos', '?')} training) on several GPUs",
+        "",
+        f"`{first['method']}`, {first['images']:,} images seen by every run (steps = images / GPUs, every setting "
+        "counted in steps divided by the GPUs: docs/distributed.md), `python -m benchmarks multi-gpu run` on the "
+        f"scale collection. Record: `{path.relative_to(REPO) if path.is_relative_to(REPO) else path}`.",
+        "",
+        "| run | GPUs | image cache | status | first step s | step ms (steady) | images/s (steady) | x 1 GPU | "
+        "training s (first step to end) | x 1 GPU | wall s (launch to checkpoint) | host peak GB per rank | "
+        "GPU peak GB per rank | Gaussians | commit |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def span(r: dict[str, Any]) -> float | None:
+        st = r.get("startup_s") or {}
+        ok = isinstance(st.get("train_end"), (int, float)) and isinstance(st.get("first_step"), (int, float))
+        return st["train_end"] - st["first_step"] if ok else None
+
+    for r in runs:
+        ips, sp = r.get("images_per_s"), span(r)
+        x_ips = ips / base["images_per_s"] if base and base is not r and ips and base.get("images_per_s") else None
+        x_span = span(base) / sp if base and base is not r and sp and span(base) else None
+        cache = "–" if r["num_devices"] == 1 else "sharded" if r.get("shard_image_cache", True) else "whole on each rank"
+        lines.append(
+            f"| {r['tag']} | {r['num_devices']} | {cache} | {r['status']} | {_cell(r.get('first_step_s'), '.1f')} | "
+            f"{_cell(r.get('step_ms'), '.2f')} | {_cell(ips, '.1f')} | {_cell(x_ips, '.2f')} | {_cell(sp, '.1f')} | "
+            f"{_cell(x_span, '.2f')} | {_cell(r.get('wall_s'), '.1f')} | {_gb_list(r.get('peak_host_gb_per_rank'))} | "
+            f"{_gb_list(r.get('peak_device_gb_per_rank'))} | {_cell(r.get('num_gaussians'), ',')} | "
+            f"{r.get('commit') or '–'} |"
+        )
+    notes = [f"- {r['tag']}: {r['note']}" for r in runs if r.get("note")]
+    if notes:
+        lines += ["", *notes]
+    lines += ["", "Goals:", ""]
+    for n, want in DEVICES_GOAL.items():
+        if n != 2 and not any(r["num_devices"] == n for r in runs):
+            continue
+        runs_n = [r for r in ok if r["num_devices"] == n and r.get("shard_image_cache", True) and r.get("images_per_s")]
+        if not (base and base.get("images_per_s") and runs_n):
+            lines.append(f"- {n} GPUs at {first['photos']:,} photos >= {want}x images per second: not measured")
+            continue
+        x = max(r["images_per_s"] for r in runs_n) / base["images_per_s"]
+        lines.append(
+            f"- {n} GPUs at {first['photos']:,} photos >= {want}x images per second: **{'met' if x >= want else 'missed'}**"
+            f" ({x:.2f}x in the steady state)"
+        )
+    sharded = [r for r in ok if r["num_devices"] > 1 and r.get("shard_image_cache", True)]
+    whole = [r for r in ok if r["num_devices"] > 1 and not r.get("shard_image_cache", True)]
+    if sharded and whole:
+        a, b = max(sharded[0]["peak_host_gb_per_rank"]), max(whole[0]["peak_host_gb_per_rank"])
+        lines.append(f"- the sharded image cache: host peak per rank {a:.2f} GB against {b:.2f} GB caching every image")
+    else:
+        lines.append("- the sharded image cache against every image on every rank: not measured (no `:noshard` run)")
+    return lines
+
+
+def render_page(
+    records: list[tuple[Path, dict[str, Any]]],
+    plot: str | None = None,
+    devices: list[tuple[Path, list[dict[str, Any]]]] | None = None,
+) -> str:
     """docs/scale.md: per record its settings, table and goals; `plot`, the plot's file name beside the page, after
-    the introduction."""
+    the introduction; `devices`, the multi-gpu record files on scale collections, last."""
     lines = [
         "# Photo-Tourism scale",
         "",
@@ -738,18 +815,21 @@ def render_page(records: list[tuple[Path, dict[str, Any]]], plot: str | None = N
         lines += ["", *table(rec), "", "The time to the first step, phase by phase (seconds):", "", *phase_table(rec)]
         lines += ["", "Goals:", ""]
         lines += [*cpu_goal(rec), eval_linearity_goal(completed_runs(rec))] if m["device"] == "cpu" else gpu_goals(rec)
+    for path, runs in devices or []:
+        lines += devices_section(path, runs)
     return "\n".join(lines) + "\n"
 
 
 def report(args: argparse.Namespace) -> int:
     paths = [Path(p) for p in args.records] if args.records else sorted(RECORDS_DIR.glob(f"*/{RECORD_GLOB}"))
     records = [(p, json.loads(p.read_text())) for p in paths]
+    devices = [(p, json.loads(p.read_text())) for p in sorted(RECORDS_DIR.glob(f"*/{DEVICES_GLOB}"))]
     if not records:
         print("benchmarks scale: no scale records (run `python -m benchmarks scale run` first)", file=sys.stderr)
         return 1
     page = Path(args.page)
     plot = plot_records(records, page.with_suffix(".png"))
-    page.write_text(render_page(records, plot.name if plot else None))
+    page.write_text(render_page(records, plot.name if plot else None, devices))
     print(f"benchmarks scale: {page}" + (f", {plot}" if plot else ""))
     return 0
 

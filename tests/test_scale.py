@@ -153,3 +153,29 @@ def test_the_viewer_start_names_a_missing_config(tmp_path, capsys):
     assert err == [
         f"benchmarks.viewer_start: {tmp_path / 'run' / 'config.yml'} is not a file (a trained run's config.yml)"
     ]
+
+
+def test_the_page_compares_several_gpus_on_a_scale_collection_with_one(tmp_path):
+    def run(tag, n, ips, first, end, status="ok", shard=True, hosts=None):
+        return {
+            "tag": tag, "scene": "pt-1000", "photos": 1000, "train_photos": 871, "method": "willags",
+            "images": 8000, "num_devices": n, "status": status, "images_per_s": ips, "step_ms": 17.0,
+            "first_step_s": first, "startup_s": {"first_step": first, "train_end": end}, "wall_s": end,
+            "shard_image_cache": shard, "peak_host_gb_per_rank": hosts or [5.0] * n, "commit": "abc",
+        }  # fmt: skip
+
+    one = run("g1", 1, 50.0, 40.0, 200.0)
+    two = run("g2", 2, 91.0, 60.0, 140.0, hosts=[4.0, 4.2])
+    page = scale.render_page([], None, [(tmp_path / "m.json", [one, two])])
+    assert "## pt-1000: 1,000 photos (871 training) on several GPUs" in page
+    assert "| g2 | 2 | sharded | ok | 60.0 | 17.00 | 91.0 | 1.82 | 80.0 | 2.00 |" in page
+    assert "| 4.00 / 4.20 |" in page
+    assert "- 2 GPUs at 1,000 photos >= 1.8x images per second: **met** (1.82x in the steady state)" in page
+    assert "4 GPUs" not in page  # no 4-GPU run: no 4-GPU goal
+    assert "the sharded image cache against every image on every rank: not measured" in page
+    slow = run("g2", 2, 85.0, 60.0, 150.0)
+    whole = run("g2w", 2, 84.0, 61.0, 151.0, shard=False, hosts=[6.5, 6.6])
+    page = scale.render_page([], None, [(tmp_path / "m.json", [one, slow, whole, run("g2x", 2, None, None, None, "failed")])])
+    assert "**missed** (1.70x in the steady state)" in page  # the sharded run decides, not the whole-cache one
+    assert "host peak per rank 5.00 GB against 6.60 GB caching every image" in page
+    assert "| g2x | 2 | sharded | failed | – |" in page
