@@ -2,6 +2,7 @@
 
     python -m benchmarks scale run --source ../shared/data/reichstag --photos 100 300 1000 --work /tmp/scale
     python -m benchmarks scale run --source synthetic --photos 100 300 --work /tmp/scale    # the built-in scene
+    python -m benchmarks scale cache --source ../shared/data/reichstag --photos 1000 --ranks 1 2 4 --work /tmp/scale
     python -m benchmarks scale report                                  # docs/scale.md from the records
 
 ``run`` makes, for each N, a PT-like collection of N photos (:func:`make_collection`: one camera per photo, a COLMAP
@@ -23,7 +24,8 @@ The device is CUDA when torch sees one, else the CPU. The record goes to
 ``benchmarks/records/{gpu_runs,cpu_runs}/scale_<source>.json`` (``--out`` to choose), and ``report`` writes
 docs/scale.md from every ``scale_*.json`` there: a table per record, a slope per measure (least squares over the
 photo counts), the goals met or missed by a number, and docs/scale.png (start-up, host memory, the viewer's start and
-the inspection against the photos, a line per record).
+the inspection against the photos, a line per record). ``cache`` measures one rank's training-image cache, whole
+and sharded over R ranks, on the same collections (benchmarks/rank_cache.py); ``report`` adds those records.
 """
 
 import argparse
@@ -43,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import rank_cache
 from benchmarks.records import RECORDS_DIR, REPO, json_default
 
 LONG_SIDE = 800
@@ -739,9 +742,9 @@ def devices_section(path: Path, runs: list[dict[str, Any]]) -> list[str]:
         ips, sp = r.get("images_per_s"), span(r)
         x_ips = ips / base["images_per_s"] if base and base is not r and ips and base.get("images_per_s") else None
         x_span = span(base) / sp if base and base is not r and sp and span(base) else None
-        cache = "–" if r["num_devices"] == 1 else "sharded" if r.get("shard_image_cache", True) else "whole on each rank"
+        held = "–" if r["num_devices"] == 1 else "sharded" if r.get("shard_image_cache", True) else "whole on each rank"
         lines.append(
-            f"| {r['tag']} | {r['num_devices']} | {cache} | {r['status']} | {_cell(r.get('first_step_s'), '.1f')} | "
+            f"| {r['tag']} | {r['num_devices']} | {held} | {r['status']} | {_cell(r.get('first_step_s'), '.1f')} | "
             f"{_cell(r.get('step_ms'), '.2f')} | {_cell(ips, '.1f')} | {_cell(x_ips, '.2f')} | {_cell(sp, '.1f')} | "
             f"{_cell(x_span, '.2f')} | {_cell(r.get('wall_s'), '.1f')} | {_gb_list(r.get('peak_host_gb_per_rank'))} | "
             f"{_gb_list(r.get('peak_device_gb_per_rank'))} | {_cell(r.get('num_gaussians'), ',')} | "
@@ -777,9 +780,11 @@ def render_page(
     records: list[tuple[Path, dict[str, Any]]],
     plot: str | None = None,
     devices: list[tuple[Path, list[dict[str, Any]]]] | None = None,
+    caches: list[tuple[Path, dict[str, Any]]] | None = None,
 ) -> str:
     """docs/scale.md: per record its settings, table and goals; `plot`, the plot's file name beside the page, after
-    the introduction; `devices`, the multi-gpu record files on scale collections, last."""
+    the introduction; `devices`, the multi-gpu record files on scale collections, then `caches`, the image-cache
+    records (benchmarks/rank_cache.py), last."""
     lines = [
         "# Photo-Tourism scale",
         "",
@@ -817,7 +822,34 @@ def render_page(
         lines += [*cpu_goal(rec), eval_linearity_goal(completed_runs(rec))] if m["device"] == "cpu" else gpu_goals(rec)
     for path, runs in devices or []:
         lines += devices_section(path, runs)
+    for path, rec in caches or []:
+        lines += rank_cache.section(path, rec)
     return "\n".join(lines) + "\n"
+
+
+def cache(args: argparse.Namespace) -> int:
+    """`scale cache`: one rank's image cache, whole and sharded, per collection and rank count (rank_cache.py)."""
+    from benchmarks.grid import git_commit
+
+    source_dir = Path(args.source)
+    source = read_source(source_dir)
+    runs = []
+    for n in args.photos:
+        collection = make_collection(source, n, Path(args.work) / "collections" / f"{source_dir.name}-{n}", LONG_SIDE)
+        for ranks in args.ranks:
+            row = {"photos": n, **rank_cache.measure(collection, ranks)}
+            print(json.dumps(row), flush=True)
+            runs.append(row)
+    env = machine()
+    if args.note:
+        env["note"] = args.note
+    record = {"source": source_dir.name, "long_side": LONG_SIDE, "machine": env, "commit": git_commit(),
+              "date": time.strftime("%Y-%m-%dT%H:%M:%S"), "runs": runs,
+              "command": "python -m benchmarks scale cache " + " ".join(
+                  f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
+                  for k, v in (("source", args.source), ("photos", args.photos), ("ranks", args.ranks)))}  # fmt: skip
+    print(f"benchmarks scale cache: {rank_cache.write_record(record, args.out)}")
+    return 0
 
 
 def report(args: argparse.Namespace) -> int:
@@ -829,7 +861,7 @@ def report(args: argparse.Namespace) -> int:
         return 1
     page = Path(args.page)
     plot = plot_records(records, page.with_suffix(".png"))
-    page.write_text(render_page(records, plot.name if plot else None, devices))
+    page.write_text(render_page(records, plot.name if plot else None, devices, rank_cache.records()))
     print(f"benchmarks scale: {page}" + (f", {plot}" if plot else ""))
     return 0
 
@@ -853,13 +885,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     r.add_argument("--note", default="", help="a note on the machine (shared, alone, ...) kept in the record")
     r.add_argument("--title", default="", help="what the record is for, beside its source and device on the page")
     r.add_argument("--out", help="the record (default benchmarks/records/{gpu,cpu}_runs/scale_<source>.json)")
+    c = sub.add_parser("cache", help="one rank's training-image cache, whole and sharded (benchmarks/rank_cache.py)")
+    c.add_argument("--source", required=True, help="a COLMAP scene (images/, a model, a tsv)")
+    c.add_argument("--photos", type=int, nargs="+", default=[1000, 2000], help="photo counts")
+    c.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4], help="rank counts (1: the whole cache)")
+    c.add_argument("--work", required=True, help="where the collections go (outside the repository)")
+    c.add_argument("--note", default="", help="a note on the machine kept in the record")
+    c.add_argument("--out", help="the record (default benchmarks/records/cpu_runs/rank_cache_<source>.json)")
     p = sub.add_parser("report", help="write docs/scale.md from the scale records")
     p.add_argument("--records", nargs="*", help="record files (default every benchmarks/records/*/scale_*.json)")
     p.add_argument("--page", default=str(PAGE), help="the page to write")
     args = parser.parse_args(list(argv) if argv is not None else sys.argv[1:])
     if args.cmd == "run":
         args.train_args = shlex.split(args.train_args)
-    return run(args) if args.cmd == "run" else report(args)
+    return {"run": run, "cache": cache, "report": report}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -175,7 +175,30 @@ def test_the_page_compares_several_gpus_on_a_scale_collection_with_one(tmp_path)
     assert "the sharded image cache against every image on every rank: not measured" in page
     slow = run("g2", 2, 85.0, 60.0, 150.0)
     whole = run("g2w", 2, 84.0, 61.0, 151.0, shard=False, hosts=[6.5, 6.6])
-    page = scale.render_page([], None, [(tmp_path / "m.json", [one, slow, whole, run("g2x", 2, None, None, None, "failed")])])
+    page = scale.render_page(
+        [], None, [(tmp_path / "m.json", [one, slow, whole, run("g2x", 2, None, None, None, "failed")])]
+    )
     assert "**missed** (1.70x in the steady state)" in page  # the sharded run decides, not the whole-cache one
     assert "host peak per rank 5.00 GB against 6.60 GB caching every image" in page
     assert "| g2x | 2 | sharded | failed | – |" in page
+
+
+def test_a_rank_s_share_of_the_image_cache_is_measured_against_the_whole(source, tmp_path):
+    """`scale cache`'s probe: rank 0 of R decodes every R-th training image and holds their exact bytes; the page
+    compares each share with the whole cache of its collection."""
+    from benchmarks import rank_cache
+
+    coll = scale.make_collection(scale.read_source(source), 12, tmp_path / "c12", long_side=40)
+    whole, half = rank_cache.probe(coll, 1), rank_cache.probe(coll, 2)
+    train = whole["train_images"]
+    assert train == half["train_images"] and train >= 8 and whole["decoded"] == train
+    assert half["decoded"] == (train + 1) // 2  # images 0, 2, 4, ... belong to rank 0
+    assert whole["cache_bytes"] == train * 40 * 30 * 3  # uint8, 40 x 30 px each
+    assert half["cache_bytes"] == half["decoded"] * 40 * 30 * 3
+    record = {"source": "tiny", "long_side": 40, "command": "c", "runs": [
+        {"photos": 12, **whole}, {"photos": 12, **half}, {"photos": 24, **half},
+    ]}  # fmt: skip
+    text = "\n".join(rank_cache.section(tmp_path / "r.json", record))
+    ratio = half["cache_bytes"] / whole["cache_bytes"]
+    assert f"| 12 ({train}) | 2 | {half['decoded']} | 0.00 | {ratio:.2f} |" in text
+    assert f"| 24 ({train}) | 2 | {half['decoded']} | 0.00 | – |" in text  # no whole cache of that collection
