@@ -772,7 +772,10 @@ def devices_section(path: Path, runs: list[dict[str, Any]]) -> list[str]:
         a, b = max(sharded[0]["peak_host_gb_per_rank"]), max(whole[0]["peak_host_gb_per_rank"])
         lines.append(f"- the sharded image cache: host peak per rank {a:.2f} GB against {b:.2f} GB caching every image")
     else:
-        lines.append("- the sharded image cache against every image on every rank: not measured (no `:noshard` run)")
+        lines.append(
+            "- the sharded image cache against every image on every rank: not measured in training (no `:noshard` "
+            "run); the cache's own bytes per rank: the section on the training-image cache"
+        )
     return lines
 
 
