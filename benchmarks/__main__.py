@@ -36,7 +36,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "profile": ("profile_step", "a window of training steps under torch's profiler"),
     "multi-gpu": ("multi_gpu", "runs on 1-4 GPUs, or under a budget: step breakdown, wall, PSNR, records"),
     "cv": ("cv", "cross-validation: every photo a test photo once (fold folders, GPU queues, tables with intervals)"),
-    "scale": ("scale", "Photo-Tourism scale: start-up, memory, steps, ns-eval per photo count; docs/scale.md"),
+    "scale": ("scale", "Photo-Tourism scale: start-up, memory, steps, ns-eval, a rank's image cache; docs/scale.md"),
     "fingerprint": ("behaviour_fingerprint", "20 CPU training steps: numbers that show a refactor kept behaviour"),
     "placement": ("placement", "an SfM model's cameras against the true poses: registered, placed, errors"),
     "collections": ("collections", "real photo collections: list them, or rebuild one from its public source"),
