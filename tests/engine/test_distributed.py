@@ -24,6 +24,7 @@ from willags_ns.engine.distributed import (
     DataParallelError,
     GradientAverager,
     ImageCachePrefetch,
+    Placeholder,
     RankSyncedStrategy,
     all_reduce_strategy_state,
     apply_latent_rows,
@@ -279,6 +280,18 @@ def test_image_cache_holds_only_the_rank_s_own_images():
     dm.cached_train = []
     with pytest.raises(DataParallelError, match="cached before"):
         shard_image_cache(dm, 0, 2)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (pinned host memory)")
+def test_a_host_cache_past_500_images_pins_its_own_images_and_keeps_the_placeholders():
+    """nerfstudio pins each cached image when the cache stays on the host: a broadcast tensor cannot be pinned, the
+    placeholder passes through unpinned, a rank's own image is pinned."""
+    broadcast = torch.zeros((1, 1, 3), dtype=torch.uint8).expand(6, 9, 3)
+    with pytest.raises(RuntimeError, match="more than one element"):
+        broadcast.pin_memory()
+    placeholder = broadcast.as_subclass(Placeholder)
+    assert placeholder.pin_memory() is placeholder and is_placeholder(placeholder)
+    assert torch.ones((6, 9, 3), dtype=torch.uint8).pin_memory().is_pinned()
 
 
 def test_image_cache_prefetch_caches_once_in_its_thread_and_raises_its_error():
