@@ -6,6 +6,7 @@ import torch
 from willags_ns.splats.mcmc import (
     McmcDensification,
     add_sampled,
+    covariance_times,
     covariances,
     position_noise,
     relocate_dead,
@@ -54,6 +55,21 @@ def test_covariances_are_rotated_squared_scales():
     assert torch.allclose(c[0], torch.diag(torch.tensor([1.0, 4.0, 9.0])))
     # 90 degrees about z swaps the x and y variances
     assert torch.allclose(c[1], torch.diag(torch.tensor([4.0, 1.0, 9.0])), atol=1e-6)
+
+
+def test_the_covariance_applied_by_turning_into_each_gaussian_s_frame_is_the_covariance_matrix_s():
+    """position_noise's Sigma v (two quaternion turns and the squared scales, never the 3x3 matrix) against the matrix,
+    for unnormalised quaternions and scales over two orders of magnitude."""
+    g = torch.Generator().manual_seed(3)
+    q = torch.randn(4000, 4, generator=g, dtype=torch.float64) * 3.0
+    log_s = torch.randn(4000, 3, generator=g, dtype=torch.float64) * 1.5
+    v = torch.randn(4000, 3, generator=g, dtype=torch.float64)
+    want = torch.einsum("bij,bj->bi", covariances(q, torch.exp(log_s)), v)
+    assert torch.allclose(covariance_times(q, log_s, v), want, rtol=1e-12, atol=1e-12)
+    # 90 degrees about z: a step along x is scaled by the y variance
+    quarter = torch.tensor([[math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]])
+    scaled = covariance_times(quarter, torch.log(torch.tensor([[1.0, 2.0, 3.0]])), torch.tensor([[1.0, 0.0, 0.0]]))
+    assert torch.allclose(scaled, torch.tensor([[4.0, 0.0, 0.0]]), atol=1e-6)
 
 
 def _params(n=200, seed=0):
