@@ -70,6 +70,13 @@ def test_the_covariance_applied_by_turning_into_each_gaussian_s_frame_is_the_cov
     quarter = torch.tensor([[math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]])
     scaled = covariance_times(quarter, torch.log(torch.tensor([[1.0, 2.0, 3.0]])), torch.tensor([[1.0, 0.0, 0.0]]))
     assert torch.allclose(scaled, torch.tensor([[4.0, 0.0, 0.0]]), atol=1e-6)
+    # at the extremes, float32: a zero quaternion (no rotation, as the matrix has it), scales from 1e-8 to 1e8
+    q32 = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1e-20, 1e-20, 0.0, 1e-20], [1e8, -1e8, 1e8, 1.0]])
+    log_s32 = torch.log(torch.tensor([[1e-8, 1.0, 1e8], [1e-4, 1e-4, 1e-4], [1e4, 1.0, 1e-4]]))
+    v32 = torch.ones(3, 3)
+    got = covariance_times(q32, log_s32, v32)
+    want = torch.einsum("bij,bj->bi", covariances(q32, torch.exp(log_s32)), v32)
+    assert torch.isfinite(got).all() and torch.allclose(got, want, rtol=1e-5, atol=1e-12)
 
 
 def _params(n=200, seed=0):
