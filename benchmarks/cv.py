@@ -13,6 +13,8 @@ willags' data parser (the peer too: benchmarks/peer.py), so a fold is a scene to
 (benchmarks/remote/solo.sh), long_run's records (its `scene` names the fold) and the region maps.
 
     python -m benchmarks cv folds --data ../shared/data/reichstag --folds 4 --out .gpu-cv   # the fold folders
+    python -m benchmarks cv bundle --data ../shared/data/reichstag ../shared/data/sacre-coeur-mini --folds 4 7 \
+        --out .gpu-xb                              # copies of the collections and their folds: one folder to carry
     python -m benchmarks cv plan --root .gpu-cv --methods willags peer --steps 5000 --queues 12  # solo.sh queues
     python -m benchmarks merge <records.json>       # fold runs go to benchmarks/records/cv.json
     python -m benchmarks cv report                  # the tables from benchmarks/records/cv.json
@@ -26,6 +28,8 @@ import argparse
 import csv
 import os
 import re
+import shutil
+import stat
 import sys
 from collections import defaultdict
 from collections.abc import Sequence
@@ -105,6 +109,36 @@ def write_fold_scenes(scene_dir: Path, folds: int, out: Path) -> list[Path]:
             for i, (name, fold) in enumerate(sorted(assignment.items())):
                 w.writerow([name, i + 1, "test" if fold == k else "train", scene_dir.name])
         written.append(d)
+    return written
+
+
+CARRY_LIMIT = 64 * 2**20
+"""What one call to the lent GPU machine carries, the tracked tree included (the device tool's limit)."""
+
+
+def tree_bytes(path: Path) -> int:
+    """Bytes of the files under `path`, links not followed (a fold's links cost nothing to carry)."""
+    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file() and not f.is_symlink())
+
+
+def write_bundle(collections: Sequence[Path], folds: Sequence[int], out: Path) -> list[Path]:
+    """A folder to carry to a GPU machine: a copy of each collection (writable, its own split files kept) and its
+    fold folders beside it (:func:`write_fold_scenes`, links relative to the copy). A collection already copied
+    there is kept. Returns every scene folder written, the copies first."""
+    if len(folds) not in (1, len(collections)):
+        raise ValueError(f"cv: {len(folds)} fold counts for {len(collections)} collections (one, or one each)")
+    out = Path(out)
+    written = []
+    for scene_dir, k in zip(collections, list(folds) * len(collections) if len(folds) == 1 else folds, strict=False):
+        scene_dir = Path(scene_dir)
+        if not scene_dir.is_dir():
+            raise ValueError(f"cv: no collection at {scene_dir}")
+        copy = out / scene_dir.name
+        if not copy.is_dir():
+            shutil.copytree(scene_dir, copy, copy_function=shutil.copyfile)
+            for d in (copy, *(q for q in copy.rglob("*") if q.is_dir())):  # a read-only source's folders stay editable
+                d.chmod(d.stat().st_mode | stat.S_IWUSR)
+        written += [copy, *write_fold_scenes(copy, k, out)]
     return written
 
 
@@ -717,6 +751,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     f.add_argument("--data", type=Path, required=True, help="the collection (a COLMAP scene)")
     f.add_argument("--folds", type=int, default=4)
     f.add_argument("--out", type=Path, required=True, help="where the fold folders go (beside the collection's copy)")
+    b = sub.add_parser("bundle", help="copy collections and write their folds into one folder to carry to a GPU")
+    b.add_argument("--data", type=Path, nargs="+", required=True, help="the collections (COLMAP scenes)")
+    b.add_argument("--folds", type=int, nargs="+", default=[4], help="fold counts: one for all, or one each")
+    b.add_argument("--out", type=Path, required=True, help="the bundle (an ignored folder of the repository)")
     p = sub.add_parser("plan", help="print balanced solo.sh queues for the fold folders (and other scenes) of a root")
     p.add_argument("--root", type=Path, nargs="+", required=True, help="folders holding the scenes to plan")
     p.add_argument(
@@ -737,6 +775,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise SystemExit(str(e)) from None
         for d in written:
             print(f"cv: wrote {d}")
+        return 0
+    if args.cmd == "bundle":
+        try:
+            written = write_bundle(args.data, args.folds, args.out)
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
+        size = tree_bytes(args.out)
+        print(
+            f"cv: {args.out}: {len(written)} scenes, {size / 2**20:.1f} MiB to carry (a call carries {CARRY_LIMIT // 2**20} "
+            "MiB with the tracked tree and the wheels)"
+        )
         return 0
     if args.cmd == "plan":
         counts: dict[str, int] = {}

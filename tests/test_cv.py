@@ -361,3 +361,32 @@ def test_the_synthetic_scenes_are_compared_photo_by_photo_on_their_own_split():
     wide = cv.fixed_split_rows(records, ["willags-noprior"], {5000: 0.5})
     low, high = (float(x) for x in wide[3].split("[")[1].split("]")[0].split(", "))
     assert low < -1.0 < high  # the run noise widens the photo bootstrap's interval
+
+
+@pytest.mark.skipif(not SACRE.is_dir(), reason="needs ../shared/data/sacre-coeur-mini")
+def test_a_bundle_holds_writable_copies_and_their_folds_and_moves_as_one_folder(tmp_path, capsys):
+    from willags_ns.data.dataparser import WillagsDataParserConfig
+
+    bundle = tmp_path / "bundle"
+    assert cv.main(["bundle", "--data", str(SACRE), "--folds", "7", "--out", str(bundle)]) == 0
+    names = sorted(p.name for p in bundle.iterdir())
+    assert names == ["sacre-coeur-mini", *(f"sacre-coeur-mini-cv{k}of7" for k in range(1, 8))]
+    copy = bundle / "sacre-coeur-mini"
+    assert not copy.is_symlink() and (copy / "images").is_dir() and not (copy / "images").is_symlink()
+    assert sorted(p.name for p in (copy / "images").iterdir()) == sorted(p.name for p in (SACRE / "images").iterdir())
+    import stat
+
+    for q in (copy, *copy.rglob("*")):  # the source's read-only modes are not copied: the bundle can be removed
+        assert q.stat().st_mode & stat.S_IWUSR, q
+    size = cv.tree_bytes(bundle)
+    splits = sum(
+        (bundle / f"sacre-coeur-mini-cv{k}of7" / f"sacre-coeur-mini-cv{k}of7.tsv").stat().st_size for k in range(1, 8)
+    )
+    assert size == cv.tree_bytes(copy) + splits  # the folds are links and their split files
+    assert f"{size / 2**20:.1f} MiB to carry" in capsys.readouterr().out
+    moved = tmp_path / "moved"
+    bundle.rename(moved)  # links relative to the copy: the bundle moves as one folder
+    parser = WillagsDataParserConfig(data=moved / "sacre-coeur-mini-cv1of7").setup()
+    assert len(parser.get_dataparser_outputs("test").image_filenames) == 2
+    with pytest.raises(SystemExit, match="2 fold counts for 1 collections"):
+        cv.main(["bundle", "--data", str(SACRE), "--folds", "4", "7", "--out", str(tmp_path / "b2")])
