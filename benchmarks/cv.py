@@ -127,9 +127,10 @@ def write_bundle(collections: Sequence[Path], folds: Sequence[int], out: Path) -
     there is kept. Returns every scene folder written, the copies first."""
     if len(folds) not in (1, len(collections)):
         raise ValueError(f"cv: {len(folds)} fold counts for {len(collections)} collections (one, or one each)")
+    counts = folds if len(folds) == len(collections) else [folds[0]] * len(collections)
     out = Path(out)
     written = []
-    for scene_dir, k in zip(collections, list(folds) * len(collections) if len(folds) == 1 else folds, strict=False):
+    for scene_dir, k in zip(collections, counts, strict=True):
         scene_dir = Path(scene_dir)
         if not scene_dir.is_dir():
             raise ValueError(f"cv: no collection at {scene_dir}")

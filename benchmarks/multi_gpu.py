@@ -529,6 +529,7 @@ def tables(results: list[dict[str, Any]]) -> str:
 def record(result: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     """A benchmarks/records/benchmarks.json record of one run."""
     b = result.get("breakdown") or {}
+    eval_max = getattr(args, "eval_max_images", 0)  # (an older command line has none)
     rec = {
         "scene": Path(args.data).name,
         "method": args.method,
@@ -563,12 +564,10 @@ def record(result: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
         "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "command": (
             f"python -m benchmarks multi-gpu run --data {args.data} --images {args.images} --runs {args.runs} "
-            f"--seed {args.seed}"
-            + (f" --eval-max-images {args.eval_max_images}" if getattr(args, "eval_max_images", 0) else "")
-            + f" (run {result['name']})"
+            f"--seed {args.seed}" + (f" --eval-max-images {eval_max}" if eval_max else "") + f" (run {result['name']})"
         ),
         "seed": args.seed,
-        "eval_max_images": getattr(args, "eval_max_images", 0) or None,
+        "eval_max_images": eval_max or None,
     }
     if result.get("budget_minutes"):
         rec["time_budget_minutes"] = result["budget_minutes"]

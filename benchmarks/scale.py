@@ -846,11 +846,12 @@ def cache(args: argparse.Namespace) -> int:
     env = machine()
     if args.note:
         env["note"] = args.note
+    command = (
+        f"python -m benchmarks scale cache --source {args.source} --photos {' '.join(map(str, args.photos))} "
+        f"--ranks {' '.join(map(str, args.ranks))}"
+    )
     record = {"source": source_dir.name, "long_side": LONG_SIDE, "machine": env, "commit": git_commit(),
-              "date": time.strftime("%Y-%m-%dT%H:%M:%S"), "runs": runs,
-              "command": "python -m benchmarks scale cache " + " ".join(
-                  f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, list) else v}"
-                  for k, v in (("source", args.source), ("photos", args.photos), ("ranks", args.ranks)))}  # fmt: skip
+              "date": time.strftime("%Y-%m-%dT%H:%M:%S"), "runs": runs, "command": command}  # fmt: skip
     print(f"benchmarks scale cache: {rank_cache.write_record(record, args.out)}")
     return 0
 
