@@ -20,6 +20,7 @@ from benchmarks.collections import (
     finish_scene,
     main,
     resize_photo,
+    scene_name,
     select_photos,
 )
 
@@ -44,7 +45,7 @@ def test_manifest_is_well_formed():
         assert c.folder and not c.folder.startswith("/") and not c.folder.endswith("/"), name
         assert len(set(c.photos)) == len(c.photos), name
         assert all(Path(p).suffix.lower() in (".jpg", ".jpeg", ".png") for p in c.photos), name
-        assert len({Path(p).stem for p in c.photos}) == len(c.photos), name  # each becomes <stem>.jpg
+        assert len({scene_name(p) for p in c.photos}) == len(c.photos), name  # no two photos share a scene name
         assert c.mapper in ("auto", "incremental", "global"), name
         assert c.about and c.licence, name
 
@@ -57,6 +58,15 @@ def test_select_photos_takes_the_listed_ones_or_every_photo():
         select_photos(available, _coll(photos=("b.jpg", "x.jpg")))
     with pytest.raises(CollectionError, match="no photos"):
         select_photos(["readme.md"], _coll())
+
+
+def test_scene_name_keeps_safe_stems_and_replaces_spaces_and_punctuation():
+    assert scene_name("01.jpg") == "01.jpg"
+    assert scene_name("DSC_0182.JPG") == "DSC_0182.jpg"
+    assert scene_name("img.v2-a.png") == "img.v2-a.jpg"
+    assert scene_name("Street Art, London - April 2011 594.jpg") == "Street_Art_London_-_April_2011_594.jpg"
+    assert scene_name("Westminster Abbey.JPG") != scene_name("Westminster-Abbey.jpg")
+    assert re.fullmatch(r"[A-Za-z0-9._-]+", scene_name("  (é) x .jpg"))
 
 
 def test_resize_photo_caps_the_long_side_applies_orientation_and_keeps_exif(tmp_path):
@@ -134,7 +144,8 @@ def test_finish_scene_drops_sfm_leftovers_and_writes_sources_and_readme(tmp_path
 
 def test_cli_lists_the_collections_and_names_an_unknown_one(tmp_path, capsys):
     assert main(["list"]) == 0
-    assert all(name in capsys.readouterr().out for name in COLLECTIONS)
+    listed = capsys.readouterr().out
+    assert all(name in listed for name in COLLECTIONS)
     assert main(["build", "nope", "--out", str(tmp_path / "x")]) == 1
     err = capsys.readouterr().err
     assert "unknown collection 'nope'" in err and len(err.strip().splitlines()) == 1
