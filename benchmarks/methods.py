@@ -120,6 +120,13 @@ METHODS: dict[str, MethodSpec] = {
         note="willags-prior-low-mask thresholding the residual beyond the scene's expected residual at each pixel "
         "(mask/expected.py: a level per Gaussian fitted over every photo)",
     ),
+    "willags-prior-low-mask-expected-cap1m": _masked_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("mask.residual.expected", True),
+        ("mcmc.cap_max", 1_000_000),
+        note="willags-prior-low-mask-expected with MCMC's cap at 1M Gaussians: the capacity a million gave the clean "
+        "collections, with the mask keeping it off the crowds that a million learned on reichstag",
+    ),
     "willags-prior-low-cap1m": _default_on_gpu(
         ("latent.prior_weight", 0.002),
         ("mcmc.cap_max", 1_000_000),
