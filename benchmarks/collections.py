@@ -165,8 +165,8 @@ def select_photos(available: Sequence[str], coll: Collection) -> list[str]:
 def scene_name(name: str) -> str:
     """The photo's file name in the scene: its stem with every run of characters other than letters, digits, ``.``,
     ``_`` and ``-`` turned into one ``_`` (web photos carry spaces and commas, which some tools split on), then
-    ``.jpg`` (``resize_photo`` writes JPEG)."""
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", Path(name).stem).strip("_") + ".jpg"
+    ``.jpg`` (``resize_photo`` writes JPEG); ``photo.jpg`` when nothing of the stem is left."""
+    return (re.sub(r"[^A-Za-z0-9._-]+", "_", Path(name).stem).strip("_.") or "photo") + ".jpg"
 
 
 def resize_photo(data: bytes, dst: Path, max_side: int = MAX_SIDE, quality: int = JPEG_QUALITY) -> dict[str, Any]:

@@ -67,6 +67,7 @@ def test_scene_name_keeps_safe_stems_and_replaces_spaces_and_punctuation():
     assert scene_name("Street Art, London - April 2011 594.jpg") == "Street_Art_London_-_April_2011_594.jpg"
     assert scene_name("Westminster Abbey.JPG") != scene_name("Westminster-Abbey.jpg")
     assert re.fullmatch(r"[A-Za-z0-9._-]+", scene_name("  (é) x .jpg"))
+    assert scene_name("ä ö.png") == "photo.jpg"  # never a hidden ".jpg"
 
 
 def test_resize_photo_caps_the_long_side_applies_orientation_and_keeps_exif(tmp_path):
