@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.records import RECORDS_DIR, REPO, json_default
+from benchmarks.records import RECORDS_DIR, REPO, json_default, shown_path
 
 RECORD_GLOB = "rank_cache_*.json"
 """The records docs/scale.md reads for its section on the image cache."""
@@ -87,7 +87,7 @@ def section(path: Path, record: dict[str, Any]) -> list[str]:
         "(the default on several devices). Each row a fresh process building `willags`' datamanager and reading "
         "its cache as rank 0 (uint8 images, "
         f"{record['long_side']} px on the long side); the same bytes are pinned on a GPU machine's host past 500 "
-        f"training images. Record: `{path.relative_to(REPO) if path.is_relative_to(REPO) else path}` "
+        f"training images. Record: `{shown_path(path)}` "
         f"(`{record['command']}`).",
         "",
         "| photos (training) | ranks | images decoded | cache GB | x whole | resident growth GB | process peak GB | "

@@ -21,6 +21,11 @@ CV_RECORDS = RECORDS_DIR / "cv.json"
 scores."""
 
 
+def shown_path(path: Path) -> Path:
+    """`path` as a page names it: relative to the repository when inside it, else as given."""
+    return path.relative_to(REPO) if path.is_relative_to(REPO) else path
+
+
 def record_key(rec: dict[str, Any]) -> tuple:
     return (rec["scene"], rec["method"], rec["device"], int(rec["steps"]), rec.get("tag") or "")
 

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks import rank_cache
-from benchmarks.records import RECORDS_DIR, REPO, json_default
+from benchmarks.records import RECORDS_DIR, REPO, json_default, shown_path
 
 LONG_SIDE = 800
 """The long side of a PT collection's photos, px."""
@@ -725,7 +725,7 @@ def devices_section(path: Path, runs: list[dict[str, Any]]) -> list[str]:
         "",
         f"`{first['method']}`, {first['images']:,} images seen by every run (steps = images / GPUs, every setting "
         "counted in steps divided by the GPUs: docs/distributed.md), `python -m benchmarks multi-gpu run` on the "
-        f"scale collection. Record: `{path.relative_to(REPO) if path.is_relative_to(REPO) else path}`.",
+        f"scale collection. Record: `{shown_path(path)}`.",
         "",
         "| run | GPUs | image cache | status | first step s | step ms (steady) | images/s (steady) | x 1 GPU | "
         "training s (first step to end) | x 1 GPU | wall s (launch to checkpoint) | host peak GB per rank | "
@@ -818,7 +818,7 @@ def render_page(
             f"{m['cpu_count']} cores, {m.get('host_memory_gb')} GB host memory"
             + (f", {m['gpu_memory_gb']} GB GPU" if m.get("gpu_memory_gb") else "")
             + (f". {m['note'].rstrip('.')}" if m.get("note") else "")
-            + f". Record: `{path.relative_to(REPO) if path.is_relative_to(REPO) else path}`."
+            + f". Record: `{shown_path(path)}`."
         )
         lines += ["", *table(rec), "", "The time to the first step, phase by phase (seconds):", "", *phase_table(rec)]
         lines += ["", "Goals:", ""]
