@@ -33,6 +33,8 @@ from typing import Any
 
 from PIL import Image, ImageOps
 
+from benchmarks.records import tree_bytes
+
 MAX_SIDE = 800
 """Long side of the photos given to SfM and training, in pixels (the shared real scenes' size)."""
 
@@ -389,10 +391,6 @@ def finish_scene(coll: Collection, out: Path, rows: list[dict[str, Any]]) -> dic
     return {**summary, "sources": rows}
 
 
-def folder_mb(path: Path) -> float:
-    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 1e6
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="benchmarks collections", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -416,6 +414,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     reg = sum(r["registered"] for r in res["sources"])
     print(
         f"{args.name}: {reg} / {len(res['sources'])} registered, mean reprojection error "
-        f"{res['mean_reprojection_error_px']:.3f} px, {res['wall_s']:.0f} s, {folder_mb(args.out):.1f} MB in {args.out}"
+        f"{res['mean_reprojection_error_px']:.3f} px, {res['wall_s']:.0f} s, {tree_bytes(args.out) / 1e6:.1f} MB in {args.out}"
     )
     return 0

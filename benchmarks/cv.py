@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.records import tree_bytes
+
 FOLD_RE = re.compile(r"^(?P<scene>.+)-cv(?P<fold>\d+)of(?P<folds>\d+)$")
 """A fold's scene name: <scene>-cv<k>of<K>, k counted from 1."""
 NOT_LINKED = {"README.md", "sources.json", "split.json"}
@@ -114,11 +116,6 @@ def write_fold_scenes(scene_dir: Path, folds: int, out: Path) -> list[Path]:
 
 CARRY_LIMIT = 64 * 2**20
 """What one call to the lent GPU machine carries, the tracked tree included (the device tool's limit)."""
-
-
-def tree_bytes(path: Path) -> int:
-    """Bytes of the files under `path`, links not followed (a fold's links cost nothing to carry)."""
-    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file() and not f.is_symlink())
 
 
 def write_bundle(collections: Sequence[Path], folds: Sequence[int], out: Path) -> list[Path]:

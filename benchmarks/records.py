@@ -26,6 +26,11 @@ def shown_path(path: Path) -> Path:
     return path.relative_to(REPO) if path.is_relative_to(REPO) else path
 
 
+def tree_bytes(path: Path) -> int:
+    """Bytes of the files under `path`, links not followed (a link costs nothing to carry or store)."""
+    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file() and not f.is_symlink())
+
+
 def record_key(rec: dict[str, Any]) -> tuple:
     return (rec["scene"], rec["method"], rec["device"], int(rec["steps"]), rec.get("tag") or "")
 
