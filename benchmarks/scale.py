@@ -735,8 +735,8 @@ def devices_section(path: Path, runs: list[dict[str, Any]]) -> list[str]:
 
     def span(r: dict[str, Any]) -> float | None:
         st = r.get("startup_s") or {}
-        ok = isinstance(st.get("train_end"), (int, float)) and isinstance(st.get("first_step"), (int, float))
-        return st["train_end"] - st["first_step"] if ok else None
+        timed = isinstance(st.get("train_end"), (int, float)) and isinstance(st.get("first_step"), (int, float))
+        return st["train_end"] - st["first_step"] if timed else None
 
     for r in runs:
         ips, sp = r.get("images_per_s"), span(r)
