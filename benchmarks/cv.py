@@ -640,6 +640,35 @@ FIXED_SPLIT_STEPS = {"fox-clean": 5000, "fox-wild": 5000}
 known, so they are not dealt into folds), and the step count their runs are compared at."""
 
 
+def length_rows(records: Sequence[dict[str, Any]], short: int, long: int, default: str = "willags") -> list[str]:
+    """What the steps from `short` to `long` are worth: per collection, each method whose fold runs were scored at
+    both counts on every fold (only runs scored at both: the same runs at two checkpoints), its mean at each and the paired difference
+    long - short with the photo bootstrap's interval widened by the run noise at `long` (as `paired`: conservative,
+    the two checkpoints of one run share most of its noise), then each method over the collections at once."""
+    from benchmarks.tables import md_table
+
+    both = [r for r in records if all((milestone(r, n) or {}).get("per_image") for n in (short, long))]
+    a, b = collect(both, short), collect(both, long)
+    sigma, _ = run_noise(records, long)
+    rows, pools = [], defaultdict(list)
+    for scene in sorted(set(a) & set(b)):
+        for method in sorted(set(a[scene]) & set(b[scene]), key=lambda m: (m != default, m)):
+            lo, hi = a[scene][method], b[scene][method]
+            if not (lo.complete and hi.complete):
+                continue
+            mean, low, high, n = paired(hi, lo, sigma)
+            rows.append(
+                [scene, method, f"{lo.mean:.2f}", f"{hi.mean:.2f}", f"{mean:+.2f} [{low:+.2f}, {high:+.2f}] (n={n})"]
+            )
+            pools[method].append((hi, lo))
+    for method, pairs in sorted(pools.items(), key=lambda kv: (kv[0] != default, kv[0])):
+        if len(pairs) >= 2:
+            mean, low, high, n = pooled(pairs, sigma)
+            rows.append([f"**{len(pairs)} at once**", method, "", "", f"{mean:+.2f} [{low:+.2f}, {high:+.2f}] (n={n})"])
+    head = ["scene", "method", f"{short} steps", f"{long} steps", f"{long} − {short} [95 % CI] (photos)"]
+    return md_table(head, rows) if rows else []
+
+
 def fixed_split(records: Sequence[dict[str, Any]], scene: str, steps: int) -> dict[str, MethodCV]:
     """{configuration: MethodCV} of the GPU runs of `scene` on its own split scored at `steps` photo by photo (one
     fold: every test photo; seeds averaged photo by photo)."""

@@ -120,6 +120,18 @@ METHODS: dict[str, MethodSpec] = {
         note="willags-prior-low-mask thresholding the residual beyond the scene's expected residual at each pixel "
         "(mask/expected.py: a level per Gaussian fitted over every photo)",
     ),
+    "willags-prior-low-mask-late": _masked_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("mask.warmup_steps", 5000),
+        note="willags-prior-low-mask with the mask from step 5000: the mask held reichstag from 5000 to 15000 steps "
+        "where the default lost, and cost most before 5000",
+    ),
+    "willags-prior-low-mask-expected-late": _masked_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("mask.residual.expected", True),
+        ("mask.warmup_steps", 5000),
+        note="willags-prior-low-mask-expected with the mask from step 5000",
+    ),
     "willags-prior-low-mask-expected-cap1m": _masked_on_gpu(
         ("latent.prior_weight", 0.002),
         ("mask.residual.expected", True),

@@ -24,6 +24,7 @@ from benchmarks.cv import (
     cv_rows,
     fit_rows,
     fixed_split_rows,
+    length_rows,
     parse_fold,
     run_noise,
 )
@@ -387,6 +388,7 @@ def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str
         "",
         *cv_section([*records, *cv_records]),
         "",
+        *length_section([*records, *cv_records]),
         "### The synthetic scenes on their own split",
         "",
         "fox-clean and fox-wild are rendered: their test photos, transients and appearance changes are known, so they "
@@ -487,15 +489,7 @@ def render_markdown(records: list[dict[str, Any]], cv_records: Sequence[dict[str
 
 def cv_section(records: list[dict[str, Any]]) -> list[str]:
     """The cross-validated tables (benchmarks/cv.py), one per step count the fold runs were scored at."""
-    steps = sorted(
-        {
-            int(k)
-            for r in records
-            if parse_fold(str(r.get("scene", ""))) is not None
-            for k, ms in (r.get("milestones") or {}).items()
-            if ms.get("per_image")
-        }
-    )
+    steps = cv_steps(records)
     if not steps:
         return ["No cross-validated run yet."]
     out: list[str] = []
@@ -510,6 +504,38 @@ def cv_section(records: list[dict[str, Any]]) -> list[str]:
                 "",
             ]
     return out[:-1]
+
+
+def cv_steps(records: list[dict[str, Any]]) -> list[int]:
+    """The step counts the cross-validation's fold runs were scored at (with per-photo scores)."""
+    return sorted(
+        {
+            int(k)
+            for r in records
+            if parse_fold(str(r.get("scene", ""))) is not None
+            for k, ms in (r.get("milestones") or {}).items()
+            if ms.get("per_image")
+        }
+    )
+
+
+def length_section(records: list[dict[str, Any]]) -> list[str]:
+    """cv.length_rows between each two successive step counts of the fold runs: what training longer is worth, per
+    collection and method, the same runs at two checkpoints."""
+    steps = cv_steps(records)
+    out: list[str] = []
+    for short, long in zip(steps[:-1], steps[1:], strict=True):
+        rows = length_rows(records, short, long)
+        if rows:
+            out += [
+                f"**What the steps from {short} to {long} are worth** (the same fold runs scored at both, photo by "
+                "photo; the interval widened by the run noise at the longer count, which overstates it: the two "
+                "checkpoints of one run share most of its noise):",
+                "",
+                *rows,
+                "",
+            ]
+    return out
 
 
 README_STEPS = 15000

@@ -390,3 +390,26 @@ def test_a_bundle_holds_writable_copies_and_their_folds_and_moves_as_one_folder(
     assert len(parser.get_dataparser_outputs("test").image_filenames) == 2
     with pytest.raises(SystemExit, match="2 fold counts for 1 collections"):
         cv.main(["bundle", "--data", str(SACRE), "--folds", "4", "7", "--out", str(tmp_path / "b2")])
+
+
+def test_what_length_is_worth_pairs_one_runs_two_checkpoints_and_skips_runs_scored_once():
+    def both(scene: str, fold: int, method: str, short: dict[str, float], long: dict[str, float]) -> dict:
+        rec = _fold_rec(scene, fold, 2, method, short)
+        rec["milestones"]["15000"] = _fold_rec(scene, fold, 2, method, long, steps=15000)["milestones"]["15000"]
+        return rec
+
+    recs = []
+    for scene, gain in (("one", 1.0), ("two", -0.5)):
+        recs += [
+            both(scene, 1, "willags", {"a.jpg": 20.0, "c.jpg": 21.0}, {"a.jpg": 20.0 + gain, "c.jpg": 21.0 + gain}),
+            both(scene, 2, "willags", {"b.jpg": 18.0}, {"b.jpg": 18.0 + gain}),
+        ]
+    recs += [both("one", 1, "peer", {"a.jpg": 19.0, "c.jpg": 19.0}, {"a.jpg": 19.5, "c.jpg": 19.5})]  # one fold of 2
+    recs += [_fold_rec("one", 2, 2, "willags", {"b.jpg": 0.0})]  # another run scored only at 5000: not counted
+    _, _, *rows = cv.length_rows(recs, 5000, 15000)
+    cells = [[c.strip() for c in r.strip("|").split("|")] for r in rows]
+    assert cells[0] == ["one", "willags", "19.67", "20.67", "+1.00 [+1.00, +1.00] (n=3)"]
+    assert cells[1] == ["two", "willags", "19.67", "19.17", "-0.50 [-0.50, -0.50] (n=3)"]
+    assert cells[2][:2] == ["**2 at once**", "willags"] and cells[2][4].startswith("+0.25 [+0.25, +0.25]")
+    assert len(cells) == 3  # the peer is not complete on any collection
+    assert cv.length_rows(recs, 5000, 30000) == []
