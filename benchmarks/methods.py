@@ -132,6 +132,13 @@ METHODS: dict[str, MethodSpec] = {
         ("mask.warmup_steps", 5000),
         note="willags-prior-low-mask-expected with the mask from step 5000",
     ),
+    "willags-prior-low-sky": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("sky.enabled", True),
+        note="the default (its prior weight named) with the sky above each photo's skyline on every scene: the "
+        "inspector leaves it off below 0.15 of open background (westminster-abbey 0.148, south-building 0.05)",
+        keep=("sky.enabled",),
+    ),
     "willags-prior-low-mask-expected-cap1m": _masked_on_gpu(
         ("latent.prior_weight", 0.002),
         ("mask.residual.expected", True),

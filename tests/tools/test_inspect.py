@@ -16,6 +16,7 @@ from willags_ns.tools.inspection import (
     InspectConfig,
     InspectError,
     SceneViews,
+    against,
     background_fractions,
     covered_cells,
     enclosed_fraction,
@@ -323,6 +324,24 @@ def test_plain_3dgs_gets_no_sky():
     assert rec["sky"]["on"] is False and "no latent" in rec["sky"]["reason"]
     rec = recommend({**evidence, "appearance_score": 20.0}, 40, InspectConfig())
     assert rec["preset"]["value"] == "willags" and rec["sky"]["on"] is True
+
+
+def test_a_reason_never_prints_a_value_on_the_wrong_side_of_its_threshold():
+    """A score just under its threshold reads with the decimals that show it under, not rounded onto it."""
+    assert against(0.1496, 0.15) == "0.1496" and against(0.1504, 0.15) == "0.15" and against(0.37, 0.15) == "0.37"
+    assert against(0.15, 0.15) == "0.15" and against(3.96, 4.0, 1) == "3.96" and against(12.6, 4.0, 1) == "12.6"
+    evidence = dict(
+        data="x",
+        method="sfm-points",
+        appearance_score=12.6,
+        transient_score=0.1199,
+        transient_fraction_mean=0.01,
+        background_score=0.1496,
+        background_fraction_mean=0.16,
+    )
+    rec = recommend(evidence, 40, InspectConfig(sky_threshold=0.15, transient_threshold=0.12))
+    assert rec["sky"]["on"] is False and "covers 0.1496 (mean 0.16) < threshold 0.15" in rec["sky"]["reason"]
+    assert rec["mask"]["on"] is False and rec["mask"]["reason"].startswith("0.1199 of the images")
 
 
 def test_background_ignores_points_folded_in_by_distortion():

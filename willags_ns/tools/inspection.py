@@ -809,6 +809,17 @@ def sky_flags(mode: str) -> list[str]:
     ]
 
 
+def against(value: float, threshold: float, digits: int = 2) -> str:
+    """`value` with `digits` decimals, or more (up to 6) where fewer would print it on the other side of the threshold
+    it is compared with: 0.1496 against 0.15 reads 0.1496, not 0.15 < threshold 0.15."""
+    text = f"{value:.{digits}f}"
+    for d in range(digits, 7):
+        text = f"{value:.{d}f}"
+        if (float(text) >= threshold) == (value >= threshold):
+            break
+    return text
+
+
 def _sky(evidence: dict[str, Any], preset: str, cfg: InspectConfig) -> dict[str, Any]:
     """The sky entry of the recommendation (evidence 4), for the willags presets: "off" below `sky_threshold` of
     open background, "surround" where the subject stands against it (surround_score >= `surround_threshold`),
@@ -823,7 +834,8 @@ def _sky(evidence: dict[str, Any], preset: str, cfg: InspectConfig) -> dict[str,
         }
     need = bg >= cfg.sky_threshold
     reason = (
-        f"median share of an image that no SfM point covers {bg:.2f} (mean {evidence['background_fraction_mean']:.2f}) "
+        f"median share of an image that no SfM point covers {against(bg, cfg.sky_threshold)} "
+        f"(mean {evidence['background_fraction_mean']:.2f}) "
         f"{'>=' if need else '<'} threshold {cfg.sky_threshold:g}"
     )
     if need and preset == "willags-3dgs":
@@ -840,7 +852,7 @@ def _sky(evidence: dict[str, Any], preset: str, cfg: InspectConfig) -> dict[str,
     surround = sur is not None and sur >= cfg.surround_threshold
     if sur is not None:
         reason += (
-            f"; the subject stands against it in a median {sur:.2f} of its rows "
+            f"; the subject stands against it in a median {against(sur, cfg.surround_threshold)} of its rows "
             f"{'>=' if surround else '<'} threshold {cfg.surround_threshold:g}: "
             + (
                 "surround (the sky behind every pixel, the alpha penalty where it alone explains the photo)"
@@ -858,7 +870,7 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
     thr = cfg.fallback_appearance_threshold if fallback else cfg.appearance_threshold
     appearance = app >= thr
     what = "spread of per-image mean colours (no SfM points)" if fallback else "median per-image colour change"
-    app_reason = f"{what} {app:.1f} levels {'>=' if appearance else '<'} threshold {thr:g}"
+    app_reason = f"{what} {against(app, thr, 1)} levels {'>=' if appearance else '<'} threshold {thr:g}"
     tr = evidence["transient_score"]
     if tr is None:
         mask = True
@@ -866,7 +878,8 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
     else:
         mask = tr >= cfg.transient_threshold
         mask_reason = (
-            f"{tr:.2f} of the images have >= {cfg.image_transient_level:g} of their observations transient "
+            f"{against(tr, cfg.transient_threshold)} of the images have >= {cfg.image_transient_level:g} of their "
+            "observations transient "
             f"{'>=' if mask else '<'} threshold {cfg.transient_threshold:g} (mean transient fraction "
             f"{evidence['transient_fraction_mean']:.3f})"
         )
