@@ -642,9 +642,10 @@ known, so they are not dealt into folds), and the step count their runs are comp
 
 def length_rows(records: Sequence[dict[str, Any]], short: int, long: int, default: str = "willags") -> list[str]:
     """What the steps from `short` to `long` are worth: per collection, each method whose fold runs were scored at
-    both counts on every fold (only runs scored at both: the same runs at two checkpoints), its mean at each and the paired difference
-    long - short with the photo bootstrap's interval widened by the run noise at `long` (as `paired`: conservative,
-    the two checkpoints of one run share most of its noise), then each method over the collections at once."""
+    both counts on every fold (only the runs scored at both: one run's two checkpoints), its mean at each and the
+    paired difference long - short with the photo bootstrap's interval widened by the run noise at `long` (as
+    `paired`: conservative, the two checkpoints of one run share most of its noise), then each method over the
+    collections at once."""
     from benchmarks.tables import md_table
 
     both = [r for r in records if all((milestone(r, n) or {}).get("per_image") for n in (short, long))]

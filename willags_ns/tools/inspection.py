@@ -812,11 +812,10 @@ def sky_flags(mode: str) -> list[str]:
 def against(value: float, threshold: float, digits: int = 2) -> str:
     """`value` with `digits` decimals, or more (up to 6) where fewer would print it on the other side of the threshold
     it is compared with: 0.1496 against 0.15 reads 0.1496, not 0.15 < threshold 0.15."""
-    text = f"{value:.{digits}f}"
     for d in range(digits, 7):
         text = f"{value:.{d}f}"
         if (float(text) >= threshold) == (value >= threshold):
-            break
+            return text
     return text
 
 
