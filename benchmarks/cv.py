@@ -18,6 +18,8 @@ willags' data parser (the peer too: benchmarks/peer.py), so a fold is a scene to
     python -m benchmarks cv plan --root .gpu-cv --methods willags peer --steps 5000 --queues 12  # solo.sh queues
     python -m benchmarks merge <records.json>       # fold runs go to benchmarks/records/cv.json
     python -m benchmarks cv report                  # the tables from benchmarks/records/cv.json
+    python -m benchmarks cv photos --scene reichstag --a willags@15000 --b willags@5000 --inspect insp.json
+                                                    # photo by photo: the ends, and r with the inspector's evidence
 
 The tables are docs/results.md's cross-validated section (benchmarks/results.py calls :func:`cv_rows`).
 """
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import re
 import shutil
@@ -670,6 +673,67 @@ def length_rows(records: Sequence[dict[str, Any]], short: int, long: int, defaul
     return md_table(head, rows) if rows else []
 
 
+def parse_side(text: str, steps: int) -> tuple[str, int]:
+    """ "METHOD" or "METHOD@STEPS" -> (method, step count; `steps` where none is named)."""
+    method, _, n = text.partition("@")
+    if not method or (n and not n.isdigit()):
+        raise ValueError(f"cv: {text!r} is not METHOD or METHOD@STEPS")
+    return method, int(n) if n else steps
+
+
+def photo_differences(
+    records: Sequence[dict[str, Any]], scene: str, a: tuple[str, int], b: tuple[str, int]
+) -> dict[str, float]:
+    """Photo -> a's score minus b's on `scene`'s cross-validation, each side a (configuration, step count); where both
+    sides are one method at two counts, only the runs scored at both (one run's two checkpoints, as `length_rows`)."""
+    if a[0] == b[0]:
+        records = [r for r in records if all((milestone(r, n) or {}).get("per_image") for n in (a[1], b[1]))]
+    sides = []
+    for method, n in (a, b):
+        cv = collect(records, n).get(scene, {}).get(method)
+        if cv is None:
+            raise ValueError(f"cv: no fold run of {method} on {scene} scored at {n} steps")
+        sides.append(cv.per_photo)
+    return {p: sides[0][p] - sides[1][p] for p in sorted(set(sides[0]) & set(sides[1]))}
+
+
+def evidence_correlations(diffs: dict[str, float], report: dict[str, Any]) -> dict[str, tuple[float, int]]:
+    """Per-image array of a `willags-inspect --split all --output` report -> (Pearson r with the photos' differences,
+    photos both hold); arrays that do not vary over those photos are left out."""
+    per = report.get("per_image") or {}
+    names = per.get("names") or []
+    out = {}
+    for key, values in per.items():
+        if key == "names" or len(values) != len(names):
+            continue
+        pairs = [(float(v), diffs[n]) for n, v in zip(names, values, strict=True) if n in diffs and v is not None]
+        if len(pairs) < 3:
+            continue
+        x, y = np.asarray(pairs).T
+        if x.std() > 0 and y.std() > 0:
+            out[key] = (float(np.corrcoef(x, y)[0, 1]), len(pairs))
+    return out
+
+
+def photo_lines(
+    diffs: dict[str, float], top: int, correlations: dict[str, tuple[float, int]] | None = None
+) -> list[str]:
+    """What `cv photos` prints: the spread of the differences, the photos at each end, the correlations."""
+    if not diffs:
+        return ["cv: the two sides share no photo"]
+    d = np.asarray(list(diffs.values()))
+    order = sorted(diffs.items(), key=lambda kv: kv[1])
+    lines = [
+        f"{d.size} photos: mean {d.mean():+.2f}, median {np.median(d):+.2f}, below -1 dB {(d < -1).sum()}, "
+        f"above +1 dB {(d > 1).sum()}",
+        "lowest: " + ", ".join(f"{p} {v:+.2f}" for p, v in order[:top]),
+        "highest: " + ", ".join(f"{p} {v:+.2f}" for p, v in reversed(order[-top:])),
+    ]
+    for key, (r, n) in sorted((correlations or {}).items(), key=lambda kv: -abs(kv[1][0])):
+        lines.append(f"r with {key}: {r:+.2f} ({n} photos)")
+    return lines
+
+
 def fixed_split(records: Sequence[dict[str, Any]], scene: str, steps: int) -> dict[str, MethodCV]:
     """{configuration: MethodCV} of the GPU runs of `scene` on its own split scored at `steps` photo by photo (one
     fold: every test photo; seeds averaged photo by photo)."""
@@ -792,6 +856,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[42])
     p.add_argument("--queues", type=int, default=12)
     p.add_argument("--only", nargs="*", default=None, help="plan only these scenes (folder names or collections)")
+    ph = sub.add_parser("photos", help="one collection's photo-by-photo differences between two runs' scores")
+    ph.add_argument("--scene", required=True, help="the collection (its fold runs' scene name without -cvKofN)")
+    ph.add_argument("--a", required=True, help="METHOD or METHOD@STEPS (a configuration, as the tables name it)")
+    ph.add_argument("--b", required=True, help="METHOD or METHOD@STEPS, subtracted from a")
+    ph.add_argument("--steps", type=int, default=15000, help="the step count of a side that names none")
+    ph.add_argument("--inspect", type=Path, help="a `willags-inspect --split all --output` report: r per image array")
+    ph.add_argument("--top", type=int, default=5, help="photos shown at each end")
+    ph.add_argument("--records", type=Path, default=None)
     r = sub.add_parser("report", help="print the cross-validated tables from the records")
     r.add_argument("--records", type=Path, default=None)
     r.add_argument("--steps", type=int, default=5000)
@@ -832,7 +904,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     from benchmarks.records import CV_RECORDS, load_records
 
-    print("\n".join(cv_rows(load_records(args.records or CV_RECORDS), args.steps)))
+    records = load_records(args.records or CV_RECORDS)
+    if args.cmd == "photos":
+        try:
+            diffs = photo_differences(
+                records, args.scene, parse_side(args.a, args.steps), parse_side(args.b, args.steps)
+            )
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
+        corr = None
+        if args.inspect is not None:
+            try:
+                corr = evidence_correlations(diffs, json.loads(args.inspect.read_text()))
+            except (OSError, ValueError) as e:
+                raise SystemExit(f"cv: {args.inspect}: not a willags-inspect report ({e})") from None
+        print("\n".join(photo_lines(diffs, args.top, corr)))
+        return 0
+    print("\n".join(cv_rows(records, args.steps)))
     return 0
 
 

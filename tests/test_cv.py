@@ -1,6 +1,7 @@
 """benchmarks/cv.py: folds that hold every photo once, paired differences with bootstrap intervals, the queues."""
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -413,3 +414,37 @@ def test_what_length_is_worth_pairs_one_runs_two_checkpoints_and_skips_runs_scor
     assert cells[2][:2] == ["**2 at once**", "willags"] and cells[2][4].startswith("+0.25 [+0.25, +0.25]")
     assert len(cells) == 3  # the peer is not complete on any collection
     assert cv.length_rows(recs, 5000, 30000) == []
+    # one method at two counts, photo by photo: the run scored only at 5000 is left out there too
+    gains = cv.photo_differences(recs, "one", ("willags", 15000), ("willags", 5000))
+    assert gains == {"a.jpg": pytest.approx(1.0), "b.jpg": pytest.approx(1.0), "c.jpg": pytest.approx(1.0)}
+
+
+def test_photos_name_the_ends_and_correlate_with_the_inspectors_per_image_evidence(tmp_path, capsys):
+    recs = [_fold_rec("scene", 1, 2, "willags", {"a.jpg": 20.0, "c.jpg": 22.0})]
+    recs += [_fold_rec("scene", 2, 2, "willags", {"b.jpg": 18.0, "d.jpg": 24.0})]
+    recs += [
+        _fold_rec("scene", k, 2, "peer", p)
+        for k, p in ((1, {"a.jpg": 21.0, "c.jpg": 21.0}), (2, {"b.jpg": 16.0, "d.jpg": 24.0}))
+    ]
+    diffs = cv.photo_differences(recs, "scene", cv.parse_side("willags", 5000), cv.parse_side("peer@5000", 15000))
+    assert diffs == {"a.jpg": -1.0, "b.jpg": 2.0, "c.jpg": 1.0, "d.jpg": 0.0}
+    report = {"per_image": {"names": ["a.jpg", "b.jpg", "c.jpg", "d.jpg", "x.jpg"],
+                            "rises": [-1.0, 2.0, 1.0, 0.0, 9.0], "flat": [1.0] * 5}}  # fmt: skip
+    corr = cv.evidence_correlations(diffs, report)
+    assert set(corr) == {"rises"} and corr["rises"] == (pytest.approx(1.0), 4)  # x.jpg was scored by neither
+    lines = cv.photo_lines(diffs, 1, corr)
+    assert lines[0] == "4 photos: mean +0.50, median +0.50, below -1 dB 0, above +1 dB 1"
+    assert lines[1:] == ["lowest: a.jpg -1.00", "highest: b.jpg +2.00", "r with rises: +1.00 (4 photos)"]
+    with pytest.raises(ValueError, match="no fold run of peer on scene scored at 15000"):
+        cv.photo_differences(recs, "scene", ("willags", 5000), cv.parse_side("peer", 15000))
+    with pytest.raises(ValueError, match="not METHOD or METHOD@STEPS"):
+        cv.parse_side("peer@late", 5000)
+    records = tmp_path / "cv.json"
+    records.write_text(json.dumps(recs))
+    (tmp_path / "insp.json").write_text(json.dumps(report))
+    args = ["photos", "--scene", "scene", "--a", "willags@5000", "--b", "peer@5000", "--records", str(records)]
+    assert cv.main([*args, "--inspect", str(tmp_path / "insp.json"), "--top", "2"]) == 0
+    assert "highest: b.jpg +2.00, c.jpg +1.00" in capsys.readouterr().out
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(SystemExit, match="bad.json: not a willags-inspect report"):
+        cv.main([*args, "--inspect", str(tmp_path / "bad.json")])
