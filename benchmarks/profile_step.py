@@ -108,9 +108,15 @@ def component_summary(events: Any, steps: int, on_cuda: bool) -> dict[str, dict[
     return out
 
 
+BACKWARD_PREFIX = "autograd::engine::evaluate_function: "
+"""How the profiler names a node of the backward pass it runs (the node's class follows)."""
+
+
 def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str, Any]:
     """Per-step numbers from a profiler's ``key_averages()``: kernel time, launches (CUDA) or aten operators (CPU),
-    and the ``top`` operators by self host time and by self device time."""
+    the ``top`` operators by self host time and by self device time, and the backward pass's nodes (how many a step,
+    and the ``top`` node classes by count: the graph the forward built, which the labels of ``components`` leave
+    out)."""
     rows = list(events)
     launches = sum(r.count for r in rows if r.key in LAUNCH_KEYS)
     aten = sum(r.count for r in rows if r.key.startswith("aten::"))
@@ -124,12 +130,18 @@ def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str
         best = sorted(rows, key=us, reverse=True)[:top]
         return [{"op": r.key, "calls": r.count / steps, "self_ms": us(r) / 1000.0 / steps} for r in best]
 
+    nodes = sorted(
+        ((r.key[len(BACKWARD_PREFIX) :], r.count) for r in rows if r.key.startswith(BACKWARD_PREFIX)),
+        key=lambda kv: -kv[1],
+    )
     return {
         "device_ms": device_total / 1000.0 / steps,
         "launches": (launches if on_cuda else aten) / steps,
         "aten_ops": aten / steps,
         "top_host": top_by(lambda r: r.self_cpu_time_total),
         "top_device": top_by(device_us) if on_cuda else [],
+        "backward_nodes": sum(n for _, n in nodes) / steps,
+        "top_backward_nodes": [{"node": k, "calls": n / steps} for k, n in nodes[:top]],
     }
 
 

@@ -33,6 +33,12 @@ def test_profiling_a_window_of_willags_steps_on_the_cpu(tmp_path):
     assert rec["device_ms"] == 0 and rec["syncs"] == 0  # nothing waits on a CPU
     assert rec["launches"] == rec["aten_ops"] > 50  # a step is hundreds of operators
     assert rec["top_host"] and all(r["self_ms"] >= 0 and r["calls"] > 0 for r in rec["top_host"])
+    # the backward pass's nodes: counted a step, the commonest first, every count within the total
+    nodes = rec["top_backward_nodes"]
+    assert rec["backward_nodes"] > 10 and any(n["node"].startswith("MulBackward") for n in nodes)
+    assert [n["calls"] for n in nodes] == sorted((n["calls"] for n in nodes), reverse=True)
+    assert sum(n["calls"] for n in nodes) <= rec["backward_nodes"] + 1e-9
+    assert not any(n["node"].startswith("autograd::") for n in nodes)
     parts = rec["components"]
     # the model's forward, its colours inside it, the loss and the optimisers: once per step each, with operators
     for name in (
