@@ -674,7 +674,7 @@ def length_rows(records: Sequence[dict[str, Any]], short: int, long: int, defaul
 
 
 def parse_side(text: str, steps: int) -> tuple[str, int]:
-    """ "METHOD" or "METHOD@STEPS" -> (method, step count; `steps` where none is named)."""
+    """A side of `cv photos`, METHOD or METHOD@STEPS -> (method, step count; `steps` where none is named)."""
     method, _, n = text.partition("@")
     if not method or (n and not n.isdigit()):
         raise ValueError(f"cv: {text!r} is not METHOD or METHOD@STEPS")
