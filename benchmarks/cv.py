@@ -643,6 +643,11 @@ FIXED_SPLIT_STEPS = {"fox-clean": 5000, "fox-wild": 5000}
 known, so they are not dealt into folds), and the step count their runs are compared at."""
 
 
+def scored_at(records: Sequence[dict[str, Any]], *steps: int) -> list[dict[str, Any]]:
+    """The runs scored photo by photo at every one of `steps`: one run's checkpoints compared with each other."""
+    return [r for r in records if all((milestone(r, n) or {}).get("per_image") for n in steps)]
+
+
 def length_rows(records: Sequence[dict[str, Any]], short: int, long: int, default: str = "willags") -> list[str]:
     """What the steps from `short` to `long` are worth: per collection, each method whose fold runs were scored at
     both counts on every fold (only the runs scored at both: one run's two checkpoints), its mean at each and the
@@ -651,7 +656,7 @@ def length_rows(records: Sequence[dict[str, Any]], short: int, long: int, defaul
     collections at once."""
     from benchmarks.tables import md_table
 
-    both = [r for r in records if all((milestone(r, n) or {}).get("per_image") for n in (short, long))]
+    both = scored_at(records, short, long)
     a, b = collect(both, short), collect(both, long)
     sigma, _ = run_noise(records, long)
     rows, pools = [], defaultdict(list)
@@ -687,7 +692,7 @@ def photo_differences(
     """Photo -> a's score minus b's on `scene`'s cross-validation, each side a (configuration, step count); where both
     sides are one method at two counts, only the runs scored at both (one run's two checkpoints, as `length_rows`)."""
     if a[0] == b[0]:
-        records = [r for r in records if all((milestone(r, n) or {}).get("per_image") for n in (a[1], b[1]))]
+        records = scored_at(records, a[1], b[1])
     sides = []
     for method, n in (a, b):
         cv = collect(records, n).get(scene, {}).get(method)
