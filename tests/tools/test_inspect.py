@@ -308,17 +308,22 @@ def test_synthetic_dome_scenes_have_no_open_background(reports):
         assert report["recommendation"]["sky"]["on"] is False
 
 
-def test_plain_3dgs_gets_no_sky():
-    """Open background without appearance change or transients: willags-3dgs, which has no latent for a sky."""
-    evidence = dict(
+def _evidence(appearance: float, transient: float, transient_mean: float, background: float, background_mean: float):
+    """The evidence `recommend` reads, as an SfM-point inspection of scene "x" reports it."""
+    return dict(
         data="x",
         method="sfm-points",
-        appearance_score=0.5,
-        transient_score=0.0,
-        transient_fraction_mean=0.0,
-        background_score=0.5,
-        background_fraction_mean=0.5,
+        appearance_score=appearance,
+        transient_score=transient,
+        transient_fraction_mean=transient_mean,
+        background_score=background,
+        background_fraction_mean=background_mean,
     )
+
+
+def test_plain_3dgs_gets_no_sky():
+    """Open background without appearance change or transients: willags-3dgs, which has no latent for a sky."""
+    evidence = _evidence(0.5, 0.0, 0.0, 0.5, 0.5)
     rec = recommend(evidence, 40, InspectConfig())
     assert rec["preset"]["value"] == "willags-3dgs" and rec["preset"]["flags"] == []
     assert rec["sky"]["on"] is False and "no latent" in rec["sky"]["reason"]
@@ -330,15 +335,7 @@ def test_a_reason_never_prints_a_value_on_the_wrong_side_of_its_threshold():
     """A score just under its threshold reads with the decimals that show it under, not rounded onto it."""
     assert against(0.1496, 0.15) == "0.1496" and against(0.1504, 0.15) == "0.15" and against(0.37, 0.15) == "0.37"
     assert against(0.15, 0.15) == "0.15" and against(3.96, 4.0, 1) == "3.96" and against(12.6, 4.0, 1) == "12.6"
-    evidence = dict(
-        data="x",
-        method="sfm-points",
-        appearance_score=12.6,
-        transient_score=0.1199,
-        transient_fraction_mean=0.01,
-        background_score=0.1496,
-        background_fraction_mean=0.16,
-    )
+    evidence = _evidence(12.6, 0.1199, 0.01, 0.1496, 0.16)
     rec = recommend(evidence, 40, InspectConfig(sky_threshold=0.15, transient_threshold=0.12))
     assert rec["sky"]["on"] is False and "covers 0.1496 (mean 0.16) < threshold 0.15" in rec["sky"]["reason"]
     assert rec["mask"]["on"] is False and rec["mask"]["reason"].startswith("0.1199 of the images")
