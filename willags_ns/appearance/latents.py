@@ -137,7 +137,7 @@ def training_latent(
             "'willags*' do) or call model.set_train_batch(batch) before model(camera)"
         )
     idx = int(batch["image_idx"]) if "image_idx" in batch else int(metadata.get("cam_idx", 0))
-    img = image_chw(batch["image"], device)
+    img = image_chw(batch["image"], device) if nets.vae is not None else None  # the encoder's input; a table has none
     mu, logvar = nets.latent_stats(img, idx)
     z = reparameterize(mu[None], logvar[None])[0] if logvar is not None else mu
     if keeps_latent_memo(nets) and idx < train_latents.shape[0]:

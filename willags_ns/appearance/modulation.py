@@ -21,6 +21,7 @@ Without the gamma, linear in the SH coefficients, so rendering with a fixed appe
 same degree; with it, the bake is a least-squares fit over view directions (as for the paper's decoder).
 """
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -68,6 +69,14 @@ GAMMA_LOG_RANGE = math.log(3.0)
 """g(z) = exp(GAMMA_LOG_RANGE tanh(h)): the gamma stays within [1/3, 3]."""
 GAMMA_FLOOR = 1e-3
 """Base colours are floored here before the gamma (1e-3^3 = 1e-9: black stays black within 8-bit precision)."""
+
+
+@functools.lru_cache(maxsize=8)
+def identity3(device: torch.device, dtype: torch.dtype) -> Tensor:
+    """The 3x3 identity on `device`, made once (A = I + dA is built every step), as a normal tensor even when first
+    asked for under inference mode (autograd may save it)."""
+    with torch.inference_mode(False):
+        return torch.eye(3, device=device, dtype=dtype)
 
 
 class ColorModulation(ColorModel):
@@ -142,9 +151,11 @@ class ColorModulation(ColorModel):
         ``gamma`` is off), exp(ln 3 tanh(h)), so g stays in [1/3, 3] with a gradient everywhere (a clamp would stop
         it at the bounds) and is 1 where the MLP's output is 0."""
         h = self.global_mlp(z)
-        A = torch.eye(3, device=z.device, dtype=h.dtype) + h[:9].reshape(3, 3)
-        g = torch.exp(GAMMA_LOG_RANGE * torch.tanh(h[12:15])) if self.gamma else None
-        return A, h[9:12], g
+        # split, not sliced: the backward joins the parts' gradients in one cat instead of a zero-filled copy each
+        dA, b, *gamma = h.split((9, 3, 3) if self.gamma else (9, 3))
+        A = identity3(h.device, h.dtype) + dA.reshape(3, 3)
+        g = torch.exp(GAMMA_LOG_RANGE * torch.tanh(gamma[0])) if self.gamma else None
+        return A, b, g
 
     def global_transform(self, z: Float[Tensor, " D"]) -> tuple[Float[Tensor, "3 3"], Float[Tensor, " 3"]]:
         """(A, b) of latent z: A = I + dA."""
@@ -169,19 +180,20 @@ class ColorModulation(ColorModel):
         # so it is one [hidden] vector added as a bias instead of a [N, latent_proj] copy concatenated to each
         # Gaussian (same numbers, N x latent_proj less memory and compute per step).
         first, act, last = self.local_mlp
-        w, ni, nz = first.weight, self.intrinsic_dim, self.latent_proj.out_features
-        h = first.bias + w[:, ni : ni + nz] @ self.latent_proj(z)  # [hidden]
+        # the weight's column blocks of f_s, P z and f_d (split: one cat joins their gradients in the backward)
+        w_s, w_z, w_d = first.weight.split((self.intrinsic_dim, self.latent_proj.out_features, self.dynamic_dim), 1)
+        h = first.bias + w_z @ self.latent_proj(z)  # [hidden]
         if self.intrinsic_dim > 0 and self.dynamic_dim == 0 and self.residual_chunk > 0:
             assert f_s is not None
-            return LocalResidualMLP.apply(f_s, w[:, :ni], h, last.weight, last.bias, self.residual_chunk)
+            return LocalResidualMLP.apply(f_s, w_s, h, last.weight, last.bias, self.residual_chunk)
         if self.intrinsic_dim > 0:
             assert f_s is not None
-            h = torch.nn.functional.linear(f_s, w[:, :ni], h)
+            h = torch.nn.functional.linear(f_s, w_s, h)
         else:
             h = h.expand(n, -1)
         if self.dynamic_dim > 0:
             assert f_d is not None
-            h = h + torch.nn.functional.linear(f_d, w[:, ni + nz :])
+            h = h + torch.nn.functional.linear(f_d, w_d)
         return last(act(h))
 
     def forward(
@@ -204,7 +216,8 @@ class ColorModulation(ColorModel):
         if residual is None:
             residual = self.local_residual(z, f_s, f_d, base.shape[0])
         if residual is not None:
-            c = c * (1.0 + residual[:, :3]) + residual[:, 3:]
+            scale, offset = residual.split(3, dim=-1)
+            c = c * (1.0 + scale) + offset
         return c
 
 
@@ -243,21 +256,22 @@ class LocalResidualMLP(torch.autograd.Function):
         with torch.autocast(f.device.type, enabled=False):
             g = g.to(f.dtype).contiguous()
             gf = torch.empty_like(f) if need_f else None
-            gw1 = torch.zeros_like(w1) if need_w1 else None
-            gh0 = torch.zeros_like(h0) if need_h0 else None
-            gw2 = torch.zeros_like(w2) if need_w2 else None
+            # the weight gradients summed over the chunks: the first chunk's is the sum so far (no zero-filled buffer
+            # to add it to; zeros without any Gaussian)
+            wanted = ((w1, need_w1), (h0, need_h0), (w2, need_w2))
+            gw1, gh0, gw2 = (torch.zeros_like(t) if need and n == 0 else None for t, need in wanted)
             for i in range(0, n, chunk):
                 fc, gc = f[i : i + chunk], g[i : i + chunk]
                 act = torch.addmm(h0, fc, w1.t()).relu_()  # the chunk's hidden layer, rebuilt
-                if gw2 is not None:
-                    gw2.addmm_(gc.t(), act)
+                if need_w2:
+                    gw2 = gc.t() @ act if gw2 is None else gw2.addmm_(gc.t(), act)
                 # d out / d pre-activation: one fused kernel (ReLU's own backward, masked where act == 0)
                 gh = torch.ops.aten.threshold_backward(gc @ w2, act, 0.0)
                 del act
-                if gh0 is not None:
-                    gh0 += gh.sum(0)
-                if gw1 is not None:
-                    gw1.addmm_(gh.t(), fc)
+                if need_h0:
+                    gh0 = gh.sum(0) if gh0 is None else gh0.add_(gh.sum(0))
+                if need_w1:
+                    gw1 = gh.t() @ fc if gw1 is None else gw1.addmm_(gh.t(), fc)
                 if gf is not None:
                     torch.mm(gh, w1, out=gf[i : i + chunk])
             gb2 = g.sum(0) if need_b2 else None

@@ -98,10 +98,11 @@ def pixel_directions(
     """Unit world-space directions of the rays through the pixel centres of a nerfstudio camera (OpenGL axes:
     +x right, +y up, -z forward; the same rays as ``Cameras.generate_rays``): x_c R[:, 0] + y_c R[:, 1] - R[:, 2],
     normalised, with x_c = (u + 0.5 - cx) / fx across and y_c = -(v + 0.5 - cy) / fy down. Built from a row and a
-    column by broadcasting: a dozen tensor operations per frame, whatever the size."""
-    dev, dt = c2w.device, c2w.dtype
-    x = (torch.arange(width, device=dev, dtype=dt) + (0.5 - K[0, 2])) / K[0, 0]  # [W]
-    y = (torch.arange(height, device=dev, dtype=dt) + (0.5 - K[1, 2])) / -K[1, 1]  # [H]
+    column by broadcasting: a dozen tensor operations per frame, whatever the size. `K` has c2w's dtype."""
+    # (i + 0.5 - c) / f for x (row 0) and y (row 1) in one pass over max(W, H) indices; -(a / b) is a / -b exactly
+    i = torch.arange(max(width, height), device=c2w.device, dtype=c2w.dtype)
+    xy = (i + (0.5 - K[:2, 2:])) / K.diagonal()[:2, None]  # [2, max(W, H)]
+    x, y = xy[0, :width], -xy[1, :height]  # [W], [H]
     R = c2w[:3, :3]
     d = x[None, :, None] * R[:, 0] + (y[:, None, None] * R[:, 1] - R[:, 2])  # [H, W, 3]
     return d / d.norm(dim=-1, keepdim=True)
@@ -133,14 +134,15 @@ class OpenRegions:
     def __init__(self, observations: list | None):
         self.observations = observations
         self.cache: dict[int, Tensor] = {}
+        """Per training image, its open cells [rows, cols] as float (1 = open)."""
 
     def at(self, idx: int, height: int, width: int, device) -> Tensor | None:
         """[H, W] bool (True = open) for training image `idx`, or None when the scene has no keypoints for it."""
         obs = self.observations
         if obs is None or not 0 <= idx < len(obs):
             return None
-        if idx not in self.cache:
-            self.cache[idx] = open_background_map(obs[idx], width, height).to(device)
+        if idx not in self.cache:  # as float: what support_at reads, converted once
+            self.cache[idx] = open_background_map(obs[idx], width, height).float().to(device)
         return support_at(self.cache[idx], height, width)
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from jaxtyping import Bool
+from jaxtyping import Bool, Float
 from torch import Tensor
 
 from willags_ns.data.colmap import read_colmap_model
@@ -96,8 +96,10 @@ def cell_counts(obs: np.ndarray, rows: int, cols: int, min_track: float = 0) -> 
     return counts.view(-1).index_add_(0, r * cols + c, torch.ones(len(o))).view(rows, cols)
 
 
-def support_at(support: Bool[Tensor, "rows cols"], height: int, width: int) -> Bool[Tensor, "H W"]:
-    """The support map at an image resolution (nearest cell)."""
+def support_at(
+    support: Bool[Tensor, "rows cols"] | Float[Tensor, "rows cols"], height: int, width: int
+) -> Bool[Tensor, "H W"]:
+    """The support map (bool, or float with 1 = supported) at an image resolution (nearest cell)."""
     return F.interpolate(support[None, None].float(), size=(height, width), mode="nearest")[0, 0] > 0.5
 
 

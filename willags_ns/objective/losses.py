@@ -15,6 +15,8 @@ how much of the image a transient covers. With nothing kept the terms are exactl
 to the graph (zero gradients), so a fully masked step is a no-op rather than a NaN.
 """
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float
@@ -68,12 +70,16 @@ def masked_dssim(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], m
     return _masked_mean(1.0 - ssim_map(pred, gt, sigma), m)
 
 
+@functools.lru_cache(maxsize=32)
 def _gaussian_1d(sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """torchmetrics' SSIM window: int(3.5 sigma + 0.5) * 2 + 1 taps of a normalised Gaussian."""
+    """torchmetrics' SSIM window: int(3.5 sigma + 0.5) * 2 + 1 taps of a normalised Gaussian. Made once per (sigma,
+    dtype, device): every training step's SSIM uses it. A normal tensor even when first made under inference mode
+    (the convolutions' backward saves it); read-only for its callers."""
     size = int(3.5 * sigma + 0.5) * 2 + 1
-    d = torch.arange((1 - size) / 2, (1 + size) / 2, 1.0, dtype=dtype, device=device)
-    g = torch.exp(-((d / sigma) ** 2) / 2)
-    return g / g.sum()
+    with torch.inference_mode(False):
+        d = torch.arange((1 - size) / 2, (1 + size) / 2, 1.0, dtype=dtype, device=device)
+        g = torch.exp(-((d / sigma) ** 2) / 2)
+        return g / g.sum()
 
 
 def ssim_map(

@@ -13,16 +13,22 @@ def viewmat_from_c2w(c2w: Tensor) -> Tensor:
 
     Same maths as splatfacto's `get_viewmat`, without its torch.compile (15-20 s on the first CPU call).
     """
-    # flip the y and z axes (columns 1, 2); negation on the device, not a constant copied from the host (a blocking
-    # copy that drains the GPU's queue once per step)
-    R = torch.cat((c2w[:, :3, :1], -c2w[:, :3, 1:3]), dim=-1)
-    T = c2w[:, :3, 3:4]
-    R_inv = R.transpose(1, 2)
-    viewmat = torch.zeros(c2w.shape[0], 4, 4, device=c2w.device, dtype=c2w.dtype)
-    viewmat[:, 3, 3] = 1.0
-    viewmat[:, :3, :3] = R_inv
-    viewmat[:, :3, 3:4] = -torch.bmm(R_inv, T)
-    return viewmat
+    flip, last_row = _viewmat_constants(c2w.device, c2w.dtype)
+    R_inv = (c2w[:, :3, :3] * flip).transpose(1, 2)  # the y and z axes (columns 1, 2) flipped, transposed
+    t = -torch.bmm(R_inv, c2w[:, :3, 3:4])
+    return torch.cat((torch.cat((R_inv, t), dim=2), last_row.expand(c2w.shape[0], 1, 4)), dim=1)
+
+
+@functools.lru_cache(maxsize=8)
+def _viewmat_constants(device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """(the axis flip [1, -1, -1], the view matrix's last row [0, 0, 0, 1]) on `device`, made once: a constant
+    copied from the host in every step would be a blocking copy that drains the GPU's queue. Normal tensors even when
+    first made under inference mode (autograd may save them)."""
+    with torch.inference_mode(False):
+        return (
+            torch.tensor([1.0, -1.0, -1.0], device=device, dtype=dtype),
+            torch.tensor([[0.0, 0.0, 0.0, 1.0]], device=device, dtype=dtype),
+        )
 
 
 def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
@@ -48,15 +54,15 @@ def intrinsics_at(camera, scale_factor: float, device, size: tuple[int, int] | N
     wait for the GPU). `size`: the camera's (width, height) at its own resolution when the caller knows it on the host (the
     training images' sizes); otherwise the camera's width and height are read (one read, a wait on a GPU)."""
     factor = 1 / scale_factor
-    intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)  # [*C, 1] each
-    if factor != 1:  # x * 1.0 is x: nothing to launch at full resolution
-        # nerfstudio multiplies by torch.tensor([factor]) (the default dtype); made here on the device, no copy
-        f = torch.full((1,), factor, dtype=torch.get_default_dtype(), device=camera.fx.device)
-        intrinsics = tuple(v * f for v in intrinsics)
-    fx, fy, cx, cy = intrinsics
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy  # [*C, 1] each
     zero, one = torch.zeros_like(fx), torch.ones_like(fx)
-    K = torch.cat((fx, zero, cx, zero, fy, cy, zero, zero, one), dim=-1).to(torch.float32)
-    K = K.reshape(*K.shape[:-1], 3, 3).to(device)
+    K = torch.cat((fx, zero, cx, zero, fy, cy, zero, zero, one), dim=-1)  # K's rows, flattened
+    if factor != 1:  # x * 1.0 is x: nothing to launch at full resolution
+        # nerfstudio multiplies fx, fy, cx, cy by torch.tensor([factor]) (the default dtype); made here on the device,
+        # no copy, and applied to K's first two rows in one product (their zeros stay zero)
+        K = K.to(torch.promote_types(K.dtype, torch.get_default_dtype()))
+        K[..., :6] *= torch.full((1,), factor, dtype=torch.get_default_dtype(), device=K.device)
+    K = K.to(torch.float32).reshape(*K.shape[:-1], 3, 3).to(device)
     if size is None:  # one camera: its width and height in one read
         if camera.width.numel() != 1:
             raise ValueError(f"willags renders one camera at a time without a given size; got {camera.width.numel()}")
