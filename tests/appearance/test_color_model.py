@@ -77,5 +77,5 @@ def test_a_new_colour_model_is_one_subclass_and_trains(tmp_path, monkeypatch):
     z = model.default_latent()
     with torch.no_grad():
         sh = model.color_path.baked_sh(nets, z, gp["means"], gp["features"], 0, model.color_context(), None)
-        direct = model.appearance_colors(z, gp["means"], gp["features"], torch.zeros(3)).rgb
+        direct = model.appearance_colors(z, gp["means"], gp["features"], torch.zeros(3, device=model.device)).rgb
     torch.testing.assert_close(sh[:, 0] * 0.28209479177387814 + 0.5, direct, atol=1e-5, rtol=1e-5)
