@@ -20,7 +20,8 @@ class MethodSpec:
     """"willags" (the full model, no inspection), "willags-paper", "willags-lite", "willags-3dgs" (our method configs),
     "peer" (Splatfacto-W light), "peer-full" (Splatfacto-W) or "splatfacto" (stock nerfstudio)."""
     overrides: tuple[tuple[str, Any], ...] = ()
-    """(dotted model field, value) pairs applied after the base config."""
+    """(dotted model field, value) pairs applied after the base config; a field under "optimizers." names a parameter
+    group's learning rate instead ("optimizers.means.lr", its schedule's end "optimizers.means.lr_final")."""
     note: str = ""
     """What the method is, kept in its records."""
     needs_cuda: bool = False
@@ -139,6 +140,14 @@ METHODS: dict[str, MethodSpec] = {
         "inspector leaves it off below 0.15 of open background (westminster-abbey 0.148, south-building 0.05)",
         keep=("sky.enabled",),
     ),
+    "willags-prior-low-meanslr": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("optimizers.means.lr", 1.6e-5),
+        ("optimizers.means.lr_final", 1.6e-7),
+        note="the default (its prior weight named) with the light peer's learning rate for the means (1.6e-5 to "
+        "1.6e-7, a tenth of splatfacto's; MCMC's position noise follows it): the geometry moves less, where the "
+        "default's training photos rise with length while its new photos fall on the crowded collections",
+    ),
     "willags-prior-low-mask-expected-cap1m": _masked_on_gpu(
         ("latent.prior_weight", 0.002),
         ("mask.residual.expected", True),
@@ -225,6 +234,26 @@ def set_nested(obj, dotted: str, value) -> None:
     setattr(obj, leaf, value)
 
 
+OPTIMIZERS = "optimizers."
+"""The prefix of an override that sets a parameter group's learning rate (set_learning_rate), not a model field."""
+
+
+def set_learning_rate(optimizers: dict, dotted: str, value: float) -> None:
+    """Set "optimizers.<group>.lr" (the optimiser's rate) or "optimizers.<group>.lr_final" (where its exponential
+    schedule ends) in a TrainerConfig's `optimizers`: the overrides of a MethodSpec that change how fast a parameter
+    group learns."""
+    parts = dotted.split(".")
+    if len(parts) != 3 or parts[0] + "." != OPTIMIZERS or parts[2] not in ("lr", "lr_final"):
+        raise AttributeError(f"override {dotted!r}: expected optimizers.<group>.lr or optimizers.<group>.lr_final")
+    group, field = parts[1], parts[2]
+    if group not in optimizers:
+        raise AttributeError(f"no optimizer group {group!r} (override {dotted!r}); groups: {sorted(optimizers)}")
+    target = optimizers[group]["optimizer"] if field == "lr" else optimizers[group].get("scheduler")
+    if target is None or not hasattr(target, field):
+        raise AttributeError(f"optimizer group {group!r} has no schedule with {field!r} (override {dotted!r})")
+    setattr(target, field, value)
+
+
 def configuration(rec: dict[str, Any]) -> str:
     """The method name of the configuration a record measured: the ``configuration`` it carries where the name it ran
     as meant another one then (`willags` before the default inspected the scene: `willags-full`; before it densified
@@ -286,7 +315,10 @@ def build_config(
         dm.dataparser.downscale_factor = downscale
     m = config.pipeline.model
     for k, v in spec.overrides:
-        set_nested(m, k, v)
+        if k.startswith(OPTIMIZERS):
+            set_learning_rate(config.optimizers, k, v)
+        else:
+            set_nested(m, k, v)
     if spec.keep:
         config.pipeline.auto_config_keep = tuple(sorted({*config.pipeline.auto_config_keep, *spec.keep}))
     if hasattr(m, "log_images_every"):

@@ -136,6 +136,27 @@ def test_the_default_inspects_and_its_candidates_change_the_full_model(tmp_path)
     assert vars(built["willags-splitclone"]) == {**vars(built["willags-noprior"]), "densification": "splatfacto"}
 
 
+def test_an_optimizer_override_sets_one_groups_learning_rate_and_names_what_it_cannot(tmp_path):
+    """`optimizers.<group>.lr` / `.lr_final` in a method's overrides change that group's rate and its schedule's end,
+    and nothing else (the model, every other group); a bad group or field is an error that names it."""
+    from benchmarks.methods import set_learning_rate
+
+    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    cfg = build_config("willags-prior-low-meanslr", 15000, "cpu", None, None, "default", tmp_path)
+    means, ref_means = cfg.optimizers["means"], ref.optimizers["means"]
+    assert (means["optimizer"].lr, means["scheduler"].lr_final) == (1.6e-5, 1.6e-7)
+    assert (ref_means["optimizer"].lr, ref_means["scheduler"].lr_final) == (1.6e-4, 1.6e-6)
+    assert means["scheduler"].max_steps == ref_means["scheduler"].max_steps
+    assert cfg.pipeline.model == ref.pipeline.model
+    assert {k: v for k, v in cfg.optimizers.items() if k != "means"} == {
+        k: v for k, v in ref.optimizers.items() if k != "means"
+    }
+    with pytest.raises(AttributeError, match="'nope'"):
+        set_learning_rate(cfg.optimizers, "optimizers.nope.lr", 1.0)
+    with pytest.raises(AttributeError, match="optimizers.means.eps"):
+        set_learning_rate(cfg.optimizers, "optimizers.means.eps", 1.0)
+
+
 @pytest.mark.parametrize(
     "rec, name",
     [
