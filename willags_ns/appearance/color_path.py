@@ -86,7 +86,7 @@ def gaussian_colors(
     [N, 3] seen from `cam_center` [3], with their f_s [N, Fs] and the field's f_d [N, F] (or None). A colour model
     that reads the Gaussians' SH gets their colours from the camera: `base` [N, 3] when given, else their SH `sh`
     [N, K, 3] evaluated up to `sh_degree`."""
-    dirs = means - cam_center[None, :]
+    dirs = means - cam_center  # [N, 3]: the centre broadcast over the Gaussians
     model = nets.color_model
     prepared = model.prepare(z, f_s, f_d, means.shape[0])
     if model.reads_sh and base is None:

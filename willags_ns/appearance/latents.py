@@ -29,6 +29,7 @@ from torch import Tensor
 
 from willags_ns.appearance.networks import AppearanceNetworks
 from willags_ns.appearance.vae import AppearanceVAE, reparameterize, vae_loss
+from willags_ns.tensor_constants import constant
 
 if TYPE_CHECKING:
     pass
@@ -242,7 +243,8 @@ def latent_prior(z: Tensor, center: Tensor) -> Tensor:
     """0.5 * ||z - center||^2: the negative log-density (up to a constant) of a unit Gaussian prior around `center`
     ([D] each; the embedding table's row of the step and the rows' mean, held fixed by the caller), whose gradient
     z - center pulls the row towards the others (latent.prior_weight)."""
-    return 0.5 * (z - center).square().sum()
+    # mse_loss's sum: sum((z - center)^2) in one operator and one backward node instead of three
+    return constant(0.5, z) * torch.nn.functional.mse_loss(z, center, reduction="sum")
 
 
 def latent_loss(

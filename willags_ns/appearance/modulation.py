@@ -31,7 +31,9 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from willags_ns.appearance.color_model import ColorModel, GaussianLayout
+from willags_ns.appearance.latent_mlp import latent_mlp
 from willags_ns.render.sh import SH_C0
+from willags_ns.tensor_constants import constant
 
 
 @dataclass
@@ -140,7 +142,7 @@ class ColorModulation(ColorModel):
     def penalty(self, prepared: Tensor | None) -> Tensor | None:
         """local_penalty x mean(s^2 + o^2) of the local residual (None without one, or with a zero weight)."""
         pen = local_penalty(prepared)
-        return None if pen is None or self.penalty_weight <= 0 else self.penalty_weight * pen
+        return None if pen is None or self.penalty_weight <= 0 else constant(self.penalty_weight, pen) * pen
 
     def exact_sh(self, z, sh, f_s, f_d, degree: int, active_degree: int) -> Tensor | None:
         """The transform applied to the SH coefficients (:func:`modulated_sh`); None with the gamma (not affine)."""
@@ -150,10 +152,10 @@ class ColorModulation(ColorModel):
         """(A, b, g) of latent z from one pass of the global MLP: A = I + dA; g the per-channel gamma (None when
         ``gamma`` is off), exp(ln 3 tanh(h)), so g stays in [1/3, 3] with a gradient everywhere (a clamp would stop
         it at the bounds) and is 1 where the MLP's output is 0."""
-        h = self.global_mlp(z)
+        h = latent_mlp(self.global_mlp, z)
         # split, not sliced: the backward joins the parts' gradients in one cat instead of a zero-filled copy each
         dA, b, *gamma = h.split((9, 3, 3) if self.gamma else (9, 3))
-        A = identity3(h.device, h.dtype) + dA.reshape(3, 3)
+        A = identity3(h.device, h.dtype) + dA.view(3, 3)
         g = torch.exp(GAMMA_LOG_RANGE * torch.tanh(gamma[0])) if self.gamma else None
         return A, b, g
 
@@ -182,7 +184,7 @@ class ColorModulation(ColorModel):
         first, act, last = self.local_mlp
         # the weight's column blocks of f_s, P z and f_d (split: one cat joins their gradients in the backward)
         w_s, w_z, w_d = first.weight.split((self.intrinsic_dim, self.latent_proj.out_features, self.dynamic_dim), 1)
-        h = first.bias + w_z @ self.latent_proj(z)  # [hidden]
+        h = torch.addmv(first.bias, w_z, latent_mlp(self.latent_proj, z))  # [hidden]: bias + w_z (P z)
         if self.intrinsic_dim > 0 and self.dynamic_dim == 0 and self.residual_chunk > 0:
             assert f_s is not None
             return LocalResidualMLP.apply(f_s, w_s, h, last.weight, last.bias, self.residual_chunk)
@@ -212,13 +214,23 @@ class ColorModulation(ColorModel):
         if g is not None:
             # base >= GAMMA_FLOOR: d(x^g)/dx = g x^(g-1) is unbounded at x = 0 for g < 1
             base = base.clamp_min(GAMMA_FLOOR).pow(g)
-        c = base @ A.T + b
+        c = torch.mm(base, A.mT) + b  # base A^T + b
         if residual is None:
             residual = self.local_residual(z, f_s, f_d, base.shape[0])
         if residual is not None:
             scale, offset = residual.split(3, dim=-1)
-            c = c * (1.0 + scale) + offset
+            c = c * (constant(1.0, scale) + scale) + offset
         return c
+
+
+def _as_dtype(t: Tensor, dtype: torch.dtype) -> Tensor:
+    """`t` in `dtype`: itself when it already is (Tensor.to would still run an operator for nothing)."""
+    return t if t.dtype == dtype else t.to(dtype)
+
+
+def _rows(t: Tensor, start: int, chunk: int) -> Tensor:
+    """Rows start : start + chunk of `t`; `t` itself when that is all of it (one chunk: no slice operators)."""
+    return t if start == 0 and chunk >= t.shape[0] else t[start : start + chunk]
 
 
 class LocalResidualMLP(torch.autograd.Function):
@@ -236,14 +248,18 @@ class LocalResidualMLP(torch.autograd.Function):
     def forward(ctx, f, w1, h0, w2, b2, chunk: int):  # type: ignore[override]
         ctx.dtypes = [t.dtype for t in (f, w1, h0, w2, b2)]
         # at least float32 whatever autocast is active (CPU or CUDA): the per-chunk writes below need one dtype
-        dt = torch.promote_types(torch.promote_types(f.dtype, w1.dtype), torch.float32)
+        # (float32 throughout, the usual case, decided without the two promote_types operators)
+        dt = torch.float32
+        if not f.dtype == w1.dtype == torch.float32:
+            dt = torch.promote_types(torch.promote_types(f.dtype, w1.dtype), torch.float32)
         with torch.autocast(f.device.type, enabled=False):
-            f, w1, h0, w2, b2 = (t.to(dt) for t in (f, w1, h0, w2, b2))
+            f, w1, h0, w2, b2 = (_as_dtype(t, dt) for t in (f, w1, h0, w2, b2))
             n = f.shape[0]
             out = f.new_empty(n, w2.shape[0])
+            w1t, w2t = w1.t(), w2.t()  # transposed once, not per chunk
             for i in range(0, n, chunk):
-                h = torch.addmm(h0, f[i : i + chunk], w1.t()).relu_()
-                torch.addmm(b2, h, w2.t(), out=out[i : i + chunk])
+                h = torch.addmm(h0, _rows(f, i, chunk), w1t).relu_()
+                torch.addmm(b2, h, w2t, out=_rows(out, i, chunk))
         ctx.save_for_backward(f, w1, h0, w2)
         ctx.chunk = chunk
         return out
@@ -254,15 +270,16 @@ class LocalResidualMLP(torch.autograd.Function):
         chunk, n = ctx.chunk, f.shape[0]
         need_f, need_w1, need_h0, need_w2, need_b2 = ctx.needs_input_grad[:5]
         with torch.autocast(f.device.type, enabled=False):
-            g = g.to(f.dtype).contiguous()
+            g = _as_dtype(g, f.dtype).contiguous()
             gf = torch.empty_like(f) if need_f else None
             # the weight gradients summed over the chunks: the first chunk's is the sum so far (no zero-filled buffer
             # to add it to; zeros without any Gaussian)
             wanted = ((w1, need_w1), (h0, need_h0), (w2, need_w2))
             gw1, gh0, gw2 = (torch.zeros_like(t) if need and n == 0 else None for t, need in wanted)
+            w1t = w1.t()
             for i in range(0, n, chunk):
-                fc, gc = f[i : i + chunk], g[i : i + chunk]
-                act = torch.addmm(h0, fc, w1.t()).relu_()  # the chunk's hidden layer, rebuilt
+                fc, gc = _rows(f, i, chunk), _rows(g, i, chunk)
+                act = torch.addmm(h0, fc, w1t).relu_()  # the chunk's hidden layer, rebuilt
                 if need_w2:
                     gw2 = gc.t() @ act if gw2 is None else gw2.addmm_(gc.t(), act)
                 # d out / d pre-activation: one fused kernel (ReLU's own backward, masked where act == 0)
@@ -273,10 +290,10 @@ class LocalResidualMLP(torch.autograd.Function):
                 if need_w1:
                     gw1 = gh.t() @ fc if gw1 is None else gw1.addmm_(gh.t(), fc)
                 if gf is not None:
-                    torch.mm(gh, w1, out=gf[i : i + chunk])
+                    torch.mm(gh, w1, out=_rows(gf, i, chunk))
             gb2 = g.sum(0) if need_b2 else None
         grads = (gf, gw1, gh0, gw2, gb2)
-        return (*(None if gr is None else gr.to(dt) for gr, dt in zip(grads, ctx.dtypes, strict=True)), None)
+        return (*(None if gr is None else _as_dtype(gr, dt) for gr, dt in zip(grads, ctx.dtypes, strict=True)), None)
 
 
 def modulated_sh(mod: ColorModulation, z: Tensor, f_s, f_d, degree: int, active_degree: int, sh: Tensor) -> Tensor:

@@ -31,8 +31,10 @@ from jaxtyping import Float
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 
+from willags_ns.appearance.latent_mlp import latent_mlp
 from willags_ns.data.sfm_tracks import open_background_map, support_at
 from willags_ns.render.sh import homogeneous_monomials, monomial_to_sh, num_sh_bases
+from willags_ns.tensor_constants import constant
 
 
 @dataclass
@@ -83,13 +85,16 @@ class SkyModel(nn.Module):
         self.register_buffer("monomial_to_sh", monomial_to_sh(cfg.sh_degree).float().contiguous(), persistent=False)
 
     def coefficients(self, z: Float[Tensor, " D"]) -> Float[Tensor, "K 3"]:
-        return self.mlp(z).reshape(self.num_coeffs, 3)
+        return latent_mlp(self.mlp, z).view(self.num_coeffs, 3)
 
     def forward(self, z: Float[Tensor, " D"], dirs: Float[Tensor, "*B 3"]) -> Float[Tensor, "*B 3"]:
         """Background colour in [0, 1] along unit world directions ``dirs``: sum_k c_k(z) Y_k(d) + 0.5, clamped,
         evaluated as monomials(d) @ (P c(z)) (the same function on the unit sphere)."""
-        coeffs = self.monomial_to_sh.to(dirs.dtype) @ self.coefficients(z).to(dirs.dtype)  # [K, 3]
-        return (homogeneous_monomials(self.sh_degree, dirs) @ coeffs + 0.5).clamp(0.0, 1.0)
+        # in the directions' dtype (converted only where it differs: a conversion to the same dtype still costs an
+        # operator a frame)
+        p, c = (t if t.dtype == dirs.dtype else t.to(dirs.dtype) for t in (self.monomial_to_sh, self.coefficients(z)))
+        coeffs = p @ c  # [K, 3]
+        return (homogeneous_monomials(self.sh_degree, dirs) @ coeffs + constant(0.5, coeffs)).clamp(0.0, 1.0)
 
 
 def pixel_directions(
@@ -101,10 +106,10 @@ def pixel_directions(
     column by broadcasting: a dozen tensor operations per frame, whatever the size. `K` has c2w's dtype."""
     # (i + 0.5 - c) / f for x (row 0) and y (row 1) in one pass over max(W, H) indices; -(a / b) is a / -b exactly
     i = torch.arange(max(width, height), device=c2w.device, dtype=c2w.dtype)
-    xy = (i + (0.5 - K[:2, 2:])) / K.diagonal()[:2, None]  # [2, max(W, H)]
-    x, y = xy[0, :width], -xy[1, :height]  # [W], [H]
+    xy = (i + (constant(0.5, K) - K[:2, 2:])) / K.diagonal()[:2, None]  # [2, max(W, H)]
+    x, y = xy[0, :width, None], -xy[1, :height].view(height, 1, 1)  # [W, 1], [H, 1, 1]
     R = c2w[:3, :3]
-    d = x[None, :, None] * R[:, 0] + (y[:, None, None] * R[:, 1] - R[:, 2])  # [H, W, 3]
+    d = x * R[:, 0] + (y * R[:, 1] - R[:, 2])  # [W, 3] + [H, 1, 3] -> [H, W, 3]
     return d / d.norm(dim=-1, keepdim=True)
 
 
@@ -167,7 +172,7 @@ def composite_background(
     """The sky where `open_region` [H, W] is True, the fallback colour elsewhere (the sky alone when None)."""
     if open_region is None:
         return sky
-    return torch.where(open_region[None, ..., None], sky, fallback.to(sky))
+    return torch.where(open_region[..., None], sky, fallback.to(sky))  # [H, W, 1] broadcast over sky's [1, H, W, 3]
 
 
 def background(
@@ -193,4 +198,4 @@ def background(
 def composite(rgb: Tensor, alpha: Tensor, background: Tensor) -> Tensor:
     """What a photo shows: rendered colours `rgb` [..., 3] over `background` ([3], or per pixel) where the
     accumulated `alpha` [..., 1] is below 1, clamped to [0, 1]."""
-    return torch.clamp(rgb + (1 - alpha) * background, 0.0, 1.0)
+    return torch.clamp(rgb + (constant(1.0, alpha) - alpha) * background, 0.0, 1.0)

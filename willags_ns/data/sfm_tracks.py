@@ -100,7 +100,8 @@ def support_at(
     support: Bool[Tensor, "rows cols"] | Float[Tensor, "rows cols"], height: int, width: int
 ) -> Bool[Tensor, "H W"]:
     """The support map (bool, or float with 1 = supported) at an image resolution (nearest cell)."""
-    return F.interpolate(support[None, None].float(), size=(height, width), mode="nearest")[0, 0] > 0.5
+    grid = support if support.dtype == torch.float32 else support.float()  # converted only where it is not float
+    return F.interpolate(grid[None, None], size=(height, width), mode="nearest")[0, 0] > 0.5
 
 
 def open_background_map(obs: np.ndarray, width: int, height: int, grid: int = 32) -> Bool[Tensor, "rows cols"]:

@@ -22,6 +22,8 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor
 
+from willags_ns.tensor_constants import constant
+
 
 def _check(pred: Tensor, gt: Tensor, mask: Tensor | None) -> Tensor | None:
     """Validate shapes; return the mask as float [B, 1, H, W] (None when ``mask`` is None: every pixel kept)."""
@@ -64,10 +66,10 @@ def masked_dssim(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], m
     """
     m = _check(pred, gt, mask)
     _, sigma = ssim_window(*pred.shape[-2:])
-    gt = gt.to(pred.dtype)
+    gt = gt if gt.dtype == pred.dtype else gt.to(pred.dtype)  # (Tensor.to costs an operator even when a no-op)
     if m is not None:
         pred, gt = pred * m, gt * m
-    return _masked_mean(1.0 - ssim_map(pred, gt, sigma), m)
+    return _masked_mean(constant(1.0, pred) - ssim_map(pred, gt, sigma), m)
 
 
 @functools.lru_cache(maxsize=32)
@@ -80,6 +82,15 @@ def _gaussian_1d(sigma: float, dtype: torch.dtype, device: torch.device) -> Tens
         d = torch.arange((1 - size) / 2, (1 + size) / 2, 1.0, dtype=dtype, device=device)
         g = torch.exp(-((d / sigma) ** 2) / 2)
         return g / g.sum()
+
+
+@functools.lru_cache(maxsize=32)
+def _separable_filters(sigma: float, planes: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The depthwise weights of SSIM's row pass [planes, 1, 1, n] and column pass [planes, 1, n, 1]: views of
+    :func:`_gaussian_1d`, made once per (sigma, planes, dtype, device) instead of two views each per pass per step."""
+    g = _gaussian_1d(sigma, dtype, device)
+    with torch.inference_mode(False):
+        return g.view(1, 1, 1, -1).expand(planes, 1, 1, -1), g.view(1, 1, -1, 1).expand(planes, 1, -1, 1)
 
 
 def ssim_map(
@@ -98,15 +109,18 @@ def ssim_map(
     y = F.pad(y, (pad, pad, pad, pad), mode="reflect")
     planes = torch.cat((x, y, x * x, y * y, x * y), dim=1)  # [B, 5C, H + 2p, W + 2p]
     k = planes.shape[1]
-    blurred = F.conv2d(planes, g.view(1, 1, 1, -1).expand(k, 1, 1, -1), groups=k)  # along rows
-    blurred = F.conv2d(blurred, g.view(1, 1, -1, 1).expand(k, 1, -1, 1), groups=k)  # along columns
+    along_rows, along_columns = _separable_filters(sigma, k, x.dtype, x.device)
+    blurred = F.conv2d(F.conv2d(planes, along_rows, groups=k), along_columns, groups=k)
     mu_x, mu_y, e_xx, e_yy, e_xy = blurred.split(c, dim=1)
     mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
     var_x = (e_xx - mu_xx).clamp_min(0.0)
     var_y = (e_yy - mu_yy).clamp_min(0.0)
     cov = e_xy - mu_xy
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    return ((2 * mu_xy + c1) * (2 * cov + c2)) / ((mu_xx + mu_yy + c1) * (var_x + var_y + c2))
+    c1, c2 = constant((0.01 * data_range) ** 2, x), constant((0.03 * data_range) ** 2, x)
+    # c + 2 t as one add (alpha 2: doubling is exact, so the same value however the kernel fuses it)
+    return (torch.add(c1, mu_xy, alpha=2.0) * torch.add(c2, cov, alpha=2.0)) / (
+        (mu_xx + mu_yy + c1) * (var_x + var_y + c2)
+    )
 
 
 SSIM_WINDOW = 11
@@ -131,9 +145,9 @@ def reconstruction_loss(
     ssim_lambda: float = 0.2,
 ) -> Tensor:
     """``(1 - ssim_lambda) * masked_l1 + ssim_lambda * masked_dssim`` (3DGS's 0.8 / 0.2 by default)."""
-    loss = (1.0 - ssim_lambda) * masked_l1(pred, gt, mask)
+    loss = constant(1.0 - ssim_lambda, pred) * masked_l1(pred, gt, mask)
     if ssim_lambda > 0.0:
-        loss = loss + ssim_lambda * masked_dssim(pred, gt, mask)
+        loss = loss + constant(ssim_lambda, pred) * masked_dssim(pred, gt, mask)
     return loss
 
 

@@ -21,6 +21,7 @@ from willags_ns.appearance.sky import background_alpha_penalty
 from willags_ns.appearance.vae import AppearanceVAE
 from willags_ns.objective.losses import scale_regularization
 from willags_ns.splats.mcmc import mcmc_penalty
+from willags_ns.tensor_constants import constant
 
 
 def regularization_terms(
@@ -60,16 +61,17 @@ def regularization_terms(
         vcfg, o = cfg.latent.vae, outputs
         args = (o["latent"], o["latent_mu"], o["latent_logvar"], o["vae_in"], vcfg.beta, vcfg.recon_reduction)
         l_vae, parts, recon = latent_loss(vae, *args)
-        terms["vae_loss"] = vcfg.weight * l_vae
+        terms["vae_loss"] = constant(vcfg.weight, l_vae) * l_vae
         metrics["vae_kl"] = parts["vae_kl"].detach()
         metrics["vae_recon"] = parts["vae_recon"].detach()
     if training and cfg.latent.prior_weight > 0 and outputs.get("latent_center") is not None:
-        terms["latent_prior"] = cfg.latent.prior_weight * latent_prior(outputs["latent"], outputs["latent_center"])
+        prior = latent_prior(outputs["latent"], outputs["latent_center"])
+        terms["latent_prior"] = constant(cfg.latent.prior_weight, prior) * prior
     if training and cfg.sky.enabled and cfg.sky.alpha_penalty > 0 and outputs["background"].dim() == 3:
         acc, bg = outputs["accumulation"], outputs["background"]
         pen_sky = background_alpha_penalty(acc, gt_img, bg, cfg.sky.alpha_tol, mask)
         if pen_sky is not None:
-            terms["sky_alpha"] = cfg.sky.alpha_penalty * pen_sky
+            terms["sky_alpha"] = constant(cfg.sky.alpha_penalty, pen_sky) * pen_sky
     if training and outputs.get("color_penalty") is not None:  # the colour model's own term (ColorModel.penalty)
         terms["appearance_local"] = outputs["color_penalty"]
     if cfg.use_scale_regularization and step % 10 == 0:

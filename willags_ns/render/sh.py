@@ -9,6 +9,8 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from willags_ns.tensor_constants import constant
+
 MAX_SH_DEGREE = 4
 
 
@@ -243,4 +245,5 @@ def spherical_harmonics(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
 def sh_color(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
     """The colour 3DGS gives SH coefficients [..., K, 3] seen along `dirs` [..., 3]: `spherical_harmonics` + 0.5,
     clamped at 0 (gsplat's rasterisation does the same). [..., 3]"""
-    return (spherical_harmonics(degree, dirs, coeffs) + 0.5).clamp_min(0.0)
+    rgb = spherical_harmonics(degree, dirs, coeffs)
+    return (rgb + constant(0.5, rgb)).clamp_min(0.0)

@@ -25,11 +25,11 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
-import torch.nn.functional as F
 from gsplat.strategy import MCMCStrategy
 from torch import Tensor
 
 from willags_ns.render.rotation import quaternion_to_matrix
+from willags_ns.tensor_constants import constant
 
 N_MAX = 51
 """Largest number of copies one Gaussian is split into at one relocation (gsplat's table size)."""
@@ -147,14 +147,14 @@ def covariance_times(quats: Tensor, log_scales: Tensor, v: Tensor) -> Tensor:
     turned into the Gaussian's frame (R^T v), scaled by the squared scales and turned back, each turn two cross
     products with the normalised quaternion's vector part u: R v = v + 2w (u x v) + 2 u x (u x v). The same
     numbers as ``covariances(quats, exp(log_scales)) @ v`` in a third of the operations (it runs every step)."""
-    q = F.normalize(quats, p=2, dim=-1)
-    w, u = q[:, :1], q[:, 1:]
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)  # F.normalize's arithmetic, without its expand
+    w, u = q.split((1, 3), dim=-1)
 
     def turn(x: Tensor, sign: float) -> Tensor:  # R x (sign +1) or R^T x (sign -1)
         t = torch.linalg.cross(u, x, dim=-1)
         return torch.add(torch.addcmul(x, w, t, value=2.0 * sign), torch.linalg.cross(u, t, dim=-1), alpha=2.0)
 
-    return turn(turn(v, -1.0) * torch.exp(2.0 * log_scales), 1.0)
+    return turn(turn(v, -1.0) * torch.exp(constant(2.0, log_scales) * log_scales), 1.0)
 
 
 def _sampled_copies(params, n: int, candidates: Tensor | None, min_opacity: float, generator=None):
@@ -244,7 +244,9 @@ def position_noise(params, scaler: float, generator=None) -> None:
     """Add noise to the means, shaped by each Gaussian's covariance and gated to the nearly transparent ones (a
     sigmoid of steepness 100 centred at opacity 0.005), `scaler` x a standard normal draw."""
     means = params["means"]
-    gate = torch.sigmoid(100.0 * (0.005 - torch.sigmoid(params["opacities"].reshape(-1, 1))))
+    logits = params["opacities"]
+    opacity = torch.sigmoid(logits if logits.dim() == 2 else logits.reshape(-1, 1))  # [N, 1]
+    gate = torch.sigmoid(constant(100.0, opacity) * (constant(0.005, opacity) - opacity))
     draw = torch.randn(means.shape, generator=generator, device=means.device, dtype=means.dtype)
     means.add_(covariance_times(params["quats"], params["scales"], draw * gate), alpha=scaler)
 
@@ -295,7 +297,8 @@ def mcmc_strategy(cfg) -> McmcDensification:
 def mcmc_penalty(cfg, logit_opacities: Tensor, log_scales: Tensor) -> Tensor:
     """opacity_reg x mean opacity + scale_reg x mean scale of the Gaussians (`cfg`: the model config)."""
     m = cfg.mcmc
-    return m.opacity_reg * torch.sigmoid(logit_opacities).mean() + m.scale_reg * torch.exp(log_scales).mean()
+    opacity, scale = torch.sigmoid(logit_opacities).mean(), torch.exp(log_scales).mean()
+    return constant(m.opacity_reg, opacity) * opacity + constant(m.scale_reg, scale) * scale
 
 
 def initial_opacity_and_scale(cfg, avg_dist: Tensor, mcmc: bool) -> tuple[float, Tensor]:
