@@ -19,6 +19,8 @@ willags' data parser (the peer too: benchmarks/peer.py), so a fold is a scene to
     python -m benchmarks merge <records.json>       # fold runs go to benchmarks/records/cv.json
     python -m benchmarks cv report                  # the tables from benchmarks/records/cv.json
     python -m benchmarks cv photos --scene reichstag --a willags@15000 --b willags@5000 --inspect insp.json
+    python -m benchmarks cv photos --scene reichstag --a willags-prior-low-meanslr --b willags \
+        --with willags-prior-low-mask-late willags                  # do two changes gain on the same photos?
                                                     # photo by photo: the ends, and r with the inspector's evidence
 
 The tables are docs/results.md's cross-validated section (benchmarks/results.py calls :func:`cv_rows`).
@@ -720,6 +722,18 @@ def evidence_correlations(diffs: dict[str, float], report: dict[str, Any]) -> di
     return out
 
 
+def pair_correlation(diffs: dict[str, float], other: dict[str, float]) -> tuple[float, int] | None:
+    """(Pearson r of two sets of photo differences over the photos both hold, those photos); None under 3 photos or
+    where either does not vary. Do two changes gain on the same photos (one failure), or on others?"""
+    common = sorted(set(diffs) & set(other))
+    if len(common) < 3:
+        return None
+    x, y = np.array([diffs[p] for p in common]), np.array([other[p] for p in common])
+    if x.std() == 0 or y.std() == 0:
+        return None
+    return float(np.corrcoef(x, y)[0, 1]), len(common)
+
+
 def photo_lines(
     diffs: dict[str, float], top: int, correlations: dict[str, tuple[float, int]] | None = None
 ) -> list[str]:
@@ -867,6 +881,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ph.add_argument("--b", required=True, help="METHOD or METHOD@STEPS, subtracted from a")
     ph.add_argument("--steps", type=int, default=15000, help="the step count of a side that names none")
     ph.add_argument("--inspect", type=Path, help="a `willags-inspect --split all --output` report: r per image array")
+    ph.add_argument(
+        "--with",
+        dest="pairs",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("A2", "B2"),
+        help="another pair of sides (A2 minus B2, each METHOD or METHOD@STEPS): r of its photo differences with a - b's"
+        " (repeatable)",
+    )
     ph.add_argument("--top", type=int, default=5, help="photos shown at each end")
     ph.add_argument("--records", type=Path, default=None)
     r = sub.add_parser("report", help="print the cross-validated tables from the records")
@@ -923,6 +947,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 corr = evidence_correlations(diffs, json.loads(args.inspect.read_text()))
             except (OSError, ValueError) as e:
                 raise SystemExit(f"cv: {args.inspect}: not a willags-inspect report ({e})") from None
+        for a2, b2 in args.pairs:
+            try:
+                other = photo_differences(records, args.scene, parse_side(a2, args.steps), parse_side(b2, args.steps))
+            except ValueError as e:
+                raise SystemExit(str(e)) from None
+            r = pair_correlation(diffs, other)
+            if r is not None:
+                corr = {**(corr or {}), f"{a2} - {b2}": r}
         print("\n".join(photo_lines(diffs, args.top, corr)))
         return 0
     print("\n".join(cv_rows(records, args.steps)))

@@ -445,6 +445,14 @@ def test_photos_name_the_ends_and_correlate_with_the_inspectors_per_image_eviden
     args = ["photos", "--scene", "scene", "--a", "willags@5000", "--b", "peer@5000", "--records", str(records)]
     assert cv.main([*args, "--inspect", str(tmp_path / "insp.json"), "--top", "2"]) == 0
     assert "highest: b.jpg +2.00, c.jpg +1.00" in capsys.readouterr().out
+    # another pair's differences on the same photos: the peer at 5000 against itself is flat, so no r
+    assert cv.pair_correlation(diffs, {"a.jpg": 1.0, "b.jpg": -2.0, "c.jpg": -1.0}) == (pytest.approx(-1.0), 3)
+    assert cv.pair_correlation(diffs, {"a.jpg": 1.0, "b.jpg": 1.0, "c.jpg": 1.0}) is None
+    assert cv.pair_correlation(diffs, {"a.jpg": 1.0, "b.jpg": 2.0}) is None  # under 3 photos in common
+    assert cv.main([*args, "--with", "peer@5000", "willags@5000"]) == 0
+    assert "r with peer@5000 - willags@5000: -1.00 (4 photos)" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no fold run of peer-full on scene"):
+        cv.main([*args, "--with", "peer-full@5000", "willags@5000"])
     (tmp_path / "bad.json").write_text("{")
     with pytest.raises(SystemExit, match="bad.json: not a willags-inspect report"):
         cv.main([*args, "--inspect", str(tmp_path / "bad.json")])
