@@ -157,6 +157,17 @@ def test_an_optimizer_override_sets_one_groups_learning_rate_and_names_what_it_c
         set_learning_rate(cfg.optimizers, "optimizers.means.eps", 1.0)
 
 
+def test_the_pose_refining_candidate_changes_only_the_camera_optimiser(tmp_path):
+    """`willags-prior-low-camopt` is the default with nerfstudio's camera optimiser on (SO3xR3, its optimizer group
+    as splatfacto's); every other field of the model and every optimizer group as the default's."""
+    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    cfg = build_config("willags-prior-low-camopt", 15000, "cpu", None, None, "default", tmp_path)
+    assert (ref.pipeline.model.camera_optimizer.mode, cfg.pipeline.model.camera_optimizer.mode) == ("off", "SO3xR3")
+    cfg.pipeline.model.camera_optimizer.mode = "off"
+    assert cfg.pipeline.model == ref.pipeline.model
+    assert cfg.optimizers == ref.optimizers and "camera_opt" in cfg.optimizers
+
+
 @pytest.mark.parametrize(
     "rec, name",
     [
