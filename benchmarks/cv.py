@@ -19,9 +19,9 @@ willags' data parser (the peer too: benchmarks/peer.py), so a fold is a scene to
     python -m benchmarks merge <records.json>       # fold runs go to benchmarks/records/cv.json
     python -m benchmarks cv report                  # the tables from benchmarks/records/cv.json
     python -m benchmarks cv photos --scene reichstag --a willags@15000 --b willags@5000 --inspect insp.json
-    python -m benchmarks cv photos --scene reichstag --a willags-prior-low-meanslr --b willags \
-        --with willags-prior-low-mask-late willags                  # do two changes gain on the same photos?
                                                     # photo by photo: the ends, and r with the inspector's evidence
+    python -m benchmarks cv photos --scene reichstag --a willags-prior-low-meanslr --b willags \
+        --with willags-prior-low-mask-late willags  # and r with another pair's: two changes, the same photos?
 
 The tables are docs/results.md's cross-validated section (benchmarks/results.py calls :func:`cv_rows`).
 """
