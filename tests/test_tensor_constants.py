@@ -22,3 +22,12 @@ def test_usable_in_autograd_when_first_made_under_inference_mode():
     x = torch.randn(3, dtype=torch.float16, requires_grad=True)
     (x * c).sum().backward()
     assert x.grad is not None
+
+
+def test_as_dtype_returns_the_tensor_itself_when_nothing_changes():
+    from willags_ns.tensor_constants import as_dtype
+
+    x = torch.randn(4)
+    assert as_dtype(x, torch.float32) is x
+    y = as_dtype(x, torch.float64)
+    assert y.dtype == torch.float64 and torch.equal(y, x.double())

@@ -21,7 +21,6 @@ Without the gamma, linear in the SH coefficients, so rendering with a fixed appe
 same degree; with it, the bake is a least-squares fit over view directions (as for the paper's decoder).
 """
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -33,7 +32,7 @@ from torch import Tensor, nn
 from willags_ns.appearance.color_model import ColorModel, GaussianLayout
 from willags_ns.appearance.latent_mlp import latent_mlp
 from willags_ns.render.sh import SH_C0
-from willags_ns.tensor_constants import constant
+from willags_ns.tensor_constants import as_dtype, constant, made_once
 
 
 @dataclass
@@ -73,12 +72,10 @@ GAMMA_FLOOR = 1e-3
 """Base colours are floored here before the gamma (1e-3^3 = 1e-9: black stays black within 8-bit precision)."""
 
 
-@functools.lru_cache(maxsize=8)
+@made_once
 def identity3(device: torch.device, dtype: torch.dtype) -> Tensor:
-    """The 3x3 identity on `device`, made once (A = I + dA is built every step), as a normal tensor even when first
-    asked for under inference mode (autograd may save it)."""
-    with torch.inference_mode(False):
-        return torch.eye(3, device=device, dtype=dtype)
+    """The 3x3 identity on `device`, made once (A = I + dA is built every step)."""
+    return torch.eye(3, device=device, dtype=dtype)
 
 
 class ColorModulation(ColorModel):
@@ -223,11 +220,6 @@ class ColorModulation(ColorModel):
         return c
 
 
-def _as_dtype(t: Tensor, dtype: torch.dtype) -> Tensor:
-    """`t` in `dtype`: itself when it already is (Tensor.to would still run an operator for nothing)."""
-    return t if t.dtype == dtype else t.to(dtype)
-
-
 def _rows(t: Tensor, start: int, chunk: int) -> Tensor:
     """Rows start : start + chunk of `t`; `t` itself when that is all of it (one chunk: no slice operators)."""
     return t if start == 0 and chunk >= t.shape[0] else t[start : start + chunk]
@@ -253,7 +245,7 @@ class LocalResidualMLP(torch.autograd.Function):
         if not f.dtype == w1.dtype == torch.float32:
             dt = torch.promote_types(torch.promote_types(f.dtype, w1.dtype), torch.float32)
         with torch.autocast(f.device.type, enabled=False):
-            f, w1, h0, w2, b2 = (_as_dtype(t, dt) for t in (f, w1, h0, w2, b2))
+            f, w1, h0, w2, b2 = (as_dtype(t, dt) for t in (f, w1, h0, w2, b2))
             n = f.shape[0]
             out = f.new_empty(n, w2.shape[0])
             w1t, w2t = w1.t(), w2.t()  # transposed once, not per chunk
@@ -270,7 +262,7 @@ class LocalResidualMLP(torch.autograd.Function):
         chunk, n = ctx.chunk, f.shape[0]
         need_f, need_w1, need_h0, need_w2, need_b2 = ctx.needs_input_grad[:5]
         with torch.autocast(f.device.type, enabled=False):
-            g = _as_dtype(g, f.dtype).contiguous()
+            g = as_dtype(g, f.dtype).contiguous()
             gf = torch.empty_like(f) if need_f else None
             # the weight gradients summed over the chunks: the first chunk's is the sum so far (no zero-filled buffer
             # to add it to; zeros without any Gaussian)
@@ -293,7 +285,7 @@ class LocalResidualMLP(torch.autograd.Function):
                     torch.mm(gh, w1, out=_rows(gf, i, chunk))
             gb2 = g.sum(0) if need_b2 else None
         grads = (gf, gw1, gh0, gw2, gb2)
-        return (*(None if gr is None else _as_dtype(gr, dt) for gr, dt in zip(grads, ctx.dtypes, strict=True)), None)
+        return (*(None if gr is None else as_dtype(gr, dt) for gr, dt in zip(grads, ctx.dtypes, strict=True)), None)
 
 
 def modulated_sh(mod: ColorModulation, z: Tensor, f_s, f_d, degree: int, active_degree: int, sh: Tensor) -> Tensor:

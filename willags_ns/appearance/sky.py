@@ -34,7 +34,7 @@ from torch import Tensor, nn
 from willags_ns.appearance.latent_mlp import latent_mlp
 from willags_ns.data.sfm_tracks import open_background_map, support_at
 from willags_ns.render.sh import homogeneous_monomials, monomial_to_sh, num_sh_bases
-from willags_ns.tensor_constants import constant
+from willags_ns.tensor_constants import as_dtype, constant
 
 
 @dataclass
@@ -90,10 +90,7 @@ class SkyModel(nn.Module):
     def forward(self, z: Float[Tensor, " D"], dirs: Float[Tensor, "*B 3"]) -> Float[Tensor, "*B 3"]:
         """Background colour in [0, 1] along unit world directions ``dirs``: sum_k c_k(z) Y_k(d) + 0.5, clamped,
         evaluated as monomials(d) @ (P c(z)) (the same function on the unit sphere)."""
-        # in the directions' dtype (converted only where it differs: a conversion to the same dtype still costs an
-        # operator a frame)
-        p, c = (t if t.dtype == dirs.dtype else t.to(dirs.dtype) for t in (self.monomial_to_sh, self.coefficients(z)))
-        coeffs = p @ c  # [K, 3]
+        coeffs = as_dtype(self.monomial_to_sh, dirs.dtype) @ as_dtype(self.coefficients(z), dirs.dtype)  # [K, 3]
         return (homogeneous_monomials(self.sh_degree, dirs) @ coeffs + constant(0.5, coeffs)).clamp(0.0, 1.0)
 
 

@@ -24,6 +24,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from willags_ns.data.colmap import read_colmap_model
+from willags_ns.tensor_constants import as_dtype
 
 SFM_OBSERVATIONS_KEY = "sfm_observations"
 """DataparserOutputs.metadata key: a list (one entry per training image, in image order) of float32 arrays [n, 3]
@@ -100,8 +101,7 @@ def support_at(
     support: Bool[Tensor, "rows cols"] | Float[Tensor, "rows cols"], height: int, width: int
 ) -> Bool[Tensor, "H W"]:
     """The support map (bool, or float with 1 = supported) at an image resolution (nearest cell)."""
-    grid = support if support.dtype == torch.float32 else support.float()  # converted only where it is not float
-    return F.interpolate(grid[None, None], size=(height, width), mode="nearest")[0, 0] > 0.5
+    return F.interpolate(as_dtype(support, torch.float32)[None, None], size=(height, width), mode="nearest")[0, 0] > 0.5
 
 
 def open_background_map(obs: np.ndarray, width: int, height: int, grid: int = 32) -> Bool[Tensor, "rows cols"]:

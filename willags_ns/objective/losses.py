@@ -15,14 +15,12 @@ how much of the image a transient covers. With nothing kept the terms are exactl
 to the graph (zero gradients), so a fully masked step is a no-op rather than a NaN.
 """
 
-import functools
-
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor
 
-from willags_ns.tensor_constants import constant
+from willags_ns.tensor_constants import as_dtype, constant, made_once
 
 
 def _check(pred: Tensor, gt: Tensor, mask: Tensor | None) -> Tensor | None:
@@ -66,31 +64,28 @@ def masked_dssim(pred: Float[Tensor, "B 3 H W"], gt: Float[Tensor, "B 3 H W"], m
     """
     m = _check(pred, gt, mask)
     _, sigma = ssim_window(*pred.shape[-2:])
-    gt = gt if gt.dtype == pred.dtype else gt.to(pred.dtype)  # (Tensor.to costs an operator even when a no-op)
+    gt = as_dtype(gt, pred.dtype)
     if m is not None:
         pred, gt = pred * m, gt * m
     return _masked_mean(constant(1.0, pred) - ssim_map(pred, gt, sigma), m)
 
 
-@functools.lru_cache(maxsize=32)
+@made_once
 def _gaussian_1d(sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
     """torchmetrics' SSIM window: int(3.5 sigma + 0.5) * 2 + 1 taps of a normalised Gaussian. Made once per (sigma,
-    dtype, device): every training step's SSIM uses it. A normal tensor even when first made under inference mode
-    (the convolutions' backward saves it); read-only for its callers."""
+    dtype, device): every training step's SSIM uses it (and the convolutions' backward saves it)."""
     size = int(3.5 * sigma + 0.5) * 2 + 1
-    with torch.inference_mode(False):
-        d = torch.arange((1 - size) / 2, (1 + size) / 2, 1.0, dtype=dtype, device=device)
-        g = torch.exp(-((d / sigma) ** 2) / 2)
-        return g / g.sum()
+    d = torch.arange((1 - size) / 2, (1 + size) / 2, 1.0, dtype=dtype, device=device)
+    g = torch.exp(-((d / sigma) ** 2) / 2)
+    return g / g.sum()
 
 
-@functools.lru_cache(maxsize=32)
+@made_once
 def _separable_filters(sigma: float, planes: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
     """The depthwise weights of SSIM's row pass [planes, 1, 1, n] and column pass [planes, 1, n, 1]: views of
     :func:`_gaussian_1d`, made once per (sigma, planes, dtype, device) instead of two views each per pass per step."""
     g = _gaussian_1d(sigma, dtype, device)
-    with torch.inference_mode(False):
-        return g.view(1, 1, 1, -1).expand(planes, 1, 1, -1), g.view(1, 1, -1, 1).expand(planes, 1, -1, 1)
+    return g.view(1, 1, 1, -1).expand(planes, 1, 1, -1), g.view(1, 1, -1, 1).expand(planes, 1, -1, 1)
 
 
 def ssim_map(

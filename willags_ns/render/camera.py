@@ -7,6 +7,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from willags_ns.tensor_constants import made_once
+
 
 def viewmat_from_c2w(c2w: Tensor) -> Tensor:
     """nerfstudio camera-to-world [C, 3, 4] (OpenGL: -z forward, +y up) -> gsplat world-to-camera [C, 4, 4].
@@ -19,16 +21,14 @@ def viewmat_from_c2w(c2w: Tensor) -> Tensor:
     return torch.cat((torch.cat((R_inv, t), dim=2), last_row.expand(c2w.shape[0], 1, 4)), dim=1)
 
 
-@functools.lru_cache(maxsize=8)
+@made_once
 def _viewmat_constants(device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     """(the axis flip [1, -1, -1], the view matrix's last row [0, 0, 0, 1]) on `device`, made once: a constant
-    copied from the host in every step would be a blocking copy that drains the GPU's queue. Normal tensors even when
-    first made under inference mode (autograd may save them)."""
-    with torch.inference_mode(False):
-        return (
-            torch.tensor([1.0, -1.0, -1.0], device=device, dtype=dtype),
-            torch.tensor([[0.0, 0.0, 0.0, 1.0]], device=device, dtype=dtype),
-        )
+    copied from the host in every step would be a blocking copy that drains the GPU's queue."""
+    return (
+        torch.tensor([1.0, -1.0, -1.0], device=device, dtype=dtype),
+        torch.tensor([[0.0, 0.0, 0.0, 1.0]], device=device, dtype=dtype),
+    )
 
 
 def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
