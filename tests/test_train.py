@@ -12,8 +12,17 @@ import yaml
 pytestmark = pytest.mark.slow
 
 
-def _train(tmp_path: Path, method: str = "willags", steps: int = 20, data=None, eval_steps: int = 8, **model_overrides):
-    """Train in-process exactly as `ns-train` does (config.setup -> trainer.setup -> trainer.train)."""
+def _train(
+    tmp_path: Path,
+    method: str = "willags",
+    steps: int = 20,
+    data=None,
+    eval_steps: int = 8,
+    device: str | None = None,
+    **model_overrides,
+):
+    """Train in-process exactly as `ns-train` does (config.setup -> trainer.setup -> trainer.train), on `device`
+    (the GPU where there is one when None)."""
     from willags_ns import method_configs
 
     factory = {
@@ -28,7 +37,7 @@ def _train(tmp_path: Path, method: str = "willags", steps: int = 20, data=None, 
     config.output_dir = tmp_path
     config.timestamp = "t"
     config.experiment_name = "exp"
-    config.machine.device_type = "cuda" if torch.cuda.is_available() else "cpu"
+    config.machine.device_type = device or ("cuda" if torch.cuda.is_available() else "cpu")
     if data is not None:
         config.pipeline.datamanager.data = data
     config.pipeline.eval_protocol.steps = eval_steps  # saved in config.yml, so ns-eval uses it too

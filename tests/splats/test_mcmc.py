@@ -204,7 +204,7 @@ def test_the_default_model_on_the_cpu_densifies_as_splatfacto(tmp_path):
 
     from tests.test_train import _train
 
-    _, trainer, _ = _train(tmp_path, "willags", steps=2)
+    _, trainer, _ = _train(tmp_path, "willags", steps=2, device="cpu")
     model = trainer.pipeline.model
     assert model.config.densification == "auto" and not model.mcmc_on
     assert type(model.strategy) is DefaultStrategy
