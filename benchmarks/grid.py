@@ -45,6 +45,8 @@ from benchmarks.records import (
     merge_records,
     merged_records,
     queue_records,
+    record_key,
+    replaced_across_commits,
     write_records,
 )
 from benchmarks.tables import write_outputs
@@ -389,6 +391,12 @@ def main(argv=None) -> int:
         print(f"{args.keep}: the records of {', '.join(map(str, archives))}")
         args.merge = [p for p in args.merge if p not in archives] + [args.keep]
     if args.merge or args.render_only:
+        before = load_records(out.with_suffix(".json")) + load_records(CV_RECORDS)
+        for was, now in replaced_across_commits(before, merged_records(args.merge)):
+            print(
+                f"benchmarks: {' '.join(map(str, record_key(was)))}: the record of {was['commit']} is replaced by "
+                f"{now['commit']}'s (the same scene, method, device, steps and tag); a tag of its own keeps both"
+            )
         recs = merged_records([out.with_suffix(".json"), *args.merge])
         folds = [r for r in recs if parse_fold(str(r.get("scene", ""))) is not None]
         if folds:  # the cross-validation's fold runs go to their own file

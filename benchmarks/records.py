@@ -44,6 +44,18 @@ def merge_records(existing: list[dict[str, Any]], new: list[dict[str, Any]]) -> 
     return kept + list(fresh.values())
 
 
+def replaced_across_commits(existing: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[tuple[dict, dict]]:
+    """The (old, new) pairs where merging `new` into `existing` replaces a record of another commit: the key holds no
+    commit, so the same run at two commits needs two tags to keep both."""
+    fresh = {record_key(r): r for r in new}
+    return [
+        (r, fresh[k])
+        for r in existing
+        if (k := record_key(r)) in fresh and r.get("commit") and fresh[k].get("commit")
+        and r["commit"] != fresh[k]["commit"]
+    ]
+
+
 def queue_records(archive: Path) -> list[dict[str, Any]]:
     """The records in a queues archive (`benchmarks/remote/solo.sh queues wait` packs every queue's
     `rec/long-<run>.json`, each a list of records, into queues.tgz), in the members' name order."""

@@ -230,6 +230,27 @@ def test_merge_replaces_same_key_and_keeps_others():
     assert len(merge_records(merged, [_rec("fox-wild", "willags", 300, 1.0, tag="ds4")])) == 5
 
 
+def test_merge_names_a_record_another_commit_replaces(tmp_path, capsys):
+    """The key holds no commit: a merge that replaces one commit's run by another's says so (and which tag)."""
+    from benchmarks.grid import main
+    from benchmarks.records import replaced_across_commits
+
+    old = [_rec("fox-wild", "willags", 300, 18.0) | {"commit": "aaa"}, _rec("fox-clean", "willags", 300, 20.0)]
+    new = [_rec("fox-wild", "willags", 300, 19.0) | {"commit": "bbb"}, _rec("fox-clean", "willags", 300, 21.0)]
+    assert [(o["commit"], n["commit"]) for o, n in replaced_across_commits(old, new)] == [("aaa", "bbb")]
+    assert replaced_across_commits(old, [new[0] | {"tag": "other"}]) == []
+    assert replaced_across_commits(old, [new[0] | {"commit": "aaa"}]) == []
+
+    out = tmp_path / "bench"
+    write_outputs(old, out)
+    (tmp_path / "new.json").write_text(json.dumps(new))
+    assert main(["--merge", str(tmp_path / "new.json"), "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "fox-wild willags cpu 300 ds2: the record of aaa is replaced by bbb's" in said
+    assert "fox-clean" not in said.split("records ->")[0]
+    assert {r["scene"]: r["psnr"] for r in load_records(out.with_suffix(".json"))} == {"fox-wild": 19.0, "fox-clean": 21.0}
+
+
 def test_write_outputs_merges_into_existing_file(tmp_path):
     out = tmp_path / "bench"
     write_outputs([_rec("fox-wild", "willags", 300, 18.0, device="cuda", tag="")], out)
