@@ -51,7 +51,9 @@ def replaced_across_commits(existing: list[dict[str, Any]], new: list[dict[str, 
     return [
         (r, fresh[k])
         for r in existing
-        if (k := record_key(r)) in fresh and r.get("commit") and fresh[k].get("commit")
+        if (k := record_key(r)) in fresh
+        and r.get("commit")
+        and fresh[k].get("commit")
         and r["commit"] != fresh[k]["commit"]
     ]
 

@@ -248,7 +248,10 @@ def test_merge_names_a_record_another_commit_replaces(tmp_path, capsys):
     said = capsys.readouterr().out
     assert "fox-wild willags cpu 300 ds2: the record of aaa is replaced by bbb's" in said
     assert "fox-clean" not in said.split("records ->")[0]
-    assert {r["scene"]: r["psnr"] for r in load_records(out.with_suffix(".json"))} == {"fox-wild": 19.0, "fox-clean": 21.0}
+    assert {r["scene"]: r["psnr"] for r in load_records(out.with_suffix(".json"))} == {
+        "fox-wild": 19.0,
+        "fox-clean": 21.0,
+    }
 
 
 def test_write_outputs_merges_into_existing_file(tmp_path):
