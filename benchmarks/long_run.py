@@ -229,6 +229,8 @@ def train(args) -> int:
         if step in milestones or step == args.steps - 1 or knob_end:
             sync(device)  # the step's work done, then the clock: the milestone's own train time
             milestone_s[str(step + 1)] = before_s + time.perf_counter() - t0[0]
+            if (step == args.steps - 1 or knob_end) and hasattr(trainer, "finish_run"):
+                trainer.finish_run(step)  # the run's end as ns-train ends it (Stop below skips the loop's own)
             trainer.save_checkpoint(step)
             # the state as if the segment ended here: a run killed later is scored at its milestones and resumes
             # from this checkpoint with the right train time

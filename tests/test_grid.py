@@ -168,6 +168,15 @@ def test_the_pose_refining_candidate_changes_only_the_camera_optimiser(tmp_path)
     assert cfg.optimizers == ref.optimizers and "camera_opt" in cfg.optimizers
 
 
+def test_the_holdout_candidate_changes_only_the_held_out_photos(tmp_path):
+    """`willags-prior-low-holdout` is the default with 8 photos' right halves held out; nothing else differs."""
+    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    cfg = build_config("willags-prior-low-holdout", 15000, "cpu", None, None, "default", tmp_path)
+    assert (ref.pipeline.model.holdout.photos, cfg.pipeline.model.holdout.photos) == (0, 8)
+    cfg.pipeline.model.holdout.photos = 0
+    assert cfg.pipeline.model == ref.pipeline.model and cfg.optimizers == ref.optimizers
+
+
 @pytest.mark.parametrize(
     "rec, name",
     [

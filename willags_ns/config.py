@@ -27,6 +27,7 @@ from willags_ns.appearance.modulation import ColorModulationConfig
 from willags_ns.appearance.sky import SkyConfig
 from willags_ns.appearance.triplane import TriplaneConfig
 from willags_ns.appearance.vae import VAEConfig
+from willags_ns.eval.holdout import HoldoutConfig
 from willags_ns.mask.rule import MaskConfig
 from willags_ns.mask.teacher import TeacherConfig
 from willags_ns.model import WillagsModel
@@ -98,6 +99,10 @@ class WillagsModelConfig(SplatfactoModelConfig):
     leaves with too few Gaussians (docs/design.md)."""
     mcmc: McmcConfig = field(default_factory=McmcConfig)
     """Settings of the MCMC densification (cap, noise, penalties, initial Gaussians)."""
+    holdout: HoldoutConfig = field(default_factory=HoldoutConfig)
+    """The right halves of a few training photos kept out of the loss and scored as the NeRF-W protocol scores a test
+    photo; the run ends with its best-scoring step's model when its last step scores worse (eval/holdout.py). Off
+    (photos 0) by default."""
     rasterize_mode: Literal["classic", "antialiased"] = "antialiased"
     """gsplat's rasterisation mode. "antialiased" (opacity compensation for the 2D dilation) keeps renders consistent
     across the resolution schedule (a run trains at 1/4 and 1/2 resolution and is scored at full)."""
@@ -275,6 +280,12 @@ def check_settings(cfg: WillagsModelConfig) -> None:
             wrong.append(f"--pipeline.model.{name.replace('_', '-')} ({why})")
     if wrong:
         raise ValueError("willags: these splatfacto settings do nothing here; leave them out: " + "; ".join(wrong))
+    h = cfg.holdout
+    if h.photos < 0 or h.every < 1 or h.start < 0 or h.margin < 0:
+        raise ValueError(
+            f"willags: --pipeline.model.holdout.* must be photos >= 0, every >= 1, start >= 0, margin >= 0 (got photos "
+            f"{h.photos}, every {h.every}, start {h.start}, margin {h.margin})"
+        )
     if cfg.mask.residual.expected and cfg.mask.distance != "residual":
         raise ValueError(
             "willags: --pipeline.model.mask.residual.expected True needs --pipeline.model.mask.distance residual "

@@ -56,6 +56,7 @@ from willags_ns.appearance.sky import background, composite, pixel_directions, s
 from willags_ns.appearance.triplane import robust_bounds
 from willags_ns.appearance_spec import latent_from_env
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
+from willags_ns.eval.holdout import BestStep, holdout_indices, holdout_psnr, is_scoring_step, left_half_weight
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import make_lpips
 from willags_ns.mask.expected import LEVEL, expected_on, initial_levels, level_channels, level_loss
@@ -166,6 +167,10 @@ class WillagsModel(SplatfactoModel):
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
         self.train_image_sizes: list[tuple[int, int]] | None = None  # (width, height) per training image (pipeline)
         self.test_photos: dict[str, str] = {}  # file name -> path of the run's test photos (set by the pipeline)
+        # the training photos whose right half is held out of the loss and scored (eval/holdout.py), and the scorings
+        self.holdout = holdout_indices(self.num_train_data, cfg.holdout.photos)
+        self.holdout_best = BestStep(cfg.holdout.margin)
+        self._holdout_photos = None  # () -> (cameras, images) of the training photos (get_training_callbacks)
 
     # ------------------------------------------------------------------ latents (appearance/latents.py)
     def set_train_batch(self, batch: dict) -> None:
@@ -617,7 +622,8 @@ class WillagsModel(SplatfactoModel):
             user = self._downscale_if_required(batch["mask"]).to(self.device)[..., 0].float()
             mask = user if mask is None else mask * user
         pred_b, gt_b = pred_img.permute(2, 0, 1)[None], gt_img.permute(2, 0, 1)[None]
-        mask_b = None if mask is None else mask[None]
+        loss_mask = self._holdout_mask(batch, mask, gt_img)
+        mask_b = None if loss_mask is None else loss_mask[None]
         loss_dict = {"main_loss": reconstruction_loss(pred_b, gt_b, mask_b, ssim_lambda=cfg.ssim_lambda)}
         if "expected_probe" in outputs and "teacher_rgb" in outputs:  # 0 in value: fits the levels (mask/expected.py)
             r = colour_residual(gt_img, outputs["teacher_rgb"])
@@ -638,7 +644,18 @@ class WillagsModel(SplatfactoModel):
 
         # the VAE term, the sky's alpha penalty, the local residual's penalty, the scale penalty (objective/regularizers.py)
         vae = self.appearance_nets.vae if self.appearance_nets is not None else None
-        args = (cfg, vae, outputs, gt_img, mask, self.scales, self.opacities, self.mcmc_on, self.step, self.training)
+        args = (
+            cfg,
+            vae,
+            outputs,
+            gt_img,
+            loss_mask,
+            self.scales,
+            self.opacities,
+            self.mcmc_on,
+            self.step,
+            self.training,
+        )
         terms, term_metrics, recon = regularization_terms(*args)
         loss_dict.update(terms)
         if metrics_dict is not None:
@@ -648,6 +665,14 @@ class WillagsModel(SplatfactoModel):
             if cfg.log_images_every > 0 and self.step % cfg.log_images_every == 0:
                 log_step_images(self.step, outputs, gt_img, mask, step_mask.distance, recon)
         return loss_dict
+
+    def _holdout_mask(self, batch, mask: Tensor | None, gt_img: Tensor) -> Tensor | None:
+        """The step's loss mask: `mask` (transient and user masks), times the left half when the step's training
+        photo lends its right half to the held-out score (eval/holdout.py)."""
+        if not self.training or not self.holdout or int(batch.get("image_idx", -1)) not in self.holdout:
+            return mask
+        left = left_half_weight(gt_img.shape[0], gt_img.shape[1], gt_img.device)
+        return left if mask is None else mask * left
 
     def get_image_metrics_and_images(self, outputs, batch):
         gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
@@ -668,7 +693,66 @@ class WillagsModel(SplatfactoModel):
         if self.teacher is not None:
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_teacher))
         cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.end_step))
+        pipeline = training_callback_attributes.pipeline
+        if self.holdout and pipeline is not None:
+            dm = pipeline.datamanager
+            self._holdout_photos = lambda: (dm.train_dataset.cameras, [d["image"] for d in dm.cached_train])
+            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.score_holdout))
         return cbs
+
+    def score_holdout(self, step: int, last_step: int = -1) -> None:
+        """On a scoring step (eval/holdout.is_scoring_step; the last one is `finish_training`'s), the held-out right
+        halves' PSNR; a new best keeps a copy of the model (its Gaussians, networks and latents)."""
+        if self._holdout_photos is None or not is_scoring_step(step, self.config.holdout, last_step):
+            return
+        if self.holdout_best.history and self.holdout_best.history[-1][0] == step:
+            return
+        cameras, images = self._holdout_photos()
+        latents = self.image_latents()[0] if self.appearance_nets is not None else None
+        score = holdout_psnr(self, cameras, images, self.holdout, latents)
+        self.holdout_best.observe(step, score, self._model_copy)
+
+    def _model_copy(self) -> dict[str, Tensor]:
+        """The state the run would end with, copied (the perceptual features' fixed weights left out)."""
+        skip = ("perceptual.", "_lpips.")
+        return {
+            k: v.detach().clone() for k, v in self.state_dict().items() if torch.is_tensor(v) and not k.startswith(skip)
+        }
+
+    def finish_training(self, step: int) -> str | None:
+        """Called by the trainer after the last step, before the last checkpoint: with held-out halves, score the
+        last step and end with the best step's model when the last scores worse by more than holdout.margin. Returns
+        what it did, in one line (None without held-out halves)."""
+        if self._holdout_photos is None or self.__dict__.get("_finished_at") == step:
+            return None
+        self._finished_at = step
+        self.score_holdout(step, last_step=step)
+        best = self.holdout_best
+        if not best.history:
+            return f"willags: the held-out right halves were not scored (the run ended before step {self.config.holdout.start})"
+        copy = best.to_restore()
+        last_step, last = best.history[-1]
+        line = (
+            f"willags: the held-out right halves of {len(self.holdout)} training photos score {last:.2f} dB at step "
+            f"{last_step}, best {best.best_psnr:.2f} at step {best.best_step}"
+        )
+        if copy is None:
+            return line + "; the run ends with its last step"
+        self._restore(copy)
+        best.copy = None
+        return line + f"; the run ends with step {best.best_step}'s model"
+
+    def _restore(self, state: dict[str, Tensor]) -> None:
+        """Put a copy of the model back: the Gaussians resized in place (the optimisers hold these Parameters), their
+        optimiser moments dropped (their shapes may no longer match; Adam starts them again), the rest copied."""
+        n = state["gauss_params.means"].shape[0]
+        for name, param in self.gauss_params.items():
+            param.data = torch.zeros((n,) + param.shape[1:], device=param.device, dtype=param.dtype)
+            opt = (getattr(self, "optimizers", None) or {}).get(name)
+            if opt is not None:
+                opt.state[param] = {}
+        nn.Module.load_state_dict(self, state, strict=False)
+        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
 
     def step_post_backward(self, step):
         """After the optimiser's step: gsplat's densification (splatfacto's), or MCMC's relocation, growth and
@@ -686,7 +770,10 @@ class WillagsModel(SplatfactoModel):
     def get_extra_state(self):
         """Saved as `_extra_state` in every checkpoint: which VGG weights made the transient masks."""
         src = self.perceptual.source if self.perceptual is not None else None
-        return {"perceptual_source": src or self.__dict__.get("loaded_perceptual_source")}
+        state = {"perceptual_source": src or self.__dict__.get("loaded_perceptual_source")}
+        if self.holdout_best.history:
+            state["holdout"] = self.holdout_best.summary()
+        return state
 
     def set_extra_state(self, state) -> None:
         self.loaded_perceptual_source = (state or {}).get("perceptual_source")

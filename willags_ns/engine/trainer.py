@@ -390,11 +390,20 @@ class WillagsTrainer(Trainer):
         keep = user_switches(model, preset, sys.argv[1:])
         self.config.pipeline.auto_config_keep = tuple(sorted({*self.config.pipeline.auto_config_keep, *keep}))
 
+    def finish_run(self, step: int) -> None:
+        """After the run's last step, before its last checkpoint: the model's own end of training (with held-out
+        halves, the best-scoring step's model; eval/holdout.py), said in one line."""
+        finish = getattr(self.pipeline.model, "finish_training", None)
+        said = finish(step) if finish is not None else None
+        if said and self.local_rank == 0:
+            _say(said)
+
     def _after_train(self) -> None:
         # the loop set self.step to the step it broke before (never trained): checkpoint the last trained one
         if self.time_budget is not None and self.time_budget.stopped_after is not None:
             self.step = self.time_budget.stopped_after
         self.planned_end = self.step + 1  # finished (the budget may end it early): nothing left to resume
+        self.finish_run(self.step)
         super()._after_train()  # with --viewer.quit-on-train-completion False it waits in _train_complete_viewer
         if self.config.viewer.quit_on_train_completion:
             self._viewer_after_training(asked=False)
