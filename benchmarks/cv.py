@@ -855,6 +855,51 @@ def fit_rows(records: Sequence[dict[str, Any]]) -> list[str]:
 # the command line
 
 
+def run_milestone_photos(
+    records: Sequence[dict[str, Any]], method: str, short: int, long: int
+) -> dict[str, list[list[tuple[float, float]]]]:
+    """{collection: one list per fold run of `method` (a configuration) of its test photos' (PSNR at `short`, PSNR at
+    `long`)}: the runs scored at both step counts."""
+    from benchmarks.methods import configuration
+
+    out: dict[str, list[list[tuple[float, float]]]] = defaultdict(list)
+    for rec in records:
+        fold = parse_fold(str(rec.get("scene", "")))
+        if fold is None or rec.get("status", "ok") != "ok" or configuration(rec) != method:
+            continue
+        a, b = milestone(rec, short), milestone(rec, long)
+        if not a or not b or not a.get("per_image") or not b.get("per_image"):
+            continue
+        late = {p["image"]: float(p["psnr"]) for p in b["per_image"]}
+        out[fold[0]].append([(float(p["psnr"]), late[p["image"]]) for p in a["per_image"] if p["image"] in late])
+    return dict(out)
+
+
+def stopping_gain(
+    runs: Sequence[Sequence[tuple[float, float]]], photos: int, margin: float, draws: int = 300, seed: int = 0
+) -> tuple[float, float]:
+    """What ending each run at its earlier milestone when `photos` of its test photos score better there by more than
+    `margin` dB (a stand-in for held-out halves: eval/holdout.py's rule between two steps) gains on the run's other
+    test photos, against always the later one; averaged over `draws` random choices of those photos. Returns (mean
+    gain in dB per scored photo, share of runs that end early). A run lends at most half its photos, at least one."""
+    rng = np.random.default_rng(seed)
+    gains, early = [], []
+    for _ in range(draws):
+        diffs, stops = [], 0
+        for run in runs:
+            d = np.array([a - b for a, b in run])
+            if len(d) < 2:
+                continue
+            order = rng.permutation(len(d))
+            k = max(1, min(photos, len(d) // 2))
+            stop = float(d[order[:k]].mean()) > margin
+            stops += stop
+            diffs.extend(d[order[k:]] if stop else np.zeros(len(d) - k))
+        gains.append(float(np.mean(diffs)) if diffs else 0.0)
+        early.append(stops / max(1, sum(len(r) >= 2 for r in runs)))
+    return float(np.mean(gains)), float(np.mean(early))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -893,6 +938,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ph.add_argument("--top", type=int, default=5, help="photos shown at each end")
     ph.add_argument("--records", type=Path, default=None)
+    st = sub.add_parser(
+        "stop", help="what ending a run at its earlier milestone, chosen on some of its photos, gains on the others"
+    )
+    st.add_argument("--method", default="willags", help="the configuration whose fold runs are read")
+    st.add_argument("--short", type=int, default=5000)
+    st.add_argument("--long", type=int, default=15000)
+    st.add_argument("--photos", type=int, default=8, help="photos of a run that choose (at most half of them)")
+    st.add_argument("--margin", type=float, default=0.1, help="dB the earlier step must lead by on them")
+    st.add_argument("--records", type=Path, default=None)
     r = sub.add_parser("report", help="print the cross-validated tables from the records")
     r.add_argument("--records", type=Path, default=None)
     r.add_argument("--steps", type=int, default=5000)
@@ -956,6 +1010,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             if r is not None:
                 corr = {**(corr or {}), f"{a2} - {b2}": r}
         print("\n".join(photo_lines(diffs, args.top, corr)))
+        return 0
+    if args.cmd == "stop":
+        by_scene = run_milestone_photos(records, args.method, args.short, args.long)
+        if not by_scene:
+            raise SystemExit(f"cv: no fold run of {args.method} scored at both {args.short} and {args.long} steps")
+        print(
+            f"| collection | runs | {args.long} -> {args.short} steps (all photos) | the rule's gain | runs ended early |"
+        )
+        print("|---|---|---|---|---|")
+        for scene, runs in sorted(by_scene.items()):
+            gain, early = stopping_gain(runs, args.photos, args.margin)
+            whole = float(np.mean([a - b for run in runs for a, b in run]))
+            print(f"| {scene} | {len(runs)} | {whole:+.2f} | {gain:+.2f} | {early:.2f} |")
         return 0
     print("\n".join(cv_rows(records, args.steps)))
     return 0

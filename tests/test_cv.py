@@ -456,3 +456,37 @@ def test_photos_name_the_ends_and_correlate_with_the_inspectors_per_image_eviden
     (tmp_path / "bad.json").write_text("{")
     with pytest.raises(SystemExit, match="bad.json: not a willags-inspect report"):
         cv.main([*args, "--inspect", str(tmp_path / "bad.json")])
+
+
+def test_the_stopping_rule_ends_early_only_the_runs_whose_chosen_photos_say_so(tmp_path, capsys):
+    """`cv stop`: a run whose photos all score 1 dB better at the earlier step ends there (+1 on its other photos),
+    one whose photos score worse, or better by less than the margin, keeps its last step (0)."""
+    better = [(21.0, 20.0)] * 6
+    worse = [(19.0, 20.0)] * 6
+    inside = [(20.05, 20.0)] * 6
+    assert cv.stopping_gain([better], photos=2, margin=0.1) == (pytest.approx(1.0), 1.0)
+    assert cv.stopping_gain([worse], photos=2, margin=0.1) == (0.0, 0.0)
+    assert cv.stopping_gain([inside], photos=2, margin=0.1) == (0.0, 0.0)
+    gain, early = cv.stopping_gain([better, worse], photos=2, margin=0.1)
+    assert gain == pytest.approx(0.5) and early == 0.5  # 4 scored photos each: +1 and 0
+    # mixed photos: the choice follows the photos drawn, so the gain lies between none and all of the early lead
+    mixed = [(22.0, 20.0), (22.0, 20.0), (19.0, 20.0), (19.0, 20.0)]
+    gain, early = cv.stopping_gain([mixed], photos=1, margin=0.1, draws=200)
+    assert 0.0 < early < 1.0 and -1.0 < gain < 2.0
+
+    def both(fold: int, short: dict[str, float], long: dict[str, float]) -> dict:
+        rec = _fold_rec("one", fold, 2, "willags", short)
+        rec["milestones"]["15000"] = _fold_rec("one", fold, 2, "willags", long, steps=15000)["milestones"]["15000"]
+        return rec
+
+    photos = {f"{i}.jpg": 20.0 for i in range(4)}
+    recs = [both(1, {k: v + 1 for k, v in photos.items()}, photos), both(2, photos, photos)]
+    runs = cv.run_milestone_photos(recs, "willags", 5000, 15000)
+    assert [len(r) for r in runs["one"]] == [4, 4]
+    path = tmp_path / "cv.json"
+    path.write_text(json.dumps(recs))
+    assert cv.main(["stop", "--records", str(path), "--photos", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "| one | 2 | +0.50 | +0.50 | 0.50 |" in out
+    with pytest.raises(SystemExit, match="no fold run of peer"):
+        cv.main(["stop", "--records", str(path), "--method", "peer"])
