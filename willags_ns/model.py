@@ -56,7 +56,15 @@ from willags_ns.appearance.sky import background, composite, pixel_directions, s
 from willags_ns.appearance.triplane import robust_bounds
 from willags_ns.appearance_spec import latent_from_env
 from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
-from willags_ns.eval.holdout import BestStep, holdout_indices, holdout_psnr, is_scoring_step, left_half_weight
+from willags_ns.eval.holdout import (
+    BestStep,
+    copy_state,
+    holdout_indices,
+    holdout_psnr,
+    is_scoring_step,
+    left_half_weight,
+    restore_state,
+)
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import make_lpips
 from willags_ns.mask.expected import LEVEL, expected_on, initial_levels, level_channels, level_loss
@@ -171,6 +179,7 @@ class WillagsModel(SplatfactoModel):
         self.holdout = holdout_indices(self.num_train_data, cfg.holdout.photos)
         self.holdout_best = BestStep(cfg.holdout.margin)
         self._holdout_photos = None  # () -> (cameras, images) of the training photos (get_training_callbacks)
+        self._finished_at: int | None = None  # the step finish_training ended the run at
 
     # ------------------------------------------------------------------ latents (appearance/latents.py)
     def set_train_batch(self, batch: dict) -> None:
@@ -713,17 +722,14 @@ class WillagsModel(SplatfactoModel):
         self.holdout_best.observe(step, score, self._model_copy)
 
     def _model_copy(self) -> dict[str, Tensor]:
-        """The state the run would end with, copied (the perceptual features' fixed weights left out)."""
-        skip = ("perceptual.", "_lpips.")
-        return {
-            k: v.detach().clone() for k, v in self.state_dict().items() if torch.is_tensor(v) and not k.startswith(skip)
-        }
+        """The state the run would end with, copied (eval/holdout.copy_state)."""
+        return copy_state(self)
 
     def finish_training(self, step: int) -> str | None:
         """Called by the trainer after the last step, before the last checkpoint: with held-out halves, score the
         last step and end with the best step's model when the last scores worse by more than holdout.margin. Returns
         what it did, in one line (None without held-out halves)."""
-        if self._holdout_photos is None or self.__dict__.get("_finished_at") == step:
+        if self._holdout_photos is None or self._finished_at == step:
             return None
         self._finished_at = step
         self.score_holdout(step, last_step=step)
@@ -743,15 +749,8 @@ class WillagsModel(SplatfactoModel):
         return line + f"; the run ends with step {best.best_step}'s model"
 
     def _restore(self, state: dict[str, Tensor]) -> None:
-        """Put a copy of the model back: the Gaussians resized in place (the optimisers hold these Parameters), their
-        optimiser moments dropped (their shapes may no longer match; Adam starts them again), the rest copied."""
-        n = state["gauss_params.means"].shape[0]
-        for name, param in self.gauss_params.items():
-            param.data = torch.zeros((n,) + param.shape[1:], device=param.device, dtype=param.dtype)
-            opt = (getattr(self, "optimizers", None) or {}).get(name)
-            if opt is not None:
-                opt.state[param] = {}
-        nn.Module.load_state_dict(self, state, strict=False)
+        """Put a copy back (eval/holdout.restore_state) and start the densification's statistics again."""
+        restore_state(self, self.gauss_params, getattr(self, "optimizers", None) or {}, state)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
 
     def step_post_backward(self, step):

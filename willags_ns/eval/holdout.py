@@ -13,11 +13,11 @@ then optimistic. The model wires it (`WillagsModel`: the loss mask, the scoring 
 module holds the rule.
 """
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from willags_ns.eval.protocol import psnr, render_with_latent, split_halves, unit_float
 
@@ -110,3 +110,32 @@ class BestStep:
     def summary(self) -> dict:
         """What the checkpoint keeps of it (the copy is not kept)."""
         return {"history": list(self.history), "best_step": self.best_step, "best_psnr": self.best_psnr}
+
+
+COPY_SKIPS = ("perceptual.", "_lpips.")
+"""State-dict prefixes a copy leaves out: fixed feature networks that training never changes."""
+
+
+def copy_state(model: nn.Module) -> dict[str, Tensor]:
+    """Every tensor of `model`'s state dict, detached and cloned, but the fixed networks of COPY_SKIPS."""
+    return {
+        k: v.detach().clone()
+        for k, v in model.state_dict().items()
+        if torch.is_tensor(v) and not k.startswith(COPY_SKIPS)
+    }
+
+
+def restore_state(
+    model: nn.Module, gauss_params: Mapping[str, nn.Parameter], optimizers: Mapping, state: dict[str, Tensor]
+) -> None:
+    """Put a copy (copy_state) back into `model`: the Gaussians (`gauss_params`, named as in the state dict under
+    "gauss_params.") resized in place, since the optimisers hold these Parameter objects; their moments in
+    `optimizers` (name -> torch optimiser) dropped, as their shapes may no longer match (Adam starts them again);
+    every other tensor copied."""
+    n = state["gauss_params.means"].shape[0]
+    for name, param in gauss_params.items():
+        param.data = torch.zeros((n,) + param.shape[1:], device=param.device, dtype=param.dtype)
+        opt = optimizers.get(name)
+        if opt is not None:
+            opt.state[param] = {}
+    nn.Module.load_state_dict(model, state, strict=False)
