@@ -4,7 +4,14 @@ scorings and the copy a run ends with."""
 import pytest
 import torch
 
-from willags_ns.eval.holdout import BestStep, HoldoutConfig, holdout_indices, is_scoring_step, left_half_weight
+from willags_ns.eval.holdout import (
+    BestStep,
+    HoldoutConfig,
+    copy_state,
+    holdout_indices,
+    is_scoring_step,
+    left_half_weight,
+)
 from willags_ns.eval.protocol import split_halves
 
 
@@ -99,7 +106,7 @@ def test_the_loss_of_a_held_out_photo_never_sees_its_right_half():
 
 def test_restoring_a_copy_puts_back_every_tensor_and_drops_the_gaussians_optimiser_moments():
     model = _tiny_training_model()
-    copy = model._model_copy()
+    copy = copy_state(model)
     assert not any(k.startswith("perceptual.") for k in copy)
     means = model.gauss_params["means"]
     opt = torch.optim.Adam([means], lr=1e-3)
@@ -119,23 +126,30 @@ def test_restoring_a_copy_puts_back_every_tensor_and_drops_the_gaussians_optimis
     assert model.gauss_params["means"] is means and opt.state[means] == {}
 
 
+def _scripted_scorings(monkeypatch, scores: list[float]) -> dict[int, dict]:
+    """The model's held-out scorings return `scores` in turn; returns {step: the copy taken at that step}, filled as
+    the run takes them."""
+    import willags_ns.model as model_module
+
+    it = iter(scores)
+    monkeypatch.setattr(model_module, "holdout_psnr", lambda *a, **k: next(it))
+    copies: dict[int, dict] = {}
+
+    def spy_copy(model):
+        copies[model.step] = c = copy_state(model)
+        return c
+
+    monkeypatch.setattr(model_module, "copy_state", spy_copy)
+    return copies
+
+
 def test_a_run_ends_with_its_best_scoring_step_and_its_checkpoint_says_so(tmp_path, monkeypatch, capsys):
     """30 CPU steps, four photos lending their right half, scored at steps 10 and 20 and after the last (29); the
     scores are scripted so that step 10 is best by more than the margin: the last checkpoint holds step 10's
     Gaussians."""
-    import willags_ns.model as model_module
     from tests.test_train import _train
 
-    scores = iter([20.0, 18.0, 17.0])
-    monkeypatch.setattr(model_module, "holdout_psnr", lambda *a, **k: next(scores))
-    copies = {}
-    orig_copy = model_module.WillagsModel._model_copy
-
-    def spy_copy(self):
-        copies[self.step] = c = orig_copy(self)
-        return c
-
-    monkeypatch.setattr(model_module.WillagsModel, "_model_copy", spy_copy)
+    copies = _scripted_scorings(monkeypatch, [20.0, 18.0, 17.0])
     overrides = {"holdout.photos": 4, "holdout.start": 10, "holdout.every": 10}
     _, trainer, _ = _train(tmp_path, "willags", steps=30, device="cpu", **overrides)
     model = trainer.pipeline.model
@@ -172,22 +186,12 @@ def test_the_benchmark_harness_ends_a_run_as_ns_train_does(tmp_path, monkeypatch
     """`python -m benchmarks long-run train` stops its loop itself; its last checkpoint still holds the model the run
     ends with (the best-scoring step's, scores scripted), as `ns-train`'s does."""
     import benchmarks.methods as methods
-    import willags_ns.model as model_module
     from benchmarks import long_run
     from tests._scenes import small_scene
 
     spec = methods.MethodSpec("willags", (("holdout.photos", 2), ("holdout.start", 2), ("holdout.every", 2)))
     monkeypatch.setitem(methods.METHODS, "willags-holdout-test", spec)
-    scores = iter([20.0, 18.0, 17.0])
-    monkeypatch.setattr(model_module, "holdout_psnr", lambda *a, **k: next(scores))
-    copies = {}
-    orig_copy = model_module.WillagsModel._model_copy
-
-    def spy_copy(self):
-        copies[self.step] = c = orig_copy(self)
-        return c
-
-    monkeypatch.setattr(model_module.WillagsModel, "_model_copy", spy_copy)
+    copies = _scripted_scorings(monkeypatch, [20.0, 18.0, 17.0])
     data = small_scene(tmp_path / "scene", appearance=1.0, transients=0.0)
     run = tmp_path / "run"
     argv = ["train", "--method", "willags-holdout-test", "--data", str(data), "--run-dir", str(run), "--steps", "6"]

@@ -719,11 +719,7 @@ class WillagsModel(SplatfactoModel):
         cameras, images = self._holdout_photos()
         latents = self.image_latents()[0] if self.appearance_nets is not None else None
         score = holdout_psnr(self, cameras, images, self.holdout, latents)
-        self.holdout_best.observe(step, score, self._model_copy)
-
-    def _model_copy(self) -> dict[str, Tensor]:
-        """The state the run would end with, copied (eval/holdout.copy_state)."""
-        return copy_state(self)
+        self.holdout_best.observe(step, score, lambda: copy_state(self))
 
     def finish_training(self, step: int) -> str | None:
         """Called by the trainer after the last step, before the last checkpoint: with held-out halves, score the
