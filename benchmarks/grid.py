@@ -391,17 +391,17 @@ def main(argv=None) -> int:
         print(f"{args.keep}: the records of {', '.join(map(str, archives))}")
         args.merge = [p for p in args.merge if p not in archives] + [args.keep]
     if args.merge or args.render_only:
-        before = load_records(out.with_suffix(".json")) + load_records(CV_RECORDS)
-        for was, now in replaced_across_commits(before, merged_records(args.merge)):
+        old, cv_old, new = load_records(out.with_suffix(".json")), load_records(CV_RECORDS), merged_records(args.merge)
+        for was, now in replaced_across_commits(old + cv_old, new):
             print(
                 f"benchmarks: {' '.join(map(str, record_key(was)))}: the record of {was['commit']} is replaced by "
                 f"{now['commit']}'s (the same scene, method, device, steps and tag); a tag of its own keeps both"
             )
-        recs = merged_records([out.with_suffix(".json"), *args.merge])
+        recs = merge_records(old, new)  # = merged_records([out.json, *args.merge]): a later record wins
         folds = [r for r in recs if parse_fold(str(r.get("scene", ""))) is not None]
         if folds:  # the cross-validation's fold runs go to their own file
             recs = [r for r in recs if parse_fold(str(r.get("scene", ""))) is None]
-            write_records(merge_records(load_records(CV_RECORDS), folds), CV_RECORDS)
+            write_records(merge_records(cv_old, folds), CV_RECORDS)
             print(f"{len(folds)} fold records -> {CV_RECORDS}")
         j, m = write_outputs(recs, out)
         print(f"{len(recs)} records -> {j}, {m}")
