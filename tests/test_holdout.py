@@ -198,5 +198,5 @@ def test_the_benchmark_harness_ends_a_run_as_ns_train_does(tmp_path, monkeypatch
     assert long_run.main([*argv, "--milestones", "6", "--budget-s", "1e9"]) == 0
     assert list(copies) == [2]
     ckpt = torch.load(sorted(run.rglob("step-000000005.ckpt"))[0], map_location="cpu", weights_only=False)
-    assert torch.equal(ckpt["pipeline"]["_model.gauss_params.means"], copies[2]["gauss_params.means"])
+    assert torch.equal(ckpt["pipeline"]["_model.gauss_params.means"], copies[2]["gauss_params.means"].cpu())
     assert [s for s, _ in ckpt["pipeline"]["_model._extra_state"]["holdout"]["history"]] == [2, 4, 5]
