@@ -177,6 +177,16 @@ def test_the_holdout_candidate_changes_only_the_held_out_photos(tmp_path):
     assert cfg.pipeline.model == ref.pipeline.model and cfg.optimizers == ref.optimizers
 
 
+def test_the_mcmc_penalty_candidate_changes_only_the_two_penalties(tmp_path):
+    """`willags-prior-low-mcmcreg` is the default with MCMC's opacity and scale penalties at a tenth; nothing else."""
+    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    cfg = build_config("willags-prior-low-mcmcreg", 15000, "cpu", None, None, "default", tmp_path)
+    got, want = cfg.pipeline.model.mcmc, ref.pipeline.model.mcmc
+    assert (got.opacity_reg, got.scale_reg) == (0.001, 0.001) and (want.opacity_reg, want.scale_reg) == (0.01, 0.01)
+    got.opacity_reg, got.scale_reg = want.opacity_reg, want.scale_reg
+    assert cfg.pipeline.model == ref.pipeline.model and cfg.optimizers == ref.optimizers
+
+
 @pytest.mark.parametrize(
     "rec, name",
     [
