@@ -863,15 +863,15 @@ def run_milestone_photos(
     from benchmarks.methods import configuration
 
     out: dict[str, list[list[tuple[float, float]]]] = defaultdict(list)
-    for rec in records:
+    for rec in scored_at(records, short, long):
         fold = parse_fold(str(rec.get("scene", "")))
         if fold is None or rec.get("status", "ok") != "ok" or configuration(rec) != method:
             continue
-        a, b = milestone(rec, short), milestone(rec, long)
-        if not a or not b or not a.get("per_image") or not b.get("per_image"):
-            continue
-        late = {p["image"]: float(p["psnr"]) for p in b["per_image"]}
-        out[fold[0]].append([(float(p["psnr"]), late[p["image"]]) for p in a["per_image"] if p["image"] in late])
+        early, late = (
+            {p["image"]: float(p["psnr"]) for p in milestone(rec, n)["per_image"]}  # type: ignore[index]
+            for n in (short, long)
+        )
+        out[fold[0]].append([(score, late[name]) for name, score in early.items() if name in late])
     return dict(out)
 
 
