@@ -166,6 +166,17 @@ def _eval_method(state: dict[str, Any]) -> str:
     return chosen if chosen in METHODS else state["method"]
 
 
+def milestone_spec(text: str) -> str:
+    """``--milestones``: "all" or step counts separated by commas or spaces ("5000,15000", "5000 15000"), returned
+    comma-separated; anything else is an argparse error naming the value."""
+    if text.strip() == "all":
+        return "all"
+    parts = text.replace(",", " ").split()
+    if not parts or not all(p.isdigit() and int(p) > 0 for p in parts):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 'all' or positive step counts such as 5000,15000")
+    return ",".join(parts)
+
+
 class Stop(Exception):
     """Raised by a step callback to end ``trainer.train()`` after that step."""
 
@@ -423,7 +434,12 @@ def main(argv=None) -> int:
     for name in ("train", "eval", "record"):
         p = sub.add_parser(name)
         p.add_argument("--run-dir", required=True)
-        p.add_argument("--milestones", default="7000,15000,30000", help="steps whose checkpoints are kept and scored")
+        p.add_argument(
+            "--milestones",
+            type=milestone_spec,
+            default="7000,15000,30000",
+            help="steps whose checkpoints are kept and scored (commas or spaces between them; eval: also 'all')",
+        )
         p.add_argument("--protocol-steps", type=int, default=128)
     t = sub.choices["train"]
     t.add_argument("--method", required=True)
@@ -456,6 +472,8 @@ def main(argv=None) -> int:
     r.add_argument("--out", required=True)
     r.add_argument("--concurrent", type=int, default=1, help="runs sharing the GPU while this one trained")
     args = ap.parse_args(argv)
+    if args.cmd == "train" and args.milestones == "all":
+        ap.error("--milestones all: train keeps checkpoints at step counts it is given (such as 5000,15000)")
     return {"train": train, "eval": evaluate, "record": record}[args.cmd](args)
 
 

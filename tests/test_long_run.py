@@ -3,6 +3,8 @@
 import json
 import multiprocessing as mp
 
+import pytest
+
 from benchmarks import long_run
 
 
@@ -16,6 +18,25 @@ def test_all_milestones_are_those_with_a_recorded_train_time():
     assert long_run._milestones("all", state) == [1000, 15004]
     assert long_run._milestones("2000,5000", state) == [2000, 5000]
     assert long_run._milestones("all", {}) == []
+
+
+def test_milestones_given_with_spaces_or_commas_are_read_alike_and_a_bad_one_is_named(tmp_path, capsys):
+    assert long_run.milestone_spec("5000 15000") == long_run.milestone_spec("5000,15000") == "5000,15000"
+    assert long_run.milestone_spec(" all ") == "all"
+    for bad, argv in (
+        ("5k", ["eval", "--run-dir", str(tmp_path), "--milestones", "5k"]),
+        (
+            "all",
+            ["train", "--run-dir", str(tmp_path), "--method", "willags", "--data", ".", "--budget-s", "1"]
+            + ["--milestones", "all"],
+        ),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            long_run.main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exc.value.code == 2 and "--milestones" in err[-1] and bad in err[-1]
+        assert "Traceback" not in "\n".join(err)
+    assert not list(tmp_path.iterdir())  # nothing started
 
 
 def test_a_knob_run_is_scored_with_the_preset_the_knob_chose():
