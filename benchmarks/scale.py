@@ -299,8 +299,10 @@ def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------- measurements
 
 
-def _tool(name: str) -> str:
-    """A console script of this interpreter's environment (ns-train, ns-eval, willags-inspect)."""
+def console_script(name: str) -> str:
+    """A console script of this interpreter's environment (ns-train, ns-eval, willags-inspect): beside the
+    interpreter in a venv, else ``name`` for PATH to find (an install into a --target folder, as on the GPU machines,
+    puts its scripts apart from the interpreter)."""
     path = Path(sys.executable).with_name(name)
     return str(path) if path.exists() else name
 
@@ -383,11 +385,11 @@ def measure(collection: Path, out: Path, args: argparse.Namespace) -> dict[str, 
     rec: dict[str, Any] = {"photos": train_photos + test_photos, "train_photos": train_photos}
     rec["test_photos"] = test_photos
     rec["load_average"] = round(os.getloadavg()[0], 2)  # how busy the machine was as the measurements began
-    inspect = run_process([_tool("willags-inspect"), "--data", str(collection), "--output", str(out / "inspect.json")],
+    inspect = run_process([console_script("willags-inspect"), "--data", str(collection), "--output", str(out / "inspect.json")],
                           out / "inspect.log")  # fmt: skip
     rec["inspect_s"], rec["inspect_rc"] = inspect["wall_s"], inspect["rc"]
     name = f"n{rec['photos']}"
-    train_cmd = [_tool("ns-train"), args.method, "--data", str(collection), "--output-dir", str(out / "runs")]
+    train_cmd = [console_script("ns-train"), args.method, "--data", str(collection), "--output-dir", str(out / "runs")]
     train_cmd += ["--experiment-name", "scale", "--timestamp", name, "--vis", "tensorboard", "--machine.seed", "42"]
     train_cmd += ["--max-num-iterations", str(args.steps), "--steps-per-save", str(args.steps)]
     train_cmd += ["--save-every-minutes", "0", "--pipeline.data-parallel.step-profile", "True"]
@@ -402,7 +404,7 @@ def measure(collection: Path, out: Path, args: argparse.Namespace) -> dict[str, 
     ckpts = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
     rec["checkpoint_mb"] = round(ckpts[-1].stat().st_size / 2**20, 2) if ckpts else None
     if args.eval:
-        ev = run_process([_tool("ns-eval"), "--load-config", str(run_dir / "config.yml"), "--output-path",
+        ev = run_process([console_script("ns-eval"), "--load-config", str(run_dir / "config.yml"), "--output-path",
                           str(out / "eval.json")], out / "eval.log", marker=EVAL_MARKER)  # fmt: skip
         rec.update(eval_rc=ev["rc"], eval_s=ev["wall_s"], eval_peak_host_gb=ev["peak_host_gb"])
         rec["eval_startup_s"] = ev["marker_s"]

@@ -9,7 +9,6 @@ import shlex
 import shutil
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +16,7 @@ import pytest
 import torch
 from PIL import Image
 
+from benchmarks.scale import console_script
 from willags_ns.data.dataparser import WillagsDataError, WillagsDataParserConfig
 from willags_ns.engine.checks import (
     WillagsInputError,
@@ -270,7 +270,7 @@ def test_pipeline_checks_nerfstudios_own_parser_before_building_the_model(scene,
 
 def _ns_train(args: list[str]) -> list[str]:
     """The command line of this venv's ns-train with `args`."""
-    exe = Path(sys.executable).with_name("ns-train")
+    exe = console_script("ns-train")
     return [str(exe), *args]
 
 

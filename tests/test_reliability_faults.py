@@ -9,13 +9,13 @@ import shlex
 import signal
 import socket
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from benchmarks.scale import console_script
 from tests._paused_ns_train import launch_paused, wait_until_paused
 from willags_ns.engine import checkpoints as ck
 from willags_ns.engine.checkpoints import (
@@ -279,7 +279,7 @@ def test_row23_ns_eval_on_a_damaged_checkpoint_prints_one_line(two_checkpoints, 
     cfg, d = _damaged_copy(two_checkpoints, tmp_path)
     older = d / "step-000000002.ckpt"
     older.write_bytes(b"")
-    exe = Path(sys.executable).with_name("ns-eval")
+    exe = console_script("ns-eval")
     res = subprocess.run(
         [str(exe), "--load-config", str(cfg), "--output-path", str(tmp_path / "eval.json")],
         capture_output=True,

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from benchmarks.scale import console_script
 from tests.test_reliability_faults import _config, scene  # noqa: F401 - the module's 8+2-image scene fixture
 from willags_ns.engine.checkpoints import CheckpointError, checkpoint_step, list_checkpoints
 
@@ -295,14 +296,13 @@ def test_row_u9_ctrl_c_on_ns_viewer_stops_without_a_traceback(project, tmp_path)
     import signal
     import socket
     import subprocess
-    import sys
     import time
 
     proj, cfg = project
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    exe = Path(sys.executable).with_name("ns-viewer")
+    exe = console_script("ns-viewer")
     cmd = [str(exe), "--load-config", str(cfg), "--viewer.websocket-port", str(port)]
     proc = _as_from_a_terminal(cmd, tmp_path, stderr=subprocess.PIPE)
     try:
@@ -458,12 +458,11 @@ def test_row_u11_an_export_past_a_damaged_newest_checkpoint_warns_once_and_names
     as a Python UserWarning with its source line) and the line naming the PLY names the step exported."""
     import os
     import subprocess
-    import sys
 
     copy_cfg = _copy_of(project, tmp_path / "copy")
     newest, older = list_checkpoints(copy_cfg.parent / "nerfstudio_models")[:2]
     newest.write_bytes(newest.read_bytes()[:5000])
-    exe = Path(sys.executable).with_name("willags-export")
+    exe = console_script("willags-export")
     out = tmp_path / "exports"
     res = subprocess.run(
         [str(exe), "--load-config", str(copy_cfg), "--output-dir", str(out)],
@@ -604,7 +603,6 @@ def test_row_u16_the_resume_command_goes_on_in_the_same_run_folder_counting_to_i
     import shlex
     import signal
     import subprocess
-    import sys
 
     from tests._paused_ns_train import launch_paused, wait_until_paused
 
@@ -625,7 +623,7 @@ def test_row_u16_the_resume_command_goes_on_in_the_same_run_folder_counting_to_i
     (run,) = [p.parent for p in out.rglob("config.yml")]
     command = shlex.split((run / "resume_command.txt").read_text())
     assert command[0] == "ns-train"
-    exe = str(Path(sys.executable).with_name("ns-train"))
+    exe = console_script("ns-train")
     res = subprocess.run(
         [exe, *command[1:]], capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, timeout=600
     )

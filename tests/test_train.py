@@ -1,14 +1,14 @@
 """Training through nerfstudio itself (its Trainer, datamanager, optimisers, callbacks, checkpoints) on CPU."""
 
 import json
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
+
+from benchmarks.scale import console_script
 
 pytestmark = pytest.mark.slow
 
@@ -211,15 +211,6 @@ def test_default_on_a_colmap_scene_trains_its_sky_and_safeguard_and_reloads_them
     assert torch.isfinite(out["rgb"]).all()
 
 
-def _console_script(name: str) -> str:
-    """A nerfstudio console script: beside this interpreter in a venv, else the one on PATH (an install into a
-    --target folder puts its scripts apart from the interpreter)."""
-    beside = Path(sys.executable).with_name(name)
-    found = str(beside) if beside.exists() else shutil.which(name)
-    assert found, f"{name} is neither beside {sys.executable} nor on PATH"
-    return found
-
-
 def test_entry_points_resolve():
     from nerfstudio.plugins.registry import discover_methods
 
@@ -232,7 +223,7 @@ def test_entry_points_resolve():
 
 
 def test_ns_train_cli_help_lists_willags_and_documents_options():
-    exe = _console_script("ns-train")
+    exe = console_script("ns-train")
     out = subprocess.run([str(exe), "willags", "--help"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     text = out.stdout
@@ -245,7 +236,7 @@ def test_ns_train_cli_help_lists_willags_and_documents_options():
 
 def test_ns_train_cli_runs_without_data_or_device_flags(tmp_path):
     """`ns-train willags` with no --data and no --machine.device-type: the default scene, on CPU."""
-    exe = _console_script("ns-train")
+    exe = console_script("ns-train")
     cmd = [
         str(exe),
         "willags",
@@ -278,7 +269,7 @@ def test_ns_train_cli_runs_without_data_or_device_flags(tmp_path):
 
 def test_ns_eval_runs_the_protocol(tmp_path):
     config, _, _ = _train(tmp_path, "willags", steps=6)
-    exe = _console_script("ns-eval")
+    exe = console_script("ns-eval")
     out_json = tmp_path / "eval.json"
     cmd = [str(exe), "--load-config", str(config.get_base_dir() / "config.yml"), "--output-path", str(out_json)]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
@@ -293,7 +284,7 @@ def _run_ns_tool(tool: str, args: list[str], appearance: str) -> None:
     """Run a nerfstudio console script of this venv with WILLAGS_APPEARANCE=appearance; it must succeed."""
     import os
 
-    cmd = [_console_script(tool), *args]
+    cmd = [console_script(tool), *args]
     env = {**os.environ, "WILLAGS_APPEARANCE": appearance}
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
     assert res.returncode == 0, (res.stdout[-2000:], res.stderr[-2000:])

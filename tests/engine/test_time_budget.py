@@ -6,12 +6,12 @@ import json
 import math
 import statistics
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
+from benchmarks.scale import console_script
 from willags_ns.engine import time_budget as tb
 from willags_ns.engine.time_budget import (
     OPTION,
@@ -771,7 +771,7 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
 
 @pytest.mark.slow
 def test_ns_train_prints_one_line_for_a_bad_budget(tmp_path):
-    exe = Path(sys.executable).with_name("ns-train")
+    exe = console_script("ns-train")
     cmd = [str(exe), "willags", "--pipeline.time-budget-minutes", "-5", "--vis", "tensorboard"]
     out = subprocess.run(cmd + ["--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert out.returncode == 1
