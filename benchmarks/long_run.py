@@ -22,6 +22,7 @@ import gc
 import json
 import os
 import random
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -294,6 +295,16 @@ def evaluate(args) -> int:
     have = set(_ckpt_steps(run_dir))
     variant = args.variant or None
     done = state["scores"] if variant is None else state.get("variants", {}).get(variant, {})
+    absent = [m for m in milestones if str(m) not in done and (m - 1) not in have]
+    if absent:
+        kept = ", ".join(str(s + 1) for s in sorted(have)) or "none"
+        print(
+            f"long_run: no checkpoint at step {', '.join(map(str, absent))} in {run_dir} (checkpoints kept at: {kept}); "
+            "--milestones names the steps to score",
+            file=sys.stderr,
+        )
+        if len(absent) == len(milestones):
+            return 2
     for m in milestones:
         if str(m) in done or (m - 1) not in have:
             continue

@@ -178,10 +178,11 @@ def test_check_finite_stops_at_the_first_non_finite_parameter(tmp_path, monkeypa
         long_run.main([*argv, "--steps", "8", "--milestones", "8", "--budget-s", "1e9", "--check-finite"])
 
 
-def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_path):
+def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_path, capsys):
     """`eval --variant` scores a milestone under other fit settings (steps, the oracle) into state.json's variants:
     the protocol's own scores (what the record's tables are made of) are neither skipped nor replaced, and the record
-    carries the variant beside them with each photo's fit."""
+    carries the variant beside them with each photo's fit. An eval whose milestones the run has no checkpoint for
+    says so in one line, naming the steps it kept, and fails instead of scoring nothing in silence."""
     from tests._scenes import small_scene
 
     data = small_scene(tmp_path / "appearance", appearance=1.0, transients=0.0)
@@ -191,6 +192,11 @@ def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_pa
         long_run.main(["train", *argv, "--method", "willags", "--data", str(data), "--steps", "4", "--budget-s", "1e9"])
         == 0
     )
+    capsys.readouterr()
+    assert long_run.main(["eval", "--run-dir", str(run), "--milestones", "7000,15000"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "7000, 15000" in err[0] and "kept at: 4" in err[0]
+    assert json.loads((run / long_run.STATE).read_text())["scores"] == {}
     variant = ["--variant", "oracle2", "--protocol-steps", "2", "--oracle", "--protocol-start-candidates", "3"]
     variant += ["--train-views", "0"]
     assert long_run.main(["eval", *argv, *variant]) == 0
