@@ -180,6 +180,21 @@ METHODS: dict[str, MethodSpec] = {
         ("modulation.local_penalty", 0.001),
         note="the default (its prior weight named) with a tenth of the per-Gaussian residual's penalty (0.001)",
     ),
+    "willags-prior-low-latent8": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("latent.dim", 8),
+        note="the default (its prior weight named) with an 8-d latent on every scene instead of the inspector's 32 or "
+        "64: a photo's appearance fitted on the left half through fewer directions, so less of the fit is spent on "
+        "what only the left half shows",
+        keep=("latent.dim",),
+    ),
+    "willags-prior-low-field": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("use_field", True),
+        note="the default (its prior weight named) with the latent-conditioned tri-plane field on (its feature feeds "
+        "the per-Gaussian residual): the paper's spatially varying appearance at the deciding length",
+        keep=("use_field",),
+    ),
     "willags-prior-low-mcmcreg": _default_on_gpu(
         ("latent.prior_weight", 0.002),
         ("mcmc.opacity_reg", 0.001),
