@@ -195,6 +195,13 @@ METHODS: dict[str, MethodSpec] = {
         "the per-Gaussian residual): the paper's spatially varying appearance at the deciding length",
         keep=("use_field",),
     ),
+    "willags-prior-low-sfmdepth": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("sfm_depth.weight", 0.1),
+        note="the default (its prior weight named) with the SfM depth loss at 0.1: each training render's expected "
+        "depth held to the depths of its photo's own SfM points (track >= 3), so that novel views see the "
+        "geometry the photos agree on rather than what fits one photo's colours",
+    ),
     "willags-prior-low-mcmcreg": _default_on_gpu(
         ("latent.prior_weight", 0.002),
         ("mcmc.opacity_reg", 0.001),

@@ -211,6 +211,21 @@ def test_default_on_a_colmap_scene_trains_its_sky_and_safeguard_and_reloads_them
     assert torch.isfinite(out["rgb"]).all()
 
 
+def test_the_sfm_depth_loss_trains_on_every_step_of_a_colmap_scene_and_is_off_by_default(tmp_path, shared_data):
+    """With sfm_depth.weight > 0 every training step of a COLMAP scene holds the render's depth to its photo's SfM
+    points (some observations used, the loss finite); the default leaves it out, depth not even rendered."""
+    data = shared_data / "sacre-coeur-mini"
+    _, trainer, losses = _train(
+        tmp_path, "willags", steps=4, data=data, num_downscales=3, device="cpu", **{"sfm_depth.weight": 0.1}
+    )
+    _check_finite(losses)
+    model = trainer.pipeline.model
+    assert model.sfm_depth_on and model._render_mode() == "RGB+ED"
+    assert all(m.get("sfm_depth_used", 0) > 0 for _, m in losses), [m.get("sfm_depth_used") for _, m in losses]
+    default = _train(tmp_path / "default", "willags", steps=1, data=data, num_downscales=3, device="cpu")[2]
+    assert "sfm_depth_used" not in default[0][1]
+
+
 def test_entry_points_resolve():
     from nerfstudio.plugins.registry import discover_methods
 

@@ -31,6 +31,7 @@ from willags_ns.eval.holdout import HoldoutConfig
 from willags_ns.mask.rule import MaskConfig
 from willags_ns.mask.teacher import TeacherConfig
 from willags_ns.model import WillagsModel
+from willags_ns.objective.sfm_depth import SfmDepthConfig
 from willags_ns.splats.mcmc import Densification, McmcConfig
 
 
@@ -103,6 +104,9 @@ class WillagsModelConfig(SplatfactoModelConfig):
     """The right halves of a few training photos kept out of the loss and scored as the NeRF-W protocol scores a test
     photo; the run ends with its best-scoring step's model when its last step scores worse (eval/holdout.py). Off
     (photos 0) by default."""
+    sfm_depth: SfmDepthConfig = field(default_factory=SfmDepthConfig)
+    """The render's expected depth held to the depths of each training photo's own SfM points (COLMAP scenes;
+    objective/sfm_depth.py). Off (weight 0) by default."""
     rasterize_mode: Literal["classic", "antialiased"] = "antialiased"
     """gsplat's rasterisation mode. "antialiased" (opacity compensation for the 2D dilation) keeps renders consistent
     across the resolution schedule (a run trains at 1/4 and 1/2 resolution and is scored at full)."""

@@ -55,7 +55,7 @@ from willags_ns.appearance.networks import AppearanceNetworks, gaussian_layout
 from willags_ns.appearance.sky import background, composite, pixel_directions, sky_for_scene
 from willags_ns.appearance.triplane import robust_bounds
 from willags_ns.appearance_spec import latent_from_env
-from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY
+from willags_ns.data.sfm_tracks import SFM_DEPTHS_KEY, SFM_OBSERVATIONS_KEY
 from willags_ns.eval.holdout import (
     BestStep,
     copy_state,
@@ -83,6 +83,7 @@ from willags_ns.mask.teacher import ema_update_
 from willags_ns.mask.transient import PerceptualFeatures
 from willags_ns.objective.losses import reconstruction_loss
 from willags_ns.objective.regularizers import regularization_terms
+from willags_ns.objective.sfm_depth import select_observations, sfm_depth_loss
 from willags_ns.render.camera import View, camera_view
 from willags_ns.splats.gaussians import (
     active_sh_degree,
@@ -170,6 +171,11 @@ class WillagsModel(SplatfactoModel):
         self.color_path = ColorPath(self.latents.key_of)  # the f_d and baked-SH caches
         # each image's last mask, visits and SfM support (the safeguard's observations: COLMAP scenes)
         self.mask_step = MaskStep(cfg, observations)
+        # the SfM depth loss's observations and depths per training image (COLMAP scenes; objective/sfm_depth.py)
+        depths = (self.kwargs.get("metadata") or {}).get(SFM_DEPTHS_KEY)
+        self.sfm_depth_on = cfg.sfm_depth.weight > 0 and observations is not None and depths is not None
+        self._sfm_depth_data = (observations, depths) if self.sfm_depth_on else None
+        self._sfm_depth_cache: dict[int, tuple[Tensor, Tensor]] = {}
         self.mask_health = MaskHealth(cfg.mask.health)
         self._train_batch: dict | None = None  # this step's batch (set_train_batch), until the step ends
         self.image_names = [f"image {i}" for i in range(max(self.num_train_data, 1))]
@@ -517,7 +523,8 @@ class WillagsModel(SplatfactoModel):
 
     def _render_mode(self) -> str:
         """gsplat's render mode: the expected depth after the colours while rendering (or when asked to train)."""
-        return "RGB+ED" if (self.config.output_depth_during_training or not self.training) else "RGB"
+        asked = self.config.output_depth_during_training or self.sfm_depth_on
+        return "RGB+ED" if (asked or not self.training) else "RGB"
 
     def _rasterize(self, gp: dict, colors: Tensor, view: View, sh_degree: int | None = None) -> tuple[Tensor, Tensor]:
         """The student's rasterisation (splats/gaussians.rasterize_gaussians): render [1, H, W, ch] (the colour
@@ -634,6 +641,8 @@ class WillagsModel(SplatfactoModel):
         loss_mask = self._holdout_mask(batch, mask, gt_img)
         mask_b = None if loss_mask is None else loss_mask[None]
         loss_dict = {"main_loss": reconstruction_loss(pred_b, gt_b, mask_b, ssim_lambda=cfg.ssim_lambda)}
+        if self.training and self.sfm_depth_on:
+            loss_dict.update(self._sfm_depth_term(outputs, batch, metrics_dict))
         if "expected_probe" in outputs and "teacher_rgb" in outputs:  # 0 in value: fits the levels (mask/expected.py)
             r = colour_residual(gt_img, outputs["teacher_rgb"])
             loss_dict[LEVEL] = level_loss(outputs["expected_residual"], outputs["expected_probe"], r)
@@ -674,6 +683,31 @@ class WillagsModel(SplatfactoModel):
             if cfg.log_images_every > 0 and self.step % cfg.log_images_every == 0:
                 log_step_images(self.step, outputs, gt_img, mask, step_mask.distance, recon)
         return loss_dict
+
+    def _sfm_depth_term(self, outputs, batch, metrics_dict) -> dict[str, Tensor]:
+        """{"sfm_depth": weight x the SfM depth loss} of this step's training photo (objective/sfm_depth.py), its
+        observations and depths moved to the device once per photo; empty for a photo without any."""
+        idx = int(batch.get("image_idx", -1))
+        assert self._sfm_depth_data is not None
+        observations, depths = self._sfm_depth_data
+        if not 0 <= idx < min(len(observations), len(depths)):
+            return {}
+        if idx not in self._sfm_depth_cache:
+            obs = torch.as_tensor(observations[idx], dtype=torch.float32).reshape(-1, 3)
+            target = torch.as_tensor(depths[idx], dtype=torch.float32).reshape(-1)
+            if obs.shape[0] != target.shape[0]:
+                raise ValueError(
+                    f"willags: training image {idx} has {obs.shape[0]} SfM observations but {target.shape[0]} depths"
+                )
+            uv, target = select_observations(obs, target, self.config.sfm_depth)
+            self._sfm_depth_cache[idx] = (uv.to(self.device), target.to(self.device))
+        uv, target = self._sfm_depth_cache[idx]
+        if uv.shape[0] == 0:
+            return {}
+        loss, used = sfm_depth_loss(outputs["depth"], outputs["accumulation"], uv, target, self.config.sfm_depth)
+        if metrics_dict is not None:
+            metrics_dict["sfm_depth_used"] = used
+        return {"sfm_depth": self.config.sfm_depth.weight * loss}
 
     def _holdout_mask(self, batch, mask: Tensor | None, gt_img: Tensor) -> Tensor | None:
         """The step's loss mask: `mask` (transient and user masks), times the left half when the step's training

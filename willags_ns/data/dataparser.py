@@ -38,7 +38,13 @@ from willags_ns.data.colmap import (
     find_colmap_model,
     read_colmap_model,
 )
-from willags_ns.data.sfm_tracks import SFM_OBSERVATIONS_KEY, read_observations, train_observations
+from willags_ns.data.sfm_tracks import (
+    SFM_DEPTHS_KEY,
+    SFM_OBSERVATIONS_KEY,
+    read_observations,
+    train_observation_depths,
+    train_observations,
+)
 from willags_ns.data.synthetic import SyntheticSceneConfig, ensure_default_scene
 
 EVAL_ONLY_DIRS = {"masks_gt_dir": "masks_gt", "gt_clean_dir": "gt_clean"}
@@ -464,6 +470,13 @@ class WillagsDataParser(DataParser):
                 metadata[SFM_OBSERVATIONS_KEY] = train_observations(read_observations(self._colmap_model), names)
             except Exception as e:  # the mask then runs without its safeguard; training itself needs no tracks
                 CONSOLE.log(f"willags-data: SfM observations of {self._colmap_model} unreadable ({e!r}): no safeguard")
+            if SFM_OBSERVATIONS_KEY in metadata:
+                try:
+                    metadata[SFM_DEPTHS_KEY] = train_observation_depths(
+                        self._colmap_model, names, float(outputs.dataparser_scale)
+                    )
+                except Exception as e:  # only the SfM depth loss reads them; it is then skipped
+                    CONSOLE.log(f"willags-data: SfM depths of {self._colmap_model} unreadable ({e!r}): no depth loss")
         return dataclasses.replace(outputs, metadata=metadata)
 
 

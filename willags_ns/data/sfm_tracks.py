@@ -31,6 +31,13 @@ SFM_OBSERVATIONS_KEY = "sfm_observations"
 holding (u, v, track length over the training images), u and v in [0, 1] (x right, y down)."""
 
 
+SFM_DEPTHS_KEY = "sfm_depths"
+"""DataparserOutputs.metadata key: a list (one entry per training image, aligned with SFM_OBSERVATIONS_KEY's rows) of
+float32 arrays [n]: each observation's 3D point's depth along that photo's optical axis, in the dataparser's scaled
+units (NaN where the point is missing from the model or lies behind the camera). The SfM depth loss reads them
+(objective/sfm_depth.py)."""
+
+
 def read_observations(model: Path) -> dict[str, tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
     """{image name: (xy [n, 2] pixels, point3D ids [n], (width, height) of its camera)} for every registered image of
     the COLMAP model in `model` (.bin or .txt), keypoints without a 3D point left out."""
@@ -71,6 +78,47 @@ def train_observations(
         uv = xy / np.asarray([w, h], dtype=np.float64)
         out.append(np.concatenate([uv, track[:, None]], axis=1).astype(np.float32))
     return out
+
+
+def train_observation_depths(model: Path, train_names: list[str], scale: float) -> list[np.ndarray]:
+    """One float32 array [n] per name of `train_names`, aligned with `train_observations`' rows for that name (the
+    keypoints with a 3D point, in the model's order): the point's depth along the photo's optical axis (COLMAP's
+    camera z of R X + t), times `scale` (the dataparser's scale of the scene: rotations and translations of the
+    scene leave a depth unchanged, its scale multiplies it). NaN for a point missing from the model's points3D file
+    or not in front of the camera; a name missing from the model gets an empty array."""
+    colmap = read_colmap_model(model, points=True)
+    pts = colmap.points or {}
+    by_name = {im.name: im for im in colmap.images.values()}
+    out = []
+    for name in train_names:
+        im = by_name.get(name)
+        if im is None:
+            out.append(np.zeros(0, np.float32))
+            continue
+        ids = np.asarray(im.point3D_ids, dtype=np.int64).reshape(-1)
+        ids = ids[ids >= 0]
+        xyz = np.full((len(ids), 3), np.nan)
+        for j, i in enumerate(ids):
+            p = pts.get(int(i))
+            if p is not None:
+                xyz[j] = p.xyz
+        rot = qvec_to_rotation(np.asarray(im.qvec, dtype=np.float64))
+        z = xyz @ rot[2] + float(np.asarray(im.tvec, dtype=np.float64)[2])
+        z = np.where(z > 0, z * float(scale), np.nan)
+        out.append(z.astype(np.float32))
+    return out
+
+
+def qvec_to_rotation(q: np.ndarray) -> np.ndarray:
+    """COLMAP's world-to-camera rotation [3, 3] of the quaternion (w, x, y, z), normalised."""
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 # the observations on a coarse grid of each image: the mask's safeguard (mask/static_support.py) and the sky's
