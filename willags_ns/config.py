@@ -17,6 +17,7 @@ refused with a message (`check_settings`). config.yml files of the flat layout (
 """
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -289,6 +290,12 @@ def check_settings(cfg: WillagsModelConfig) -> None:
         raise ValueError(
             f"willags: --pipeline.model.holdout.* must be photos >= 0, every >= 1, start >= 0, margin >= 0 (got photos "
             f"{h.photos}, every {h.every}, start {h.start}, margin {h.margin})"
+        )
+    d = cfg.sfm_depth
+    if not (math.isfinite(d.weight) and d.weight >= 0 and d.min_track >= 2 and 0 <= d.min_alpha < 1):
+        raise ValueError(
+            "willags: --pipeline.model.sfm-depth.* must be weight >= 0 (finite), min-track >= 2, 0 <= min-alpha < 1 "
+            f"(got weight {d.weight}, min-track {d.min_track}, min-alpha {d.min_alpha})"
         )
     if cfg.mask.residual.expected and cfg.mask.distance != "residual":
         raise ValueError(

@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from willags_ns.objective.sfm_depth import SfmDepthConfig, sample_at, select_observations, sfm_depth_loss
@@ -64,3 +65,15 @@ def test_descending_the_loss_moves_the_rendered_depth_to_the_points_and_leaves_a
         opt.step()
     assert abs(float(depth[3, 2, 0]) - 3.0) < 0.1
     assert alpha.grad is None or float(alpha.grad.abs().sum()) == 0.0
+
+
+@pytest.mark.parametrize(
+    "field, value, shown",
+    [("weight", -0.1, "weight -0.1"), ("weight", float("nan"), "weight nan"), ("min_track", 1, "min-track 1"),
+     ("min_alpha", 1.0, "min-alpha 1.0")],
+)  # fmt: skip
+def test_a_bad_sfm_depth_setting_is_refused_naming_it(field, value, shown):
+    from willags_ns.config import WillagsModelConfig
+
+    with pytest.raises(ValueError, match=rf"sfm-depth\.\*.*{shown}"):
+        WillagsModelConfig(sfm_depth=SfmDepthConfig(**{field: value}))
