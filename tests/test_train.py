@@ -225,6 +225,12 @@ def test_the_sfm_depth_loss_trains_on_every_step_of_a_colmap_scene_and_is_off_by
     default = _train(tmp_path / "default", "willags", steps=1, data=data, num_downscales=3, device="cpu")[2]
     assert "sfm_depth_used" not in default[0][1]
 
+    def unreadable():
+        raise OSError("points3D.bin: truncated")
+
+    model._sfm_depths_of, model._sfm_depths = unreadable, None  # a points file that cannot be read: the loss goes off
+    assert model._sfm_depth_term({}, {"image_idx": 0}, {}) == {} and not model.sfm_depth_on
+
 
 def test_entry_points_resolve():
     from nerfstudio.plugins.registry import discover_methods

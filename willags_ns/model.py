@@ -171,10 +171,12 @@ class WillagsModel(SplatfactoModel):
         self.color_path = ColorPath(self.latents.key_of)  # the f_d and baked-SH caches
         # each image's last mask, visits and SfM support (the safeguard's observations: COLMAP scenes)
         self.mask_step = MaskStep(cfg, observations)
-        # the SfM depth loss's observations and depths per training image (COLMAP scenes; objective/sfm_depth.py)
-        depths = (self.kwargs.get("metadata") or {}).get(SFM_DEPTHS_KEY)
-        self.sfm_depth_on = cfg.sfm_depth.weight > 0 and observations is not None and depths is not None
-        self._sfm_depth_data = (observations, depths) if self.sfm_depth_on else None
+        # the SfM depth loss (COLMAP scenes; objective/sfm_depth.py): the dataparser's reader of the observations'
+        # depths, called on the loss's first step; then each photo's used observations, on the device
+        depths_of = (self.kwargs.get("metadata") or {}).get(SFM_DEPTHS_KEY)
+        on = cfg.sfm_depth.weight > 0 and observations is not None and depths_of is not None
+        self._sfm_depths_of = depths_of if on else None
+        self._sfm_depths: list | None = None
         self._sfm_depth_cache: dict[int, tuple[Tensor, Tensor]] = {}
         self.mask_health = MaskHealth(cfg.mask.health)
         self._train_batch: dict | None = None  # this step's batch (set_train_batch), until the step ends
@@ -684,13 +686,28 @@ class WillagsModel(SplatfactoModel):
                 log_step_images(self.step, outputs, gt_img, mask, step_mask.distance, recon)
         return loss_dict
 
+    @property
+    def sfm_depth_on(self) -> bool:
+        """Whether training adds the SfM depth loss: a weight above 0 on a scene with SfM observations and depths."""
+        return self._sfm_depths_of is not None
+
     def _sfm_depth_term(self, outputs, batch, metrics_dict) -> dict[str, Tensor]:
         """{"sfm_depth": weight x the SfM depth loss} of this step's training photo (objective/sfm_depth.py), its
-        observations and depths moved to the device once per photo; empty for a photo without any."""
+        observations and depths moved to the device once per photo; empty for a photo without any. The depths are
+        read on the first call; a points file that cannot be read turns the loss off with one line."""
         idx = int(batch.get("image_idx", -1))
-        assert self._sfm_depth_data is not None
-        observations, depths = self._sfm_depth_data
-        if not 0 <= idx < min(len(observations), len(depths)):
+        assert self._sfm_depths_of is not None
+        if self._sfm_depths is None:
+            try:
+                self._sfm_depths = self._sfm_depths_of()
+            except Exception as e:  # the run goes on without the loss, as the mask does without its tracks
+                CONSOLE.log(
+                    f"willags: the SfM points' depths are unreadable ({e!r}): training without the SfM depth loss"
+                )
+                self._sfm_depths_of = None
+                return {}
+        observations, depths = self.sfm_observations, self._sfm_depths
+        if observations is None or not 0 <= idx < min(len(observations), len(depths)):
             return {}
         if idx not in self._sfm_depth_cache:
             obs = torch.as_tensor(observations[idx], dtype=torch.float32).reshape(-1, 3)

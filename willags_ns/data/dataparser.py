@@ -17,6 +17,7 @@ never reads them. Input problems raise `WillagsDataError` naming the file or fie
 
 import csv
 import dataclasses
+import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -470,13 +471,9 @@ class WillagsDataParser(DataParser):
                 metadata[SFM_OBSERVATIONS_KEY] = train_observations(read_observations(self._colmap_model), names)
             except Exception as e:  # the mask then runs without its safeguard; training itself needs no tracks
                 CONSOLE.log(f"willags-data: SfM observations of {self._colmap_model} unreadable ({e!r}): no safeguard")
-            if SFM_OBSERVATIONS_KEY in metadata:
-                try:
-                    metadata[SFM_DEPTHS_KEY] = train_observation_depths(
-                        self._colmap_model, names, float(outputs.dataparser_scale)
-                    )
-                except Exception as e:  # only the SfM depth loss reads them; it is then skipped
-                    CONSOLE.log(f"willags-data: SfM depths of {self._colmap_model} unreadable ({e!r}): no depth loss")
+            if SFM_OBSERVATIONS_KEY in metadata:  # read when the SfM depth loss asks (the points file: its cost)
+                scale = float(outputs.dataparser_scale)
+                metadata[SFM_DEPTHS_KEY] = functools.partial(train_observation_depths, self._colmap_model, names, scale)
         return dataclasses.replace(outputs, metadata=metadata)
 
 

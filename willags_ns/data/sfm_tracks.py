@@ -32,10 +32,11 @@ holding (u, v, track length over the training images), u and v in [0, 1] (x righ
 
 
 SFM_DEPTHS_KEY = "sfm_depths"
-"""DataparserOutputs.metadata key: a list (one entry per training image, aligned with SFM_OBSERVATIONS_KEY's rows) of
-float32 arrays [n]: each observation's 3D point's depth along that photo's optical axis, in the dataparser's scaled
-units (NaN where the point is missing from the model or lies behind the camera). The SfM depth loss reads them
-(objective/sfm_depth.py)."""
+"""DataparserOutputs.metadata key: a callable without arguments returning a list (one entry per training image,
+aligned with SFM_OBSERVATIONS_KEY's rows) of float32 arrays [n]: each observation's 3D point's depth along that
+photo's optical axis, in the dataparser's scaled units (NaN where the point is missing from the model or lies behind
+the camera). A callable, so that the points file is read only by the one that uses the depths (the SfM depth loss,
+objective/sfm_depth.py), not at every start of a run without it."""
 
 
 def read_observations(model: Path) -> dict[str, tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
@@ -86,6 +87,8 @@ def train_observation_depths(model: Path, train_names: list[str], scale: float) 
     camera z of R X + t), times `scale` (the dataparser's scale of the scene: rotations and translations of the
     scene leave a depth unchanged, its scale multiplies it). NaN for a point missing from the model's points3D file
     or not in front of the camera; a name missing from the model gets an empty array."""
+    from nerfstudio.data.utils import colmap_parsing_utils as cpu
+
     colmap = read_colmap_model(model, points=True)
     pts = colmap.points or {}
     by_name = {im.name: im for im in colmap.images.values()}
@@ -102,23 +105,11 @@ def train_observation_depths(model: Path, train_names: list[str], scale: float) 
             p = pts.get(int(i))
             if p is not None:
                 xyz[j] = p.xyz
-        rot = qvec_to_rotation(np.asarray(im.qvec, dtype=np.float64))
+        rot = cpu.qvec2rotmat(im.qvec)  # world to camera, as nerfstudio's COLMAP parser reads it
         z = xyz @ rot[2] + float(np.asarray(im.tvec, dtype=np.float64)[2])
         z = np.where(z > 0, z * float(scale), np.nan)
         out.append(z.astype(np.float32))
     return out
-
-
-def qvec_to_rotation(q: np.ndarray) -> np.ndarray:
-    """COLMAP's world-to-camera rotation [3, 3] of the quaternion (w, x, y, z), normalised."""
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 # the observations on a coarse grid of each image: the mask's safeguard (mask/static_support.py) and the sky's
