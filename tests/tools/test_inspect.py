@@ -415,14 +415,35 @@ def test_open_from_top_and_surround_known_answers():
 @pytest.mark.data
 def test_shared_scenes_ground_under_the_subject(shared_data):
     """reichstag's plaza, where the crowds stand, is open ground under the facade; no other shared scene has any
-    (docs/inspect.md). Printed, not part of the recommendation: reichstag's mask stays off."""
+    (docs/inspect.md). Printed, and a hint in the mask's reason: reichstag's mask stays off."""
     for name, ground in (("reichstag", True), ("liberty", False), ("sacre-coeur-mini", False), ("fox-clean", False)):
         report = inspect_scene(InspectConfig(data=shared_data / name))
         score = report["evidence"]["ground_score"]
         assert (score > 0.1) if ground else (score < 0.03), (name, score)
         assert f"ground under it {score:.2f} (median)" in format_report(report)
         assert len(report["per_image"]["per_image_ground_fraction"]) == len(report["per_image"]["names"])
-    assert inspect_scene(InspectConfig(data=shared_data / "reichstag"))["recommendation"]["mask"]["on"] is False
+    reichstag = inspect_scene(InspectConfig(data=shared_data / "reichstag"))["recommendation"]["mask"]
+    assert reichstag["on"] is False and "try --pipeline.model.mask.enabled True" in reichstag["reason"]
+    liberty = inspect_scene(InspectConfig(data=shared_data / "liberty"))["recommendation"]["mask"]
+    assert "ground under the subject" not in liberty["reason"]
+
+
+def test_ground_under_the_subject_hints_at_the_mask_and_switches_nothing():
+    """Open ground under the subject (a plaza SfM left empty) adds a hint to try the mask to its reason when the
+    transient count keeps it off; it never turns the mask on, and says nothing when the mask is on or the ground low."""
+    cfg = InspectConfig(ground_hint_threshold=0.1, transient_threshold=0.12)
+    crowds = {**_evidence(12.0, 0.02, 0.007, 0.37, 0.37), "ground_score": 0.16}
+    rec = recommend(crowds, 40, cfg)
+    assert rec["mask"]["on"] is False and "--pipeline.model.mask.enabled False" in rec["command"]
+    assert "ground under the subject 0.16 >= 0.1" in rec["mask"]["reason"]
+    assert "try --pipeline.model.mask.enabled True" in rec["mask"]["reason"]
+    for evidence in (
+        {**crowds, "ground_score": 0.0999},
+        {**crowds, "ground_score": None},
+        {**crowds, "transient_score": 0.2},
+    ):
+        assert "ground under the subject" not in recommend(evidence, 40, cfg)["mask"]["reason"], evidence
+    assert recommend({**crowds, "transient_score": 0.2}, 40, cfg)["mask"]["on"] is True
 
 
 def test_a_subject_against_the_sky_gets_the_surround_sky(tmp_path):

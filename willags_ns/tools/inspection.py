@@ -62,9 +62,9 @@ the share of its covered cells that have open background connected to the image'
 the sky (open background above its roofline only) low. What is uncovered but not reached from the top (`ground_score`:
 per image the share of cells uncovered and enclosed by covered ones from above, `enclosed_fraction`, median over the
 images) is ground SfM did not reconstruct under the subject: a plaza where crowds stand (docs/inspect.md gives each
-shared scene's). It is measured and printed, and not part of the recommendation: the
-transient score does not see crowds where SfM has no points, and whether this does is for collections it was not
-found on to say. Without SfM points none of these is measured (None).
+shared scene's). It is measured and printed, and it does not switch anything: the transient
+score does not see crowds where SfM has no points, and whether this does is for collections it was not found on to
+say. At or above `ground_hint_threshold`, with the mask off, the mask's reason suggests trying it. Without SfM points none of these is measured (None).
 
 The recommendation (see `recommend`): appearance latent on when appearance_score >= `appearance_threshold`; mask (with
 its EMA teacher) on when transient_score >= `transient_threshold`; tri-plane field always off (measured: it did not
@@ -170,6 +170,12 @@ class InspectConfig:
     beside it as well as above it, where the skyline region never reaches, and Gaussians floating in that sky show
     in every new view. A building seen against the sky only above its roofline measures far less (docs/inspect.md
     gives every shared scene's value)."""
+    ground_hint_threshold: float = 0.1
+    """ground_score (median share of an image uncovered by SfM and enclosed from above: ground under the subject) at
+    or above which the mask's reason, when the mask stays off, adds a hint to try it. Crowds stand where SfM has no
+    points, so the transient score cannot see them; on the one shared collection above this (reichstag) the mask won,
+    while the collections below it scored level or lost with it (docs/inspect.md, "Ground under the subject"). A hint,
+    not a switch: one collection is too few to set a default by."""
     gaussians_per_point: float = 10.0
     """Resource estimate: expected final Gaussians per SfM point (clipped to [1e5, 1.5e6])."""
     max_gaussians: int = 300_000
@@ -882,6 +888,13 @@ def recommend(evidence: dict[str, Any], n_train: int, cfg: InspectConfig) -> dic
             f"{'>=' if mask else '<'} threshold {cfg.transient_threshold:g} (mean transient fraction "
             f"{evidence['transient_fraction_mean']:.3f})"
         )
+        ground = evidence.get("ground_score")
+        if not mask and ground is not None and ground >= cfg.ground_hint_threshold:
+            mask_reason += (
+                f"; but ground under the subject {against(ground, cfg.ground_hint_threshold)} >= "
+                f"{cfg.ground_hint_threshold:g}: people may stand where SfM has no points, which that count cannot see; "
+                "try --pipeline.model.mask.enabled True (docs/inspect.md)"
+            )
     if appearance:
         latent = 64 if n_train >= 30 else 32
         latent_reason = f"{n_train} training images: {latent}-d ({'the default' if latent == 64 else 'fewer images'})"
