@@ -195,6 +195,12 @@ METHODS: dict[str, MethodSpec] = {
         "the per-Gaussian residual): the paper's spatially varying appearance at the deciding length",
         keep=("use_field",),
     ),
+    "willags-prior-low-capscene": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("mcmc.cap_rule", "pixels"),
+        note="the default (its prior weight named) with MCMC's cap from the training photos' megapixels "
+        "(splats/mcmc.scene_cap): a 12-photo collection is not given the Gaussians of a 128-photo one",
+    ),
     "willags-prior-low-sfmdepth": _default_on_gpu(
         ("latent.prior_weight", 0.002),
         ("sfm_depth.weight", 0.1),
