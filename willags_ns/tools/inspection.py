@@ -64,7 +64,8 @@ per image the share of cells uncovered and enclosed by covered ones from above, 
 images) is ground SfM did not reconstruct under the subject: a plaza where crowds stand (docs/inspect.md gives each
 shared scene's). It is measured and printed, and it does not switch anything: the transient
 score does not see crowds where SfM has no points, and whether this does is for collections it was not found on to
-say. At or above `ground_hint_threshold`, with the mask off, the mask's reason suggests trying it. Without SfM points none of these is measured (None).
+say. At or above `ground_hint_threshold`, with the mask off, the mask's reason suggests trying it. Without SfM points
+none of these is measured (None).
 
 The recommendation (see `recommend`): appearance latent on when appearance_score >= `appearance_threshold`; mask (with
 its EMA teacher) on when transient_score >= `transient_threshold`; tri-plane field always off (measured: it did not
