@@ -104,8 +104,8 @@ def cap_and_reason(cfg: McmcConfig, train_megapixels: float | None) -> tuple[int
     if cfg.cap_rule == "pixels":
         return cfg.cap_max, f"at most {cfg.cap_max:,} Gaussians (rule pixels, but no megapixels measured: as set)"
     reason = (
-        f"at most {cfg.cap_max:,} Gaussians (rule fixed, as set: over five cross-validated collections a cap from "
-        "the photos' pixels scored no better, docs/design.md)"
+        f"at most {cfg.cap_max:,} Gaussians (rule fixed, as set: a cap from the photos' pixels has not scored better "
+        "in the cross-validated runs, docs/design.md)"
     )
     if train_megapixels is not None:
         alt, _ = scene_cap(train_megapixels, cfg)
