@@ -579,7 +579,50 @@ def cv_rows(
             "",
             *md_table(head, switches),
         ]
+    fit_head, fits = capacity_rows(records, steps, tags)
+    if fits and variant is None:
+        out += [
+            "",
+            "What each method fits and keeps (`cv.capacity_rows`): the training photos' PSNR, each rendered with its own "
+            'latent or embedding, and the Gaussians, means over the fold runs, "fit / thousands of Gaussians":',
+            "",
+            *md_table(fit_head, fits),
+        ]
     return out
+
+
+def capacity_rows(records: Sequence[dict[str, Any]], steps: int, tags=None) -> tuple[list[str], list[list[str]]]:
+    """(header, rows) of what each method fits and keeps at `steps`, from the fold runs' own records: per collection
+    the mean over its runs of the training photos' PSNR (each rendered with its own latent or embedding,
+    ``train_psnr``) and of the Gaussians at that step, "fit / thousands of Gaussians". A closer fit of the training
+    photos is not a better score on new ones; the table shows where a method's capacity and fit differ. Only methods
+    with at least one run that recorded both."""
+    from benchmarks.methods import configuration
+
+    vals: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
+    for rec in records:
+        fold = parse_fold(str(rec.get("scene", "")))
+        if fold is None or rec.get("status", "ok") != "ok":
+            continue
+        if tags is not None and not any(str(rec.get("tag") or "").startswith(t) for t in tags):
+            continue
+        ms = milestone(rec, steps)
+        if ms is None or ms.get("train_psnr") is None or ms.get("num_gaussians") is None:
+            continue
+        vals[(fold[0], configuration(rec))].append((float(ms["train_psnr"]), float(ms["num_gaussians"])))
+    scenes = sorted({s for s, _ in vals})
+    first = ("willags", "peer", "peer-full")  # the default and the peers first, then the candidates by name
+    methods = sorted({m for _, m in vals}, key=lambda m: (first.index(m) if m in first else len(first), m))
+    rows = []
+    for m in methods:
+        cells = []
+        for sc in scenes:
+            v = vals.get((sc, m))
+            cells.append(
+                "–" if not v else f"{np.mean([a for a, _ in v]):.1f} / {np.mean([g for _, g in v]) / 1e3:.0f}k"
+            )
+        rows.append([m, *cells])
+    return ["method", *scenes], rows
 
 
 def pooled_rows_of(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, default: str) -> list[list[str]]:

@@ -115,6 +115,25 @@ def test_collect_pairs_each_photo_across_folds_and_methods():
     assert cv.collect(_records(1.5), 15000)["scene"]["peer"].per_photo == {"a.jpg": 99.0}
 
 
+def test_capacity_rows_average_each_methods_training_fit_and_gaussians_per_collection():
+    """Per collection the mean over the method's fold runs of the training photos' PSNR and of its Gaussians at that
+    step; runs without either, failed runs, other step counts and scenes that are not folds do not count."""
+    recs = _records(0.5)
+    fits = ((25.0, 300_000), (27.0, 100_000), (30.0, 450_000), (32.0, 450_000))
+    for rec, (fit, n) in zip(recs[:4], fits, strict=True):
+        rec["milestones"]["5000"].update(train_psnr=fit, num_gaussians=n)
+    recs.append({**_fold_rec("scene", 1, 2, "peer", {"a.jpg": 1.0}), "status": "failed"})
+    recs[-1]["milestones"]["5000"].update(train_psnr=99.0, num_gaussians=1)
+    recs.append({**_fold_rec("other", 1, 2, "willags", {"x.jpg": 1.0}), "scene": "other"})  # not a fold
+    recs[-1]["milestones"]["5000"].update(train_psnr=99.0, num_gaussians=1)
+    head, rows = cv.capacity_rows(recs, 5000)
+    assert head == ["method", "scene"]
+    assert rows == [["willags", "26.0 / 200k"], ["peer", "31.0 / 450k"]]
+    assert cv.capacity_rows(recs, 15000) == (["method"], [])  # the 15000-step record has neither
+    table = cv.cv_rows(recs, 5000)
+    assert "| willags | 26.0 / 200k |" in table and "| peer | 31.0 / 450k |" in table
+
+
 def test_cv_rows_give_means_fold_means_intervals_and_say_what_is_missing():
     noise, _, head, _, row = cv.cv_rows(_records(0.5, folds_of_b=1), 5000)
     assert noise.startswith("Run noise: no replicate pair yet")
