@@ -263,6 +263,23 @@ def variant_milestone(rec: dict[str, Any], steps: int, variant: str) -> dict[str
     return ((rec.get("protocol_variants") or {}).get(variant) or {}).get(str(steps))
 
 
+def fold_runs(
+    records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None, variant: str | None = None
+):
+    """(fold as parse_fold gives it, record, its scores at `steps`) of every fold run that ended well and was scored
+    there: `tags`, only records whose tag starts with one of these; `variant`, the scores under that protocol variant
+    instead of the protocol's own."""
+    for rec in records:
+        fold = parse_fold(str(rec.get("scene", "")))
+        if fold is None or rec.get("status", "ok") != "ok":
+            continue
+        if tags is not None and not any(str(rec.get("tag") or "").startswith(t) for t in tags):
+            continue
+        ms = milestone(rec, steps) if variant is None else variant_milestone(rec, steps, variant)
+        if ms is not None:
+            yield fold, rec, ms
+
+
 def collect(
     records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None, variant: str | None = None
 ):
@@ -273,14 +290,8 @@ def collect(
 
     photos: dict[tuple[str, int, str], dict[int, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(dict))
     runs: dict[tuple[str, int, str], int] = defaultdict(int)
-    for rec in records:
-        fold = parse_fold(str(rec.get("scene", "")))
-        if fold is None or rec.get("status", "ok") != "ok":
-            continue
-        if tags is not None and not any(str(rec.get("tag") or "").startswith(t) for t in tags):
-            continue
-        ms = milestone(rec, steps) if variant is None else variant_milestone(rec, steps, variant)
-        if ms is None or not ms.get("per_image"):
+    for fold, rec, ms in fold_runs(records, steps, tags, variant):
+        if not ms.get("per_image"):
             continue
         scene, k, folds = fold
         key = (scene, folds, configuration(rec))
@@ -313,10 +324,8 @@ def _runs(records: Sequence[dict[str, Any]], steps: int):
     from benchmarks.methods import configuration
 
     out: dict[tuple[str, int, str, int], dict[int, tuple[dict[str, float], Any]]] = defaultdict(dict)
-    for rec in records:
-        fold = parse_fold(str(rec.get("scene", "")))
-        ms = milestone(rec, steps) if fold is not None and rec.get("status", "ok") == "ok" else None
-        if fold is None or ms is None or not ms.get("per_image"):
+    for fold, rec, ms in fold_runs(records, steps):
+        if not ms.get("per_image"):
             continue
         scene, k, folds = fold
         scores = {p["image"]: float(p["psnr"]) for p in ms["per_image"]}
@@ -600,14 +609,8 @@ def capacity_rows(records: Sequence[dict[str, Any]], steps: int, tags=None) -> t
     from benchmarks.methods import configuration
 
     vals: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
-    for rec in records:
-        fold = parse_fold(str(rec.get("scene", "")))
-        if fold is None or rec.get("status", "ok") != "ok":
-            continue
-        if tags is not None and not any(str(rec.get("tag") or "").startswith(t) for t in tags):
-            continue
-        ms = milestone(rec, steps)
-        if ms is None or ms.get("train_psnr") is None or ms.get("num_gaussians") is None:
+    for fold, rec, ms in fold_runs(records, steps, tags):
+        if ms.get("train_psnr") is None or ms.get("num_gaussians") is None:
             continue
         vals[(fold[0], configuration(rec))].append((float(ms["train_psnr"]), float(ms["num_gaussians"])))
     scenes = sorted({s for s, _ in vals})
