@@ -201,6 +201,14 @@ METHODS: dict[str, MethodSpec] = {
         note="the default (its prior weight named) with MCMC's cap from the training photos' megapixels "
         "(splats/mcmc.scene_cap): a 12-photo collection is not given the Gaussians of a 128-photo one",
     ),
+    "willags-prior-low-capshrink": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("mcmc.cap_rule", "pixels"),
+        ("mcmc.cap_ceiling", 300_000),
+        note="the default (its prior weight named) with MCMC's cap from the training photos' megapixels, never above "
+        "the default's 300,000 (splats/mcmc.scene_cap): fewer Gaussians where fewer pixels pin them down, the "
+        "default's cap on collections with more; it trains the default's model wherever the rule reaches 300,000",
+    ),
     "willags-prior-low-sfmdepth": _default_on_gpu(
         ("latent.prior_weight", 0.002),
         ("sfm_depth.weight", 0.1),
