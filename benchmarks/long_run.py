@@ -149,6 +149,11 @@ def _trained_model(config) -> None:
     if not hasattr(config.pipeline.model, "auto_config") or not saved.exists():
         return
     trained = yaml.load(saved.read_text(), Loader=yaml.Loader)
+    if not hasattr(trained, "pipeline"):
+        raise SystemExit(
+            f"long_run: {saved} holds no run configuration (it reads as {type(trained).__name__}); the model its "
+            "checkpoints hold cannot be rebuilt from it"
+        )
     config.pipeline.model = trained.pipeline.model
 
 

@@ -122,6 +122,11 @@ def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_i
             model.get_outputs_for_camera(trainer.pipeline.datamanager.eval_dataset.cameras[0:1])["rgb"]
         ).all()
 
+    saved = trainer.config.get_base_dir() / "config.yml"
+    saved.write_text("")  # a config.yml emptied outside the run: said in one line naming it, not an AttributeError
+    with pytest.raises(SystemExit, match=rf"^long_run: {saved} holds no run configuration \(it reads as NoneType\)"):
+        long_run._setup("willags", data, run, 4, 42, 1, "test")
+
 
 def test_a_run_killed_after_a_milestone_keeps_its_time_and_is_scored_there(tmp_path, monkeypatch):
     """A training process that dies after its first milestone (killed, out of time) leaves a state that says where

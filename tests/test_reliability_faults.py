@@ -113,6 +113,27 @@ def test_row22_a_save_is_atomic_and_a_full_disk_removes_its_partial_file(tmp_pat
         save_atomic(_state(5), checkpoint_path(d, 5))
 
 
+def test_row22_a_config_write_that_fails_midway_leaves_the_previous_config_yml_whole(scene, tmp_path, monkeypatch):
+    config = _config(tmp_path / "out", scene, steps=5)
+    path = config.get_base_dir() / "config.yml"
+    before = path.read_text()
+    write_text = Path.write_text
+
+    def half_then_disk_full(self, data, *args, **kwargs):
+        write_text(self, data[: len(data) // 2], *args, **kwargs)
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    monkeypatch.setattr(Path, "write_text", half_then_disk_full)
+    config.max_num_iterations = 7
+    with pytest.raises(OSError, match="No space left"):
+        config.save_config()
+    monkeypatch.undo()
+    assert path.read_text() == before
+    assert [p.name for p in path.parent.iterdir() if p.name.endswith(ck.PARTIAL_SUFFIX)] == []
+    config.save_config()
+    assert "max_num_iterations: 7" in path.read_text()
+
+
 def _mount_tmpfs(path: Path, size: str) -> bool:
     path.mkdir(parents=True, exist_ok=True)
     try:

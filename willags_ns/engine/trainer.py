@@ -119,10 +119,19 @@ class WillagsTrainerConfig(TrainerConfig):
         super().set_timestamp()
 
     def save_config(self) -> None:
+        """config.yml, written as nerfstudio writes it but atomically (a partial file renamed over it): a process
+        killed or a disk filled mid-write leaves the previous config.yml whole, which every resume, ns-eval and
+        render of the run reads."""
         if id(self) in _SAVE_AFTER_SETUP:  # ns-train's save right after print_to_terminal: WillagsTrainer.setup saves
             _SAVE_AFTER_SETUP.discard(id(self))
             return
-        super().save_config()
+        import yaml
+
+        base_dir = self.get_base_dir()
+        base_dir.mkdir(parents=True, exist_ok=True)
+        path = base_dir / "config.yml"
+        CONSOLE.log(f"Saving config to: {path}")
+        write_text_atomic(path, yaml.dump(self))
 
     save_every_minutes: float = 5.0
     """Also write a checkpoint once this many minutes of wall time have passed since the last one (0: only every
