@@ -209,6 +209,13 @@ METHODS: dict[str, MethodSpec] = {
         "the default's 300,000 (splats/mcmc.scene_cap): fewer Gaussians where fewer pixels pin them down, the "
         "default's cap on collections with more; it trains the default's model wherever the rule reaches 300,000",
     ),
+    "willags-prior-low-sh1": _default_on_gpu(
+        ("latent.prior_weight", 0.002),
+        ("sh_degree", 1),
+        note="the default (its prior weight named) with the Gaussians' SH at degree 1 instead of 3: 12 colour "
+        "coefficients a Gaussian instead of 48, so a collection of few photos fits less view dependence that a "
+        "new view does not share",
+    ),
     "willags-prior-low-sfmdepth": _default_on_gpu(
         ("latent.prior_weight", 0.002),
         ("sfm_depth.weight", 0.1),
