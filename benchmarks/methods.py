@@ -41,6 +41,10 @@ _NO_PRIOR = ("latent.prior_weight", 0.0)
 """The latent table without its prior (the default's is 0.002): the configurations measured without it name it, so
 that their records say what they measured."""
 
+_PRIOR_LOW = ("latent.prior_weight", 0.002)
+"""The default's own latent prior, named: the candidates measured against the default set it explicitly, so that their
+records say what they measured whatever the default's weight becomes."""
+
 
 _RESIDUAL_MASK = (("mask.enabled", True), ("mask.distance", "residual"))
 """The transient mask on every scene, by the colour residual to the teacher (the inspector keeps it: keep=...)."""
@@ -107,41 +111,41 @@ METHODS: dict[str, MethodSpec] = {
         note="the default with ten times its latent prior (0.02, the pull the VAE's KL puts on its latent)",
     ),
     "willags-prior-low": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         note="the default's own prior weight named (0.002, a tenth of willags-prior's): the same model as willags",
     ),
     "willags-prior-low-mask": _masked_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         note="the default (its prior weight named) with the transient mask on every scene, by the colour residual to "
         "the teacher",
     ),
     "willags-prior-low-mask-expected": _masked_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("mask.residual.expected", True),
         note="willags-prior-low-mask thresholding the residual beyond the scene's expected residual at each pixel "
         "(mask/expected.py: a level per Gaussian fitted over every photo)",
     ),
     "willags-prior-low-mask-late": _masked_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("mask.warmup_steps", 5000),
         note="willags-prior-low-mask with the mask from step 5000: the mask held reichstag from 5000 to 15000 steps "
         "where the default lost, and cost most before 5000",
     ),
     "willags-prior-low-mask-expected-late": _masked_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("mask.residual.expected", True),
         ("mask.warmup_steps", 5000),
         note="willags-prior-low-mask-expected with the mask from step 5000",
     ),
     "willags-prior-low-sky": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("sky.enabled", True),
         note="the default (its prior weight named) with the sky above each photo's skyline on every scene: the "
         "inspector leaves it off below 0.15 of open background (westminster-abbey 0.148, south-building 0.05)",
         keep=("sky.enabled",),
     ),
     "willags-prior-low-meanslr": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("optimizers.means.lr", 1.6e-5),
         ("optimizers.means.lr_final", 1.6e-7),
         note="the default (its prior weight named) with the light peer's learning rate for the means (1.6e-5 to "
@@ -149,7 +153,7 @@ METHODS: dict[str, MethodSpec] = {
         "default's training photos rise with length while its new photos fall on the crowded collections",
     ),
     "willags-prior-low-camopt": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("camera_optimizer.mode", "SO3xR3"),
         note="the default (its prior weight named) refining each training photo's pose as it trains (nerfstudio's "
         "camera optimiser, splatfacto's rate for it): a textured collection's photo against itself shifted by one "
@@ -157,31 +161,31 @@ METHODS: dict[str, MethodSpec] = {
         "poses, as the protocol has them",
     ),
     "willags-prior-low-holdout": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("holdout.photos", 8),
         note="the default (its prior weight named) with the right halves of 8 training photos (at most a quarter) "
         "held out of the loss and scored every 1000 steps from step 3000; the run ends with its best-scoring step "
         "when the last scores 0.1 dB worse: reichstag and westminster-abbey score higher at 5000 steps than at 15000",
     ),
     "willags-prior-low-mask-expected-cap1m": _masked_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("mask.residual.expected", True),
         ("mcmc.cap_max", 1_000_000),
         note="willags-prior-low-mask-expected with MCMC's cap at 1M Gaussians: the capacity a million gave the clean "
         "collections, with the mask keeping it off the crowds that a million learned on reichstag",
     ),
     "willags-prior-low-cap1m": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("mcmc.cap_max", 1_000_000),
         note="the default (its prior weight named) with MCMC's cap at 1M Gaussians instead of 300,000",
     ),
     "willags-prior-low-lowpen": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("modulation.local_penalty", 0.001),
         note="the default (its prior weight named) with a tenth of the per-Gaussian residual's penalty (0.001)",
     ),
     "willags-prior-low-latent8": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("latent.dim", 8),
         note="the default (its prior weight named) with an 8-d latent on every scene instead of the inspector's 32 or "
         "64: a photo's appearance fitted on the left half through fewer directions, so less of the fit is spent on "
@@ -189,20 +193,20 @@ METHODS: dict[str, MethodSpec] = {
         keep=("latent.dim",),
     ),
     "willags-prior-low-field": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("use_field", True),
         note="the default (its prior weight named) with the latent-conditioned tri-plane field on (its feature feeds "
         "the per-Gaussian residual): the paper's spatially varying appearance at the deciding length",
         keep=("use_field",),
     ),
     "willags-prior-low-capscene": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("mcmc.cap_rule", "pixels"),
         note="the default (its prior weight named) with MCMC's cap from the training photos' megapixels "
         "(splats/mcmc.scene_cap): a 12-photo collection is not given the Gaussians of a 128-photo one",
     ),
     "willags-prior-low-capshrink": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("mcmc.cap_rule", "pixels"),
         ("mcmc.cap_ceiling", 300_000),
         note="the default (its prior weight named) with MCMC's cap from the training photos' megapixels, never above "
@@ -210,21 +214,21 @@ METHODS: dict[str, MethodSpec] = {
         "default's cap on collections with more; it trains the default's model wherever the rule reaches 300,000",
     ),
     "willags-prior-low-sh1": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("sh_degree", 1),
         note="the default (its prior weight named) with the Gaussians' SH at degree 1 instead of 3: 12 colour "
         "coefficients a Gaussian instead of 48, so a collection of few photos fits less view dependence that a "
         "new view does not share",
     ),
     "willags-prior-low-sfmdepth": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("sfm_depth.weight", 0.1),
         note="the default (its prior weight named) with the SfM depth loss at 0.1: each training render's expected "
         "depth held to the depths of its photo's own SfM points (track >= 3), so that novel views see the "
         "geometry the photos agree on rather than what fits one photo's colours",
     ),
     "willags-prior-low-mcmcreg": _default_on_gpu(
-        ("latent.prior_weight", 0.002),
+        _PRIOR_LOW,
         ("mcmc.opacity_reg", 0.001),
         ("mcmc.scale_reg", 0.001),
         note="the default (its prior weight named) with a tenth of MCMC's opacity and scale penalties (0.001 each): "
