@@ -236,11 +236,12 @@ def save_atomic(state: dict, path: Path, opener: Callable[[Path], Any] | None = 
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    """Write a small text file atomically (a partial file renamed over it); errors are the caller's to report."""
+    """Write a small text file atomically (a partial file renamed over it), as UTF-8 whatever the locale; errors are
+    the caller's to report."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}{PARTIAL_SUFFIX}")
     try:
-        tmp.write_text(text)
+        tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, path)
     finally:
         if tmp.exists():
