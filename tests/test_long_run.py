@@ -125,7 +125,9 @@ def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_i
 
     saved = trainer.config.get_base_dir() / "config.yml"
     saved.write_text("")  # a config.yml emptied outside the run: said in one line naming it, not an AttributeError
-    with pytest.raises(SystemExit, match=rf"^long_run: {re.escape(str(saved))} holds no run configuration \(it reads as NoneType\)"):
+    with pytest.raises(
+        SystemExit, match=rf"^long_run: {re.escape(str(saved))} holds no run configuration \(it reads as NoneType\)"
+    ):
         long_run._setup("willags", data, run, 4, 42, 1, "test")
 
 
