@@ -2,10 +2,12 @@
 output read by the project's dataparser, bad inputs, and the pure helpers (pairs, split, similarity alignment)."""
 
 import dataclasses
+import errno
 import itertools
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -286,6 +288,39 @@ def test_a_big_photo_added_to_the_folder_extends_the_database(processed, tmp_pat
     held = sorted(p.name for p in cfg.images.iterdir())[0]
     with pytest.raises(ProcessError, match="max_image_size"):
         proc._check_database_options(again, resized=[held])
+
+
+def test_the_options_stamp_survives_a_failed_write_and_a_damaged_one_is_named(processed, tmp_path, monkeypatch):
+    """The stamp of a database's options is written through a partial file: a write that fails halfway (a full disk,
+    a kill) leaves the previous stamp whole. A stamp damaged outside the tool is refused in one ProcessError naming
+    it and the database, not a JSON traceback."""
+    cfg, _, _, _ = processed
+    out = tmp_path / "out"
+    (out / "colmap").mkdir(parents=True)
+    for name in ("database.db", "database_options.json"):
+        shutil.copy(cfg.output / "colmap" / name, out / "colmap" / name)
+    stamp = out / "colmap" / "database_options.json"
+    before = stamp.read_text()
+    again = dataclasses.replace(cfg, output=out)
+    write_text = Path.write_text
+
+    def half_then_disk_full(self, data, *args, **kwargs):
+        write_text(self, data[: len(data) // 2], *args, **kwargs)
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    monkeypatch.setattr(Path, "write_text", half_then_disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        proc._check_database_options(again)
+    monkeypatch.undo()
+    assert stamp.read_text() == before
+    assert sorted(p.name for p in stamp.parent.iterdir()) == ["database.db", "database_options.json"]
+
+    for damage in ('{"camera_model": "OPENCV", "max_ima', "[1, 2]", b"\xff\xfe"):
+        stamp.write_bytes(damage if isinstance(damage, bytes) else damage.encode())
+        with pytest.raises(
+            ProcessError, match=rf"^{re.escape(str(stamp))} cannot be read \(.+\): it records the options "
+        ):
+            proc._check_database_options(again)
 
 
 # --------------------------------------------------------------------------------------------------------------------

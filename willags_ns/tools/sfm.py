@@ -220,10 +220,21 @@ def split_table(image_ids: dict[int, str], test_every: int) -> list[tuple[str, i
     return rows
 
 
+def write_atomic(path: Path, text: str) -> None:
+    """Write a text file (UTF-8) through a partial file renamed over it: a process killed or a disk filled mid-write
+    leaves the previous file whole (or none), never half of one that a later run or the training would read."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_split_tsv(path: Path, rows: Sequence[tuple[str, int, str]], dataset: str) -> None:
     """NeRF-W / PhotoTourism split file: tab-separated `filename id split dataset` with a header."""
     lines = ["filename\tid\tsplit\tdataset"] + [f"{name}\t{i}\t{split}\t{dataset}" for name, i, split in rows]
-    path.write_text("\n".join(lines) + "\n")
+    write_atomic(path, "\n".join(lines) + "\n")
 
 
 def exhaustive_pair_blocks(names: Sequence[str], block: int = 12) -> list[list[tuple[str, str]]]:
@@ -453,7 +464,15 @@ def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = (), e
     db = cfg.output / DATABASE
     want = _options_stamp(cfg, capped=bool(resized), exif_grouped=exif_grouped)
     if db.exists() and stamp.is_file():
-        have = json.loads(stamp.read_text())
+        try:
+            have = json.loads(stamp.read_text(encoding="utf-8"))
+            if not isinstance(have, dict):
+                raise ValueError(f"a JSON {type(have).__name__}, not an object")
+        except (OSError, ValueError) as e:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+            raise ProcessError(
+                f"{stamp} cannot be read ({e}): it records the options {db} was made with; delete both (or use "
+                "another --output) to start over"
+            ) from None
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
         if "max_image_size" in diff and "max_image_size" not in have and not set(resized) & _database_names(db):
             del diff["max_image_size"]
@@ -462,7 +481,7 @@ def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = (), e
                 f"{db} was made with other options {diff} (old, new): delete it (or use another --output) to start over"
             )
     stamp.parent.mkdir(parents=True, exist_ok=True)
-    stamp.write_text(json.dumps(want, indent=1) + "\n")
+    write_atomic(stamp, json.dumps(want, indent=1) + "\n")
 
 
 EXIF_MAKE, EXIF_MODEL, EXIF_IFD, EXIF_FOCAL_LENGTH = 0x010F, 0x0110, 0x8769, 0x920A
@@ -1282,5 +1301,5 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
             for k, v in dataclasses.asdict(dataclasses.replace(cfg, images=given)).items()
         },
     }
-    (cfg.output / SUMMARY).write_text(json.dumps(summary, indent=1) + "\n")
+    write_atomic(cfg.output / SUMMARY, json.dumps(summary, indent=1) + "\n")
     return summary
