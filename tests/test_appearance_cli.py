@@ -2,6 +2,7 @@
 classes with --appearance). Runs are in-process (the commands' `main()`, small frames); one subprocess checks the
 command line itself."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -56,6 +57,32 @@ def test_render_sweeps_interp_along_the_path_and_camera_idx_picks_the_image(appe
     # ns-render's --camera-idx N: training image N's appearance
     by_idx = _interpolate(cfg, tmp_path / "camidx", camera_idx=i)
     assert _diff(by_idx[0], start[0]) < 0.5
+
+
+def test_latents_are_written_at_the_named_path_and_a_failed_write_keeps_the_previous_file(tmp_path, monkeypatch):
+    import errno
+
+    from willags_ns.engine.checks import WillagsIOError
+    from willags_ns.scripts import latents as lt
+
+    lat, seen = np.arange(6, dtype=np.float32).reshape(3, 2), np.array([True, False, True])
+    path = lt.write_latents(tmp_path / "z", lat, ["a.jpg", "b.jpg", "c.jpg"], seen)  # no ".npz" added
+    assert path == tmp_path / "z" and sorted(p.name for p in tmp_path.iterdir()) == ["z"]
+    before = path.read_bytes()
+    savez = np.savez
+
+    def half_then_disk_full(f, **arrays):
+        savez(f, **arrays)
+        f.truncate(f.tell() // 2)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(lt.np, "savez", half_then_disk_full)
+    with pytest.raises(WillagsIOError, match=rf"^no space left on {re.escape(str(tmp_path))}: z needs about "):
+        lt.write_latents(path, lat * 2, ["a.jpg", "b.jpg", "c.jpg"], seen)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["z"]
+    monkeypatch.undo()
+    with pytest.raises(WillagsIOError, match=rf"^cannot write {re.escape(str(tmp_path / 'none' / 'z.npz'))}: "):
+        lt.write_latents(tmp_path / "none" / "z.npz", lat, ["a.jpg", "b.jpg", "c.jpg"], seen)
 
 
 def test_latents_export_and_latent_file_spec(appearance_run, tmp_path):

@@ -8,11 +8,16 @@ training, or the embedding rows of an embedding-table model), `names` [N] (file 
 SPEC: `np.save("z.npy", np.load("latents.npz")["latents"][3])`.
 """
 
+import contextlib
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import tyro
+
+from willags_ns.engine.checkpoints import PARTIAL_SUFFIX, is_disk_full, no_space_message
+from willags_ns.engine.checks import WillagsIOError
 
 
 @dataclass
@@ -34,6 +39,25 @@ def training_latents(model) -> tuple[np.ndarray, list[str], np.ndarray]:
     return lat.detach().cpu().float().numpy(), names, seen.cpu().numpy().astype(bool)
 
 
+def write_latents(path: Path, latents: np.ndarray, names: list[str], seen: np.ndarray) -> Path:
+    """The .npz at exactly `path` (numpy would add ".npz" to a name without it), written through a partial file
+    renamed over it: a full disk or a kill leaves the previous file whole and no partial one. A failed write is one
+    WillagsIOError naming the file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}{PARTIAL_SUFFIX}")
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, latents=latents, names=np.array(names), seen=seen)
+        os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if is_disk_full(e):
+            raise WillagsIOError(no_space_message(path.parent, latents.nbytes, path.name)) from None
+        raise WillagsIOError(f"cannot write {path}: {e.strerror or e}") from None
+    return path
+
+
 def main(cfg: ExportLatents) -> Path:
     from nerfstudio.utils.eval_utils import eval_setup
     from nerfstudio.utils.rich_utils import CONSOLE
@@ -41,7 +65,7 @@ def main(cfg: ExportLatents) -> Path:
     _, pipeline, _, _ = eval_setup(cfg.load_config, test_mode="inference")
     lat, names, seen = training_latents(pipeline.model)
     cfg.output.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cfg.output, latents=lat, names=np.array(names), seen=seen)
+    write_latents(cfg.output, lat, names, seen)
     CONSOLE.print(f"{lat.shape[0]} latents of size {lat.shape[1]} ({int(seen.sum())} seen in training): {cfg.output}")
     return cfg.output
 
