@@ -558,8 +558,9 @@ def write_downscaled_images(files: list[Path], factor: int, dst: Path) -> None:
     import shutil
 
     from willags_ns.data.images import save_downscaled
+    from willags_ns.files import partial_path
 
-    tmp = dst.parent / f".{dst.name}.{os.getpid()}.partial"
+    tmp = partial_path(dst)
     CONSOLE.log(f"willags-data: writing {dst} ({len(files)} images at 1/{factor} size) for downscale_factor {factor}")
     try:
         shutil.rmtree(tmp, ignore_errors=True)

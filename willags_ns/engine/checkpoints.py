@@ -26,6 +26,7 @@ the training side (``--load-dir``) is ``WillagsTrainer._load_checkpoint``.
 (nerfstudio counts ``--max-num-iterations`` from the resumed step). :class:`SaveTimer` decides saves by wall time.
 """
 
+import contextlib
 import errno
 import os
 import pickle
@@ -41,11 +42,10 @@ from typing import Any
 import torch
 
 from willags_ns.engine.checks import WillagsIOError
+from willags_ns.files import PARTIAL_SUFFIX, partial_path
 
 CKPT_RE = re.compile(r"^step-(\d+)\.ckpt$")
 """nerfstudio's checkpoint file names (``step-000000100.ckpt``)."""
-PARTIAL_SUFFIX = ".partial"
-"""Suffix of a checkpoint being written (hidden, in the checkpoint directory; see the module docstring)."""
 RESUME_FILE = "resume_command.txt"
 """Written next to config.yml at every save of a run that has steps left: the command that resumes from that save."""
 MB = 1024 * 1024
@@ -206,7 +206,7 @@ def save_atomic(state: dict, path: Path, opener: Callable[[Path], Any] | None = 
         d.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise CheckpointError(f"cannot create the checkpoint directory {d}: {e.strerror or e}") from None
-    tmp = d / f".{path.name}.{os.getpid()}{PARTIAL_SUFFIX}"
+    tmp = partial_path(path)
     remove_stale_partials(d, keep=tmp)
     need = state_nbytes(state)
     writer = None
@@ -235,17 +235,23 @@ def save_atomic(state: dict, path: Path, opener: Callable[[Path], Any] | None = 
     return path
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write a small text file atomically (a partial file renamed over it), as UTF-8 whatever the locale; errors are
-    the caller's to report."""
+def write_file_atomic(path: Path, write: Callable[[Any], None], need_bytes: int) -> Path:
+    """`write(f)` into `path`'s partial file (willags_ns/files.py), renamed over `path` when it returns: a full disk
+    or a kill leaves the previous file whole and no partial one. A failed write is one WillagsIOError naming the
+    file (a full disk: the `need_bytes` it needs and what is free). Returns `path`."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}{PARTIAL_SUFFIX}")
+    tmp = partial_path(path)
     try:
-        tmp.write_text(text, encoding="utf-8")
+        with open(tmp, "wb") as f:
+            write(f)
         os.replace(tmp, path)
-    finally:
-        if tmp.exists():
+    except OSError as e:
+        with contextlib.suppress(OSError):
             tmp.unlink()
+        if is_disk_full(e):
+            raise WillagsIOError(no_space_message(path.parent, need_bytes, path.name)) from None
+        raise WillagsIOError(f"cannot write {path}: {e.strerror or e}") from None
+    return path
 
 
 # --------------------------------------------------------------------------------------------------------------------

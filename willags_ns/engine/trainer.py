@@ -47,7 +47,6 @@ from willags_ns.engine.checkpoints import (
     load_latest,
     resume_command,
     save_atomic,
-    write_text_atomic,
 )
 from willags_ns.engine.checks import install_cli_excepthook
 from willags_ns.engine.time_budget import (
@@ -64,6 +63,7 @@ from willags_ns.engine.time_budget import (
     validate_minutes,
     validate_rates,
 )
+from willags_ns.files import write_text_atomic
 
 _SAVE_AFTER_SETUP: set[int] = set()
 """ids of configs whose ns-train start printed nothing instead of the whole configuration: config.yml is written

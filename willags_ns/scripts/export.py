@@ -14,7 +14,6 @@ a bad SPEC) the output folder is not left behind, empty, unless it existed befor
 """
 
 import contextlib
-import os
 import typing
 from importlib.metadata import version
 from pathlib import Path
@@ -23,8 +22,7 @@ import numpy as np
 import tyro
 from nerfstudio.scripts import exporter as ns_exporter
 
-from willags_ns.engine.checkpoints import PARTIAL_SUFFIX, is_disk_full, no_space_message
-from willags_ns.engine.checks import WillagsIOError
+from willags_ns.engine.checkpoints import write_file_atomic
 from willags_ns.scripts.render import with_appearance_options
 from willags_ns.tools.progress import Progress
 
@@ -68,22 +66,17 @@ def write_ply(filename: str, count: int, map_to_tensors: typing.OrderedDict[str,
         raise ValueError("All tensors must be numpy arrays of float or uint8 type and not empty")
     path = Path(filename)
     body = ply_body(count, map_to_tensors)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}{PARTIAL_SUFFIX}")
-    try:
-        with open(tmp, "wb") as f, Progress(label="willags-export: writing Gaussians") as progress:
+
+    def write(f) -> None:
+        with Progress(label="willags-export: writing Gaussians") as progress:
             f.write(ply_header(count, map_to_tensors))
             task = progress.add_task(f"willags-export: writing {count:,} Gaussians to {path.name}", total=count)
             for start in range(0, count, CHUNK):
                 part = body[start : start + CHUNK]
                 f.write(part.tobytes())
                 progress.advance(task, len(part))
-        os.replace(tmp, path)
-    except OSError as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        if is_disk_full(e):
-            raise WillagsIOError(no_space_message(path.parent, body.nbytes, f"{path.name}")) from None
-        raise WillagsIOError(f"cannot write {path}: {e.strerror or e}") from None
+
+    write_file_atomic(path, write, body.nbytes)
 
 
 @contextlib.contextmanager

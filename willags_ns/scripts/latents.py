@@ -8,16 +8,13 @@ training, or the embedding rows of an embedding-table model), `names` [N] (file 
 SPEC: `np.save("z.npy", np.load("latents.npz")["latents"][3])`.
 """
 
-import contextlib
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import tyro
 
-from willags_ns.engine.checkpoints import PARTIAL_SUFFIX, is_disk_full, no_space_message
-from willags_ns.engine.checks import WillagsIOError
+from willags_ns.engine.checkpoints import write_file_atomic
 
 
 @dataclass
@@ -43,19 +40,9 @@ def write_latents(path: Path, latents: np.ndarray, names: list[str], seen: np.nd
     """The .npz at exactly `path` (numpy would add ".npz" to a name without it), written through a partial file
     renamed over it: a full disk or a kill leaves the previous file whole and no partial one. A failed write is one
     WillagsIOError naming the file."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}{PARTIAL_SUFFIX}")
-    try:
-        with open(tmp, "wb") as f:
-            np.savez(f, latents=latents, names=np.array(names), seen=seen)
-        os.replace(tmp, path)
-    except OSError as e:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        if is_disk_full(e):
-            raise WillagsIOError(no_space_message(path.parent, latents.nbytes, path.name)) from None
-        raise WillagsIOError(f"cannot write {path}: {e.strerror or e}") from None
-    return path
+    return write_file_atomic(
+        path, lambda f: np.savez(f, latents=latents, names=np.array(names), seen=seen), latents.nbytes
+    )
 
 
 def main(cfg: ExportLatents) -> Path:

@@ -48,6 +48,7 @@ import numpy as np
 from PIL import Image
 
 from willags_ns.data.images import save_downscaled
+from willags_ns.files import write_text_atomic
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 """Files (case-insensitive suffix) taken as photos; everything else in the folder is ignored."""
@@ -220,21 +221,10 @@ def split_table(image_ids: dict[int, str], test_every: int) -> list[tuple[str, i
     return rows
 
 
-def write_atomic(path: Path, text: str) -> None:
-    """Write a text file (UTF-8) through a partial file renamed over it: a process killed or a disk filled mid-write
-    leaves the previous file whole (or none), never half of one that a later run or the training would read."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def write_split_tsv(path: Path, rows: Sequence[tuple[str, int, str]], dataset: str) -> None:
     """NeRF-W / PhotoTourism split file: tab-separated `filename id split dataset` with a header."""
     lines = ["filename\tid\tsplit\tdataset"] + [f"{name}\t{i}\t{split}\t{dataset}" for name, i, split in rows]
-    write_atomic(path, "\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 def exhaustive_pair_blocks(names: Sequence[str], block: int = 12) -> list[list[tuple[str, str]]]:
@@ -481,7 +471,7 @@ def _check_database_options(cfg: ProcessConfig, resized: Collection[str] = (), e
                 f"{db} was made with other options {diff} (old, new): delete it (or use another --output) to start over"
             )
     stamp.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(stamp, json.dumps(want, indent=1) + "\n")
+    write_text_atomic(stamp, json.dumps(want, indent=1) + "\n")
 
 
 EXIF_MAKE, EXIF_MODEL, EXIF_IFD, EXIF_FOCAL_LENGTH = 0x010F, 0x0110, 0x8769, 0x920A
@@ -1301,5 +1291,5 @@ def run(cfg: ProcessConfig, log: Callable[[str], None] | None = None) -> dict[st
             for k, v in dataclasses.asdict(dataclasses.replace(cfg, images=given)).items()
         },
     }
-    write_atomic(cfg.output / SUMMARY, json.dumps(summary, indent=1) + "\n")
+    write_text_atomic(cfg.output / SUMMARY, json.dumps(summary, indent=1) + "\n")
     return summary
