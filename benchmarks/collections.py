@@ -7,18 +7,21 @@ pixels on the long side (JPEG quality ``JPEG_QUALITY``: small scenes that travel
 README.md and a sources.json (each photo's origin, original size and whether it registered) into the scene:
 
     python -m benchmarks collections list
-    python -m benchmarks collections build lund --out /scenes/lund [--source MIRROR] [--num-threads 2]
+    python -m benchmarks collections build lund --out /scenes/lund [--source MIRROR] [--num-threads 1]
 
 ``--source`` is a local copy of the repository: a clone or a bare mirror (the photos are read at the pinned commit)
 or a plain folder holding the repository's files. Without it the repository is cloned over https at the pinned
 commit (only the named folder is checked out). The built folder holds ``images/``, ``colmap/sparse/0``,
 ``<name>.tsv``, ``process_summary.json``, README.md and sources.json; the SfM database and the distorted model
-that ``willags-process`` keeps for resuming are removed at the end (nerfstudio reads neither).
+that ``willags-process`` keeps for resuming are removed at the end (nerfstudio reads neither). SfM runs on one
+thread (``NUM_THREADS``) so that a rebuild is the same scene byte for byte: the README gives the model's digest, and
+the build says whether it is the one the collection pins (``Collection.model_sha256``).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import io
 import json
 import re
@@ -43,6 +46,15 @@ JPEG_QUALITY = 90
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 """Files taken from a source folder when a collection lists no photos."""
+
+NUM_THREADS = 1
+"""willags-process's CPU threads for a build. With one, a build gives the same SfM model byte for byte every time
+(``model_digest``); with more, the matcher's and mapper's threads finish in an order that changes from run to run,
+and so do the model's points, and a collection rebuilt elsewhere is then not the scene the records were made on
+(docs/process.md, "The same scene every time"). It costs about twice the build's time."""
+
+MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
+"""The SfM model a scene holds in ``colmap/sparse/0``: what ``model_digest`` hashes."""
 
 LEFT_BEHIND = ("colmap/database.db", "colmap/distorted", "colmap/inputs", "colmap/vocab_tree.bin")
 """What willags-process keeps for resuming and nerfstudio never reads: removed from a finished scene."""
@@ -72,6 +84,10 @@ class Collection:
     """What the photos show and why the collection is here (the README's first paragraph)."""
     licence: str = ""
     """Under what terms the photos are published (the README says it)."""
+    model_sha256: str = ""
+    """``model_digest`` of the scene that a build at ``NUM_THREADS`` threads gives: a build says whether it made that
+    scene (``pin_verdict``), so runs made on scenes built in different places are known to compare. Empty: not
+    pinned."""
 
     @property
     def url(self) -> str:
@@ -100,6 +116,7 @@ COLLECTIONS: dict[str, Collection] = {
                 "179 m walk, within a phone's GPS error."
             ),
             licence="part of OpenSfM's example data (the repository is BSD-2-Clause licensed)",
+            model_sha256="fca888203f845057fdec2bdd9bff337ed74f3e33ca30f738fc5af57563b5836c",
         ),
         Collection(
             name="westminster-abbey",
@@ -172,6 +189,7 @@ COLLECTIONS: dict[str, Collection] = {
                 "sites, judging by their file names), their copyright stays with their photographers; never "
                 "redistribute them"
             ),
+            model_sha256="3acaa97df5d16dcb52723aa07ce4242e48fc7ceeca08f42c2645bd304fb523cf",
         ),
     )
 }
@@ -321,13 +339,41 @@ def scene_readme(coll: Collection, rows: Sequence[dict[str, Any]], summary: dict
         f"| mean reprojection error | {summary.get('mean_reprojection_error_px', float('nan')):.3f} px |",
         f"| mean track length | {summary.get('mean_track_length', float('nan')):.2f} |",
         f"| wall time | {summary.get('wall_s', 0):.0f} s ({stages}) |",
+        f"| SfM model (sha256 of colmap/sparse/0) | `{summary.get('model_sha256', '?')}` |",
     ]
     if unreg:
         lines += ["", f"Not registered ({len(unreg)}): {', '.join(unreg)} (why: process_summary.json)."]
     return "\n".join(lines) + "\n"
 
 
-def build(coll: Collection, out: Path, source: Path | None = None, num_threads: int = 2, log=print) -> dict[str, Any]:
+def model_digest(scene: Path) -> str:
+    """sha256 over the SfM model of ``scene`` (``MODEL_FILES`` in ``colmap/sparse/0``, each file's name and bytes):
+    two scenes with one digest hold the same cameras, poses and points."""
+    h = hashlib.sha256()
+    for name in MODEL_FILES:
+        f = scene / "colmap" / "sparse" / "0" / name
+        if not f.is_file():
+            raise CollectionError(f"{scene}: no SfM model file {f.relative_to(scene)}")
+        h.update(name.encode() + b"\0")
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def pin_verdict(coll: Collection, digest: str) -> str:
+    """One line: whether ``digest`` is the SfM model ``coll`` pins (``Collection.model_sha256``)."""
+    if not coll.model_sha256:
+        return f"{coll.name}: SfM model {digest[:12]} (no model pinned for this collection)"
+    if digest == coll.model_sha256:
+        return f"{coll.name}: SfM model {digest[:12]}, the pinned one: the same scene as every build that matches it"
+    return (
+        f"{coll.name}: SfM model {digest[:12]} differs from the pinned {coll.model_sha256[:12]} (another pycolmap, or "
+        f"more than {NUM_THREADS} thread): runs on it do not compare with runs on the pinned scene"
+    )
+
+
+def build(
+    coll: Collection, out: Path, source: Path | None = None, num_threads: int = NUM_THREADS, log=print
+) -> dict[str, Any]:
     """Fetch, resize and process ``coll`` into the scene folder ``out``; returns the SfM summary plus the sources."""
     out = out.resolve()
     with tempfile.TemporaryDirectory(prefix=f"willags-{coll.name}-") as tmp:
@@ -386,6 +432,7 @@ def finish_scene(coll: Collection, out: Path, rows: list[dict[str, Any]]) -> dic
     for rel in LEFT_BEHIND:
         p = out / rel
         shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True)
+    summary["model_sha256"] = model_digest(out)
     (out / "sources.json").write_text(json.dumps(rows, indent=1) + "\n")
     (out / "README.md").write_text(scene_readme(coll, rows, summary))
     return {**summary, "sources": rows}
@@ -399,7 +446,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     b.add_argument("name", help=f"one of {', '.join(COLLECTIONS)}")
     b.add_argument("--out", type=Path, required=True, help="scene folder to write (outside any git tree)")
     b.add_argument("--source", type=Path, default=None, help="local clone, bare mirror or copy of the repository")
-    b.add_argument("--num-threads", type=int, default=2, help="willags-process's CPU threads (default 2)")
+    b.add_argument(
+        "--num-threads", type=int, default=NUM_THREADS,
+        help=f"willags-process's CPU threads (default {NUM_THREADS}: the same SfM model on every build)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     try:
         if args.cmd == "list":
@@ -416,4 +466,5 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{args.name}: {reg} / {len(res['sources'])} registered, mean reprojection error "
         f"{res['mean_reprojection_error_px']:.3f} px, {res['wall_s']:.0f} s, {tree_bytes(args.out) / 1e6:.1f} MB in {args.out}"
     )
+    print(pin_verdict(collection(args.name), res["model_sha256"]))
     return 0

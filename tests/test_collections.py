@@ -14,11 +14,14 @@ from benchmarks.collections import (
     COLLECTIONS,
     LEFT_BEHIND,
     MAX_SIDE,
+    MODEL_FILES,
     Collection,
     CollectionError,
     Source,
     finish_scene,
     main,
+    model_digest,
+    pin_verdict,
     resize_photo,
     scene_name,
     select_photos,
@@ -48,6 +51,7 @@ def test_manifest_is_well_formed():
         assert len({scene_name(p) for p in c.photos}) == len(c.photos), name  # no two photos share a scene name
         assert c.mapper in ("auto", "incremental", "global"), name
         assert c.about and c.licence, name
+        assert c.model_sha256 == "" or re.fullmatch(r"[0-9a-f]{64}", c.model_sha256), name
 
 
 def test_select_photos_takes_the_listed_ones_or_every_photo():
@@ -116,9 +120,40 @@ def test_source_reads_the_pinned_commit_from_a_clone_a_bare_mirror_or_a_folder(t
         Source(coll, tmp_path / "empty")
 
 
+def _model(scene: Path, points: bytes = b"points") -> None:
+    sparse = scene / "colmap" / "sparse" / "0"
+    sparse.mkdir(parents=True, exist_ok=True)
+    for name in MODEL_FILES:
+        (sparse / name).write_bytes(points if name == "points3D.bin" else name.encode())
+
+
+def test_model_digest_follows_the_model_bytes_and_names_a_missing_file(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    _model(a)
+    _model(b)
+    (b / "images").mkdir()  # what is not the model does not count
+    assert model_digest(a) == model_digest(b) and len(model_digest(a)) == 64
+    _model(b, points=b"pointz")
+    assert model_digest(a) != model_digest(b)
+    (a / "colmap" / "sparse" / "0" / "images.bin").unlink()
+    with pytest.raises(CollectionError, match=r"no SfM model file colmap/sparse/0/images\.bin"):
+        model_digest(a)
+
+
+def test_pin_verdict_says_whether_a_build_is_the_pinned_scene():
+    digest = "ab" * 32
+    assert "no model pinned" in pin_verdict(_coll(), digest)
+    same = pin_verdict(_coll(model_sha256=digest), digest)
+    assert "the pinned one" in same and "differs" not in same
+    other = pin_verdict(_coll(model_sha256="cd" * 32), digest)
+    assert "differs from the pinned cdcdcdcdcdcd" in other and "do not compare with runs on the pinned" in other
+    assert all(len(v.splitlines()) == 1 for v in (same, other))
+
+
 def test_finish_scene_drops_sfm_leftovers_and_writes_sources_and_readme(tmp_path):
     out = tmp_path / "scene"
     _jpeg(out / "images" / "a.jpg", size=(80, 60))
+    _model(out)
     (out / "colmap" / "distorted" / "0").mkdir(parents=True)
     (out / "colmap" / "database.db").write_bytes(b"db")
     summary = {
@@ -141,6 +176,7 @@ def test_finish_scene_drops_sfm_leftovers_and_writes_sources_and_readme(tmp_path
     readme = (out / "README.md").read_text()
     assert "| photos / registered | 2 / 1 |" in readme and "0.500 px" in readme
     assert "--mapper global" in readme and "Not registered (1): b.jpg" in readme
+    assert res["model_sha256"] == model_digest(out) and f"`{model_digest(out)}`" in readme
 
 
 def test_cli_lists_the_collections_and_names_an_unknown_one(tmp_path, capsys):
