@@ -534,6 +534,29 @@ def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "w
     return headline_table(collect(records, steps), sigma, steps, default, fold_means=False)
 
 
+def scene_models(records: Sequence[dict[str, Any]], steps: int, tags=None) -> dict[str, dict[str, set[str]]]:
+    """{collection: {SfM model digest: methods}} of the fold runs scored at `steps` whose records name the model their
+    scene held (`scene_model_sha256`, long_run.record); records made before records named it are left out."""
+    out: dict[str, dict[str, set[str]]] = defaultdict(lambda: defaultdict(set))
+    for (scene, _, _), rec, _ms in fold_runs(records, steps, tags):
+        digest = rec.get("scene_model_sha256")
+        if digest:
+            out[scene][str(digest)].add(str(rec.get("method")))
+    return {scene: dict(models) for scene, models in out.items()}
+
+
+def model_lines(records: Sequence[dict[str, Any]], steps: int, tags=None) -> list[str]:
+    """A line for each collection whose fold runs started from more than one SfM model: a rebuild of the collection
+    that is not the same scene (benchmarks/collections.py, NUM_THREADS), so its methods' differences there mix the
+    models' with the methods'."""
+    lines = []
+    for scene, models in sorted(scene_models(records, steps, tags).items()):
+        if len(models) > 1:
+            each = "; ".join(f"{d[:12]}: {', '.join(sorted(m))}" for d, m in sorted(models.items()))
+            lines.append(f"- **{scene}**: the fold runs started from {len(models)} SfM models ({each}).")
+    return lines
+
+
 def cv_rows(
     records: Sequence[dict[str, Any]], steps: int, default: str = "willags", tags=None, variant: str | None = None
 ) -> list[str]:
@@ -563,6 +586,14 @@ def cv_rows(
         else "Run noise: no replicate pair yet; the intervals below are the photo bootstrap's alone and too narrow."
     )
     out = [noise, "", *headline_table(by_scene, sigma, steps, default)]
+    mixed = model_lines(records, steps, tags)
+    if mixed:
+        out += [
+            "",
+            "Collections whose runs started from different builds of their scene (`cv.model_lines`):",
+            "",
+            *mixed,
+        ]
     if cand_rows:
         out += ["", *md_table(["scene", "method", "mean (fold means)", f"− {default} [95 % CI] (photos)"], cand_rows)]
     pooled_rows = pooled_rows_of(by_scene, sigma, default)

@@ -32,6 +32,7 @@ import torch
 import yaml
 
 from benchmarks.child import mask_record, patch_offline, protocol_scores, sync
+from benchmarks.collections import CollectionError, model_digest
 from benchmarks.grid import downscaled_scene, git_commit, machine_description
 from benchmarks.methods import METHODS, build_config, is_peer
 
@@ -429,6 +430,10 @@ def record(args) -> int:
         "commit": git_commit(),
         "status": "ok",
     }
+    try:  # which SfM model the run started from: runs on two builds of one collection do not compare (cv.model_lines)
+        rec["scene_model_sha256"] = model_digest(Path(state["data"]))
+    except CollectionError:  # a scene without a COLMAP model here (moved, or another layout): the record says nothing
+        pass
     if state.get("time_budget") is not None:
         rec["time_budget_minutes"] = state.get("time_budget_minutes")
         rec["time_budget"] = state["time_budget"]

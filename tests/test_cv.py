@@ -509,3 +509,20 @@ def test_the_stopping_rule_ends_early_only_the_runs_whose_chosen_photos_say_so(t
     assert "| one | 2 | +0.50 | +0.50 | 0.50 |" in out
     with pytest.raises(SystemExit, match="no fold run of peer"):
         cv.main(["stop", "--records", str(path), "--method", "peer"])
+
+
+def test_runs_of_one_collection_from_two_builds_of_its_scene_are_named():
+    recs = _records(1.0)
+    assert cv.model_lines(recs, 5000) == []  # records that name no model say nothing
+    for r in recs:
+        r["scene_model_sha256"] = "a" * 64
+    assert cv.model_lines(recs, 5000) == []  # one model
+    peer_fold_2 = next(r for r in recs if r["method"] == "peer" and r["scene"].endswith("2of2"))
+    peer_fold_2["scene_model_sha256"] = "b" * 64
+    (line,) = cv.model_lines(recs, 5000)
+    assert (
+        line == f"- **scene**: the fold runs started from 2 SfM models ({'a' * 12}: peer, willags; {'b' * 12}: peer)."
+    )
+    rows = cv.cv_rows(recs, 5000)
+    assert line in rows and any("different builds of their scene" in r for r in rows)
+    assert cv.model_lines(recs, 15000) == []  # only the runs scored at the step count asked

@@ -95,6 +95,27 @@ def test_a_knob_runs_record_carries_the_budget_and_the_score_where_it_stopped(tm
     assert (rec["steps_done"], rec["concurrent_runs"]) == (15004, 1)
 
 
+def test_a_record_names_the_sfm_model_its_scene_held(tmp_path):
+    """Two builds of one collection can hold different SfM models (benchmarks/collections.py): each record says
+    which one its run started from, so the cross-validation can tell runs on different builds apart."""
+    from benchmarks.collections import MODEL_FILES, model_digest
+
+    scene = tmp_path / "lund-cv1of4"
+    (scene / "colmap" / "sparse" / "0").mkdir(parents=True)
+    for name in MODEL_FILES:
+        (scene / "colmap" / "sparse" / "0" / name).write_bytes(name.encode())
+    state = {"method": "willags", "data": str(scene), "steps": 10, "seed": 42, "scores": {"10": {"psnr": 15.0}},
+             "segments": [{"start_step": 0, "end_step": 9, "train_s": 1.0}]}  # fmt: skip
+    recs = {}
+    for case, data in (("with", scene), ("without", tmp_path / "moved")):
+        _write_state(tmp_path / case, {**state, "data": str(data)})
+        out = tmp_path / f"{case}.json"
+        assert long_run.main(["record", "--run-dir", str(tmp_path / case), "--tag", "t", "--out", str(out)]) == 0
+        (recs[case],) = json.loads(out.read_text())
+    assert recs["with"]["scene_model_sha256"] == model_digest(scene)
+    assert "scene_model_sha256" not in recs["without"]  # no model where the run's data was: nothing claimed
+
+
 def test_a_resumed_or_scored_willags_run_rebuilds_the_model_it_trained_without_inspecting_again(tmp_path, monkeypatch):
     """The default inspects the scene before it builds the model; a later segment and every scoring process build
     the run's model from its config.yml (the resolved switches), not from the method name: no second inspection, and
