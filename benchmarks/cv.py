@@ -145,6 +145,23 @@ def write_bundle(collections: Sequence[Path], folds: Sequence[int], out: Path) -
     return written
 
 
+def pin_lines(collections: Sequence[Path]) -> list[str]:
+    """For each collection folder named as one of benchmarks/collections.py's: whether its SfM model is the one that
+    collection pins (a bundle of another build would start its runs from another scene); other folders: nothing."""
+    from benchmarks.collections import COLLECTIONS, CollectionError, model_digest, pin_verdict
+
+    lines = []
+    for scene_dir in map(Path, collections):
+        coll = COLLECTIONS.get(scene_dir.name)
+        if coll is None:
+            continue
+        try:
+            lines.append(f"cv: {pin_verdict(coll, model_digest(scene_dir))}")
+        except CollectionError as e:
+            lines.append(f"cv: {e}")
+    return lines
+
+
 # --------------------------------------------------------------------------------------------------------------------
 # the plan: the GPU queues of a cross-validation
 
@@ -1046,6 +1063,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"cv: {args.out}: {len(written)} scenes, {size / 2**20:.1f} MiB to carry (a call carries {CARRY_LIMIT // 2**20} "
             "MiB with the tracked tree and the wheels)"
         )
+        for line in pin_lines(args.data):
+            print(line)
         return 0
     if args.cmd == "plan":
         counts: dict[str, int] = {}

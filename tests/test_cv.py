@@ -526,3 +526,19 @@ def test_runs_of_one_collection_from_two_builds_of_its_scene_are_named():
     rows = cv.cv_rows(recs, 5000)
     assert line in rows and any("different builds of their scene" in r for r in rows)
     assert cv.model_lines(recs, 15000) == []  # only the runs scored at the step count asked
+
+
+def test_a_bundle_says_whether_a_rebuilt_collection_is_its_pinned_scene(tmp_path):
+    from benchmarks.collections import COLLECTIONS, MODEL_FILES, model_digest
+
+    lund, other = tmp_path / "lund", tmp_path / "my-scene"
+    for scene in (lund, other):
+        (scene / "colmap" / "sparse" / "0").mkdir(parents=True)
+        for name in MODEL_FILES:
+            (scene / "colmap" / "sparse" / "0" / name).write_bytes(name.encode())
+    (line,) = cv.pin_lines([lund, other])  # a folder that is no rebuilt collection: nothing to say
+    assert line.startswith(f"cv: lund: SfM model {model_digest(lund)[:12]} differs from the pinned")
+    assert COLLECTIONS["lund"].model_sha256[:12] in line
+    (lund / "colmap" / "sparse" / "0" / "points3D.bin").unlink()
+    (line,) = cv.pin_lines([lund])
+    assert "no SfM model file colmap/sparse/0/points3D.bin" in line
