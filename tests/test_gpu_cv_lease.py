@@ -1,0 +1,54 @@
+"""benchmarks/remote/cv_lease.sh: which runs a cross-validated lease starts from the bundles it is given (its dry run;
+the queues themselves are solo.sh's, tests/test_gpu_solo.py)."""
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "benchmarks" / "remote" / "cv_lease.sh"
+
+
+def _lease(*args, cwd, **env):
+    return subprocess.run(
+        ["bash", str(SCRIPT), *args], cwd=cwd, env={**os.environ, **env}, capture_output=True, text=True, timeout=60
+    )
+
+
+@pytest.fixture()
+def bundles(tmp_path):
+    if shutil.which("bash") is None:
+        pytest.skip("needs bash")
+    folds = tmp_path / ".gpu-a"
+    for name in ("lund", "lund-cv1of2", "lund-cv2of2", "sacre-coeur-mini-cv1of7"):
+        (folds / name).mkdir(parents=True)
+    (folds / "notes-cv.txt").write_text("a file, not a fold")
+    extra = tmp_path / ".gpu-fox"
+    (extra / "fox-clean").mkdir(parents=True)
+    return tmp_path
+
+
+def test_every_fold_folder_is_a_run_and_a_bundle_without_folds_gives_none(bundles):
+    r = _lease("runs", ".gpu-a", ".gpu-fox", cwd=bundles, CV_METHOD="m", CV_STEPS="5000", CV_SEED="43")
+    assert r.returncode == 0
+    assert r.stdout.split() == ["lund-cv1of2:m:5000:43", "lund-cv2of2:m:5000:43", "sacre-coeur-mini-cv1of7:m:5000:43"]
+    assert "*" not in r.stdout  # no pattern taken for a scene
+    assert ".gpu-fox holds no fold folder" in r.stderr
+
+
+def test_start_queues_the_folds_then_the_extra_runs_and_add_carries_scenes_alone(bundles):
+    start = _lease("start", ".gpu-a", cwd=bundles, CV_DRY_RUN="1", CV_EXTRA="fox-clean:willags:5000:42")
+    assert start.returncode == 0
+    assert start.stdout.strip() == (
+        'solo.sh queues start "lund-cv1of2:willags:15000:42" "lund-cv2of2:willags:15000:42" '
+        '"sacre-coeur-mini-cv1of7:willags:15000:42" "fox-clean:willags:5000:42"'
+    )
+    added = _lease("add", ".gpu-fox", cwd=bundles, CV_DRY_RUN="1", CV_EXTRA="fox-clean:willags:5000:42")
+    assert added.returncode == 0 and added.stdout.strip() == "copy only: .gpu-fox"  # CV_EXTRA starts once, with start
+    nothing = _lease("start", ".gpu-fox", cwd=bundles, CV_DRY_RUN="1")
+    assert nothing.returncode == 2 and "no run to start" in nothing.stderr
+    usage = _lease(cwd=bundles)
+    assert usage.returncode == 2 and usage.stderr.startswith("usage: cv_lease.sh")
