@@ -553,7 +553,7 @@ def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "w
 
 def scene_models(records: Sequence[dict[str, Any]], steps: int, tags=None) -> dict[str, dict[str, set[str]]]:
     """{collection: {SfM model digest: methods}} of the fold runs scored at `steps` whose records name the model their
-    scene held (`scene_model_sha256`, long_run.record); records made before records named it are left out."""
+    scene held (`scene_model_sha256`, long_run.record); records that name none are left out."""
     out: dict[str, dict[str, set[str]]] = defaultdict(lambda: defaultdict(set))
     for (scene, _, _), rec, _ms in fold_runs(records, steps, tags):
         digest = rec.get("scene_model_sha256")
