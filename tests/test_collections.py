@@ -14,7 +14,6 @@ from benchmarks.collections import (
     COLLECTIONS,
     LEFT_BEHIND,
     MAX_SIDE,
-    MODEL_FILES,
     Collection,
     CollectionError,
     Source,
@@ -26,6 +25,7 @@ from benchmarks.collections import (
     scene_name,
     select_photos,
 )
+from tests._scenes import sfm_model_stub
 
 
 def _jpeg(path: Path, size=(64, 48), color=(200, 30, 30), exif=None) -> bytes:
@@ -120,20 +120,13 @@ def test_source_reads_the_pinned_commit_from_a_clone_a_bare_mirror_or_a_folder(t
         Source(coll, tmp_path / "empty")
 
 
-def _model(scene: Path, points: bytes = b"points") -> None:
-    sparse = scene / "colmap" / "sparse" / "0"
-    sparse.mkdir(parents=True, exist_ok=True)
-    for name in MODEL_FILES:
-        (sparse / name).write_bytes(points if name == "points3D.bin" else name.encode())
-
-
 def test_model_digest_follows_the_model_bytes_and_names_a_missing_file(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
-    _model(a)
-    _model(b)
+    sfm_model_stub(a)
+    sfm_model_stub(b)
     (b / "images").mkdir()  # what is not the model does not count
     assert model_digest(a) == model_digest(b) and len(model_digest(a)) == 64
-    _model(b, points=b"pointz")
+    sfm_model_stub(b, points=b"pointz")
     assert model_digest(a) != model_digest(b)
     (a / "colmap" / "sparse" / "0" / "images.bin").unlink()
     with pytest.raises(CollectionError, match=r"no SfM model file colmap/sparse/0/images\.bin"):
@@ -153,7 +146,7 @@ def test_pin_verdict_says_whether_a_build_is_the_pinned_scene():
 def test_finish_scene_drops_sfm_leftovers_and_writes_sources_and_readme(tmp_path):
     out = tmp_path / "scene"
     _jpeg(out / "images" / "a.jpg", size=(80, 60))
-    _model(out)
+    sfm_model_stub(out)
     (out / "colmap" / "distorted" / "0").mkdir(parents=True)
     (out / "colmap" / "database.db").write_bytes(b"db")
     summary = {

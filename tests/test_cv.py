@@ -529,13 +529,10 @@ def test_runs_of_one_collection_from_two_builds_of_its_scene_are_named():
 
 
 def test_a_bundle_says_whether_a_rebuilt_collection_is_its_pinned_scene(tmp_path):
-    from benchmarks.collections import COLLECTIONS, MODEL_FILES, model_digest
+    from benchmarks.collections import COLLECTIONS, model_digest
+    from tests._scenes import sfm_model_stub
 
-    lund, other = tmp_path / "lund", tmp_path / "my-scene"
-    for scene in (lund, other):
-        (scene / "colmap" / "sparse" / "0").mkdir(parents=True)
-        for name in MODEL_FILES:
-            (scene / "colmap" / "sparse" / "0" / name).write_bytes(name.encode())
+    lund, other = sfm_model_stub(tmp_path / "lund"), sfm_model_stub(tmp_path / "my-scene")
     (line,) = cv.pin_lines([lund, other])  # a folder that is no rebuilt collection: nothing to say
     assert line.startswith(f"cv: lund: SfM model {model_digest(lund)[:12]} differs from the pinned")
     assert COLLECTIONS["lund"].model_sha256[:12] in line

@@ -98,12 +98,10 @@ def test_a_knob_runs_record_carries_the_budget_and_the_score_where_it_stopped(tm
 def test_a_record_names_the_sfm_model_its_scene_held(tmp_path):
     """Two builds of one collection can hold different SfM models (benchmarks/collections.py): each record says
     which one its run started from, so the cross-validation can tell runs on different builds apart."""
-    from benchmarks.collections import MODEL_FILES, model_digest
+    from benchmarks.collections import model_digest
+    from tests._scenes import sfm_model_stub
 
-    scene = tmp_path / "lund-cv1of4"
-    (scene / "colmap" / "sparse" / "0").mkdir(parents=True)
-    for name in MODEL_FILES:
-        (scene / "colmap" / "sparse" / "0" / name).write_bytes(name.encode())
+    scene = sfm_model_stub(tmp_path / "lund-cv1of4")
     state = {"method": "willags", "data": str(scene), "steps": 10, "seed": 42, "scores": {"10": {"psnr": 15.0}},
              "segments": [{"start_step": 0, "end_step": 9, "train_s": 1.0}]}  # fmt: skip
     recs = {}
