@@ -551,26 +551,46 @@ def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "w
     return headline_table(collect(records, steps), sigma, steps, default, fold_means=False)
 
 
+UNRECORDED = "not named"
+"""scene_models' key for the runs whose records name no SfM model (made before long_run recorded it)."""
+
+
 def scene_models(records: Sequence[dict[str, Any]], steps: int, tags=None) -> dict[str, dict[str, set[str]]]:
     """{collection: {SfM model digest: methods}} of the fold runs scored at `steps` whose records name the model their
-    scene held (`scene_model_sha256`, long_run.record); records that name none are left out."""
+    scene held (`scene_model_sha256`, long_run.record). On a collection where some record names one, the runs whose
+    records name none are listed under UNRECORDED: a build that may be any (runs of a collection rebuilt with more
+    than one thread start from another scene each time); where no record names one, the collection is left out."""
     out: dict[str, dict[str, set[str]]] = defaultdict(lambda: defaultdict(set))
     for (scene, _, _), rec, _ms in fold_runs(records, steps, tags):
-        digest = rec.get("scene_model_sha256")
-        if digest:
-            out[scene][str(digest)].add(str(rec.get("method")))
-    return {scene: dict(models) for scene, models in out.items()}
+        out[scene][str(rec.get("scene_model_sha256") or UNRECORDED)].add(str(rec.get("method")))
+    return {scene: dict(models) for scene, models in out.items() if set(models) != {UNRECORDED}}
 
 
-def model_lines(records: Sequence[dict[str, Any]], steps: int, tags=None) -> list[str]:
+def model_lines(
+    records: Sequence[dict[str, Any]], steps: int, tags=None, default: str = "willags", sigma: float | None = None
+) -> list[str]:
     """A line for each collection whose fold runs started from more than one SfM model: a rebuild of the collection
     that is not the same scene (benchmarks/collections.py, NUM_THREADS), so its methods' differences there mix the
-    models' with the methods'."""
+    models' with the methods'. For each named model on which the default and a peer have every fold, the default
+    against the stronger peer on that model's runs alone (`sigma`: the run noise, as in the tables)."""
     lines = []
     for scene, models in sorted(scene_models(records, steps, tags).items()):
-        if len(models) > 1:
-            each = "; ".join(f"{d[:12]}: {', '.join(sorted(m))}" for d, m in sorted(models.items()))
-            lines.append(f"- **{scene}**: the fold runs started from {len(models)} SfM models ({each}).")
+        if len(models) < 2:
+            continue
+        each = "; ".join(f"{d[:12]}: {', '.join(sorted(m))}" for d, m in sorted(models.items()))
+        lines.append(f"- **{scene}**: the fold runs started from {len(models)} SfM models ({each}).")
+        for digest in sorted(d for d in models if d != UNRECORDED):
+            alone = [r for r in records if r.get("scene_model_sha256") == digest]
+            by_method = collect(alone, steps, tags).get(scene, {})
+            ref, peer_name = by_method.get(default), stronger_peer(by_method)
+            peer = by_method.get(peer_name) if peer_name else None
+            if ref is None or peer is None or not (ref.complete and peer.complete):
+                continue
+            lines.append(
+                f"  On {digest[:12]} alone (runs a fold: {default} {ref.seeds:g}, {peer_name} {peer.seeds:g}): "
+                f"{default} {ref.mean:.2f}, {peer_name} {peer.mean:.2f}, {default} − {peer_name} "
+                f"{_diff(ref, peer, sigma)}, goal {goal_cell(ref, peer, sigma)}."
+            )
     return lines
 
 
@@ -603,7 +623,7 @@ def cv_rows(
         else "Run noise: no replicate pair yet; the intervals below are the photo bootstrap's alone and too narrow."
     )
     out = [noise, "", *headline_table(by_scene, sigma, steps, default)]
-    mixed = model_lines(records, steps, tags)
+    mixed = model_lines(records, steps, tags, default, sigma)
     if mixed:
         out += [
             "",

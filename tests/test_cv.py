@@ -528,6 +528,30 @@ def test_runs_of_one_collection_from_two_builds_of_its_scene_are_named():
     assert cv.model_lines(recs, 15000) == []  # only the runs scored at the step count asked
 
 
+def test_runs_that_name_no_build_beside_runs_that_do_are_another_build_and_the_named_one_is_scored_alone():
+    """Old records name no SfM model: beside runs that name one, they count as a build of their own, and the named
+    build on which the default and a peer have every fold gets the default against the peer from its runs alone."""
+    old = _records(0.2)  # the default 0.2 dB above the peer: the mixed table
+    new = [
+        {**r, "scene_model_sha256": "c" * 64, "tag": "pinned"}
+        for r in _records(1.5)
+        if r["scene"].startswith("scene") and r.get("status", "ok") == "ok"
+    ]
+    lines = cv.model_lines(old + new, 5000)
+    assert lines[0] == (
+        f"- **scene**: the fold runs started from 2 SfM models ({'c' * 12}: peer, willags; {cv.UNRECORDED}: peer, "
+        "willags)."
+    )
+    assert lines[1] == (
+        f"  On {'c' * 12} alone (runs a fold: willags 1, peer 1): willags 21.00, peer 19.50, willags − peer +1.50 "
+        "[+1.50, +1.50] (n=4), goal met."
+    )
+    assert len(lines) == 2
+    assert cv.collect(old + new, 5000)["scene"]["willags"].runs == 4  # the tables themselves keep every run
+    only_old_peer = old + [r for r in new if r["method"] == "willags"]  # no peer on the named build: no such line
+    assert cv.model_lines(only_old_peer, 5000) == [lines[0].replace("peer, willags;", "willags;")]
+
+
 def test_a_bundle_says_whether_a_rebuilt_collection_is_its_pinned_scene(tmp_path):
     from benchmarks.collections import COLLECTIONS, model_digest
     from tests._scenes import sfm_model_stub
