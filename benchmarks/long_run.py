@@ -354,7 +354,12 @@ def evaluate(args) -> int:
         _save_score(run_dir, str(m), rec, variant)
         print(
             f"long_run: {state['method']} @ {m}{' (' + variant + ')' if variant else ''}: psnr {rec.get('psnr', float('nan')):.2f} "
-            f"(train views {rec.get('train_psnr', float('nan')):.2f})"
+            f"(train views {rec.get('train_psnr', float('nan')):.2f}"
+            + (
+                f", {rec['train_psnr_kept']:.2f} over the {rec['train_kept_share']:.1%} of their pixels the mask keeps)"
+                if "train_psnr_kept" in rec
+                else ")"
+            )
         )
         del trainer
         gc.collect()
@@ -417,7 +422,16 @@ def record(args) -> int:
             k: {
                 **{
                     kk: v[kk]
-                    for kk in ("psnr", "ssim", "lpips", "train_psnr", "num_gaussians", "latent_spread")
+                    for kk in (
+                        "psnr",
+                        "ssim",
+                        "lpips",
+                        "train_psnr",
+                        "train_psnr_kept",
+                        "train_kept_share",
+                        "num_gaussians",
+                        "latent_spread",
+                    )
                     if kk in v
                 },
                 **({"train_s": times[k]} if k in times else {}),

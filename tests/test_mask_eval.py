@@ -292,3 +292,30 @@ def test_without_ground_truth_fp_rate_is_the_share_dropped(tmp_path):
     )
     assert out["fp_rate"] == pytest.approx(dropped / sum(m.size for m in masks), abs=1e-6)
     assert 0.5 * masks[0].sum() / (2 * masks[0].size) < out["fp_rate"] < 2 * masks[0].sum() / (2 * masks[0].size)
+
+
+def test_training_fit_over_the_kept_pixels_leaves_out_what_the_mask_leaves_unfit(tmp_path):
+    """Training view 0 holds an occluder the model does not render: its whole-photo PSNR counts it, the PSNR over
+    the pixels the mask keeps does not; the clean view keeps every pixel and scores the same either way."""
+    from willags_ns.eval.protocol import masked_psnr, train_view_scores
+
+    model, ds, _, images, masks = _scene_with_occluder(tmp_path)
+    cams = ds._dataparser_outputs.cameras
+    imgs = [torch.from_numpy(im) for im in images]
+    assert mask_eval.kept_pixels(model, cams[0:1], imgs[0].float() / 255, 0) is None  # before the mask's warm-up
+    keep = mask_eval.kept_pixels(model, cams[0:1], imgs[0].float() / 255, 0, threshold=0.85)
+    occluder = torch.from_numpy(masks[0])
+    assert not keep[occluder].any() and keep[~occluder].float().mean() > 0.95  # the occluder, not the scene
+    model.step = 30000  # the mask's bar in force: train_view_scores uses the step's own
+    out = train_view_scores(model, cams, imgs, max_images=-1)
+    assert 0.9 < out["train_kept_share"] < 1.0
+    assert out["train_psnr_kept"] > out["train_psnr"] + 10  # the occluder held the whole photo's error
+    pred = torch.rand(4, 4, 3, generator=torch.Generator().manual_seed(0))
+    gt = pred.clone()
+    gt[0, 0] += 0.5
+    assert masked_psnr(pred, gt, torch.ones(4, 4, dtype=torch.bool)) < 40
+    everything_but = torch.ones(4, 4, dtype=torch.bool)
+    everything_but[0, 0] = False
+    assert masked_psnr(pred, gt, everything_but) > 100
+    model.config.mask.enabled = False  # no mask: the whole photo's scores only
+    assert "train_psnr_kept" not in train_view_scores(model, cams, imgs)

@@ -38,6 +38,7 @@ from torch import Tensor
 
 from willags_ns.mask.expected import LEVEL
 from willags_ns.mask.rule import compare_to_teacher, step_threshold, transient_mask
+from willags_ns.mask.static_support import apply_support
 from willags_ns.render.camera import View, viewmat_from_c2w
 
 
@@ -198,6 +199,28 @@ def expected_render(model, camera, image_idx: int) -> Tensor | None:
     gp = model.gauss_params
     render, _ = model.render_teacher(gp, gp[LEVEL].detach(), _training_camera_view(model, camera, image_idx))
     return render[0, ..., 0]
+
+
+@torch.no_grad()
+def kept_pixels(model, camera, image: Tensor, image_idx: int, threshold: float | None = None) -> Tensor | None:
+    """bool [H, W]: the pixels of training image `image_idx` (`image` [H, W, 3] in [0, 1], seen by `camera` as
+    training sees it) that the training loss keeps under the model's mask at its current step: the rule's mask
+    against the teacher's render (a rejected mask keeps every pixel), then the SfM support. None for a model without
+    the mask, or before the mask's warm-up. `threshold`: the bar instead of the step's (:func:`step_threshold`)."""
+    cfg = model.config
+    if getattr(cfg, "appearance", "sh") != "willags" or not cfg.mask.enabled:
+        return None
+    if cfg.mask.distance == "vgg" and model.perceptual is None:
+        return None
+    if threshold is None and not model.mask_step.active(model.step):
+        return None
+    render = teacher_render(model, camera, image, image_idx)
+    expected = expected_render(model, camera, image_idx)
+    transient, _, _ = compare_to_teacher(
+        cfg.mask, model.step, image, render, model.perceptual, threshold=threshold, expected=expected
+    )
+    H, W = transient.shape
+    return apply_support(~transient, model.static_support(image_idx, H, W))
 
 
 def mask_scores(

@@ -28,6 +28,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from willags_ns.eval.mask_eval import kept_pixels
 from willags_ns.objective.losses import reconstruction_loss
 
 
@@ -296,7 +297,11 @@ def render_with_latent(model, cam, z: Tensor | None) -> Tensor:
 def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8) -> dict[str, float]:
     """Fitting capacity: PSNR / SSIM of training views rendered with their *own* latents (the mean latent each image
     had when last visited; no test-time inference), over up to `max_images` evenly spaced training images (`images`
-    uint8, or float in [0, 1])."""
+    uint8, or float in [0, 1]).
+
+    With the mask on, also `train_psnr_kept`: the PSNR over the pixels the training loss keeps (mask_eval.kept_pixels
+    at the model's step), and `train_kept_share`, their share. The whole photo's PSNR counts the pixels the mask
+    leaves unfit on purpose, so only the kept pixels' fit compares across mask settings."""
     model.eval()
     n = len(images)
     if n == 0:
@@ -305,15 +310,29 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
     idx = sorted({round(i * (n - 1) / max(1, k - 1)) for i in range(k)})
     appearance = getattr(model.config, "appearance", "sh") == "willags"
     latents = model.image_latents()[0] if appearance else None
-    scores = []
+    scores, kept, shares = [], [], []
     for i in idx:
         z = latents[i] if latents is not None else None
-        pred = render_with_latent(model, cameras[i : i + 1].to(model.device), z)
+        cam = cameras[i : i + 1].to(model.device)
+        pred = render_with_latent(model, cam, z)
         gt = unit_float(images[i][..., :3].to(model.device))
         scores.append(image_scores(pred, gt))
-    return {f"train_{k}": float(sum(s[k] for s in scores) / len(scores)) for k in scores[0]} | {
-        "train_num_images": float(len(scores))
-    }
+        keep = kept_pixels(model, cam, gt, i) if appearance else None
+        if keep is not None and bool(keep.any()):
+            kept.append(masked_psnr(pred, gt, keep))
+            shares.append(float(keep.float().mean()))
+    out = {f"train_{k}": float(sum(s[k] for s in scores) / len(scores)) for k in scores[0]}
+    out["train_num_images"] = float(len(scores))
+    if kept:
+        out["train_psnr_kept"] = float(sum(kept) / len(kept))
+        out["train_kept_share"] = float(sum(shares) / len(shares))
+    return out
+
+
+def masked_psnr(pred: Tensor, gt: Tensor, keep: Tensor) -> float:
+    """:func:`psnr` of [H, W, 3] images in [0, 1] over the pixels where `keep` [H, W] is True (at least one)."""
+    mse = ((pred.float() - gt.float()) ** 2).mean(-1)[keep].mean().clamp_min(1e-12)
+    return float(-10.0 * torch.log10(mse))
 
 
 def evaluate_model(
