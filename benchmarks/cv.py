@@ -552,7 +552,7 @@ def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "w
 
 
 UNRECORDED = "not named"
-"""scene_models' key for the runs whose records name no SfM model (made before long_run recorded it)."""
+"""scene_models' key for the runs whose records name no SfM model."""
 
 
 def scene_models(records: Sequence[dict[str, Any]], steps: int, tags=None) -> dict[str, dict[str, set[str]]]:

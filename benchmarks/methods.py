@@ -119,6 +119,13 @@ METHODS: dict[str, MethodSpec] = {
         note="the default (its prior weight named) with the transient mask on every scene, by the colour residual to "
         "the teacher",
     ),
+    "willags-prior-low-nomask": _default_on_gpu(
+        _PRIOR_LOW,
+        ("mask.enabled", False),
+        note="the default (its prior weight named) with the transient mask off on every scene, also where the "
+        "inspector turns it on (sacre-coeur-mini): what the mask changes there",
+        keep=("mask.enabled",),
+    ),
     "willags-prior-low-mask-expected": _masked_on_gpu(
         _PRIOR_LOW,
         ("mask.residual.expected", True),

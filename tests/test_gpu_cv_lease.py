@@ -52,3 +52,21 @@ def test_start_queues_the_folds_then_the_extra_runs_and_add_carries_scenes_alone
     assert nothing.returncode == 2 and "no run to start" in nothing.stderr
     usage = _lease(cwd=bundles)
     assert usage.returncode == 2 and usage.stderr.startswith("usage: cv_lease.sh")
+
+
+def test_several_methods_run_every_fold_each_in_an_order_that_turns_from_fold_to_fold(bundles):
+    """Queues go round the GPUs in order: with two methods on two GPUs, a fixed order would put every run of the
+    first method on the first GPU; the order turns by one at each fold, so each method's runs alternate."""
+    r = _lease("runs", ".gpu-a", cwd=bundles, CV_METHOD="willags peer-full", CV_STEPS="15000")
+    assert r.returncode == 0
+    runs = r.stdout.split()
+    assert runs == [
+        "lund-cv1of2:willags:15000:42",
+        "lund-cv1of2:peer-full:15000:42",
+        "lund-cv2of2:peer-full:15000:42",
+        "lund-cv2of2:willags:15000:42",
+        "sacre-coeur-mini-cv1of7:willags:15000:42",
+        "sacre-coeur-mini-cv1of7:peer-full:15000:42",
+    ]
+    gpu_of_peer_full = [i % 2 for i, run in enumerate(runs) if ":peer-full:" in run]
+    assert gpu_of_peer_full == [1, 0, 1]

@@ -9,23 +9,32 @@
 #   bash benchmarks/remote/cv_lease.sh wait "$OUT" 560     # as often as the runs need: records in $OUT/queues.tgz
 #   bash benchmarks/remote/cv_lease.sh runs .gpu-x4a       # the runs a bundle gives, one queue a line (here too)
 #
-# CV_METHOD (willags), CV_STEPS (15000), CV_SEED (42): the runs; CV_EXTRA: more queues after the folds' (each a
-# solo.sh queue, e.g. "fox-clean:willags:5000:42"), whose scenes travel in any bundle; SOLO_DATA (/tmp/cvdata): where
-# every call copies its bundles' scenes; SOLO_MILESTONES ("5000 15000"). The first call brings back gsplat's build as
+# CV_METHOD (willags; several, space-separated: each fold once per method, e.g. "willags peer peer-full"), CV_STEPS
+# (15000), CV_SEED (42): the runs; CV_EXTRA: more queues after the folds' (each a solo.sh queue, e.g.
+# "fox-clean:willags:5000:42"), whose scenes travel in any bundle; SOLO_DATA (/tmp/cvdata): where every call copies
+# its bundles' scenes; SOLO_MILESTONES ("5000 15000"). A queue that runs a peer needs its source in .gpu-peer
+# (benchmarks/peer.py), carried in the first call. The first call brings back gsplat's build as
 # $OUT/gsplat_cuda.so.gz when it made one (keep it as .gpu-cache/gsplat_cuda.so.gz: the next machine loads it in
 # seconds). CV_DRY_RUN=1: print what would start, start nothing (no set-up either).
 set -u
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 export SOLO_DATA=${SOLO_DATA:-/tmp/cvdata} SOLO_MILESTONES=${SOLO_MILESTONES:-5000 15000}
 
-runs() {  # BUNDLE... -> one run a line: every fold folder (<scene>-cv<k>of<K>) of each bundle
-  local b d n found
+runs() {  # BUNDLE... -> one run a line: every fold folder (<scene>-cv<k>of<K>) of each bundle, once per CV_METHOD
+  # the methods' order turns by one at each fold: queues go round the GPUs in order, so with as many methods as GPUs
+  # (or a multiple) each method would otherwise land on the same GPU every time, its slowest all on one
+  local b d n found j=0 k
+  local -a methods
+  read -r -a methods <<< "${CV_METHOD:-willags}"
   for b in "$@"; do
     found=0
     for d in "$b"/*-cv*of*/; do
       [ -d "$d" ] || continue  # no fold folder: the pattern itself, not a scene
       n=$(basename "$d")
-      echo "$n:${CV_METHOD:-willags}:${CV_STEPS:-15000}:${CV_SEED:-42}"
+      for ((k = 0; k < ${#methods[@]}; k++)); do
+        echo "$n:${methods[$(((j + k) % ${#methods[@]}))]}:${CV_STEPS:-15000}:${CV_SEED:-42}"
+      done
+      j=$((j + 1))
       found=1
     done
     [ $found = 1 ] || echo "cv_lease: $b holds no fold folder (its scenes travel for CV_EXTRA's runs only)" >&2
