@@ -594,6 +594,39 @@ def model_lines(
     return lines
 
 
+def build_of(rec: dict[str, Any]) -> str:
+    """The SfM model a record's run started from (its digest), UNRECORDED where the record names none."""
+    return str(rec.get("scene_model_sha256") or UNRECORDED)
+
+
+def same_build_refs(
+    records: Sequence[dict[str, Any]], steps: int, tags=None, variant: str | None = None, default: str = "willags"
+) -> dict[tuple[str, str], tuple[MethodCV, str]]:
+    """{(collection, method): (the default's MethodCV from its runs on the one build every fold run of that method
+    there started from, that build: a digest or UNRECORDED)}, on the collections where the default's runs span builds (benchmarks/collections.py: a
+    rebuilt collection is another scene unless it is the pinned one) and it has every fold on that build. A method is
+    then set against the default on its own scene; a method whose runs span builds, or whose build the default lacks,
+    against every run of the default, as elsewhere."""
+    from benchmarks.methods import configuration
+
+    builds: dict[tuple[str, str], set[str]] = defaultdict(set)
+    for (scene, _, _), rec, _ms in fold_runs(records, steps, tags, variant):
+        builds[(scene, configuration(rec))].add(build_of(rec))
+    spanned = {scene for (scene, m), b in builds.items() if m == default and len(b) > 1}
+    by_build: dict[str, dict[str, dict[str, MethodCV]]] = {}
+    out = {}
+    for (scene, method), b in sorted(builds.items()):
+        if method == default or scene not in spanned or len(b) != 1:
+            continue
+        (key,) = b
+        if key not in by_build:
+            by_build[key] = collect([r for r in records if build_of(r) == key], steps, tags, variant)
+        ref = by_build[key].get(scene, {}).get(default)
+        if ref is not None and ref.complete:
+            out[(scene, method)] = (ref, key)
+    return out
+
+
 def cv_rows(
     records: Sequence[dict[str, Any]], steps: int, default: str = "willags", tags=None, variant: str | None = None
 ) -> list[str]:
@@ -607,6 +640,7 @@ def cv_rows(
     if not by_scene:
         return [f"No cross-validated run scored at {steps} steps yet."]
     sigma, pairs = run_noise(records, steps)
+    refs = same_build_refs(records, steps, tags, variant, default)
     cand_rows = []
     for scene, by_method in sorted(by_scene.items()):
         ref = by_method.get(default)
@@ -615,7 +649,10 @@ def cv_rows(
         for method, cv in sorted(by_method.items()):
             if method in (default, "peer", "peer-full"):
                 continue
-            cand_rows.append([scene, method, _cell(cv), _diff(cv, ref, sigma)])
+            own, key = refs.get((scene, method), (None, UNRECORDED))
+            on = "that name no build" if key == UNRECORDED else f"on {key[:12]}"
+            note = "" if own is None else f" (the default's runs {on})"
+            cand_rows.append([scene, method, _cell(cv), _diff(cv, own or ref, sigma) + note])
     noise = (
         f"Run noise: sigma = {sigma:.2f} dB, the standard deviation of one run's cross-validated mean, from {pairs} "
         "replicate pair(s) (`cv.run_noise`); every interval below is the photo bootstrap's widened by it."
@@ -633,7 +670,7 @@ def cv_rows(
         ]
     if cand_rows:
         out += ["", *md_table(["scene", "method", "mean (fold means)", f"− {default} [95 % CI] (photos)"], cand_rows)]
-    pooled_rows = pooled_rows_of(by_scene, sigma, default)
+    pooled_rows = pooled_rows_of(by_scene, sigma, default, refs)
     if pooled_rows:
         out += [
             "",
@@ -696,11 +733,18 @@ def capacity_rows(records: Sequence[dict[str, Any]], steps: int, tags=None) -> t
     return ["method", *scenes], rows
 
 
-def pooled_rows_of(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, default: str) -> list[list[str]]:
+def pooled_rows_of(
+    by_scene: dict[str, dict[str, MethodCV]],
+    sigma: float | None,
+    default: str,
+    refs: dict[tuple[str, str], tuple[MethodCV, str]] | None = None,
+) -> list[list[str]]:
     """One row per method scored completely on at least two of the collections where `default` is complete: its
     pooled difference from the default over those collections and the verdict of that interval. A method missing
     some of them is pooled over the ones it has, its row naming how many and its verdict withheld: a default is
-    decided on every collection at once."""
+    decided on every collection at once. `refs` (same_build_refs): the default on a method's own build where it has
+    one."""
+    refs = refs or {}
     scenes = [s for s, by in sorted(by_scene.items()) if default in by and by[default].complete]
     if len(scenes) < 2:
         return []
@@ -710,7 +754,8 @@ def pooled_rows_of(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None
         have = [s for s in scenes if m in by_scene[s] and by_scene[s][m].complete]
         if len(have) < 2:
             continue
-        mean, low, high, n = pooled([(by_scene[s][m], by_scene[s][default]) for s in have], sigma)
+        pairs = [(by_scene[s][m], refs[(s, m)][0] if (s, m) in refs else by_scene[s][default]) for s in have]
+        mean, low, high, n = pooled(pairs, sigma)
         if len(have) == len(scenes):
             where, said = str(len(have)), verdict(low, high)
         else:

@@ -563,3 +563,40 @@ def test_a_bundle_says_whether_a_rebuilt_collection_is_its_pinned_scene(tmp_path
     (lund / "colmap" / "sparse" / "0" / "points3D.bin").unlink()
     (line,) = cv.pin_lines([lund])
     assert "no SfM model file colmap/sparse/0/points3D.bin" in line
+
+
+def test_a_candidate_is_set_against_the_default_on_its_own_build_where_the_default_spans_builds():
+    """The default ran on two builds (none named, and a pinned one 1.5 dB apart from it); a candidate run only on the
+    pinned one is compared with the default's pinned runs, in its row and in the pooled rows; a candidate on the
+    unnamed build with the default's unnamed runs; with no default on the candidate's build, with every run."""
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+    pinned = {"scene_model_sha256": "c" * 64}
+
+    def runs(method, shift, build=None, scene="scene"):
+        return [
+            {**_fold_rec(scene, k, 2, method, {n: v + shift for n, v in p.items()}), **(build or {})}
+            for k, p in photos.items()
+        ]
+
+    recs = runs("willags", 0.0) + runs("willags", 1.5, pinned) + runs("peer", -1.0)
+    recs += runs("cand-pinned", 1.7, pinned) + runs("cand-old", 0.3)
+    recs += runs("willags", 0.0, scene="other") + runs("cand-pinned", 0.2, scene="other")  # one build: as before
+    refs = cv.same_build_refs(recs, 5000)
+    assert set(refs) == {("scene", "cand-pinned"), ("scene", "cand-old"), ("scene", "peer")}  # the peer's pooled row
+    assert refs[("scene", "cand-pinned")][1] == "c" * 64 and refs[("scene", "cand-old")][1] == cv.UNRECORDED
+    assert refs[("scene", "cand-pinned")][0].mean == pytest.approx(22.5)
+    rows = "\n".join(cv.cv_rows(recs, 5000))
+    assert (
+        "| scene | cand-pinned | 22.70 (22.70 / 22.70) | +0.20 [" in rows
+        and f"(the default's runs on {'c' * 12})" in rows
+    )
+    assert (
+        "| scene | cand-old | 21.30 (21.30 / 21.30) | +0.30 [" in rows
+        and "the default's runs that name no build" in rows
+    )
+    assert "| other | cand-pinned | 21.20 (21.20 / 21.20) | +0.20 [" in rows  # the default spans no build there
+    by_scene = cv.collect(recs, 5000)
+    (row,) = [r for r in cv.pooled_rows_of(by_scene, None, "willags", refs) if r[0] == "cand-pinned"]
+    assert row[3].startswith("+0.20 [")  # (+0.20 on scene against the pinned default, +0.20 on other) / 2
+    (mixed,) = [r for r in cv.pooled_rows_of(by_scene, None, "willags") if r[0] == "cand-pinned"]
+    assert mixed[3].startswith("+0.57 [")  # against every run of the default: (+0.95 + 0.20) / 2
