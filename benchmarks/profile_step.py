@@ -10,7 +10,8 @@ time the GPU waited on the host), ``launches`` (kernel launches on CUDA, aten op
 only), ``top_host`` / ``top_device`` (the operators with the most self time) and ``components``: host ms, device ms,
 launches and calls of the parts of a step (the model's get_outputs, colours, rasterisation, background, metrics and
 loss; the densification strategy; the optimisers; the next photo), each under a ``record_function`` label, inclusive
-and nested (the colours are inside get_outputs; the backward pass is what the labels leave out).
+and nested (the colours are inside get_outputs; the backward pass is what the labels leave out), with ``ops``: the
+operators each part's own code calls, nested labels apart.
 """
 
 import argparse
@@ -20,6 +21,8 @@ import tempfile
 import time
 import traceback
 import warnings
+from collections import Counter, defaultdict
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -80,20 +83,35 @@ def label_components(trainer: Any) -> list[str]:
     return labels
 
 
-def component_summary(events: Any, steps: int, on_cuda: bool) -> dict[str, dict[str, float]]:
+def own_ops(e: Any) -> Iterator[str]:
+    """The names of the outermost operators run inside the labelled event `e` and outside any label nested in it: the
+    calls its code makes (``aten::linear``, not the ``aten::addmm`` inside it), what a fused kernel would replace."""
+    for c in e.cpu_children:
+        if c.name.startswith(LABEL):
+            continue
+        if c.name.startswith("aten::"):
+            yield c.name
+        else:
+            yield from own_ops(c)
+
+
+def component_summary(events: Any, steps: int, on_cuda: bool, top: int = 12) -> dict[str, dict[str, Any]]:
     """Per labelled component (``step/...`` events of a profiler's ``events()``): host ms, device ms, launches (CUDA;
-    aten operators on the CPU) and calls, per step, each inclusive of what ran inside it."""
+    aten operators on the CPU) and calls, per step, each inclusive of what ran inside it; and ``ops``, the ``top``
+    operators its own code calls (:func:`own_ops`: nested labels apart) with their calls per step."""
 
     def descendants(e):
         for c in e.cpu_children:
             yield c
             yield from descendants(c)
 
-    out: dict[str, dict[str, float]] = {}
+    out: dict[str, dict[str, Any]] = {}
+    ops: dict[str, Counter] = defaultdict(Counter)
     for e in events:
         if not e.name.startswith(LABEL):
             continue
         row = out.setdefault(e.name[len(LABEL) :], {"host_ms": 0.0, "device_ms": 0.0, "launches": 0.0, "calls": 0.0})
+        ops[e.name[len(LABEL) :]].update(own_ops(e))
         inner = list(descendants(e))
         row["host_ms"] += e.cpu_time_total / 1000.0 / steps
         row["calls"] += 1.0 / steps
@@ -103,8 +121,9 @@ def component_summary(events: Any, steps: int, on_cuda: bool) -> dict[str, dict[
             row["device_ms"] += float(getattr(e, "device_time_total", getattr(e, "cuda_time_total", 0.0)) or 0.0)
         else:
             row["launches"] += sum(c.name.startswith("aten::") for c in inner) / steps
-    for row in out.values():
+    for name, row in out.items():
         row["device_ms"] = row["device_ms"] / 1000.0 / steps
+        row["ops"] = {op: n / steps for op, n in ops[name].most_common(top)}
     return out
 
 
@@ -249,6 +268,8 @@ def main(argv=None) -> int:
             f"  {name}: {c['host_ms']:.2f} ms host, {c['device_ms']:.2f} ms device, {c['launches']:.0f} launches, "
             f"{c['calls']:.1f} calls per step"
         )
+        if c.get("ops"):
+            print("    its own calls: " + ", ".join(f"{op[6:]} {n:g}" for op, n in c["ops"].items()))
     return 0
 
 

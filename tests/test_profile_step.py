@@ -67,4 +67,26 @@ def test_a_components_device_time_and_launches_are_what_ran_inside_its_label():
     forward = Event(name="step/model.get_outputs", cpu_children=[op], cpu_time_total=2000.0, device_time_total=500.0)
     other = Event(name="aten::add", cpu_children=[launch], cpu_time_total=1.0, device_time_total=9.0)
     out = profile_step.component_summary([forward, other, forward], steps=2, on_cuda=True)
-    assert out == {"model.get_outputs": {"host_ms": 2.0, "device_ms": 0.5, "launches": 2.0, "calls": 1.0}}
+    assert out == {
+        "model.get_outputs": {
+            "host_ms": 2.0,
+            "device_ms": 0.5,
+            "launches": 2.0,
+            "calls": 1.0,
+            "ops": {"aten::mul": 1.0},
+        }
+    }
+
+
+def test_a_components_own_calls_are_its_outermost_operators_outside_nested_labels():
+    from types import SimpleNamespace as Event
+
+    def ev(name, *children):
+        return Event(name=name, cpu_children=list(children))
+
+    linear = ev("aten::linear", ev("aten::t"), ev("aten::addmm", ev("cudaLaunchKernel")))
+    nested = ev("step/model._rasterize", ev("aten::add"), ev("aten::add"))
+    wrapper = ev("some python function", ev("aten::mul"), ev("aten::mul"))  # not an operator: looked through
+    forward = ev("step/model.get_outputs", linear, nested, wrapper, ev("aten::mul"))
+    assert sorted(profile_step.own_ops(forward)) == ["aten::linear", "aten::mul", "aten::mul", "aten::mul"]
+    assert list(profile_step.own_ops(nested)) == ["aten::add", "aten::add"]
