@@ -603,10 +603,10 @@ def same_build_refs(
     records: Sequence[dict[str, Any]], steps: int, tags=None, variant: str | None = None, default: str = "willags"
 ) -> dict[tuple[str, str], tuple[MethodCV, str]]:
     """{(collection, method): (the default's MethodCV from its runs on the one build every fold run of that method
-    there started from, that build: a digest or UNRECORDED)}, on the collections where the default's runs span builds (benchmarks/collections.py: a
-    rebuilt collection is another scene unless it is the pinned one) and it has every fold on that build. A method is
-    then set against the default on its own scene; a method whose runs span builds, or whose build the default lacks,
-    against every run of the default, as elsewhere."""
+    there started from, that build: a digest or UNRECORDED)}, on the collections where the default's runs span
+    builds (benchmarks/collections.py: a rebuilt collection is another scene unless it is the pinned one) and it has
+    every fold on that build. A method is then set against the default on its own scene; a method whose runs span
+    builds, or whose build the default lacks, against every run of the default, as elsewhere."""
     from benchmarks.methods import configuration
 
     builds: dict[tuple[str, str], set[str]] = defaultdict(set)
