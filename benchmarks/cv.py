@@ -555,6 +555,11 @@ UNRECORDED = "not named"
 """scene_models' key for the runs whose records name no SfM model."""
 
 
+def build_of(rec: dict[str, Any]) -> str:
+    """The SfM model a record's run started from (its digest), UNRECORDED where the record names none."""
+    return str(rec.get("scene_model_sha256") or UNRECORDED)
+
+
 def scene_models(records: Sequence[dict[str, Any]], steps: int, tags=None) -> dict[str, dict[str, set[str]]]:
     """{collection: {SfM model digest: methods}} of the fold runs scored at `steps` whose records name the model their
     scene held (`scene_model_sha256`, long_run.record). On a collection where some record names one, the runs whose
@@ -562,7 +567,7 @@ def scene_models(records: Sequence[dict[str, Any]], steps: int, tags=None) -> di
     than one thread start from another scene each time); where no record names one, the collection is left out."""
     out: dict[str, dict[str, set[str]]] = defaultdict(lambda: defaultdict(set))
     for (scene, _, _), rec, _ms in fold_runs(records, steps, tags):
-        out[scene][str(rec.get("scene_model_sha256") or UNRECORDED)].add(str(rec.get("method")))
+        out[scene][build_of(rec)].add(str(rec.get("method")))
     return {scene: dict(models) for scene, models in out.items() if set(models) != {UNRECORDED}}
 
 
@@ -580,7 +585,7 @@ def model_lines(
         each = "; ".join(f"{d[:12]}: {', '.join(sorted(m))}" for d, m in sorted(models.items()))
         lines.append(f"- **{scene}**: the fold runs started from {len(models)} SfM models ({each}).")
         for digest in sorted(d for d in models if d != UNRECORDED):
-            alone = [r for r in records if r.get("scene_model_sha256") == digest]
+            alone = [r for r in records if build_of(r) == digest]
             by_method = collect(alone, steps, tags).get(scene, {})
             ref, peer_name = by_method.get(default), stronger_peer(by_method)
             peer = by_method.get(peer_name) if peer_name else None
@@ -592,11 +597,6 @@ def model_lines(
                 f"{_diff(ref, peer, sigma)}, goal {goal_cell(ref, peer, sigma)}."
             )
     return lines
-
-
-def build_of(rec: dict[str, Any]) -> str:
-    """The SfM model a record's run started from (its digest), UNRECORDED where the record names none."""
-    return str(rec.get("scene_model_sha256") or UNRECORDED)
 
 
 def same_build_refs(

@@ -297,7 +297,7 @@ def test_without_ground_truth_fp_rate_is_the_share_dropped(tmp_path):
 def test_training_fit_over_the_kept_pixels_leaves_out_what_the_mask_leaves_unfit(tmp_path):
     """Training view 0 holds an occluder the model does not render: its whole-photo PSNR counts it, the PSNR over
     the pixels the mask keeps does not; the clean view keeps every pixel and scores the same either way."""
-    from willags_ns.eval.protocol import masked_psnr, train_view_scores
+    from willags_ns.eval.protocol import psnr, train_view_scores
 
     model, ds, _, images, masks = _scene_with_occluder(tmp_path)
     cams = ds._dataparser_outputs.cameras
@@ -313,9 +313,10 @@ def test_training_fit_over_the_kept_pixels_leaves_out_what_the_mask_leaves_unfit
     pred = torch.rand(4, 4, 3, generator=torch.Generator().manual_seed(0))
     gt = pred.clone()
     gt[0, 0] += 0.5
-    assert masked_psnr(pred, gt, torch.ones(4, 4, dtype=torch.bool)) < 40
-    everything_but = torch.ones(4, 4, dtype=torch.bool)
+    everything = torch.ones(4, 4, dtype=torch.bool)
+    assert psnr(pred[everything], gt[everything]) < 40  # the kept pixels' PSNR, as train_view_scores takes it
+    everything_but = everything.clone()
     everything_but[0, 0] = False
-    assert masked_psnr(pred, gt, everything_but) > 100
+    assert psnr(pred[everything_but], gt[everything_but]) > 100
     model.config.mask.enabled = False  # no mask: the whole photo's scores only
     assert "train_psnr_kept" not in train_view_scores(model, cams, imgs)

@@ -202,6 +202,18 @@ def expected_render(model, camera, image_idx: int) -> Tensor | None:
 
 
 @torch.no_grad()
+def rule_mask(model, camera, image: Tensor, image_idx: int, threshold: float | None = None):
+    """The mask's rule on training image `image_idx` (`image` [H, W, 3] in [0, 1]) against the teacher's render of
+    `camera`, with the scene's expected residual where the model has one: compare_to_teacher's (transient [H, W],
+    rejected, D) at the model's step (`threshold`: the bar instead of the step's)."""
+    render = teacher_render(model, camera, image, image_idx)
+    expected = expected_render(model, camera, image_idx)
+    return compare_to_teacher(
+        model.config.mask, model.step, image, render, model.perceptual, threshold=threshold, expected=expected
+    )
+
+
+@torch.no_grad()
 def kept_pixels(model, camera, image: Tensor, image_idx: int, threshold: float | None = None) -> Tensor | None:
     """bool [H, W]: the pixels of training image `image_idx` (`image` [H, W, 3] in [0, 1], seen by `camera` as
     training sees it) that the training loss keeps under the model's mask at its current step: the rule's mask
@@ -214,11 +226,7 @@ def kept_pixels(model, camera, image: Tensor, image_idx: int, threshold: float |
         return None
     if threshold is None and not model.mask_step.active(model.step):
         return None
-    render = teacher_render(model, camera, image, image_idx)
-    expected = expected_render(model, camera, image_idx)
-    transient, _, _ = compare_to_teacher(
-        cfg.mask, model.step, image, render, model.perceptual, threshold=threshold, expected=expected
-    )
+    transient, _, _ = rule_mask(model, camera, image, image_idx, threshold)
     H, W = transient.shape
     return apply_support(~transient, model.static_support(image_idx, H, W))
 
@@ -266,9 +274,7 @@ def mask_scores(
                 gt_mask = load_gt_mask(gt_path, raw.shape[0], raw.shape[1])
             cam, image, gt_mask = training_view(train_dataset, i, gt_mask)
             img = torch.from_numpy(image).float().div(255.0).to(model.device)
-            render = teacher_render(model, cam, img, i)
-            expected = expected_render(model, cam, i)
-            pred, rejected_t, d = compare_to_teacher(cfg.mask, model.step, img, render, model.perceptual, thr, expected)
+            pred, rejected_t, d = rule_mask(model, cam, img, i, thr)
             rejected = bool(rejected_t)
             if gt_mask is None:  # no ground truth: every pixel static
                 gt_t = torch.zeros_like(pred, dtype=torch.bool)

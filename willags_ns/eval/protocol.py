@@ -319,7 +319,7 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
         scores.append(image_scores(pred, gt))
         keep = kept_pixels(model, cam, gt, i) if appearance else None
         if keep is not None and bool(keep.any()):
-            kept.append(masked_psnr(pred, gt, keep))
+            kept.append(psnr(pred[keep], gt[keep]))
             shares.append(float(keep.float().mean()))
     out = {f"train_{k}": float(sum(s[k] for s in scores) / len(scores)) for k in scores[0]}
     out["train_num_images"] = float(len(scores))
@@ -327,12 +327,6 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
         out["train_psnr_kept"] = float(sum(kept) / len(kept))
         out["train_kept_share"] = float(sum(shares) / len(shares))
     return out
-
-
-def masked_psnr(pred: Tensor, gt: Tensor, keep: Tensor) -> float:
-    """:func:`psnr` of [H, W, 3] images in [0, 1] over the pixels where `keep` [H, W] is True (at least one)."""
-    mse = ((pred.float() - gt.float()) ** 2).mean(-1)[keep].mean().clamp_min(1e-12)
-    return float(-10.0 * torch.log10(mse))
 
 
 def evaluate_model(
