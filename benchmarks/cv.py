@@ -37,7 +37,7 @@ import shutil
 import stat
 import sys
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -560,14 +560,52 @@ def build_of(rec: dict[str, Any]) -> str:
     return str(rec.get("scene_model_sha256") or UNRECORDED)
 
 
+def build_key(records: Sequence[dict[str, Any]]) -> Callable[[dict[str, Any]], str]:
+    """The build a record's run started from, read against every record: its digest where it names one; for a run
+    that names none, on a collection nobody rebuilds (not in benchmarks.collections.COLLECTIONS: a fixed folder of
+    data, one scene for every run) whose named runs all name one digest, that digest; otherwise UNRECORDED (a
+    rebuilt collection's older runs may have started from any build)."""
+    from benchmarks.collections import COLLECTIONS
+
+    named: dict[str, set[str]] = defaultdict(set)
+    for rec in records:
+        fold = parse_fold(str(rec.get("scene", "")))
+        if fold is not None and rec.get("scene_model_sha256"):
+            named[fold[0]].add(build_of(rec))
+
+    def key(rec: dict[str, Any]) -> str:
+        fold = parse_fold(str(rec.get("scene", "")))
+        if rec.get("scene_model_sha256") or fold is None or fold[0] in COLLECTIONS or len(named[fold[0]]) != 1:
+            return build_of(rec)
+        (only,) = named[fold[0]]
+        return only
+
+    return key
+
+
+def method_builds(
+    records: Sequence[dict[str, Any]], steps: int, tags=None, variant: str | None = None
+) -> dict[tuple[str, str], set[str]]:
+    """{(collection, method): the builds (build_key) its fold runs scored at `steps` started from}."""
+    from benchmarks.methods import configuration
+
+    key = build_key(records)
+    builds: dict[tuple[str, str], set[str]] = defaultdict(set)
+    for (scene, _, _), rec, _ms in fold_runs(records, steps, tags, variant):
+        builds[(scene, configuration(rec))].add(key(rec))
+    return dict(builds)
+
+
 def scene_models(records: Sequence[dict[str, Any]], steps: int, tags=None) -> dict[str, dict[str, set[str]]]:
     """{collection: {SfM model digest: methods}} of the fold runs scored at `steps` whose records name the model their
-    scene held (`scene_model_sha256`, long_run.record). On a collection where some record names one, the runs whose
-    records name none are listed under UNRECORDED: a build that may be any (runs of a collection rebuilt with more
-    than one thread start from another scene each time); where no record names one, the collection is left out."""
+    scene held (`scene_model_sha256`, long_run.record). On a rebuilt collection where some record names one, the runs
+    whose records name none are listed under UNRECORDED: a build that may be any (runs of a collection rebuilt with
+    more than one thread start from another scene each time); on a fixed collection they join its one named build
+    (build_key); where no record names one, the collection is left out."""
     out: dict[str, dict[str, set[str]]] = defaultdict(lambda: defaultdict(set))
+    key = build_key(records)
     for (scene, _, _), rec, _ms in fold_runs(records, steps, tags):
-        out[scene][build_of(rec)].add(str(rec.get("method")))
+        out[scene][key(rec)].add(str(rec.get("method")))
     return {scene: dict(models) for scene, models in out.items() if set(models) != {UNRECORDED}}
 
 
@@ -579,13 +617,14 @@ def model_lines(
     models' with the methods'. For each named model on which the default and a peer have every fold, the default
     against the stronger peer on that model's runs alone (`sigma`: the run noise, as in the tables)."""
     lines = []
+    key = build_key(records)
     for scene, models in sorted(scene_models(records, steps, tags).items()):
         if len(models) < 2:
             continue
         each = "; ".join(f"{d[:12]}: {', '.join(sorted(m))}" for d, m in sorted(models.items()))
         lines.append(f"- **{scene}**: the fold runs started from {len(models)} SfM models ({each}).")
         for digest in sorted(d for d in models if d != UNRECORDED):
-            alone = [r for r in records if build_of(r) == digest]
+            alone = [r for r in records if key(r) == digest]
             by_method = collect(alone, steps, tags).get(scene, {})
             ref, peer_name = by_method.get(default), stronger_peer(by_method)
             peer = by_method.get(peer_name) if peer_name else None
@@ -607,11 +646,8 @@ def same_build_refs(
     builds (benchmarks/collections.py: a rebuilt collection is another scene unless it is the pinned one) and it has
     every fold on that build. A method is then set against the default on its own scene; a method whose runs span
     builds, or whose build the default lacks, against every run of the default, as elsewhere."""
-    from benchmarks.methods import configuration
-
-    builds: dict[tuple[str, str], set[str]] = defaultdict(set)
-    for (scene, _, _), rec, _ms in fold_runs(records, steps, tags, variant):
-        builds[(scene, configuration(rec))].add(build_of(rec))
+    key_of = build_key(records)
+    builds = method_builds(records, steps, tags, variant)
     spanned = {scene for (scene, m), b in builds.items() if m == default and len(b) > 1}
     by_build: dict[str, dict[str, dict[str, MethodCV]]] = {}
     out = {}
@@ -620,7 +656,7 @@ def same_build_refs(
             continue
         (key,) = b
         if key not in by_build:
-            by_build[key] = collect([r for r in records if build_of(r) == key], steps, tags, variant)
+            by_build[key] = collect([r for r in records if key_of(r) == key], steps, tags, variant)
         ref = by_build[key].get(scene, {}).get(default)
         if ref is not None and ref.complete:
             out[(scene, method)] = (ref, key)
@@ -680,7 +716,7 @@ def cv_rows(
             "",
             *md_table(["method", "collections", "photos", f"− {default} [95 % CI]", "verdict"], pooled_rows),
         ]
-    switches = switch_rows(by_scene, sigma, default)
+    switches = switch_rows(by_scene, sigma, default, method_builds(records, steps, tags, variant))
     if switches:
         head = ["method", "against", "the settings it adds", "collection", "method − against [95 % CI] (photos)",
                 "verdict"]  # fmt: skip
@@ -782,15 +818,28 @@ def switch_pairs(methods: Sequence[str], default: str = "willags") -> list[tuple
     return out
 
 
-def switch_rows(by_scene: dict[str, dict[str, MethodCV]], sigma: float | None, default: str) -> list[list[str]]:
+def switch_rows(
+    by_scene: dict[str, dict[str, MethodCV]],
+    sigma: float | None,
+    default: str,
+    builds: dict[tuple[str, str], set[str]] | None = None,
+) -> list[list[str]]:
     """Per pair of :func:`switch_pairs`, a row per collection where both have every fold, then, on two or more,
-    the pair over those collections at once (:func:`pooled`) with its verdict."""
+    the pair over those collections at once (:func:`pooled`) with its verdict. `builds` (method_builds): where each
+    method's runs there all started from one build and the two builds differ, the row says so and stays out of the
+    pooled row (two builds of a rebuilt collection are two scenes)."""
     methods = sorted({m for by in by_scene.values() for m in by})
     out = []
     for b, a, added in switch_pairs(methods, default):
-        scenes = [s for s, by in sorted(by_scene.items()) if a in by and b in by and by[a].complete and by[b].complete]
-        for s in scenes:
-            out.append([b, a, ", ".join(added), s, _diff(by_scene[s][b], by_scene[s][a], sigma), ""])
+        both = [s for s, by in sorted(by_scene.items()) if a in by and b in by and by[a].complete and by[b].complete]
+        scenes = []
+        for s in both:
+            ba, bb = (builds or {}).get((s, a), set()), (builds or {}).get((s, b), set())
+            apart = len(ba) == 1 and len(bb) == 1 and ba != bb
+            note = " (the two on different builds: left out of the pooled row)" if apart else ""
+            out.append([b, a, ", ".join(added), s, _diff(by_scene[s][b], by_scene[s][a], sigma) + note, ""])
+            if not apart:
+                scenes.append(s)
         if len(scenes) >= 2:
             mean, low, high, n = pooled([(by_scene[s][b], by_scene[s][a]) for s in scenes], sigma)
             at_once = f"**{len(scenes)} at once**"

@@ -102,6 +102,11 @@ def _records(shift: float, folds_of_b: int = 2) -> list[dict]:
     return recs
 
 
+def _on(collection: str, recs: list[dict]) -> list[dict]:
+    """_records' runs of "scene" as runs of `collection`."""
+    return [{**r, "scene": r["scene"].replace("scene-", f"{collection}-", 1)} for r in recs]
+
+
 def test_collect_pairs_each_photo_across_folds_and_methods():
     by = cv.collect(_records(1.5), 5000)
     assert set(by) == {"scene"} and set(by["scene"]) == {"willags", "peer"}
@@ -531,15 +536,15 @@ def test_runs_of_one_collection_from_two_builds_of_its_scene_are_named():
 def test_runs_that_name_no_build_beside_runs_that_do_are_another_build_and_the_named_one_is_scored_alone():
     """Old records name no SfM model: beside runs that name one, they count as a build of their own, and the named
     build on which the default and a peer have every fold gets the default against the peer from its runs alone."""
-    old = _records(0.2)  # the default 0.2 dB above the peer: the mixed table
+    old = _on("lund", _records(0.2))  # a rebuilt collection; the default 0.2 dB above the peer: the mixed table
     new = [
         {**r, "scene_model_sha256": "c" * 64, "tag": "pinned"}
-        for r in _records(1.5)
-        if r["scene"].startswith("scene") and r.get("status", "ok") == "ok"
+        for r in _on("lund", _records(1.5))
+        if r["scene"].startswith("lund") and r.get("status", "ok") == "ok"
     ]
     lines = cv.model_lines(old + new, 5000)
     assert lines[0] == (
-        f"- **scene**: the fold runs started from 2 SfM models ({'c' * 12}: peer, willags; {cv.UNRECORDED}: peer, "
+        f"- **lund**: the fold runs started from 2 SfM models ({'c' * 12}: peer, willags; {cv.UNRECORDED}: peer, "
         "willags)."
     )
     assert lines[1] == (
@@ -547,7 +552,7 @@ def test_runs_that_name_no_build_beside_runs_that_do_are_another_build_and_the_n
         "[+1.50, +1.50] (n=4), goal met."
     )
     assert len(lines) == 2
-    assert cv.collect(old + new, 5000)["scene"]["willags"].runs == 4  # the tables themselves keep every run
+    assert cv.collect(old + new, 5000)["lund"]["willags"].runs == 4  # the tables themselves keep every run
     only_old_peer = old + [r for r in new if r["method"] == "willags"]  # no peer on the named build: no such line
     assert cv.model_lines(only_old_peer, 5000) == [lines[0].replace("peer, willags;", "willags;")]
 
@@ -572,7 +577,7 @@ def test_a_candidate_is_set_against_the_default_on_its_own_build_where_the_defau
     photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
     pinned = {"scene_model_sha256": "c" * 64}
 
-    def runs(method, shift, build=None, scene="scene"):
+    def runs(method, shift, build=None, scene="lund"):  # a rebuilt collection
         return [
             {**_fold_rec(scene, k, 2, method, {n: v + shift for n, v in p.items()}), **(build or {})}
             for k, p in photos.items()
@@ -582,21 +587,62 @@ def test_a_candidate_is_set_against_the_default_on_its_own_build_where_the_defau
     recs += runs("cand-pinned", 1.7, pinned) + runs("cand-old", 0.3)
     recs += runs("willags", 0.0, scene="other") + runs("cand-pinned", 0.2, scene="other")  # one build: as before
     refs = cv.same_build_refs(recs, 5000)
-    assert set(refs) == {("scene", "cand-pinned"), ("scene", "cand-old"), ("scene", "peer")}  # the peer's pooled row
-    assert refs[("scene", "cand-pinned")][1] == "c" * 64 and refs[("scene", "cand-old")][1] == cv.UNRECORDED
-    assert refs[("scene", "cand-pinned")][0].mean == pytest.approx(22.5)
+    assert set(refs) == {("lund", "cand-pinned"), ("lund", "cand-old"), ("lund", "peer")}  # the peer's pooled row
+    assert refs[("lund", "cand-pinned")][1] == "c" * 64 and refs[("lund", "cand-old")][1] == cv.UNRECORDED
+    assert refs[("lund", "cand-pinned")][0].mean == pytest.approx(22.5)
     rows = "\n".join(cv.cv_rows(recs, 5000))
     assert (
-        "| scene | cand-pinned | 22.70 (22.70 / 22.70) | +0.20 [" in rows
+        "| lund | cand-pinned | 22.70 (22.70 / 22.70) | +0.20 [" in rows
         and f"(the default's runs on {'c' * 12})" in rows
     )
     assert (
-        "| scene | cand-old | 21.30 (21.30 / 21.30) | +0.30 [" in rows
+        "| lund | cand-old | 21.30 (21.30 / 21.30) | +0.30 [" in rows
         and "the default's runs that name no build" in rows
     )
     assert "| other | cand-pinned | 21.20 (21.20 / 21.20) | +0.20 [" in rows  # the default spans no build there
     by_scene = cv.collect(recs, 5000)
     (row,) = [r for r in cv.pooled_rows_of(by_scene, None, "willags", refs) if r[0] == "cand-pinned"]
-    assert row[3].startswith("+0.20 [")  # (+0.20 on scene against the pinned default, +0.20 on other) / 2
+    assert row[3].startswith("+0.20 [")  # (+0.20 on lund against the pinned default, +0.20 on other) / 2
     (mixed,) = [r for r in cv.pooled_rows_of(by_scene, None, "willags") if r[0] == "cand-pinned"]
     assert mixed[3].startswith("+0.57 [")  # against every run of the default: (+0.95 + 0.20) / 2
+
+
+def test_on_a_fixed_collection_runs_that_name_no_build_share_its_one_named_build():
+    """A collection nobody rebuilds is one folder of data: its older runs, whose records name no SfM model, started
+    from the scene its newer runs name, so no line says it has two builds and no candidate is set apart; only if its
+    named runs name two digests do the unnamed ones stay a build of their own."""
+    old = _records(0.2)  # "scene" is no rebuilt collection (benchmarks.collections.COLLECTIONS)
+    new = [{**r, "method": "cand", "scene_model_sha256": "d" * 64} for r in old if r["method"] == "willags"]
+    key = cv.build_key(old + new)
+    assert {key(r) for r in old + new if r.get("status", "ok") == "ok"} == {"d" * 64}
+    assert cv.model_lines(old + new, 5000) == [] and cv.same_build_refs(old + new, 5000) == {}
+    assert cv.method_builds(old + new, 5000)[("scene", "willags")] == {"d" * 64}
+    new[0]["scene_model_sha256"] = "e" * 64  # the folder changed under the runs: no single build to join
+    (line,) = cv.model_lines(old + new, 5000)
+    assert f"3 SfM models ({'d' * 12}: cand; {'e' * 12}: cand; {cv.UNRECORDED}: peer, willags)" in line
+    lund = _on("lund", old) + [{**r, "scene": r["scene"].replace("scene-", "lund-")} for r in new[1:]]
+    assert cv.build_key(lund)(_on("lund", old)[0]) == cv.UNRECORDED  # a rebuilt collection's older runs: any build
+
+
+def test_a_setting_measured_across_two_builds_is_shown_apart_and_left_out_of_the_pooled_row():
+    """switch_rows pairs a method with the one it extends; on a rebuilt collection where each ran on another build
+    the row says so and the pooled row leaves that collection out."""
+    base, more = "willags-prior-low-cap1m", "willags-prior-low-mask-expected-cap1m"
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+
+    def runs(scene, method, shift, build=None):
+        extra = {"scene_model_sha256": build} if build else {}
+        return [{**_fold_rec(scene, k, 2, method, {n: v + shift for n, v in p.items()}), **extra}
+                for k, p in photos.items()]  # fmt: skip
+
+    recs = runs("lund", base, 0.0, "c" * 64) + runs("lund", more, 2.0)
+    recs += runs("scene", base, 0.0) + runs("scene", more, 0.5) + runs("other", base, 0.0) + runs("other", more, 0.5)
+    by_scene = cv.collect(recs, 5000)
+    rows = cv.switch_rows(by_scene, None, "willags", cv.method_builds(recs, 5000))
+    (lund,) = [r for r in rows if r[3] == "lund"]
+    assert lund[4].startswith("+2.00 [") and "different builds: left out of the pooled row" in lund[4]
+    (pool,) = [r for r in rows if "at once" in r[3]]
+    assert pool[3] == "**2 at once**" and pool[4].startswith("+0.50 [")
+    (mixed,) = [r for r in cv.switch_rows(by_scene, None, "willags") if "at once" in r[3]]  # no builds given
+    assert mixed[3] == "**3 at once**" and mixed[4].startswith("+1.00 [")
+    assert any("different builds: left out" in line for line in cv.cv_rows(recs, 5000))
