@@ -1108,6 +1108,21 @@ def stopping_gain(
     return float(np.mean(gains)), float(np.mean(early))
 
 
+def missing_folds(records: Sequence[dict[str, Any]], method: str, steps: int, default: str = "willags") -> list[str]:
+    """The fold scenes (`<collection>-cv<k>of<K>`) that `method` has no run of scored at `steps`, on every collection
+    where the default has every fold there: what a lease must still run before the method counts on all of them (a
+    lease that ran out leaves some folds unscored; `cv_lease.sh` takes the list as CV_FOLDS)."""
+    by_scene = collect(records, steps)
+    out = []
+    for scene, by_method in sorted(by_scene.items()):
+        ref = by_method.get(default)
+        if ref is None or not ref.complete:
+            continue
+        have = by_method[method].fold_means if method in by_method else {}
+        out += [fold_name(scene, k, ref.folds) for k in range(1, ref.folds + 1) if k not in have]
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -1155,6 +1170,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     st.add_argument("--photos", type=int, default=8, help="photos of a run that choose (at most half of them)")
     st.add_argument("--margin", type=float, default=0.1, help="dB the earlier step must lead by on them")
     st.add_argument("--records", type=Path, default=None)
+    mi = sub.add_parser("missing", help="the fold scenes a method has no run of yet, one a line (cv_lease.sh CV_FOLDS)")
+    mi.add_argument("--method", required=True, help="the configuration, as the tables name it")
+    mi.add_argument("--steps", type=int, default=15000)
+    mi.add_argument("--records", type=Path, default=None)
     r = sub.add_parser("report", help="print the cross-validated tables from the records")
     r.add_argument("--records", type=Path, default=None)
     r.add_argument("--steps", type=int, default=5000)
@@ -1220,6 +1239,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             if r is not None:
                 corr = {**(corr or {}), f"{a2} - {b2}": r}
         print("\n".join(photo_lines(diffs, args.top, corr)))
+        return 0
+    if args.cmd == "missing":
+        folds = missing_folds(records, args.method, args.steps)
+        for name in folds:
+            print(name)
+        print(f"cv: {args.method} lacks {len(folds)} fold run(s) scored at {args.steps} steps", file=sys.stderr)
         return 0
     if args.cmd == "stop":
         by_scene = run_milestone_photos(records, args.method, args.short, args.long)

@@ -646,3 +646,21 @@ def test_a_setting_measured_across_two_builds_is_shown_apart_and_left_out_of_the
     (mixed,) = [r for r in cv.switch_rows(by_scene, None, "willags") if "at once" in r[3]]  # no builds given
     assert mixed[3] == "**3 at once**" and mixed[4].startswith("+1.00 [")
     assert any("different builds: left out" in line for line in cv.cv_rows(recs, 5000))
+
+
+def test_missing_lists_the_folds_a_method_lacks_where_the_default_has_every_fold(tmp_path, capsys):
+    recs = _records(1.0)  # "scene": the default on both folds, the peer on both
+    recs += [r for r in _on("other", _records(1.0)) if r["method"] == "willags"]  # "other": the default alone
+    recs += [
+        _fold_rec("half", 1, 2, "willags", {"x.jpg": 20.0})
+    ]  # the default on one fold of two: not a collection yet
+    cand = [{**r, "method": "cand"} for r in recs if r["method"] == "willags" and r["scene"] == "scene-cv2of2"]
+    assert cv.missing_folds(recs + cand, "cand", 5000) == ["other-cv1of2", "other-cv2of2", "scene-cv1of2"]
+    assert cv.missing_folds(recs, "peer", 5000) == ["other-cv1of2", "other-cv2of2"]
+    assert cv.missing_folds(recs, "peer", 15000) == []  # no collection whole at that step count
+    path = tmp_path / "cv.json"
+    path.write_text(json.dumps(recs + cand))
+    assert cv.main(["missing", "--method", "cand", "--steps", "5000", "--records", str(path)]) == 0
+    out = capsys.readouterr()
+    assert out.out.split() == ["other-cv1of2", "other-cv2of2", "scene-cv1of2"]
+    assert "cand lacks 3 fold run(s) scored at 5000 steps" in out.err

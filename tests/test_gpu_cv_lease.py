@@ -70,3 +70,15 @@ def test_several_methods_run_every_fold_each_in_an_order_that_turns_from_fold_to
     ]
     gpu_of_peer_full = [i % 2 for i, run in enumerate(runs) if ":peer-full:" in run]
     assert gpu_of_peer_full == [1, 0, 1]
+
+
+def test_cv_folds_keeps_only_the_named_fold_folders(bundles):
+    """A lease that ran out leaves some folds unscored: CV_FOLDS (what `cv missing` prints, newline- or
+    space-separated) runs only those, and a bundle none of whose folds it names adds no run."""
+    r = _lease("runs", ".gpu-a", cwd=bundles, CV_METHOD="m", CV_FOLDS="lund-cv2of2\nsacre-coeur-mini-cv1of7")
+    assert r.returncode == 0 and r.stdout.split() == ["lund-cv2of2:m:15000:42", "sacre-coeur-mini-cv1of7:m:15000:42"]
+    assert "holds no fold folder" not in r.stderr  # it holds them; none was asked for
+    spaced = _lease("runs", ".gpu-a", cwd=bundles, CV_METHOD="m", CV_FOLDS="lund-cv1of2 lund-cv2")
+    assert spaced.stdout.split() == ["lund-cv1of2:m:15000:42"]  # whole names only, not a prefix
+    none = _lease("add", ".gpu-a", cwd=bundles, CV_DRY_RUN="1", CV_FOLDS="liberty-cv1of4")
+    assert none.returncode == 0 and none.stdout.strip() == "copy only: .gpu-a"

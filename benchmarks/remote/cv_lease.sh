@@ -10,7 +10,8 @@
 #   bash benchmarks/remote/cv_lease.sh runs .gpu-x4a       # the runs a bundle gives, one queue a line (here too)
 #
 # CV_METHOD (willags; several, space-separated: each fold once per method, e.g. "willags peer peer-full"), CV_STEPS
-# (15000), CV_SEED (42): the runs; CV_EXTRA: more queues after the folds' (each a solo.sh queue, e.g.
+# (15000), CV_SEED (42): the runs; CV_FOLDS: only these fold folders of the bundles (names, space- or newline-separated:
+# `python -m benchmarks cv missing --method M` lists those a method still lacks); CV_EXTRA: more queues after the folds' (each a solo.sh queue, e.g.
 # "fox-clean:willags:5000:42"), whose scenes travel in any bundle; SOLO_DATA (/tmp/cvdata): where every call copies
 # its bundles' scenes; SOLO_MILESTONES ("5000 15000"). A queue that runs a peer needs its source in .gpu-peer
 # (benchmarks/peer.py), carried in the first call. The first call brings back gsplat's build as
@@ -31,6 +32,10 @@ runs() {  # BUNDLE... -> one run a line: every fold folder (<scene>-cv<k>of<K>) 
     for d in "$b"/*-cv*of*/; do
       [ -d "$d" ] || continue  # no fold folder: the pattern itself, not a scene
       n=$(basename "$d")
+      if [ -n "${CV_FOLDS:-}" ] && ! grep -qxF "$n" <<< "$(tr ' ' '\n' <<< "$CV_FOLDS")"; then
+        found=1
+        continue
+      fi
       for ((k = 0; k < ${#methods[@]}; k++)); do
         echo "$n:${methods[$(((j + k) % ${#methods[@]}))]}:${CV_STEPS:-15000}:${CV_SEED:-42}"
       done
