@@ -545,10 +545,24 @@ def headline_table(
 
 
 def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "willags") -> list[str]:
-    """headline_table of the fold runs scored at `steps`, with the run noise of those runs, without the fold means
-    (README's table)."""
+    """headline_table of the fold runs scored at `steps`, with the run noise of those runs, without the fold means,
+    then the default against the light peer over every collection where both have every fold at once (README's
+    table and the sentence under it)."""
     sigma, _ = run_noise(records, steps)
-    return headline_table(collect(records, steps), sigma, steps, default, fold_means=False)
+    by_scene = collect(records, steps)
+    out = headline_table(by_scene, sigma, steps, default, fold_means=False)
+    both = [(by[default], by["peer"]) for _, by in sorted(by_scene.items()) if _complete(by, default, "peer")]
+    if len(both) >= 2:
+        mean, low, high, n = pooled(both, sigma)
+        out += [
+            "",
+            f"Over the {len(both)} collections at once: {default} − peer {mean:+.2f} dB [{low:+.2f}, {high:+.2f}] ({n} photos).",
+        ]
+    return out
+
+
+def _complete(by_method: dict[str, MethodCV], *methods: str) -> bool:
+    return all(m in by_method and by_method[m].complete for m in methods)
 
 
 UNRECORDED = "not named"

@@ -664,3 +664,13 @@ def test_missing_lists_the_folds_a_method_lacks_where_the_default_has_every_fold
     out = capsys.readouterr()
     assert out.out.split() == ["other-cv1of2", "other-cv2of2", "scene-cv1of2"]
     assert "cand lacks 3 fold run(s) scored at 5000 steps" in out.err
+
+
+def test_the_readme_headline_says_the_default_against_the_peer_over_the_collections_at_once():
+    one = cv.cv_headline(_records(1.0), 5000)
+    assert not any("at once" in line for line in one)  # one collection: its row says it all
+    two = cv.cv_headline(_records(1.0) + _on("other", _records(0.5)), 5000)
+    assert two[-1].startswith("Over the 2 collections at once: willags − peer +0.75 dB [")
+    assert two[-1].endswith("(8 photos).")
+    part = cv.cv_headline(_records(1.0) + _on("other", _records(0.5, folds_of_b=1)), 5000)
+    assert not any("at once" in line for line in part)  # the peer lacks a fold of "other": one collection whole
