@@ -554,10 +554,8 @@ def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "w
     both = [(by[default], by["peer"]) for _, by in sorted(by_scene.items()) if _complete(by, default, "peer")]
     if len(both) >= 2:
         mean, low, high, n = pooled(both, sigma)
-        out += [
-            "",
-            f"Over the {len(both)} collections at once: {default} − peer {mean:+.2f} dB [{low:+.2f}, {high:+.2f}] ({n} photos).",
-        ]
+        at_once = f"{default} − peer {mean:+.2f} dB [{low:+.2f}, {high:+.2f}] ({n} photos)"
+        out += ["", f"Over the {len(both)} collections at once: {at_once}."]
     return out
 
 

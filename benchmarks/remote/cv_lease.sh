@@ -10,13 +10,13 @@
 #   bash benchmarks/remote/cv_lease.sh runs .gpu-x4a       # the runs a bundle gives, one queue a line (here too)
 #
 # CV_METHOD (willags; several, space-separated: each fold once per method, e.g. "willags peer peer-full"), CV_STEPS
-# (15000), CV_SEED (42): the runs; CV_FOLDS: only these fold folders of the bundles (names, space- or newline-separated:
-# `python -m benchmarks cv missing --method M` lists those a method still lacks); CV_EXTRA: more queues after the folds' (each a solo.sh queue, e.g.
-# "fox-clean:willags:5000:42"), whose scenes travel in any bundle; SOLO_DATA (/tmp/cvdata): where every call copies
-# its bundles' scenes; SOLO_MILESTONES ("5000 15000"). A queue that runs a peer needs its source in .gpu-peer
-# (benchmarks/peer.py), carried in the first call. The first call brings back gsplat's build as
-# $OUT/gsplat_cuda.so.gz when it made one (keep it as .gpu-cache/gsplat_cuda.so.gz: the next machine loads it in
-# seconds). CV_DRY_RUN=1: print what would start, start nothing (no set-up either).
+# (15000), CV_SEED (42): the runs; CV_FOLDS: only these fold folders of the bundles (names, space- or
+# newline-separated: `python -m benchmarks cv missing --method M` lists those a method still lacks); CV_EXTRA: more
+# queues after the folds' (each a solo.sh queue, e.g. "fox-clean:willags:5000:42"), whose scenes travel in any
+# bundle; SOLO_DATA (/tmp/cvdata): where every call copies its bundles' scenes; SOLO_MILESTONES ("5000 15000"). A
+# queue that runs a peer needs its source in .gpu-peer (benchmarks/peer.py), carried in the first call. The first
+# call brings back gsplat's build as $OUT/gsplat_cuda.so.gz when it made one (keep it as .gpu-cache/gsplat_cuda.so.gz:
+# the next machine loads it in seconds). CV_DRY_RUN=1: print what would start, start nothing (no set-up either).
 set -u
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 export SOLO_DATA=${SOLO_DATA:-/tmp/cvdata} SOLO_MILESTONES=${SOLO_MILESTONES:-5000 15000}
