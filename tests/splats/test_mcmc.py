@@ -208,3 +208,15 @@ def test_the_default_model_on_the_cpu_densifies_as_splatfacto(tmp_path):
     model = trainer.pipeline.model
     assert model.config.densification == "auto" and not model.mcmc_on
     assert type(model.strategy) is DefaultStrategy
+
+
+def test_the_cap_reason_names_the_larger_cap_only_below_it():
+    from willags_ns.splats.mcmc import MORE_GAUSSIANS, McmcConfig, cap_and_reason, scene_cap
+
+    cap, reason = cap_and_reason(McmcConfig(), 5.0)
+    assert cap == 300_000 and f"cap-max {MORE_GAUSSIANS})" in reason and "not crowded ones" in reason
+    cap, reason = cap_and_reason(McmcConfig(cap_max=MORE_GAUSSIANS), 5.0)
+    assert cap == MORE_GAUSSIANS and "cap-max" not in reason  # already there: nothing more to offer
+    pixels = McmcConfig(cap_rule="pixels")
+    cap, reason = cap_and_reason(pixels, 5.0)
+    assert (cap, reason) == scene_cap(5.0, pixels) and "cap-max" not in reason  # the pixels rule's own reason

@@ -565,4 +565,5 @@ def test_the_report_says_how_many_gaussians_the_method_trains_and_what_the_other
     (line,) = [ln for ln in format_report(report).splitlines() if ln.startswith("  capacity: ")]
     assert f"MCMC grows to at most {McmcConfig().cap_max:,} Gaussians (rule fixed" in line
     assert f"cap-rule pixels would allow {scene_cap(mpx, McmcConfig())[0]:,} for these {mpx:.1f} Mpx" in line
+    assert "more (--pipeline.model.mcmc.cap-max 1000000) cost training time" in line  # the other side of the trade
     assert "on a CPU splatfacto's densification" in line

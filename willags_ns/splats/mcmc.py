@@ -95,10 +95,14 @@ def scene_cap(train_megapixels: float, cfg: McmcConfig) -> tuple[int, str]:
     return cap, reason
 
 
+MORE_GAUSSIANS = 1_000_000
+"""The larger cap the inspector names as the other side of the trade (docs/usage.md, docs/design.md "Capacity")."""
+
+
 def cap_and_reason(cfg: McmcConfig, train_megapixels: float | None) -> tuple[int, str]:
     """(cap, reason): MCMC's cap for training photos of `train_megapixels` in all (None: not measured) under
     `cfg.cap_rule`, and why: the "pixels" rule's (`scene_cap`), or `cap_max` as set, with what the "pixels" rule
-    would allow beside it (what a user weighs when choosing the rule)."""
+    would allow beside it and, below MORE_GAUSSIANS, the larger cap's trade (what a user weighs when choosing)."""
     if cfg.cap_rule == "pixels" and train_megapixels is not None:
         return scene_cap(train_megapixels, cfg)
     if cfg.cap_rule == "pixels":
@@ -110,6 +114,11 @@ def cap_and_reason(cfg: McmcConfig, train_megapixels: float | None) -> tuple[int
     if train_megapixels is not None:
         alt, _ = scene_cap(train_megapixels, cfg)
         reason += f"; --pipeline.model.mcmc.cap-rule pixels would allow {alt:,} for these {train_megapixels:.1f} Mpx"
+    if cfg.cap_max < MORE_GAUSSIANS:
+        reason += (
+            f"; more (--pipeline.model.mcmc.cap-max {MORE_GAUSSIANS}) cost training time and helped clean and small "
+            "collections, not crowded ones (docs/usage.md)"
+        )
     return cfg.cap_max, reason
 
 
