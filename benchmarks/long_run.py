@@ -360,6 +360,11 @@ def evaluate(args) -> int:
                 if "train_psnr_kept" in rec
                 else ")"
             )
+            + (
+                f"; residual blobs in {rec['train_outlier_share']:.1%} of their pixels"
+                if "train_outlier_share" in rec
+                else ""
+            )
         )
         del trainer
         gc.collect()
@@ -429,6 +434,7 @@ def record(args) -> int:
                         "train_psnr",
                         "train_psnr_kept",
                         "train_kept_share",
+                        "train_outlier_share",
                         "num_gaussians",
                         "latent_spread",
                     )

@@ -320,3 +320,19 @@ def test_training_fit_over_the_kept_pixels_leaves_out_what_the_mask_leaves_unfit
     assert psnr(pred[everything_but], gt[everything_but]) > 100
     model.config.mask.enabled = False  # no mask: the whole photo's scores only
     assert "train_psnr_kept" not in train_view_scores(model, cams, imgs)
+
+
+def test_the_training_fit_counts_the_blobs_the_model_leaves_unfit_with_the_mask_on_or_off(tmp_path):
+    """train_outlier_share: the colour-residual rule's share of each training photo against the model's own render.
+    View 0 holds an occluder the model does not render, view 1 is clean: about half the occluder's share of one
+    photo, and the same with the mask switched off (a diagnosis of the collection, not of the mask)."""
+    from willags_ns.eval.protocol import train_view_scores
+
+    model, ds, _, images, masks = _scene_with_occluder(tmp_path)
+    cams = ds._dataparser_outputs.cameras
+    imgs = [torch.from_numpy(im) for im in images]
+    occluded = float(masks[0].mean()) / 2  # one photo of two
+    with_mask = train_view_scores(model, cams, imgs, max_images=-1)["train_outlier_share"]
+    model.config.mask.enabled = False
+    without = train_view_scores(model, cams, imgs, max_images=-1)["train_outlier_share"]
+    assert 0.6 * occluded < with_mask < 1.3 * occluded and without == pytest.approx(with_mask)

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from willags_ns.eval.mask_eval import kept_pixels
+from willags_ns.mask.residual import ResidualConfig, colour_residual, residual_transient
 from willags_ns.objective.losses import reconstruction_loss
 
 
@@ -301,7 +302,11 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
 
     With the mask on, also `train_psnr_kept`: the PSNR over the pixels the training loss keeps (mask_eval.kept_pixels
     at the model's step), and `train_kept_share`, their share. The whole photo's PSNR counts the pixels the mask
-    leaves unfit on purpose, so only the kept pixels' fit compares across mask settings."""
+    leaves unfit on purpose, so only the kept pixels' fit compares across mask settings.
+
+    `train_outlier_share`, whatever the mask: the share of pixels the colour-residual rule (mask/residual.py, its
+    defaults) marks transient against this render, the blobs the model leaves unfit in its own photos (people it
+    did not learn): a diagnosis of how crowded a collection is, measured by training, mask on or off."""
     model.eval()
     n = len(images)
     if n == 0:
@@ -310,19 +315,22 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
     idx = sorted({round(i * (n - 1) / max(1, k - 1)) for i in range(k)})
     appearance = getattr(model.config, "appearance", "sh") == "willags"
     latents = model.image_latents()[0] if appearance else None
-    scores, kept, shares = [], [], []
+    scores, kept, shares, outliers = [], [], [], []
+    rule = ResidualConfig()
     for i in idx:
         z = latents[i] if latents is not None else None
         cam = cameras[i : i + 1].to(model.device)
         pred = render_with_latent(model, cam, z)
         gt = unit_float(images[i][..., :3].to(model.device))
         scores.append(image_scores(pred, gt))
+        outliers.append(float(residual_transient(colour_residual(gt, pred), rule.floor, rule)[0].float().mean()))
         keep = kept_pixels(model, cam, gt, i) if appearance else None
         if keep is not None and bool(keep.any()):
             kept.append(psnr(pred[keep], gt[keep]))
             shares.append(float(keep.float().mean()))
     out = {f"train_{k}": float(sum(s[k] for s in scores) / len(scores)) for k in scores[0]}
     out["train_num_images"] = float(len(scores))
+    out["train_outlier_share"] = float(sum(outliers) / len(outliers))
     if kept:
         out["train_psnr_kept"] = float(sum(kept) / len(kept))
         out["train_kept_share"] = float(sum(shares) / len(shares))
