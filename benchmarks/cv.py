@@ -267,6 +267,11 @@ class MethodCV:
         return float(np.mean(list(self.per_photo.values())))
 
 
+def _complete(by_method: dict[str, MethodCV], *methods: str) -> bool:
+    """Whether every one of `methods` has every fold in `by_method` (one collection's MethodCVs)."""
+    return all(m in by_method and by_method[m].complete for m in methods)
+
+
 def milestone(rec: dict[str, Any], steps: int) -> dict[str, Any] | None:
     """A record's scores at `steps` (its milestone, or the record itself when it ran exactly that long)."""
     ms = (rec.get("milestones") or {}).get(str(steps))
@@ -492,7 +497,7 @@ def compared_variants(records: Sequence[dict[str, Any]], steps: int, default: st
     for name in names:
         for by_method in collect(records, steps, variant=name).values():
             peer = stronger_peer(by_method)
-            if default in by_method and by_method[default].complete and peer and by_method[peer].complete:
+            if peer and _complete(by_method, default, peer):
                 out.append(name)
                 break
     return out
@@ -557,10 +562,6 @@ def cv_headline(records: Sequence[dict[str, Any]], steps: int, default: str = "w
         at_once = f"{default} − peer {mean:+.2f} dB [{low:+.2f}, {high:+.2f}] ({n} photos)"
         out += ["", f"Over the {len(both)} collections at once: {at_once}."]
     return out
-
-
-def _complete(by_method: dict[str, MethodCV], *methods: str) -> bool:
-    return all(m in by_method and by_method[m].complete for m in methods)
 
 
 UNRECORDED = "not named"
@@ -793,13 +794,13 @@ def pooled_rows_of(
     decided on every collection at once. `refs` (same_build_refs): the default on a method's own build where it has
     one."""
     refs = refs or {}
-    scenes = [s for s, by in sorted(by_scene.items()) if default in by and by[default].complete]
+    scenes = [s for s, by in sorted(by_scene.items()) if _complete(by, default)]
     if len(scenes) < 2:
         return []
     methods = sorted({m for s in scenes for m in by_scene[s]} - {default})
     out = []
     for m in methods:
-        have = [s for s in scenes if m in by_scene[s] and by_scene[s][m].complete]
+        have = [s for s in scenes if _complete(by_scene[s], m)]
         if len(have) < 2:
             continue
         pairs = [(by_scene[s][m], refs[(s, m)][0] if (s, m) in refs else by_scene[s][default]) for s in have]
@@ -843,7 +844,7 @@ def switch_rows(
     methods = sorted({m for by in by_scene.values() for m in by})
     out = []
     for b, a, added in switch_pairs(methods, default):
-        both = [s for s, by in sorted(by_scene.items()) if a in by and b in by and by[a].complete and by[b].complete]
+        both = [s for s, by in sorted(by_scene.items()) if _complete(by, a, b)]
         scenes = []
         for s in both:
             ba, bb = (builds or {}).get((s, a), set()), (builds or {}).get((s, b), set())
