@@ -597,26 +597,33 @@ def build_key(records: Sequence[dict[str, Any]]) -> Callable[[dict[str, Any]], s
 
 
 def method_builds(
-    records: Sequence[dict[str, Any]], steps: int, tags=None, variant: str | None = None
+    records: Sequence[dict[str, Any]],
+    steps: int,
+    tags=None,
+    variant: str | None = None,
+    key: Callable[[dict[str, Any]], str] | None = None,
 ) -> dict[tuple[str, str], set[str]]:
-    """{(collection, method): the builds (build_key) its fold runs scored at `steps` started from}."""
+    """{(collection, method): the builds (`key`, build_key's of `records` when None) its fold runs scored at `steps`
+    started from}."""
     from benchmarks.methods import configuration
 
-    key = build_key(records)
+    key = key or build_key(records)
     builds: dict[tuple[str, str], set[str]] = defaultdict(set)
     for (scene, _, _), rec, _ms in fold_runs(records, steps, tags, variant):
         builds[(scene, configuration(rec))].add(key(rec))
     return dict(builds)
 
 
-def scene_models(records: Sequence[dict[str, Any]], steps: int, tags=None) -> dict[str, dict[str, set[str]]]:
+def scene_models(
+    records: Sequence[dict[str, Any]], steps: int, tags=None, key: Callable[[dict[str, Any]], str] | None = None
+) -> dict[str, dict[str, set[str]]]:
     """{collection: {SfM model digest: methods}} of the fold runs scored at `steps` whose records name the model their
     scene held (`scene_model_sha256`, long_run.record). On a rebuilt collection where some record names one, the runs
     whose records name none are listed under UNRECORDED: a build that may be any (runs of a collection rebuilt with
     more than one thread start from another scene each time); on a fixed collection they join its one named build
-    (build_key); where no record names one, the collection is left out."""
+    (build_key, or `key`); where no record names one, the collection is left out."""
     out: dict[str, dict[str, set[str]]] = defaultdict(lambda: defaultdict(set))
-    key = build_key(records)
+    key = key or build_key(records)
     for (scene, _, _), rec, _ms in fold_runs(records, steps, tags):
         out[scene][key(rec)].add(str(rec.get("method")))
     return {scene: dict(models) for scene, models in out.items() if set(models) != {UNRECORDED}}
@@ -631,7 +638,7 @@ def model_lines(
     against the stronger peer on that model's runs alone (`sigma`: the run noise, as in the tables)."""
     lines = []
     key = build_key(records)
-    for scene, models in sorted(scene_models(records, steps, tags).items()):
+    for scene, models in sorted(scene_models(records, steps, tags, key).items()):
         if len(models) < 2:
             continue
         each = "; ".join(f"{d[:12]}: {', '.join(sorted(m))}" for d, m in sorted(models.items()))
@@ -660,7 +667,7 @@ def same_build_refs(
     every fold on that build. A method is then set against the default on its own scene; a method whose runs span
     builds, or whose build the default lacks, against every run of the default, as elsewhere."""
     key_of = build_key(records)
-    builds = method_builds(records, steps, tags, variant)
+    builds = method_builds(records, steps, tags, variant, key_of)
     spanned = {scene for (scene, m), b in builds.items() if m == default and len(b) > 1}
     by_build: dict[str, dict[str, dict[str, MethodCV]]] = {}
     out = {}
