@@ -341,6 +341,9 @@ def evaluate(args) -> int:
         }
         rec = protocol_scores(trainer, spec)
         rec["num_gaussians"] = int(trainer.pipeline.model.num_points)
+        decision = getattr(trainer.pipeline.model, "cap_decision", None)
+        if decision is not None and decision.get("share") is not None:  # the "transients" cap rule's measure
+            rec["cap_rule_share"] = float(decision["share"])
         if m == state["steps"] and variant is None:  # the transient mask the run ended with
             rec.update(mask_record(trainer.pipeline.model, trainer.pipeline.datamanager.train_dataset))
         rec["eval_wall_s"] = time.perf_counter() - t

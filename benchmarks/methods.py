@@ -186,6 +186,12 @@ METHODS: dict[str, MethodSpec] = {
         ("mcmc.cap_max", 1_000_000),
         note="the default (its prior weight named) with MCMC's cap at 1M Gaussians instead of 300,000",
     ),
+    "willags-prior-low-captransients": _default_on_gpu(
+        _PRIOR_LOW,
+        ("mcmc.cap_rule", "transients"),
+        note="the default (its prior weight named) with MCMC's cap set by the transients rule: 300,000 until MCMC fills "
+        "them, then 1,000,000 where the training photos leave under 2 % of their pixels as residual blobs",
+    ),
     "willags-prior-low-lowpen": _default_on_gpu(
         _PRIOR_LOW,
         ("modulation.local_penalty", 0.001),

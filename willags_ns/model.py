@@ -67,6 +67,7 @@ from willags_ns.eval.holdout import (
 )
 from willags_ns.eval.image_metrics import image_metrics
 from willags_ns.eval.lpips import make_lpips
+from willags_ns.eval.protocol import training_outlier_share
 from willags_ns.mask.expected import LEVEL, expected_on, initial_levels, level_channels, level_loss
 from willags_ns.mask.health import MaskHealth
 from willags_ns.mask.residual import colour_residual
@@ -96,7 +97,7 @@ from willags_ns.splats.gaussians import (
     sh_colors,
     strategy_absgrad,
 )
-from willags_ns.splats.mcmc import McmcDensification, uses_mcmc
+from willags_ns.splats.mcmc import McmcDensification, transient_cap, uses_mcmc
 
 __all__ = ["WillagsModel"]
 
@@ -187,6 +188,8 @@ class WillagsModel(SplatfactoModel):
         self.holdout = holdout_indices(self.num_train_data, cfg.holdout.photos)
         self.holdout_best = BestStep(cfg.holdout.margin)
         self._holdout_photos = None  # () -> (cameras, images) of the training photos (get_training_callbacks)
+        self._train_photos = None  # the same, for the "transients" cap rule (get_training_callbacks)
+        self.cap_decision: dict[str, Any] | None = None  # the "transients" rule's {step, share, cap}, once taken
         self._finished_at: int | None = None  # the step finish_training ended the run at
 
     # ------------------------------------------------------------------ latents (appearance/latents.py)
@@ -754,11 +757,41 @@ class WillagsModel(SplatfactoModel):
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.update_teacher))
         cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.end_step))
         pipeline = training_callback_attributes.pipeline
-        if self.holdout and pipeline is not None:
+        if pipeline is not None:
             dm = pipeline.datamanager
-            self._holdout_photos = lambda: (dm.train_dataset.cameras, [d["image"] for d in dm.cached_train])
-            cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.score_holdout))
+            photos = lambda: (dm.train_dataset.cameras, [d["image"] for d in dm.cached_train])  # noqa: E731
+            if self.holdout:
+                self._holdout_photos = photos
+                cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.score_holdout))
+            if isinstance(self.strategy, McmcDensification) and self.config.mcmc.cap_rule == "transients":
+                self._train_photos = photos
+                cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.decide_cap))
         return cbs
+
+    def decide_cap(self, step: int) -> None:
+        """The "transients" cap rule (splats/mcmc.transient_cap) at the first step whose Gaussians fill MCMC's cap while
+        it still grows them: the training photos' transient share, measured on their renders with their own latents
+        (eval/protocol.training_outlier_share), sets the cap for the rest of the run. A data-parallel run keeps its
+        cap: each rank holds only its share of the photos."""
+        strategy = self.strategy
+        if self._train_photos is None or self.cap_decision is not None or self.num_points < strategy.cap_max:
+            return
+        if step >= strategy.refine_stop_iter:  # the growth has ended: nothing left to decide
+            return
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            if torch.distributed.get_world_size() > 1:
+                self.cap_decision = {"step": step, "share": None, "cap": int(strategy.cap_max)}
+                CONSOLE.log(
+                    "willags: the transients cap rule does not measure a data-parallel run: "
+                    f"at most {strategy.cap_max:,} Gaussians"
+                )
+                return
+        cameras, images = self._train_photos()
+        share = training_outlier_share(self, cameras, images)
+        cap, reason = transient_cap(share, self.config.mcmc)
+        strategy.cap_max = cap
+        self.cap_decision = {"step": step, "share": share, "cap": cap}
+        CONSOLE.log(f"willags: step {step:,}: {reason}")
 
     def score_holdout(self, step: int, last_step: int = -1) -> None:
         """On a scoring step (eval/holdout.is_scoring_step; the last one is `finish_training`'s), the held-out right
@@ -819,7 +852,13 @@ class WillagsModel(SplatfactoModel):
         state = {"perceptual_source": src or self.__dict__.get("loaded_perceptual_source")}
         if self.holdout_best.history:
             state["holdout"] = self.holdout_best.summary()
+        if self.cap_decision is not None:
+            state["cap_decision"] = dict(self.cap_decision)
         return state
 
     def set_extra_state(self, state) -> None:
         self.loaded_perceptual_source = (state or {}).get("perceptual_source")
+        decision = (state or {}).get("cap_decision")
+        if decision is not None and isinstance(self.strategy, McmcDensification):  # a resumed run keeps its cap
+            self.cap_decision = dict(decision)
+            self.strategy.cap_max = int(decision["cap"])

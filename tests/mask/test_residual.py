@@ -12,6 +12,7 @@ from willags_ns.mask.residual import (
     blob_patches,
     colour_residual,
     majority,
+    outlier_share,
     residual_threshold,
     residual_transient,
 )
@@ -63,6 +64,14 @@ def test_blob_masked_noise_and_thin_edge_not():
     assert transient[static].float().mean() < 0.002  # photometric noise stays supervised
     # the bare bar alone would flag the edge: the coherence filters are what keep it
     assert (r > residual_threshold(r, 0.1, 3.0))[EDGE_ROW].float().mean() > 0.9
+
+
+def test_outlier_share_is_the_blobs_share_of_the_photo():
+    render = _teacher_render()
+    share = float(outlier_share(_photo(render), render, ResidualConfig()))
+    blob = _blob_mask().float().mean().item()
+    assert blob * 0.97 <= share <= blob + 0.01  # the occluder, not the edge or the noise
+    assert float(outlier_share(_photo(render, blob=False), render, ResidualConfig())) < 0.002
 
 
 def test_strong_noise_raises_the_bar_not_the_masked_share():

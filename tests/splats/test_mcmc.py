@@ -220,3 +220,49 @@ def test_the_cap_reason_names_the_larger_cap_only_below_it():
     pixels = McmcConfig(cap_rule="pixels")
     cap, reason = cap_and_reason(pixels, 5.0)
     assert (cap, reason) == scene_cap(5.0, pixels) and "cap-max" not in reason  # the pixels rule's own reason
+
+
+def test_the_transients_rule_raises_the_cap_only_below_its_bar():
+    from willags_ns.splats.mcmc import McmcConfig, cap_and_reason, transient_cap
+
+    cfg = McmcConfig(cap_rule="transients", cap_max=300_000, cap_ceiling=1_000_000, clean_share=0.02)
+    cap, reason = transient_cap(0.011, cfg)
+    assert cap == 1_000_000 and "1.1%" in reason and "below the bar of 2.0%" in reason and "clean" in reason
+    cap, reason = transient_cap(0.02, cfg)  # at the bar: crowded
+    assert cap == 300_000 and "at or above" in reason and "crowded" in reason
+    assert transient_cap(0.3, cfg)[0] == 300_000
+    assert transient_cap(0.0, McmcConfig(cap_max=2_000_000, clean_share=0.02))[0] == 2_000_000  # never lowers it
+    with pytest.raises(ValueError, match="within"):
+        transient_cap(float("nan"), cfg)
+    cap, reason = cap_and_reason(cfg, 5.0)  # before the cap is filled: as set, and what happens then
+    assert cap == 300_000 and "until MCMC fills them" in reason and "rises to 1,000,000" in reason
+
+
+def _train_with_transients_rule(tmp_path, clean_share: float):
+    from tests.test_train import _train
+
+    overrides = {
+        "densification": "mcmc",
+        "mcmc.cap_rule": "transients",
+        "mcmc.cap_max": 8100,
+        "mcmc.cap_ceiling": 8400,
+        "mcmc.clean_share": clean_share,
+    }
+    torch.manual_seed(0)
+    return _train(tmp_path, "willags", steps=30, device="cpu", **overrides)[1].pipeline.model
+
+
+def test_the_transients_rule_decides_the_cap_while_training_and_a_checkpoint_keeps_it(tmp_path):
+    """When MCMC first fills its cap (the built-in scene's 8000 points grown 5 % at step 10, the first refinement) the
+    model renders its training photos, measures their transient share and sets the cap: a bar above any share (1.0)
+    takes the collection for clean and the Gaussians grow past cap_max to the ceiling; a bar of 0 takes it for
+    crowded and they stop at cap_max. The decision travels in the checkpoint."""
+    clean = _train_with_transients_rule(tmp_path / "clean", clean_share=1.0)
+    d = clean.cap_decision
+    assert d is not None and d["step"] == 10 and 0.0 <= d["share"] < 1.0 and d["cap"] == 8400
+    assert clean.strategy.cap_max == 8400 and clean.num_points == 8400
+    crowded = _train_with_transients_rule(tmp_path / "crowded", clean_share=0.0)
+    assert crowded.cap_decision["cap"] == 8100 and crowded.num_points == 8100
+    state = clean.get_extra_state()
+    crowded.set_extra_state(state)  # as a resumed run loads it
+    assert crowded.strategy.cap_max == 8400 and crowded.cap_decision == d

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from willags_ns.eval.mask_eval import kept_pixels
-from willags_ns.mask.residual import ResidualConfig, colour_residual, residual_transient
+from willags_ns.mask.residual import ResidualConfig, outlier_share
 from willags_ns.objective.losses import reconstruction_loss
 
 
@@ -294,6 +294,34 @@ def render_with_latent(model, cam, z: Tensor | None) -> Tensor:
     return model.get_outputs(c)["rgb"]
 
 
+def spaced_indices(n: int, max_images: int) -> list[int]:
+    """Up to `max_images` (all when negative) evenly spaced indices of `n` images, the first and the last among them."""
+    k = n if max_images < 0 else min(max_images, n)
+    return sorted({round(i * (n - 1) / max(1, k - 1)) for i in range(k)})
+
+
+@torch.no_grad()
+def training_outlier_share(model, cameras, images: list[Tensor], max_images: int = 8) -> float:
+    """The mean share of pixels the colour-residual rule (mask/residual.outlier_share, its defaults) marks transient in
+    up to `max_images` evenly spaced training photos, each rendered with its own latent: `train_view_scores`'
+    `train_outlier_share`, measured while training (the "transients" cap rule), the model left in its mode."""
+    if not images:
+        raise ValueError("willags: no training photos to measure a transient share on")
+    was_training = model.training
+    model.eval()
+    try:
+        latents = model.image_latents()[0] if getattr(model.config, "appearance", "sh") == "willags" else None
+        rule, shares = ResidualConfig(), []
+        for i in spaced_indices(len(images), max_images):
+            pred = render_with_latent(
+                model, cameras[i : i + 1].to(model.device), None if latents is None else latents[i]
+            )
+            shares.append(float(outlier_share(unit_float(images[i][..., :3].to(model.device)), pred, rule)))
+    finally:
+        model.train(was_training)
+    return sum(shares) / len(shares)
+
+
 @torch.no_grad()
 def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8) -> dict[str, float]:
     """Fitting capacity: PSNR / SSIM of training views rendered with their *own* latents (the mean latent each image
@@ -311,8 +339,7 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
     n = len(images)
     if n == 0:
         return {}
-    k = n if max_images < 0 else min(max_images, n)
-    idx = sorted({round(i * (n - 1) / max(1, k - 1)) for i in range(k)})
+    idx = spaced_indices(n, max_images)
     appearance = getattr(model.config, "appearance", "sh") == "willags"
     latents = model.image_latents()[0] if appearance else None
     scores, kept, shares, outliers = [], [], [], []
@@ -323,7 +350,7 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
         pred = render_with_latent(model, cam, z)
         gt = unit_float(images[i][..., :3].to(model.device))
         scores.append(image_scores(pred, gt))
-        outliers.append(float(residual_transient(colour_residual(gt, pred), rule.floor, rule)[0].float().mean()))
+        outliers.append(float(outlier_share(gt, pred, rule)))
         keep = kept_pixels(model, cam, gt, i) if appearance else None
         if keep is not None and bool(keep.any()):
             kept.append(psnr(pred[keep], gt[keep]))

@@ -114,3 +114,10 @@ def residual_transient(
     transient = majority(outlier, cfg.pixel_window) & blob_patches(outlier, cfg.patch_size, cfg.patch_fraction)
     rejected = transient.float().mean() > max_masked_fraction
     return transient & ~rejected, rejected
+
+
+def outlier_share(photo: Float[Tensor, "H W 3"], render: Float[Tensor, "H W 3"], cfg: ResidualConfig) -> Tensor:
+    """The share (0-d tensor) of a photo's pixels that the rule (`residual_transient` at `cfg.floor`) marks transient
+    against `render`: the blobs a model leaves unfit in a photo, a measure of how crowded the photo is to that
+    model (eval/protocol.train_view_scores; the "transients" cap rule, splats/mcmc.py)."""
+    return residual_transient(colour_residual(photo, render), cfg.floor, cfg)[0].float().mean()

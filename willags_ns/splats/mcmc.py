@@ -67,17 +67,24 @@ class McmcConfig:
     """Opacity of the initial Gaussians (splatfacto's: 0.1)."""
     init_scale: float = 0.1
     """Initial scale as a fraction of the mean distance to the 3 nearest points (splatfacto's: 1)."""
-    cap_rule: Literal["fixed", "pixels"] = "fixed"
-    """How `cap_max` is chosen: "fixed" (as set) or "pixels" (`scene_cap`: the automatic configuration sets it from
-    the training photos' pixels, gaussians_per_megapixel per megapixel within [cap_min, cap_ceiling]). Why: a few
-    photos constrain fewer Gaussians than many; a cap that exceeds what the photos pin down fits the training views
-    and generalises worse (docs/design.md)."""
+    cap_rule: Literal["fixed", "pixels", "transients"] = "fixed"
+    """How `cap_max` is chosen: "fixed" (as set); "pixels" (`scene_cap`: the automatic configuration sets it from
+    the training photos' pixels, gaussians_per_megapixel per megapixel within [cap_min, cap_ceiling]; why: a few
+    photos constrain fewer Gaussians than many); "transients" (`transient_cap`: when MCMC first fills `cap_max`,
+    training measures how much of its own photos it leaves unexplained, and a collection below `clean_share` grows
+    on to `cap_ceiling`; why: more Gaussians helped the clean collections and learned the crowds of the crowded
+    ones, docs/design.md "Capacity")."""
     gaussians_per_megapixel: float = 12_500.0
     """The "pixels" rule's Gaussians per megapixel of the training photos (at the size training reads them)."""
     cap_min: int = 50_000
     """The "pixels" rule's smallest cap."""
     cap_ceiling: int = 1_000_000
-    """The "pixels" rule's largest cap."""
+    """The largest cap of the "pixels" rule, and the "transients" rule's cap for a clean collection."""
+    clean_share: float = 0.02
+    """The "transients" rule's bar: a collection whose training photos, rendered with their own latents when the
+    Gaussians first fill `cap_max`, leave less than this share of their pixels as residual blobs
+    (mask/residual.outlier_share) counts as clean and gets `cap_ceiling`. Measured at the cap, not at a fixed step:
+    a model with few Gaussians leaves blobs wherever it is still coarse, people or not."""
 
 
 def scene_cap(train_megapixels: float, cfg: McmcConfig) -> tuple[int, str]:
@@ -99,6 +106,22 @@ MORE_GAUSSIANS = 1_000_000
 """The larger cap the inspector names as the other side of the trade (docs/usage.md, docs/design.md "Capacity")."""
 
 
+def transient_cap(share: float, cfg: McmcConfig) -> tuple[int, str]:
+    """(cap, reason) of the "transients" rule for a measured transient `share` of the training photos' pixels:
+    `cap_ceiling` below `clean_share` (a clean collection: more Gaussians model more of the scene), else `cap_max`
+    (a crowded one: more Gaussians would model its passers-by)."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"willags: a transient share is within [0, 1], got {share}")
+    clean = share < cfg.clean_share
+    cap = max(cfg.cap_max, cfg.cap_ceiling) if clean else cfg.cap_max
+    side = "below" if clean else "at or above"
+    kind = "clean" if clean else "crowded"
+    return cap, (
+        f"the training photos leave {share:.1%} of their pixels as residual blobs, {side} the bar of "
+        f"{cfg.clean_share:.1%}: a {kind} collection, at most {cap:,} Gaussians"
+    )
+
+
 def cap_and_reason(cfg: McmcConfig, train_megapixels: float | None) -> tuple[int, str]:
     """(cap, reason): MCMC's cap for training photos of `train_megapixels` in all (None: not measured) under
     `cfg.cap_rule`, and why: the "pixels" rule's (`scene_cap`), or `cap_max` as set, with what the "pixels" rule
@@ -107,6 +130,12 @@ def cap_and_reason(cfg: McmcConfig, train_megapixels: float | None) -> tuple[int
         return scene_cap(train_megapixels, cfg)
     if cfg.cap_rule == "pixels":
         return cfg.cap_max, f"at most {cfg.cap_max:,} Gaussians (rule pixels, but no megapixels measured: as set)"
+    if cfg.cap_rule == "transients":
+        return cfg.cap_max, (
+            f"at most {cfg.cap_max:,} Gaussians until MCMC fills them (rule transients): then training measures how "
+            f"much of its photos it leaves unexplained, and below {cfg.clean_share:.1%} of their pixels left as "
+            f"residual blobs the cap rises to {max(cfg.cap_max, cfg.cap_ceiling):,}"
+        )
     reason = (
         f"at most {cfg.cap_max:,} Gaussians (rule fixed, as set: a cap from the photos' pixels has not scored better "
         "in the cross-validated runs, docs/design.md)"
