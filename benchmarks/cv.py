@@ -18,6 +18,8 @@ willags' data parser (the peer too: benchmarks/peer.py), so a fold is a scene to
     python -m benchmarks cv plan --root .gpu-cv --methods willags peer --steps 5000 --queues 12  # solo.sh queues
     python -m benchmarks merge <records.json>       # fold runs go to benchmarks/records/cv.json
     python -m benchmarks cv report                  # the tables from benchmarks/records/cv.json
+    python -m benchmarks cv bar --rule willags-prior-low-captransients --low willags --high willags-prior-low-cap1m \
+        --bars 0.01 0.02 0.03                       # a rule's score at other bars, from its runs' measured shares
     python -m benchmarks cv photos --scene reichstag --a willags@15000 --b willags@5000 --inspect insp.json
                                                     # photo by photo: the ends, and r with the inspector's evidence
     python -m benchmarks cv photos --scene reichstag --a willags-prior-low-meanslr --b willags \
@@ -1143,6 +1145,84 @@ def missing_folds(records: Sequence[dict[str, Any]], method: str, steps: int, de
     return out
 
 
+def _fold_photos(records: Sequence[dict[str, Any]], steps: int, scene: str, method: str):
+    """({fold: {photo: [PSNR of each run]}}, {fold: runs}, the fold count) of `method`'s runs of `scene` scored at
+    `steps`."""
+    from benchmarks.methods import configuration
+
+    by_fold: dict[int, dict[str, list[float]]] = defaultdict(dict)
+    runs: dict[int, int] = defaultdict(int)
+    folds = 0
+    for (s, k, n), rec, ms in fold_runs(records, steps):
+        if s != scene or configuration(rec) != method or not ms.get("per_image"):
+            continue
+        folds = max(folds, n)
+        runs[k] += 1
+        for p in ms["per_image"]:
+            by_fold[k].setdefault(p["image"], []).append(float(p["psnr"]))
+    return dict(by_fold), dict(runs), folds
+
+
+def bar_rows(
+    records: Sequence[dict[str, Any]],
+    steps: int,
+    rule: str,
+    low: str,
+    high: str,
+    bars: Sequence[float],
+    field: str = "cap_rule_share",
+) -> list[str]:
+    """What a rule that chooses between two methods by a share it measures would have scored at other bars: for each
+    fold where `rule`'s run recorded `field` at `steps`, `high`'s run of that fold where the share is below the bar and
+    `low`'s elsewhere, against `low` photo by photo (a composition: up to the moment the rule decides, its run is the
+    other two's, so the composed score differs from its own runs by the run noise). Each collection on the one build
+    the rule's runs started from; a collection lacking a fold of any of the three is left out, and named."""
+    from benchmarks.methods import configuration
+
+    key = build_key(records)
+    sigma, _ = run_noise(records, steps)
+    shares: dict[str, dict[int, float]] = defaultdict(dict)
+    builds: dict[str, set[str]] = defaultdict(set)
+    for (scene, k, _n), rec, ms in fold_runs(records, steps):
+        if configuration(rec) == rule and ms.get(field) is not None:
+            shares[scene][k] = float(ms[field])
+            builds[scene].add(key(rec))
+    if not shares:
+        return [f"cv: no fold run of {rule} recorded {field} at {steps} steps"]
+    lines = [f"| bar | {' | '.join(sorted(shares))} | at once |", "|---|" + "---|" * (len(shares) + 1)]
+    skipped = []
+    for bar in bars:
+        cells, pairs = [], []
+        for scene in sorted(shares):
+            if len(builds[scene]) != 1:
+                cells.append("–")
+                skipped.append(f"{scene}: the rule's runs started from {len(builds[scene])} builds")
+                continue
+            (build,) = builds[scene]
+            same = [r for r in records if key(r) == build]
+            lo, lo_runs, n_lo = _fold_photos(same, steps, scene, low)
+            hi, hi_runs, n_hi = _fold_photos(same, steps, scene, high)
+            folds = range(1, max(n_lo, n_hi) + 1)
+            if not folds or any(k not in lo or k not in hi or k not in shares[scene] for k in folds):
+                cells.append("–")
+                skipped.append(f"{scene}: a fold lacks a run of {rule}, {low} or {high}")
+                continue
+            below = {k: shares[scene][k] < bar for k in folds}
+            chosen = {k: hi[k] if below[k] else lo[k] for k in folds}
+            a = method_cv(chosen, len(folds), sum(hi_runs[k] if below[k] else lo_runs[k] for k in folds))
+            b = method_cv(lo, len(folds), sum(lo_runs.values()))
+            mean, low_ci, high_ci, _ = paired(a, b, sigma)
+            cells.append(f"{mean:+.2f} [{low_ci:+.2f}, {high_ci:+.2f}] ({sum(below.values())}/{len(folds)} {high})")
+            pairs.append((a, b))
+        at_once = ""
+        if pairs:
+            mean, low_ci, high_ci, _ = pooled(pairs, sigma)
+            at_once = f"{mean:+.2f} [{low_ci:+.2f}, {high_ci:+.2f}] over {len(pairs)}: {verdict(low_ci, high_ci)}"
+        lines.append(f"| {bar:g} | {' | '.join(cells)} | {at_once} |")
+    lines += [f"- left out: {s}" for s in sorted(set(skipped))]
+    return lines
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -1194,6 +1274,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     mi.add_argument("--method", required=True, help="the configuration, as the tables name it")
     mi.add_argument("--steps", type=int, default=15000)
     mi.add_argument("--records", type=Path, default=None)
+    ba = sub.add_parser("bar", help="what a rule choosing between two methods by a measured share scores at other bars")
+    ba.add_argument("--rule", required=True, help="the rule's configuration (its runs record the share)")
+    ba.add_argument("--low", required=True, help="the method the rule keeps at or above the bar (the reference)")
+    ba.add_argument("--high", required=True, help="the method the rule turns to below the bar")
+    ba.add_argument("--bars", type=float, nargs="+", required=True)
+    ba.add_argument("--field", default="cap_rule_share", help="the share the rule's records carry at --steps")
+    ba.add_argument("--steps", type=int, default=15000)
+    ba.add_argument("--records", type=Path, default=None)
     r = sub.add_parser("report", help="print the cross-validated tables from the records")
     r.add_argument("--records", type=Path, default=None)
     r.add_argument("--steps", type=int, default=5000)
@@ -1259,6 +1347,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if r is not None:
                 corr = {**(corr or {}), f"{a2} - {b2}": r}
         print("\n".join(photo_lines(diffs, args.top, corr)))
+        return 0
+    if args.cmd == "bar":
+        print("\n".join(bar_rows(records, args.steps, args.rule, args.low, args.high, args.bars, args.field)))
         return 0
     if args.cmd == "missing":
         folds = missing_folds(records, args.method, args.steps)

@@ -674,3 +674,33 @@ def test_the_readme_headline_says_the_default_against_the_peer_over_the_collecti
     assert two[-1].endswith("(8 photos).")
     part = cv.cv_headline(_records(1.0) + _on("other", _records(0.5, folds_of_b=1)), 5000)
     assert not any("at once" in line for line in part)  # the peer lacks a fold of "other": one collection whole
+
+
+def test_bar_composes_the_two_methods_fold_by_fold_from_the_rules_shares():
+    """cv bar: below the bar a fold takes the high method's run, else the low one's, and the table reads the
+    composition against the low method; a collection missing a fold of one of the three is left out, and named."""
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+    recs = []
+    for k, p in photos.items():
+        recs.append(_fold_rec("scene", k, 2, "willags", p, steps=15000))
+        recs.append(_fold_rec("scene", k, 2, "willags-prior-low-cap1m", {n: v + 1.0 for n, v in p.items()}, 15000))
+        rule = _fold_rec("scene", k, 2, "willags-prior-low-captransients", p, steps=15000)
+        rule["milestones"]["15000"]["cap_rule_share"] = {1: 0.01, 2: 0.05}[k]
+        recs.append(rule)
+    recs.append(_fold_rec("other", 1, 2, "willags-prior-low-captransients", {"x.jpg": 1.0}, steps=15000))
+    recs[-1]["milestones"]["15000"]["cap_rule_share"] = 0.0
+    lines = cv.bar_rows(
+        recs, 15000, "willags-prior-low-captransients", "willags", "willags-prior-low-cap1m", [0.0, 0.02, 0.1]
+    )
+    assert lines[0] == "| bar | other | scene | at once |"
+    none, one, both = lines[2:5]
+    assert "| – | +0.00 [+0.00, +0.00] (0/2 willags-prior-low-cap1m) |" in none
+    assert "| – | +0.50 [" in one and "(1/2 willags-prior-low-cap1m)" in one and "+0.50 [" in one.split("|")[-2]
+    assert "| – | +1.00 [+1.00, +1.00] (2/2 willags-prior-low-cap1m) | +1.00 [+1.00, +1.00] over 1: better |" in both
+    assert (
+        lines[-1]
+        == "- left out: other: a fold lacks a run of willags-prior-low-captransients, willags or willags-prior-low-cap1m"
+    )
+    assert cv.bar_rows(recs, 5000, "willags-prior-low-captransients", "willags", "x", [0.02]) == [
+        "cv: no fold run of willags-prior-low-captransients recorded cap_rule_share at 5000 steps"
+    ]
