@@ -336,6 +336,13 @@ def test_the_pixels_rule_sets_mcmcs_cap_from_the_training_photos_unless_the_user
     s = apply_auto_config(mine, scenes["appearance"], keep=("mcmc.cap_max",))
     assert mine.mcmc.cap_max == 123_000 and s["reasons"]["capacity"].endswith("kept as you set it")
 
+    trained = willags_model_config()  # the transients rule decides while training: the cap starts as set
+    trained.mcmc.cap_rule = "transients"
+    t = apply_auto_config(trained, scenes["appearance"])
+    assert trained.mcmc.cap_max == McmcConfig().cap_max and "mcmc.cap_max" not in t["changes"]
+    assert "until MCMC fills them (rule transients)" in t["reasons"]["capacity"]
+    assert "capacity (MCMC's cap, rule transients; " in format_summary(t)
+
 
 def test_scene_cap_scales_with_megapixels_within_its_bounds():
     from willags_ns.splats.mcmc import McmcConfig, scene_cap
