@@ -304,30 +304,52 @@ def fold_runs(
             yield fold, rec, ms
 
 
-def collect(
+@dataclass
+class FoldScores:
+    """One method's fold runs of one collection, photo by photo, before runs are averaged (MethodCV)."""
+
+    folds: int
+    by_fold: dict[int, dict[str, list[float]]]
+    """Fold -> photo -> right-half PSNR of each run of that fold."""
+    runs: dict[int, int]
+    """Fold -> how many runs scored it."""
+
+
+def fold_scores(
     records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None, variant: str | None = None
-):
-    """{scene: {method: MethodCV}} from the fold runs scored at `steps` (records with per-photo scores; `tags`: only
+) -> dict[str, dict[str, FoldScores]]:
+    """{scene: {method: FoldScores}} of the fold runs scored at `steps` (records with per-photo scores; `tags`: only
     records whose tag starts with one of these; `variant`: their scores under that protocol variant instead of the
-    protocol's own)."""
+    protocol's own); one fold count per scene and method, the finer split where runs used two."""
     from benchmarks.methods import configuration
 
     photos: dict[tuple[str, int, str], dict[int, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(dict))
-    runs: dict[tuple[str, int, str], int] = defaultdict(int)
+    runs: dict[tuple[str, int, str], dict[int, int]] = defaultdict(lambda: defaultdict(int))
     for fold, rec, ms in fold_runs(records, steps, tags, variant):
         if not ms.get("per_image"):
             continue
         scene, k, folds = fold
         key = (scene, folds, configuration(rec))
-        runs[key] += 1
+        runs[key][k] += 1
         for p in ms["per_image"]:
             photos[key][k].setdefault(p["image"], []).append(float(p["psnr"]))
-    out: dict[str, dict[str, MethodCV]] = defaultdict(dict)
+    out: dict[str, dict[str, FoldScores]] = defaultdict(dict)
     for (scene, folds, method), by_fold in sorted(photos.items()):
         prev = out[scene].get(method)
-        if prev is None or folds > prev.folds:  # one fold count per scene and method: the finer split
-            out[scene][method] = method_cv(by_fold, folds, runs[(scene, folds, method)])
+        if prev is None or folds > prev.folds:
+            out[scene][method] = FoldScores(folds, dict(by_fold), dict(runs[(scene, folds, method)]))
     return dict(out)
+
+
+def collect(
+    records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None, variant: str | None = None
+):
+    """{scene: {method: MethodCV}} from the fold runs scored at `steps` (fold_scores, runs averaged photo by
+    photo)."""
+    return {
+        scene: {m: method_cv(f.by_fold, f.folds, sum(f.runs.values())) for m, f in by_method.items()}
+        for scene, by_method in fold_scores(records, steps, tags, variant).items()
+    }
 
 
 def method_cv(by_fold: dict[int, dict[str, list[float]]], folds: int, runs: int) -> MethodCV:
@@ -1145,24 +1167,6 @@ def missing_folds(records: Sequence[dict[str, Any]], method: str, steps: int, de
     return out
 
 
-def _fold_photos(records: Sequence[dict[str, Any]], steps: int, scene: str, method: str):
-    """({fold: {photo: [PSNR of each run]}}, {fold: runs}, the fold count) of `method`'s runs of `scene` scored at
-    `steps`."""
-    from benchmarks.methods import configuration
-
-    by_fold: dict[int, dict[str, list[float]]] = defaultdict(dict)
-    runs: dict[int, int] = defaultdict(int)
-    folds = 0
-    for (s, k, n), rec, ms in fold_runs(records, steps):
-        if s != scene or configuration(rec) != method or not ms.get("per_image"):
-            continue
-        folds = max(folds, n)
-        runs[k] += 1
-        for p in ms["per_image"]:
-            by_fold[k].setdefault(p["image"], []).append(float(p["psnr"]))
-    return dict(by_fold), dict(runs), folds
-
-
 def bar_rows(
     records: Sequence[dict[str, Any]],
     steps: int,
@@ -1190,36 +1194,47 @@ def bar_rows(
     if not shares:
         return [f"cv: no fold run of {rule} recorded {field} at {steps} steps"]
     lines = [f"| bar | {' | '.join(sorted(shares))} | at once |", "|---|" + "---|" * (len(shares) + 1)]
+    ready: dict[str, tuple[FoldScores, FoldScores] | None] = {}  # scene -> (low's, high's) runs on the rule's build
     skipped = []
+    for scene in sorted(shares):
+        ready[scene] = None
+        if len(builds[scene]) != 1:
+            skipped.append(f"{scene}: the rule's runs started from {len(builds[scene])} builds")
+            continue
+        (build,) = builds[scene]
+        by_method = fold_scores([r for r in records if key(r) == build], steps).get(scene, {})
+        lo, hi = by_method.get(low), by_method.get(high)
+        whole = (
+            lo is not None
+            and hi is not None
+            and lo.folds == hi.folds
+            and all(k in lo.by_fold and k in hi.by_fold and k in shares[scene] for k in range(1, lo.folds + 1))
+        )
+        if not whole:
+            skipped.append(f"{scene}: a fold lacks a run of {rule}, {low} or {high}")
+            continue
+        ready[scene] = (lo, hi)
     for bar in bars:
         cells, pairs = [], []
         for scene in sorted(shares):
-            if len(builds[scene]) != 1:
+            if ready[scene] is None:
                 cells.append("–")
-                skipped.append(f"{scene}: the rule's runs started from {len(builds[scene])} builds")
                 continue
-            (build,) = builds[scene]
-            same = [r for r in records if key(r) == build]
-            lo, lo_runs, n_lo = _fold_photos(same, steps, scene, low)
-            hi, hi_runs, n_hi = _fold_photos(same, steps, scene, high)
-            folds = range(1, max(n_lo, n_hi) + 1)
-            if not folds or any(k not in lo or k not in hi or k not in shares[scene] for k in folds):
-                cells.append("–")
-                skipped.append(f"{scene}: a fold lacks a run of {rule}, {low} or {high}")
-                continue
+            lo, hi = ready[scene]
+            folds = range(1, lo.folds + 1)
             below = {k: shares[scene][k] < bar for k in folds}
-            chosen = {k: hi[k] if below[k] else lo[k] for k in folds}
-            a = method_cv(chosen, len(folds), sum(hi_runs[k] if below[k] else lo_runs[k] for k in folds))
-            b = method_cv(lo, len(folds), sum(lo_runs.values()))
+            chosen = {k: hi.by_fold[k] if below[k] else lo.by_fold[k] for k in folds}
+            a = method_cv(chosen, lo.folds, sum(hi.runs[k] if below[k] else lo.runs[k] for k in folds))
+            b = method_cv(lo.by_fold, lo.folds, sum(lo.runs.values()))
             mean, low_ci, high_ci, _ = paired(a, b, sigma)
-            cells.append(f"{mean:+.2f} [{low_ci:+.2f}, {high_ci:+.2f}] ({sum(below.values())}/{len(folds)} {high})")
+            cells.append(f"{mean:+.2f} [{low_ci:+.2f}, {high_ci:+.2f}] ({sum(below.values())}/{lo.folds} {high})")
             pairs.append((a, b))
         at_once = ""
         if pairs:
             mean, low_ci, high_ci, _ = pooled(pairs, sigma)
             at_once = f"{mean:+.2f} [{low_ci:+.2f}, {high_ci:+.2f}] over {len(pairs)}: {verdict(low_ci, high_ci)}"
         lines.append(f"| {bar:g} | {' | '.join(cells)} | {at_once} |")
-    lines += [f"- left out: {s}" for s in sorted(set(skipped))]
+    lines += [f"- left out: {s}" for s in skipped]
     return lines
 
 
