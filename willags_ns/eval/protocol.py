@@ -300,6 +300,17 @@ def spaced_indices(n: int, max_images: int) -> list[int]:
     return sorted({round(i * (n - 1) / max(1, k - 1)) for i in range(k)})
 
 
+def own_renders(model, cameras, images: list[Tensor], max_images: int):
+    """(index, camera, render, photo in [0, 1]) of up to `max_images` evenly spaced training photos (`images` uint8 or
+    float), each rendered with its own latent (the mean latent it had when last visited); the caller sets the model's
+    mode."""
+    latents = model.image_latents()[0] if getattr(model.config, "appearance", "sh") == "willags" else None
+    for i in spaced_indices(len(images), max_images):
+        cam = cameras[i : i + 1].to(model.device)
+        pred = render_with_latent(model, cam, None if latents is None else latents[i])
+        yield i, cam, pred, unit_float(images[i][..., :3].to(model.device))
+
+
 @torch.no_grad()
 def training_outlier_share(model, cameras, images: list[Tensor], max_images: int = 8) -> float:
     """The mean share of pixels the colour-residual rule (mask/residual.outlier_share, its defaults) marks transient in
@@ -310,13 +321,10 @@ def training_outlier_share(model, cameras, images: list[Tensor], max_images: int
     was_training = model.training
     model.eval()
     try:
-        latents = model.image_latents()[0] if getattr(model.config, "appearance", "sh") == "willags" else None
-        rule, shares = ResidualConfig(), []
-        for i in spaced_indices(len(images), max_images):
-            pred = render_with_latent(
-                model, cameras[i : i + 1].to(model.device), None if latents is None else latents[i]
-            )
-            shares.append(float(outlier_share(unit_float(images[i][..., :3].to(model.device)), pred, rule)))
+        rule = ResidualConfig()
+        shares = [
+            float(outlier_share(gt, pred, rule)) for _, _, pred, gt in own_renders(model, cameras, images, max_images)
+        ]
     finally:
         model.train(was_training)
     return sum(shares) / len(shares)
@@ -339,16 +347,10 @@ def train_view_scores(model, cameras, images: list[Tensor], max_images: int = 8)
     n = len(images)
     if n == 0:
         return {}
-    idx = spaced_indices(n, max_images)
     appearance = getattr(model.config, "appearance", "sh") == "willags"
-    latents = model.image_latents()[0] if appearance else None
     scores, kept, shares, outliers = [], [], [], []
     rule = ResidualConfig()
-    for i in idx:
-        z = latents[i] if latents is not None else None
-        cam = cameras[i : i + 1].to(model.device)
-        pred = render_with_latent(model, cam, z)
-        gt = unit_float(images[i][..., :3].to(model.device))
+    for i, cam, pred, gt in own_renders(model, cameras, images, max_images):
         scores.append(image_scores(pred, gt))
         outliers.append(float(outlier_share(gt, pred, rule)))
         keep = kept_pixels(model, cam, gt, i) if appearance else None
