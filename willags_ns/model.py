@@ -187,8 +187,7 @@ class WillagsModel(SplatfactoModel):
         # the training photos whose right half is held out of the loss and scored (eval/holdout.py), and the scorings
         self.holdout = holdout_indices(self.num_train_data, cfg.holdout.photos)
         self.holdout_best = BestStep(cfg.holdout.margin)
-        self._holdout_photos = None  # () -> (cameras, images) of the training photos (get_training_callbacks)
-        self._train_photos = None  # the same, for the "transients" cap rule (get_training_callbacks)
+        self._train_photos = None  # () -> (cameras, images) of the training photos (get_training_callbacks)
         self.cap_decision: dict[str, Any] | None = None  # the "transients" rule's {step, share, cap}, once taken
         self._finished_at: int | None = None  # the step finish_training ended the run at
 
@@ -759,12 +758,10 @@ class WillagsModel(SplatfactoModel):
         pipeline = training_callback_attributes.pipeline
         if pipeline is not None:
             dm = pipeline.datamanager
-            photos = lambda: (dm.train_dataset.cameras, [d["image"] for d in dm.cached_train])  # noqa: E731
+            self._train_photos = lambda: (dm.train_dataset.cameras, [d["image"] for d in dm.cached_train])
             if self.holdout:
-                self._holdout_photos = photos
                 cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.score_holdout))
             if isinstance(self.strategy, McmcDensification) and self.config.mcmc.cap_rule == "transients":
-                self._train_photos = photos
                 cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.decide_cap))
         return cbs
 
@@ -796,11 +793,11 @@ class WillagsModel(SplatfactoModel):
     def score_holdout(self, step: int, last_step: int = -1) -> None:
         """On a scoring step (eval/holdout.is_scoring_step; the last one is `finish_training`'s), the held-out right
         halves' PSNR; a new best keeps a copy of the model (its Gaussians, networks and latents)."""
-        if self._holdout_photos is None or not is_scoring_step(step, self.config.holdout, last_step):
+        if not self.holdout or self._train_photos is None or not is_scoring_step(step, self.config.holdout, last_step):
             return
         if self.holdout_best.history and self.holdout_best.history[-1][0] == step:
             return
-        cameras, images = self._holdout_photos()
+        cameras, images = self._train_photos()
         latents = self.image_latents()[0] if self.appearance_nets is not None else None
         score = holdout_psnr(self, cameras, images, self.holdout, latents)
         self.holdout_best.observe(step, score, lambda: copy_state(self))
@@ -809,7 +806,7 @@ class WillagsModel(SplatfactoModel):
         """Called by the trainer after the last step, before the last checkpoint: with held-out halves, score the
         last step and end with the best step's model when the last scores worse by more than holdout.margin. Returns
         what it did, in one line (None without held-out halves)."""
-        if self._holdout_photos is None or self._finished_at == step:
+        if not self.holdout or self._train_photos is None or self._finished_at == step:
             return None
         self._finished_at = step
         self.score_holdout(step, last_step=step)
