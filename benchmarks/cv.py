@@ -359,23 +359,28 @@ def method_cv(by_fold: dict[int, dict[str, list[float]]], folds: int, runs: int)
     return MethodCV(folds, per_photo, fold_means, runs)
 
 
-EQUIVALENT = {("willags-capscene", "willags-noprior"): "MCMC's cap not reached on any fold: the same model"}
+EQUIVALENT = {
+    ("willags-capscene", "willags-noprior"): "MCMC's cap not reached on any fold: the same model",
+    ("willags-prior-low-captransients", "willags"): "the transients cap rule kept MCMC's cap on every fold: the same model",
+}
 """Method pairs that train the same model where their runs end with the same number of Gaussians on every fold (the
 pair's runs then differ only by the GPU's non-deterministic sums): replicates for the run noise."""
 
 
 def _runs(records: Sequence[dict[str, Any]], steps: int):
-    """{(scene, folds, configuration, seed): {fold: (per-photo PSNR, Gaussians)}} of the fold runs scored at
-    `steps`."""
+    """{(scene, folds, build, configuration, seed): {fold: (per-photo PSNR, Gaussians)}} of the fold runs scored at
+    `steps` (build: build_key's; runs on two builds of a collection are not replicates of one another)."""
     from benchmarks.methods import configuration
 
-    out: dict[tuple[str, int, str, int], dict[int, tuple[dict[str, float], Any]]] = defaultdict(dict)
+    build = build_key(records)
+    out: dict[tuple[str, int, str, str, int], dict[int, tuple[dict[str, float], Any]]] = defaultdict(dict)
     for fold, rec, ms in fold_runs(records, steps):
         if not ms.get("per_image"):
             continue
         scene, k, folds = fold
         scores = {p["image"]: float(p["psnr"]) for p in ms["per_image"]}
-        out[(scene, folds, configuration(rec), int(rec.get("seed") or 42))][k] = (scores, ms.get("num_gaussians"))
+        key = (scene, folds, build(rec), configuration(rec), int(rec.get("seed") or 42))
+        out[key][k] = (scores, ms.get("num_gaussians"))
     return out
 
 
@@ -393,16 +398,16 @@ def replicate_differences(records: Sequence[dict[str, Any]], steps: int) -> list
     keys = sorted(runs)
     for i, ka in enumerate(keys):
         for kb in keys[i + 1 :]:
-            same_scene = ka[:2] == kb[:2]
-            if same_scene and ka[2] == kb[2]:
-                out.append((ka[0], f"{ka[2]} seeds {kb[3]} - {ka[3]}", d(runs[kb], runs[ka])))
-            elif same_scene and ka[3] == kb[3]:
+            same_scene = ka[:3] == kb[:3]  # one collection, one fold count, one build
+            if same_scene and ka[3] == kb[3]:
+                out.append((ka[0], f"{ka[3]} seeds {kb[4]} - {ka[4]}", d(runs[kb], runs[ka])))
+            elif same_scene and ka[4] == kb[4]:
                 for (x, y), _ in EQUIVALENT.items():
-                    a, b = {ka[2]: runs[ka], kb[2]: runs[kb]}.get(x), {ka[2]: runs[ka], kb[2]: runs[kb]}.get(y)
+                    a, b = {ka[3]: runs[ka], kb[3]: runs[kb]}.get(x), {ka[3]: runs[ka], kb[3]: runs[kb]}.get(y)
                     if a is None or b is None or a is b:
                         continue
                     if all(a[k][1] is not None and a[k][1] == b[k][1] for k in a):
-                        out.append((ka[0], f"{x} - {y} (seed {ka[3]}, equal Gaussians)", d(a, b)))
+                        out.append((ka[0], f"{x} - {y} (seed {ka[4]}, equal Gaussians)", d(a, b)))
     return out
 
 

@@ -440,6 +440,7 @@ def record(args) -> int:
                         "train_outlier_share",
                         "num_gaussians",
                         "latent_spread",
+                        "cap_rule_share",
                     )
                     if kk in v
                 },

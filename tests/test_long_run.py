@@ -95,6 +95,21 @@ def test_a_knob_runs_record_carries_the_budget_and_the_score_where_it_stopped(tm
     assert (rec["steps_done"], rec["concurrent_runs"]) == (15004, 1)
 
 
+def test_a_record_carries_the_share_the_transients_cap_rule_measured(tmp_path):
+    """The "transients" cap rule's share (model.cap_decision, scored into the state) reaches the record's milestone,
+    where `cv bar` reads it; a run without the rule claims none."""
+    base = {"method": "willags-prior-low-captransients", "data": "/x/south-building-cv1of4", "steps": 10, "seed": 42,
+            "segments": [{"start_step": 0, "end_step": 9, "train_s": 1.0}]}  # fmt: skip
+    recs = []
+    for case, score in (("rule", {"psnr": 15.0, "cap_rule_share": 0.021}), ("plain", {"psnr": 15.0})):
+        _write_state(tmp_path / case, {**base, "scores": {"10": score}})
+        out = tmp_path / f"{case}.json"
+        assert long_run.main(["record", "--run-dir", str(tmp_path / case), "--tag", "t", "--out", str(out)]) == 0
+        recs.append(json.loads(out.read_text())[0]["milestones"]["10"])
+    assert recs[0]["cap_rule_share"] == 0.021
+    assert "cap_rule_share" not in recs[1]
+
+
 def test_a_record_names_the_sfm_model_its_scene_held(tmp_path):
     """Two builds of one collection can hold different SfM models (benchmarks/collections.py): each record says
     which one its run started from, so the cross-validation can tell runs on different builds apart."""
