@@ -20,6 +20,7 @@ willags' data parser (the peer too: benchmarks/peer.py), so a fold is a scene to
     python -m benchmarks cv report                  # the tables from benchmarks/records/cv.json
     python -m benchmarks cv bar --rule willags-prior-low-captransients --low willags --high willags-prior-low-cap1m \
         --bars 0.01 0.02 0.03                       # a rule's score at other bars, from its runs' measured shares
+    python -m benchmarks cv readout --variant resmean --steps 15000   # the same runs under a variant vs their own
     python -m benchmarks cv photos --scene reichstag --a willags@15000 --b willags@5000 --inspect insp.json
                                                     # photo by photo: the ends, and r with the inspector's evidence
     python -m benchmarks cv photos --scene reichstag --a willags-prior-low-meanslr --b willags \
@@ -1078,6 +1079,7 @@ def fit_rows(records: Sequence[dict[str, Any]]) -> list[str]:
                     f"{proto.get('steps')} steps, lr {proto.get('lr')}"
                     + (f", best of {proto['start_candidates']} + 1 starts" if proto.get("start_candidates") else "")
                     + (" + oracle" if proto.get("oracle") else "")
+                    + (f", residual at the {proto['residual_latent']} latent" if proto.get("residual_latent") else "")
                 )
                 rows.append(
                     [
@@ -1243,6 +1245,49 @@ def bar_rows(
     return lines
 
 
+def readout_rows(records: Sequence[dict[str, Any]], steps: int, variant: str, method: str = "willags") -> list[str]:
+    """`method`'s fold runs scored under the protocol variant `variant` against the same runs' own scores, photo by
+    photo, per collection and over every collection whose every fold has both (each weighing the same): a readout
+    that changes only how a trained model is scored (the residual's latent, the fit's settings) compared on one set of
+    runs, so the run noise cancels and the interval is the photos' alone."""
+    from benchmarks.methods import configuration
+
+    runs = [
+        r
+        for r in records
+        if configuration(r) == method and variant_milestone(r, steps, variant) is not None
+        and milestone(r, steps) is not None
+    ]  # fmt: skip
+    if not runs:
+        return [f"cv: no fold run of {method} scored under the variant {variant!r} at {steps} steps"]
+    own, other = fold_scores(runs, steps), fold_scores(runs, steps, variant=variant)
+    lines = [
+        f"| collection | folds | {method} | under {variant} | {variant} − own [95 % CI] (photos) |",
+        "|---|---|---|---|---|",
+    ]
+    pairs = []
+    for scene in sorted(own):
+        a_runs, b_runs = other.get(scene, {}).get(method), own[scene].get(method)
+        if a_runs is None or b_runs is None:
+            continue
+        a = method_cv(a_runs.by_fold, a_runs.folds, sum(a_runs.runs.values()))
+        b = method_cv(b_runs.by_fold, b_runs.folds, sum(b_runs.runs.values()))
+        mean, low, high, n = paired(a, b)
+        whole = all(k in a_runs.by_fold for k in range(1, a_runs.folds + 1))
+        folds = f"{len(a_runs.by_fold)} of {a_runs.folds}"
+        lines.append(
+            f"| {scene} | {folds} | {b.mean:.2f} | {a.mean:.2f} | {mean:+.2f} [{low:+.2f}, {high:+.2f}] (n={n}) |"
+        )
+        if whole:
+            pairs.append((a, b))
+    if pairs:
+        mean, low, high, n = pooled(pairs)
+        lines.append(
+            f"| **{len(pairs)} at once** | | | | {mean:+.2f} [{low:+.2f}, {high:+.2f}] (n={n}): {verdict(low, high)} |"
+        )
+    return lines
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -1302,6 +1347,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ba.add_argument("--field", default="cap_rule_share", help="the share the rule's records carry at --steps")
     ba.add_argument("--steps", type=int, default=15000)
     ba.add_argument("--records", type=Path, default=None)
+    ro = sub.add_parser("readout", help="a method's runs under a protocol variant against their own scores")
+    ro.add_argument("--variant", required=True, help="the variant's name (`long_run eval --variant`)")
+    ro.add_argument("--method", default="willags")
+    ro.add_argument("--steps", type=int, default=15000)
+    ro.add_argument("--records", type=Path, default=None)
     r = sub.add_parser("report", help="print the cross-validated tables from the records")
     r.add_argument("--records", type=Path, default=None)
     r.add_argument("--steps", type=int, default=5000)
@@ -1367,6 +1417,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if r is not None:
                 corr = {**(corr or {}), f"{a2} - {b2}": r}
         print("\n".join(photo_lines(diffs, args.top, corr)))
+        return 0
+    if args.cmd == "readout":
+        print("\n".join(readout_rows(records, args.steps, args.variant, args.method)))
         return 0
     if args.cmd == "bar":
         print("\n".join(bar_rows(records, args.steps, args.rule, args.low, args.high, args.bars, args.field)))

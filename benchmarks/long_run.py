@@ -294,6 +294,17 @@ def train(args) -> int:
     return 0
 
 
+def read_residual(model, residual_latent: str, method: str) -> None:
+    """Score a trained run with its local residual reading `residual_latent` outside training
+    (modulation.residual_latent: "own" or "mean"), whatever it trained with: training does not depend on it, so one
+    run scores both readouts."""
+    nets = getattr(model, "appearance_nets", None)
+    color_model = nets.color_model if nets is not None else None
+    if color_model is None or not hasattr(color_model, "residual_latent"):
+        raise SystemExit(f"long_run: --residual-latent needs a run whose colour model is the modulation ({method})")
+    color_model.residual_latent = residual_latent
+
+
 def evaluate(args) -> int:
     run_dir = Path(args.run_dir)
     state = _state(run_dir)
@@ -339,6 +350,8 @@ def evaluate(args) -> int:
             "max_test_images": -1,
             "train_views": args.train_views,
         }
+        if args.residual_latent:
+            read_residual(trainer.pipeline.model, args.residual_latent, state["method"])
         rec = protocol_scores(trainer, spec)
         rec["num_gaussians"] = int(trainer.pipeline.model.num_points)
         decision = getattr(trainer.pipeline.model, "cap_decision", None)
@@ -353,6 +366,7 @@ def evaluate(args) -> int:
                 "lr": args.protocol_lr,
                 "oracle": args.oracle,
                 "start_candidates": args.protocol_start_candidates,
+                **({"residual_latent": args.residual_latent} if args.residual_latent else {}),
             }
         _save_score(run_dir, str(m), rec, variant)
         print(
@@ -512,11 +526,19 @@ def main(argv=None) -> int:
         help="score under these protocol settings apart: state.json's variants[NAME], never the record's scores "
         "(how the scores depend on the fit: more steps, another learning rate, the oracle, the start)",
     )
+    e.add_argument(
+        "--residual-latent",
+        choices=("own", "mean"),
+        help="with --variant: the latent the modulation's local residual reads outside training (its "
+        "modulation.residual_latent), whatever the run trained with",
+    )
     r = sub.choices["record"]
     r.add_argument("--tag", required=True)
     r.add_argument("--out", required=True)
     r.add_argument("--concurrent", type=int, default=1, help="runs sharing the GPU while this one trained")
     args = ap.parse_args(argv)
+    if args.cmd == "eval" and args.residual_latent and not args.variant:
+        ap.error("--residual-latent scores a protocol variant: name it with --variant")
     if args.cmd == "train" and args.milestones == "all":
         ap.error("--milestones all: train keeps checkpoints at step counts it is given (such as 5000,15000)")
     return {"train": train, "eval": evaluate, "record": record}[args.cmd](args)

@@ -237,6 +237,31 @@ def test_replicates_are_runs_of_one_build_and_a_rule_that_kept_the_cap_is_one():
     assert len(cv.replicate_differences(grown, 5000)) == 1  # the rule raised the cap: another model
 
 
+def test_readout_compares_the_same_runs_under_a_variant_photo_by_photo():
+    """`cv readout`: the default's runs under a protocol variant against their own scores, per collection and over
+    the collections with every fold scored both ways; a run without the variant is left out, another method's
+    variant is not read."""
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+    records = []
+    for scene, shifts in (("one", {"a.jpg": 0.5, "b.jpg": 0.5, "c.jpg": 0.3, "d.jpg": 0.3}), ("two", None)):
+        for k, p in photos.items():
+            rec = _fold_rec(scene, k, 2, "willags", p)
+            if shifts is not None or k == 1:  # "two": only fold 1 scored under the variant
+                delta = shifts or {n: -1.0 for n in p}
+                per = [{"image": n, "psnr": v + delta[n]} for n, v in p.items()]
+                rec["protocol_variants"] = {"rm": {"5000": {"psnr": 0.0, "per_image": per}}}
+            records.append(rec)
+    peer = _fold_rec("one", 1, 2, "peer", photos[1])
+    peer["protocol_variants"] = {"rm": {"5000": {"psnr": 0.0, "per_image": [{"image": "a.jpg", "psnr": 99.0}]}}}
+    lines = cv.readout_rows([*records, peer], 5000, "rm")
+    one = next(line for line in lines if line.startswith("| one "))
+    assert "| 2 of 2 | 21.00 | 21.40 | +0.40 [+0.30, +0.50] (n=4) |" in one
+    two = next(line for line in lines if line.startswith("| two "))
+    assert "| 1 of 2 |" in two and "-1.00 [-1.00, -1.00] (n=2)" in two
+    assert lines[-1].startswith("| **1 at once** |") and lines[-1].endswith("+0.40 [+0.30, +0.50] (n=4): better |")
+    assert cv.readout_rows(records, 5000, "nothing")[0].startswith("cv: no fold run of willags")
+
+
 def test_merge_puts_the_fold_runs_in_their_own_file(tmp_path, monkeypatch):
     import json
 

@@ -226,14 +226,15 @@ def test_a_run_shorter_than_every_milestone_is_scored_where_it_ends(tree, tmp_pa
 
 def test_variants_score_the_last_milestone_again_under_their_fit_settings_before_the_record(tree, tmp_path):
     root, env, solo = tree
-    variants = "fit512:512:0.01 orc:128:0.03:oracle st:128:0.01:start16 both:128:0.01:oracle:start8"
+    variants = "fit512:512:0.01 orc:128:0.03:oracle st:128:0.01:start16 both:128:0.01:oracle:start8 rm:128:0.01:resmean"
     started = _sh(root, env, "start", "reichstag:willags:2000", SOLO_DATA=".data-a", SOLO_VARIANTS=variants)
     assert started.returncode == 0, started.stderr
     _until_in_queue_log(solo, "gpu_solo: queue finished")
     calls = (solo / "calls.log").read_text().splitlines()
     evals = [c for c in calls if c.startswith("eval ")]
     assert sorted(c.split("--milestones ")[1].split()[0] for c in evals if "--variant" not in c) == ["1000", "2000"]
-    both, fit, orc, st = sorted((c for c in evals if "--variant" in c), key=lambda c: c.split("--variant ")[1])
+    both, fit, orc, rm, st = sorted((c for c in evals if "--variant" in c), key=lambda c: c.split("--variant ")[1])
+    assert "--variant rm --protocol-steps 128 --protocol-lr 0.01 --residual-latent mean --train-views 0" in rm
     assert "--milestones 2000 --variant fit512 --protocol-steps 512 --protocol-lr 0.01 --train-views 0" in fit
     assert "--variant orc --protocol-steps 128 --protocol-lr 0.03 --oracle --train-views 0" in orc
     assert "--variant st --protocol-steps 128 --protocol-lr 0.01 --protocol-start-candidates 16 --train-views" in st

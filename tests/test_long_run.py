@@ -266,6 +266,31 @@ def test_a_protocol_variant_is_scored_apart_from_the_protocols_own_scores(tmp_pa
         "fit_shift",
         "start_pick",
     }
+    # the residual's readout as a variant: the same run scored with the local residual at the mean latent
+    with pytest.raises(SystemExit):  # never the protocol's own scores
+        long_run.main(["eval", *argv, "--residual-latent", "mean"])
+    resmean = ["--variant", "resmean", "--protocol-steps", "2", "--train-views", "0", "--residual-latent", "mean"]
+    assert long_run.main(["eval", *argv, *resmean]) == 0
+    state = json.loads((run / long_run.STATE).read_text())
+    assert state["variants"]["resmean"]["4"]["protocol"]["residual_latent"] == "mean"
+    assert state["scores"]["4"] == own and "residual_latent" not in state["variants"]["oracle2"]["4"]["protocol"]
+
+
+def test_a_residual_readout_needs_the_modulation():
+    """`eval --residual-latent` on a run whose model has no modulation (splatfacto, the peer, the decoder) stops in
+    one line naming the method instead of scoring the run unchanged."""
+    import torch
+
+    class Nets:
+        color_model = torch.nn.Linear(1, 1)  # no residual_latent: not the modulation
+
+    class Model:
+        appearance_nets = Nets()
+
+    with pytest.raises(SystemExit, match="modulation.*willags-paper"):
+        long_run.read_residual(Model(), "mean", "willags-paper")
+    with pytest.raises(SystemExit, match="splatfacto"):
+        long_run.read_residual(object(), "mean", "splatfacto")
 
 
 def test_a_downscaled_run_trains_and_is_scored_on_the_smaller_photos(tmp_path, monkeypatch):

@@ -164,6 +164,46 @@ def test_modulated_appearance_bakes_to_sh_exactly_once_per_appearance():
     torch.testing.assert_close(model.shs_0, sh[:, 0, :])
 
 
+def test_residual_latent_mean_renders_the_mean_latents_residual_and_still_bakes_exactly():
+    """modulation.residual_latent "mean": rendering a chosen latent (the viewer, export, the NeRF-W protocol) gives
+    the Gaussians the global transform of that latent and the local residual of the training latents' mean; the
+    baked SH still equals the exact render; training steps read the photo's own latent."""
+    from willags_ns.appearance.modulation import ColorModulationConfig
+
+    model = _tiny_model("modulated", modulation=ColorModulationConfig(residual_latent="mean"))
+    mod = model.appearance_nets.modulation
+    g = torch.Generator().manual_seed(7)
+    with torch.no_grad():
+        model.train_latents.normal_(0.0, 1.0, generator=g)  # two training photos with distinct latents
+        model.train_latent_seen.fill_(True)
+    mean = model.default_latent()
+    z = torch.randn(model.train_latents.shape[1], generator=g)
+    means, f_s, center = model.means, model.intrinsic_features, torch.tensor([0.0, 0.0, 3.0])
+    model.eval()
+    with torch.no_grad():
+        got = model.appearance_colors(z, means, f_s, center).prepared
+        # the tri-plane field's feature (on in this model) still follows the chosen latent
+        f_d = model.color_path.dynamic_features(model.appearance_nets, z, means, model.color_context(), False)
+        mod.set_render_anchor(None)
+        want = mod.local_residual(mean, f_s, f_d, model.num_points)
+        own = mod.local_residual(z, f_s, f_d, model.num_points)
+    torch.testing.assert_close(got, want)
+    assert not torch.allclose(got, own)
+    model.render_latent = z
+    cam = _camera(48, 32)
+    with torch.no_grad():
+        model.config.render_sh_degree = -1
+        exact = model.get_outputs(cam)["rgb"]
+        model.config.render_sh_degree = 3
+        model.get_outputs(cam)  # first frame of this appearance: exact path
+        baked = model.get_outputs(cam)["rgb"]  # second: the bake
+    torch.testing.assert_close(baked, exact, atol=2e-5, rtol=1e-4)
+    model.train()
+    with torch.no_grad():
+        trained = model.appearance_colors(z, means, f_s, center).prepared
+    torch.testing.assert_close(trained, own)
+
+
 def test_modulated_starts_as_plain_3dgs_and_the_latent_transforms_colour_globally():
     """At initialisation the colour transform is the identity (the model starts as 3DGS: colour = SH + 0.5); a
     trained global transform A(z) b(z) changes every Gaussian's colour the same way, and the local residual is

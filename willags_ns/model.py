@@ -337,16 +337,14 @@ class WillagsModel(SplatfactoModel):
     @torch.no_grad()
     def baked_sh(self, z: Tensor, means: Tensor, f_s, degree: int, key: tuple | None = None, sh=None) -> Tensor:
         """SH coefficients [N, (degree + 1)**2, 3] reproducing the appearance's colour (ColorPath.baked_sh)."""
-        assert self.appearance_nets is not None
         sh = self.sh_coeffs() if sh is None else sh
-        return self.color_path.baked_sh(self.appearance_nets, z, means, f_s, degree, self.color_context(), sh, key)
+        return self.color_path.baked_sh(self.student_nets(), z, means, f_s, degree, self.color_context(), sh, key)
 
     @torch.no_grad()
     def baked_colors(self, z: Tensor | None = None) -> Tensor:
         """View-independent colours [N, 3] for export: the appearance averaged over a Fibonacci sphere of views."""
-        assert self.appearance_nets is not None
         z = self.current_latent() if z is None else z.to(self.device)
-        nets, k, ctx = self.appearance_nets, max(1, self.config.export_view_samples), self.color_context()
+        nets, k, ctx = self.student_nets(), max(1, self.config.export_view_samples), self.color_context()
         return self.color_path.baked_colors(nets, z, self.means, self.intrinsic_features, k, ctx, self.sh_coeffs())
 
     # ------------------------------------------------------------------ the Gaussians, parameter groups, checkpoints
@@ -383,6 +381,17 @@ class WillagsModel(SplatfactoModel):
         """SH coefficients [N, K, 3] of the Gaussians (`gp`: a cropped gauss_params view), or None without them."""
         return sh_coeffs(self.gauss_params if gp is None else gp)
 
+    def student_nets(self) -> AppearanceNetworks:
+        """The student's appearance networks, as the colour path reads them now: outside training, a colour model
+        that anchors its per-Gaussian part (ColorModel.anchors_render: modulation.residual_latent "mean") is given
+        the training latents' mean (`default_latent`, recomputed only when the latents change); while training,
+        none."""
+        nets = self.appearance_nets
+        assert nets is not None
+        if nets.color_model.anchors_render():
+            nets.color_model.set_render_anchor(None if self.training else self.default_latent())
+        return nets
+
     def color_context(self) -> ColorContext:
         return ColorContext(self.bounds_lo, self.bounds_hi, self.step, active_sh_degree(self.config, self.step))
 
@@ -395,8 +404,7 @@ class WillagsModel(SplatfactoModel):
         `nets`: the student's networks by default. `sh` [N, K, 3]: the Gaussians' SH coefficients (for a colour model
         that reads them); default: all the model's Gaussians. `base` [N, 3]: their SH colours from cam_center,
         already evaluated (then sh is not used)."""
-        nets = nets if nets is not None else self.appearance_nets
-        assert nets is not None
+        nets = nets if nets is not None else self.student_nets()
         if sh is None and base is None and nets.color_model.reads_sh:
             sh = self.sh_coeffs()
         return self.color_path.cached_colors(nets, z, means, f_s, cam_center, self.color_context(), cacheable, sh, base)
@@ -490,7 +498,7 @@ class WillagsModel(SplatfactoModel):
         if not self.training:
             fixed, degree = not torch.is_grad_enabled(), cfg.render_sh_degree
             if fixed and degree >= 0 and "appearance_latent" not in (camera.metadata or {}):
-                baked = self.color_path.frame_sh(self.appearance_nets, z, means, f_s, degree, self.color_context(), gp)
+                baked = self.color_path.frame_sh(self.student_nets(), z, means, f_s, degree, self.color_context(), gp)
                 if baked is not None:
                     return baked, degree, None
             return self.appearance_colors(z, means, f_s, center, cacheable=fixed, sh=sh_coeffs(gp)).rgb, None, None

@@ -76,7 +76,8 @@ run_one() {
   done
   # SOLO_VARIANTS: "NAME:STEPS:LR[:oracle][:startK] ...", the run's last milestone scored again under each of these
   # fit settings beside the protocol's own (`long_run eval --variant`; the record carries them as protocol_variants);
-  # startK: the fit starts from the best of the usual start and K training latents (--protocol-start-candidates K)
+  # startK: the fit starts from the best of the usual start and K training latents (--protocol-start-candidates K);
+  # resmean: the modulation's local residual reads the training latents' mean (--residual-latent mean)
   local last=${timed##* } v vname vsteps vlr vflags f extra
   for v in ${SOLO_VARIANTS:-}; do
     [ -n "$last" ] || break
@@ -86,6 +87,7 @@ run_one() {
       case $f in
         oracle) extra+=(--oracle) ;;
         start*) extra+=(--protocol-start-candidates "${f#start}") ;;
+        resmean) extra+=(--residual-latent mean) ;;
       esac
     done
     python3 -m benchmarks.long_run eval --run-dir "$d" --milestones "$last" --variant "$vname" \

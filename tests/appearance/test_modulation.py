@@ -176,3 +176,41 @@ def test_gamma_stays_in_its_range_with_finite_gradients_at_black_and_at_the_extr
     grads = torch.autograd.grad(out.sum(), [base, z, *m.parameters()], allow_unused=True)
     assert torch.isfinite(out).all()
     assert all(gr is None or torch.isfinite(gr).all() for gr in grads)
+
+
+@pytest.mark.parametrize("chunk", [0, 16])
+def test_a_render_anchor_fixes_the_residuals_latent_outside_training_only(chunk):
+    """residual_latent "mean": outside training the local residual reads the anchor the model gives (the training
+    latents' mean) whatever the latent, while the global transform still follows it; while training, and with
+    residual_latent "own", the residual follows the latent."""
+    torch.manual_seed(0)
+    m = ColorModulation(8, 4, 0, ColorModulationConfig(residual_latent="mean", residual_chunk=chunk))
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0.0, 0.3)
+    f_s, base = torch.randn(30, 4), torch.rand(30, 3)
+    z1, z2, anchor = torch.randn(8), torch.randn(8), torch.randn(8)
+    assert m.anchors_render()
+    m.set_render_anchor(anchor)
+    m.eval()
+    at_anchor = m.local_residual(anchor, f_s, None, 30)
+    torch.testing.assert_close(m.local_residual(z1, f_s, None, 30), at_anchor)
+    torch.testing.assert_close(m.local_residual(z2, f_s, None, 30), at_anchor)
+    assert not torch.allclose(m(z1, base, f_s), m(z2, base, f_s))  # the global transform follows z
+    A, b = m.global_transform(z1)
+    scale, offset = at_anchor.split(3, dim=-1)
+    torch.testing.assert_close(m(z1, base, f_s), (base @ A.mT + b) * (1 + scale) + offset)
+    m.train()
+    assert not torch.allclose(m.local_residual(z1, f_s, None, 30), at_anchor)
+    m.eval()
+    m.set_render_anchor(None)  # what the model gives while it trains
+    assert not torch.allclose(m.local_residual(z1, f_s, None, 30), at_anchor)
+
+    own = ColorModulation(8, 4, 0, ColorModulationConfig(residual_chunk=chunk))
+    own.load_state_dict(m.state_dict())
+    assert not own.anchors_render()
+    own.set_render_anchor(anchor)  # ignored: the residual reads the latent it is given
+    own.eval()
+    assert not torch.allclose(own.local_residual(z1, f_s, None, 30), at_anchor)
+    static = ColorModulation(8, 4, 0, ColorModulationConfig(residual_latent="mean", latent_proj=0))
+    assert not static.anchors_render()  # a residual that does not read z has nothing to anchor

@@ -92,6 +92,15 @@ class ColorModel(nn.Module):
         """The model's term in the training loss, weighted, for one step's :meth:`prepare` output (None: no term)."""
         return None
 
+    def anchors_render(self) -> bool:
+        """Whether, outside training, the model's per-Gaussian part reads one fixed latent (:meth:`set_render_anchor`)
+        instead of the appearance's, so that the appearance changes only what all Gaussians share. False here."""
+        return False
+
+    def set_render_anchor(self, z: Tensor | None) -> None:
+        """The fixed latent of :meth:`anchors_render` (the model gives the training latents' mean when it leaves
+        training, None when it trains again). Ignored here."""
+
     def exact_sh(
         self, z: Tensor, sh: Tensor, f_s: Tensor | None, f_d: Tensor | None, degree: int, active_degree: int
     ) -> Tensor | None:

@@ -23,7 +23,7 @@ same degree; with it, the bake is a least-squares fit over view directions (as f
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from jaxtyping import Float
@@ -58,6 +58,13 @@ class ColorModulationConfig:
     local_penalty: float = 0.01
     """Weight of mean(s^2 + o^2) in the loss: the local residual pays for what it adds, so appearance that a global
     transform explains stays global (and transfers across an image under the NeRF-W protocol)."""
+    residual_latent: Literal["own", "mean"] = "own"
+    """Which latent the local residual reads outside training (rendering, export, the NeRF-W protocol's fit and
+    score). "own": the appearance's, as in training. "mean": the training images' mean latent whatever the
+    appearance (its projection P z; the tri-plane field's feature, when on, still follows the appearance), so a
+    chosen or fitted latent moves the global transform and the residual keeps what the photos share: what it learnt
+    of single photos (a crowd's colours on the ground under one photo's latent) is not carried to another. Training
+    is the same either way."""
     residual_chunk: int = 131072
     """Gaussians per chunk of the local residual's own backward (``LocalResidualMLP``): it keeps no [N, hidden]
     activation between forward and backward and recomputes the hidden layer chunk by chunk, so the MLP's extra
@@ -91,6 +98,9 @@ class ColorModulation(ColorModel):
         self.intrinsic_dim = intrinsic_dim
         self.dynamic_dim = dynamic_dim
         self.residual_chunk = cfg.residual_chunk
+        self.residual_latent = cfg.residual_latent
+        self.render_anchor: Tensor | None = None
+        """The latent the local residual reads outside training (residual_latent "mean"; None: z itself)."""
         self.gamma = cfg.gamma
         self.penalty_weight = cfg.local_penalty
         self.global_mlp = nn.Sequential(
@@ -128,6 +138,14 @@ class ColorModulation(ColorModel):
     def prepare(self, z: Tensor, f_s: Tensor | None, f_d: Tensor | None, n: int) -> Tensor | None:
         """The local residual [N, 6] (:meth:`local_residual`), None without one."""
         return self.local_residual(z, f_s, f_d, n)
+
+    def anchors_render(self) -> bool:
+        """With residual_latent "mean" and a local residual that reads z: outside training the residual reads the
+        training latents' mean (:meth:`set_render_anchor`)."""
+        return self.residual_latent == "mean" and self.latent_proj is not None and self.latent_proj.out_features > 0
+
+    def set_render_anchor(self, z: Tensor | None) -> None:
+        self.render_anchor = None if z is None or not self.anchors_render() else z.detach()
 
     def rgb(self, z, base, f_s, f_d, dirs, prepared) -> Tensor:
         """:meth:`forward` of the base colours, clamped at 0 as gsplat clamps SH colours, so that the exact render
@@ -168,9 +186,12 @@ class ColorModulation(ColorModel):
     def local_residual(
         self, z: Float[Tensor, " D"], f_s: Tensor | None, f_d: Tensor | None, n: int
     ) -> Float[Tensor, "N 6"] | None:
-        """Per-Gaussian (s, o) [N, 6], or None when the local residual is off."""
+        """Per-Gaussian (s, o) [N, 6], or None when the local residual is off. Outside training with a render anchor
+        (residual_latent "mean") it reads the anchor instead of z."""
         if self.local_mlp is None or self.latent_proj is None:
             return None
+        if self.render_anchor is not None and not self.training:
+            z = self.render_anchor
         if self.intrinsic_dim > 0 and (f_s is None or f_s.shape[-1] != self.intrinsic_dim):
             raise ValueError(f"f_s must be [N, {self.intrinsic_dim}], got {None if f_s is None else tuple(f_s.shape)}")
         if self.dynamic_dim > 0 and (f_d is None or f_d.shape[-1] != self.dynamic_dim):
