@@ -305,6 +305,10 @@ def test_the_fit_table_sets_each_variant_beside_the_protocols_own_score_photo_by
     rec["protocol_variants"] = {"start16": {"15000": {**start, "per_image": longer}}}
     (row,) = [line for line in cv.fit_rows([rec]) if "start16" in line]
     assert "start16 (128 steps, lr 0.01, best of 16 + 1 starts)" in row
+    mean = {"protocol": {"steps": 128, "lr": 0.01, "oracle": False, "residual_latent": "mean"}, "psnr": 19.5}
+    rec["protocol_variants"] = {"resmean": {"15000": {**mean, "per_image": longer}}}
+    (row,) = [line for line in cv.fit_rows([rec]) if "resmean" in line]
+    assert "resmean (128 steps, lr 0.01, residual at the mean latent)" in row
 
 
 def test_pooled_weighs_each_collection_the_same_and_says_whether_the_interval_holds_zero():
