@@ -1245,9 +1245,24 @@ def bar_rows(
     return lines
 
 
+def readout_variants(records: Sequence[dict[str, Any]], steps: int, method: str = "willags") -> list[str]:
+    """The protocol variants some fold run of `method` was scored under at `steps` that no table compares with a
+    peer (compared_variants): readouts of the method's own runs (`cv readout`)."""
+    from benchmarks.methods import configuration
+
+    names = {
+        name
+        for r in records
+        if parse_fold(str(r.get("scene", ""))) is not None and configuration(r) == method
+        for name in (r.get("protocol_variants") or {})
+        if variant_milestone(r, steps, name) is not None
+    }
+    return sorted(names - set(compared_variants(records, steps, method)))
+
+
 def readout_rows(records: Sequence[dict[str, Any]], steps: int, variant: str, method: str = "willags") -> list[str]:
     """`method`'s fold runs scored under the protocol variant `variant` against the same runs' own scores, photo by
-    photo, per collection and over every collection whose every fold has both (each weighing the same): a readout
+    photo, per collection and over the collections whose every fold has both (two or more, each weighing the same): a readout
     that changes only how a trained model is scored (the residual's latent, the fit's settings) compared on one set of
     runs, so the run noise cancels and the interval is the photos' alone."""
     from benchmarks.methods import configuration
@@ -1280,7 +1295,7 @@ def readout_rows(records: Sequence[dict[str, Any]], steps: int, variant: str, me
         )
         if whole:
             pairs.append((a, b))
-    if pairs:
+    if len(pairs) > 1:
         mean, low, high, n = pooled(pairs)
         lines.append(
             f"| **{len(pairs)} at once** | | | | {mean:+.2f} [{low:+.2f}, {high:+.2f}] (n={n}): {verdict(low, high)} |"

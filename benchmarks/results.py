@@ -26,6 +26,8 @@ from benchmarks.cv import (
     fixed_split_rows,
     length_rows,
     parse_fold,
+    readout_rows,
+    readout_variants,
     run_noise,
 )
 from benchmarks.methods import METHODS, configuration
@@ -502,6 +504,16 @@ def cv_section(records: list[dict[str, Any]]) -> list[str]:
                 "below, \"Does the protocol's fit reach each photo's appearance?\"; the peers' runs alike).",
                 "",
                 *cv_rows(records, n, variant=name),
+                "",
+            ]
+        for name in readout_variants(records, n):
+            out += [
+                f"**{n} steps, the default's runs scored again under the protocol variant `{name}`**, against the "
+                "same runs' own scores photo by photo (`python -m benchmarks cv readout`; one set of runs, so no run "
+                "noise between the two; its settings: the table below, \"Does the protocol's fit reach each photo's "
+                'appearance?"):',
+                "",
+                *readout_rows(records, n, name),
                 "",
             ]
     return out[:-1]

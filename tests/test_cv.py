@@ -258,7 +258,12 @@ def test_readout_compares_the_same_runs_under_a_variant_photo_by_photo():
     assert "| 2 of 2 | 21.00 | 21.40 | +0.40 [+0.30, +0.50] (n=4) |" in one
     two = next(line for line in lines if line.startswith("| two "))
     assert "| 1 of 2 |" in two and "-1.00 [-1.00, -1.00] (n=2)" in two
-    assert lines[-1].startswith("| **1 at once** |") and lines[-1].endswith("+0.40 [+0.30, +0.50] (n=4): better |")
+    assert not any("at once" in line for line in lines)  # one whole collection: nothing to pool
+    per = [{"image": n, "psnr": v - 1.0} for n, v in photos[2].items()]
+    records[3]["protocol_variants"] = {"rm": {"5000": {"psnr": 0.0, "per_image": per}}}  # "two", fold 2
+    lines = cv.readout_rows(records, 5000, "rm")
+    assert lines[-1].startswith("| **2 at once** |") and "-0.30 [" in lines[-1] and "(n=8)" in lines[-1]
+    assert cv.readout_variants(records, 5000) == ["rm"]
     assert cv.readout_rows(records, 5000, "nothing")[0].startswith("cv: no fold run of willags")
 
 
