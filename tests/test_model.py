@@ -198,6 +198,10 @@ def test_residual_latent_mean_renders_the_mean_latents_residual_and_still_bakes_
         model.get_outputs(cam)  # first frame of this appearance: exact path
         baked = model.get_outputs(cam)["rgb"]  # second: the bake
     torch.testing.assert_close(baked, exact, atol=2e-5, rtol=1e-4)
+    mod.residual_latent = "own"  # read at the own latent again (long_run's --residual-latent sets it): no anchor left
+    with torch.no_grad():
+        torch.testing.assert_close(model.appearance_colors(z, means, f_s, center).prepared, own)
+    mod.residual_latent = "mean"
     model.train()
     with torch.no_grad():
         trained = model.appearance_colors(z, means, f_s, center).prepared

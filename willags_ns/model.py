@@ -384,12 +384,13 @@ class WillagsModel(SplatfactoModel):
     def student_nets(self) -> AppearanceNetworks:
         """The student's appearance networks, as the colour path reads them now: outside training, a colour model
         that anchors its per-Gaussian part (ColorModel.anchors_render: modulation.residual_latent "mean") is given
-        the training latents' mean (`default_latent`, recomputed only when the latents change); while training,
-        none."""
+        the training latents' mean (`default_latent`, recomputed only when the latents change); while training, or
+        once the colour model no longer anchors (its residual_latent set back to "own"), none."""
         nets = self.appearance_nets
         assert nets is not None
-        if nets.color_model.anchors_render():
-            nets.color_model.set_render_anchor(None if self.training else self.default_latent())
+        color_model = nets.color_model
+        anchored = not self.training and color_model.anchors_render()
+        color_model.set_render_anchor(self.default_latent() if anchored else None)
         return nets
 
     def color_context(self) -> ColorContext:
