@@ -59,6 +59,22 @@ def test_a_residual_without_the_latent_projection_is_the_same_for_every_latent(c
     assert not torch.allclose(m(z1, base, f_s), m(z2, base, f_s))
 
 
+@pytest.mark.parametrize("proj,rank", [(2, 2), (16, 8), (64, 8)])
+def test_the_residual_follows_as_many_directions_of_the_latent_as_its_projection_keeps(proj, rank):
+    """latent_proj sets how many directions of z move the per-Gaussian residual: the Jacobian of every Gaussian's
+    (s, o) with respect to an 8-d z has rank min(8, latent_proj), at the same per-Gaussian cost (the projection is
+    one vector added to the hidden layer)."""
+    torch.manual_seed(0)
+    m = ColorModulation(8, 4, 0, ColorModulationConfig(latent_proj=proj, local_hidden=64))
+    with torch.no_grad():
+        for p in m.parameters():
+            p.normal_(0.0, 0.3)
+    f_s, z = torch.randn(40, 4, dtype=torch.float64), torch.randn(8, dtype=torch.float64)
+    m = m.double()
+    jac = torch.autograd.functional.jacobian(lambda v: m.local_residual(v, f_s, None, 40), z)  # [40, 6, 8]
+    assert int(torch.linalg.matrix_rank(jac.reshape(-1, 8))) == rank
+
+
 def test_identity_at_initialisation_and_the_penalty():
     m = ColorModulation(8, 4, 0, ColorModulationConfig())
     base = torch.rand(20, 3)

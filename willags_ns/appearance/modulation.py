@@ -52,9 +52,10 @@ class ColorModulationConfig:
     local_hidden: int = 64
     """Width of the hidden layer of the local residual MLP."""
     latent_proj: int = 16
-    """z is projected to this size before it is concatenated to each Gaussian's features (keeps the per-Gaussian
-    MLP small: its input is f_s + latent_proj (+ f_d)). 0: the residual does not see z at all, a static per-Gaussian
-    colour scale and offset, so that every change between photos goes through the global transform."""
+    """z is projected to this size (P z) before it enters the local residual's hidden layer, where it is the same
+    for every Gaussian (one vector added to each Gaussian's pre-activation): at most this many directions of z move
+    the residual, at no per-Gaussian cost. 0: the residual does not see z at all, a static per-Gaussian colour scale
+    and offset, so that every change between photos goes through the global transform."""
     local_penalty: float = 0.01
     """Weight of mean(s^2 + o^2) in the loss: the local residual pays for what it adds, so appearance that a global
     transform explains stays global (and transfers across an image under the NeRF-W protocol)."""
@@ -64,7 +65,8 @@ class ColorModulationConfig:
     appearance (its projection P z; the tri-plane field's feature, when on, still follows the appearance), so a
     chosen or fitted latent moves the global transform and the residual keeps what the photos share: what it learnt
     of single photos (a crowd's colours on the ground under one photo's latent) is not carried to another. Training
-    is the same either way."""
+    is the same either way. "own" scores higher under the NeRF-W protocol on every collection measured
+    (docs/design.md): what the residual reads of a fitted latent carries across the photo."""
     residual_chunk: int = 131072
     """Gaussians per chunk of the local residual's own backward (``LocalResidualMLP``): it keeps no [N, hidden]
     activation between forward and backward and recomputes the hidden layer chunk by chunk, so the MLP's extra
