@@ -315,6 +315,10 @@ class FoldScores:
     runs: dict[int, int]
     """Fold -> how many runs scored it."""
 
+    def cv(self) -> "MethodCV":
+        """The method's MethodCV: its runs averaged photo by photo (method_cv)."""
+        return method_cv(self.by_fold, self.folds, sum(self.runs.values()))
+
 
 def fold_scores(
     records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None, variant: str | None = None
@@ -348,7 +352,7 @@ def collect(
     """{scene: {method: MethodCV}} from the fold runs scored at `steps` (fold_scores, runs averaged photo by
     photo)."""
     return {
-        scene: {m: method_cv(f.by_fold, f.folds, sum(f.runs.values())) for m, f in by_method.items()}
+        scene: {m: f.cv() for m, f in by_method.items()}
         for scene, by_method in fold_scores(records, steps, tags, variant).items()
     }
 
@@ -1201,7 +1205,8 @@ def bar_rows(
     if not shares:
         return [f"cv: no fold run of {rule} recorded {field} at {steps} steps"]
     lines = [f"| bar | {' | '.join(sorted(shares))} | at once |", "|---|" + "---|" * (len(shares) + 1)]
-    ready: dict[str, tuple[FoldScores, FoldScores] | None] = {}  # scene -> (low's, high's) runs on the rule's build
+    # scene -> (low's runs, high's runs, low's MethodCV: the reference of every bar) on the rule's build
+    ready: dict[str, tuple[FoldScores, FoldScores, MethodCV] | None] = {}
     skipped = []
     for scene in sorted(shares):
         ready[scene] = None
@@ -1220,19 +1225,18 @@ def bar_rows(
         if not whole:
             skipped.append(f"{scene}: a fold lacks a run of {rule}, {low} or {high}")
             continue
-        ready[scene] = (lo, hi)
+        ready[scene] = (lo, hi, lo.cv())
     for bar in bars:
         cells, pairs = [], []
         for scene in sorted(shares):
             if ready[scene] is None:
                 cells.append("–")
                 continue
-            lo, hi = ready[scene]
+            lo, hi, b = ready[scene]
             folds = range(1, lo.folds + 1)
             below = {k: shares[scene][k] < bar for k in folds}
-            chosen = {k: hi.by_fold[k] if below[k] else lo.by_fold[k] for k in folds}
-            a = method_cv(chosen, lo.folds, sum(hi.runs[k] if below[k] else lo.runs[k] for k in folds))
-            b = method_cv(lo.by_fold, lo.folds, sum(lo.runs.values()))
+            pick = {k: hi if below[k] else lo for k in folds}
+            a = FoldScores(lo.folds, {k: pick[k].by_fold[k] for k in folds}, {k: pick[k].runs[k] for k in folds}).cv()
             mean, low_ci, high_ci, _ = paired(a, b, sigma)
             cells.append(f"{mean:+.2f} [{low_ci:+.2f}, {high_ci:+.2f}] ({sum(below.values())}/{lo.folds} {high})")
             pairs.append((a, b))
@@ -1285,8 +1289,7 @@ def readout_rows(records: Sequence[dict[str, Any]], steps: int, variant: str, me
         a_runs, b_runs = other.get(scene, {}).get(method), own[scene].get(method)
         if a_runs is None or b_runs is None:
             continue
-        a = method_cv(a_runs.by_fold, a_runs.folds, sum(a_runs.runs.values()))
-        b = method_cv(b_runs.by_fold, b_runs.folds, sum(b_runs.runs.values()))
+        a, b = a_runs.cv(), b_runs.cv()
         mean, low, high, n = paired(a, b)
         whole = all(k in a_runs.by_fold for k in range(1, a_runs.folds + 1))
         folds = f"{len(a_runs.by_fold)} of {a_runs.folds}"
