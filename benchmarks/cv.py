@@ -315,7 +315,7 @@ class FoldScores:
     runs: dict[int, int]
     """Fold -> how many runs scored it."""
 
-    def cv(self) -> "MethodCV":
+    def cv(self) -> MethodCV:
         """The method's MethodCV: its runs averaged photo by photo (method_cv)."""
         return method_cv(self.by_fold, self.folds, sum(self.runs.values()))
 
