@@ -367,6 +367,7 @@ def method_cv(by_fold: dict[int, dict[str, list[float]]], folds: int, runs: int)
 EQUIVALENT = {
     ("willags-capscene", "willags-noprior"): "MCMC's cap not reached on any fold: the same model",
     ("willags-prior-low-captransients", "willags"): "the transients rule kept the cap on every fold: the same model",
+    ("willags-prior-low-captransients25", "willags"): "the transients rule kept the cap on every fold: the same model",
 }
 """Method pairs that train the same model where their runs end with the same number of Gaussians on every fold (the
 pair's runs then differ only by the GPU's non-deterministic sums): replicates for the run noise."""
