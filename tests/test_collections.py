@@ -120,6 +120,28 @@ def test_source_reads_the_pinned_commit_from_a_clone_a_bare_mirror_or_a_folder(t
         Source(coll, tmp_path / "empty")
 
 
+def test_photos_in_subfolders_are_listed_read_and_named_apart(tmp_path):
+    """A source that splits one landmark's photos over subfolders (a classifier's train/ and test/): every file below
+    the folder is listed by its relative path, from a git repository (names with spaces and non-ASCII letters as
+    they are) and from a plain folder alike, read at the pinned commit, and two subfolders' photos of one name get
+    two scene names; a photo directly in the folder keeps its plain name."""
+    repo = tmp_path / "repo"
+    train = _jpeg(repo / "pics" / "train" / "Ho Chi Minh (1).jpg", color=(10, 200, 10))
+    _jpeg(repo / "pics" / "test" / "Ho Chi Minh (1).jpg")
+    _jpeg(repo / "pics" / "é.jpg")
+    _git("init", "-q", cwd=repo)
+    _git("add", ".", cwd=repo)
+    _git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "photos", cwd=repo)
+    pinned = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True).stdout.strip()
+    coll = _coll(commit=pinned)
+    want = ["test/Ho Chi Minh (1).jpg", "train/Ho Chi Minh (1).jpg", "é.jpg"]
+    for src in (Source(coll, repo), Source(replace(coll, folder="repo/pics"), tmp_path)):  # git, plain folder
+        assert src.names() == want
+        assert src.read("train/Ho Chi Minh (1).jpg") == train
+    names = [scene_name(n) for n in select_photos(want, coll)]
+    assert names == ["test_Ho_Chi_Minh_1.jpg", "train_Ho_Chi_Minh_1.jpg", "photo.jpg"]
+
+
 def test_model_digest_follows_the_model_bytes_and_names_a_missing_file(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     sfm_model_stub(a)
