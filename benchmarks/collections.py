@@ -255,9 +255,8 @@ COLLECTIONS: dict[str, Collection] = {
                 "mausoleum), mostly of the front facade from near and far, in clear, overcast, sunset and night "
                 "light, with queues of visitors, the honour guard, flags and flower beds that change from photo to "
                 "photo; some are HDR-processed or watermarked, a few are small (about 160-400 px). Most carry no "
-                "EXIF; the few that do name different cameras and years (2007-2020). A collection nothing here was "
-                "chosen on. One file is left out: train/hochiminh_mausoleum/hochiminh_mausoleum (28).jpg is "
-                "byte-identical to (24).jpg."
+                "EXIF; the few that do name different cameras and years (2007-2020). One file is left out: "
+                "train/hochiminh_mausoleum/hochiminh_mausoleum (28).jpg is byte-identical to (24).jpg."
             ),
             licence=(
                 "no licence stated: the photos were gathered from the web, their copyright stays with their "
