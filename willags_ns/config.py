@@ -99,6 +99,12 @@ class WillagsModelConfig(SplatfactoModelConfig):
     clone / prune with opacity resets (gsplat's DefaultStrategy and its thresholds). "auto": MCMC on a GPU, where it
     was measured better on every scene's long runs, splatfacto's on the CPU, whose short runs MCMC's gradual growth
     leaves with too few Gaussians (docs/design.md)."""
+    splitclone_cap: int = 300_000
+    """The most Gaussians splatfacto's densification (densification "splatfacto", the CPU's) grows to; 0: no cap.
+    Why: its gradient rule has no budget of its own, and on some collections it grows at every refinement until the
+    machine's memory or time runs out (docs/design.md, "Capacity"); at the cap a refinement grows only the Gaussians
+    with the largest gradients, as many as there is room for (splats/splitclone.py). The same budget as MCMC's
+    default cap (mcmc.cap_max), so that either densification gives a scene at most as many Gaussians."""
     mcmc: McmcConfig = field(default_factory=McmcConfig)
     """Settings of the MCMC densification (cap, noise, penalties, initial Gaussians)."""
     holdout: HoldoutConfig = field(default_factory=HoldoutConfig)

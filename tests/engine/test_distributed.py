@@ -366,6 +366,30 @@ def test_synced_strategy_keeps_the_settings():
     s = synced_strategy(base, refine_seed=11, world_size=2)
     assert isinstance(s, RankSyncedStrategy) and isinstance(s, DefaultStrategy)
     assert (s.refine_every, s.grow_grad2d, s.refine_start_iter, s.refine_seed, s.world_size) == (7, 0.123, 3, 11, 2)
+    assert s.grows_as is None  # gsplat's own growth
+
+
+def test_synced_strategy_keeps_the_budget_on_the_growth():
+    """A DefaultStrategy with a budget (splats/splitclone.py) synchronised over ranks grows within its budget, on
+    the statistics as they are after the all-reduce (here one rank: as they are)."""
+    from willags_ns.splats.splitclone import BudgetedDefaultStrategy
+
+    base = BudgetedDefaultStrategy(grow_grad2d=0.001, cap_max=5)
+    s = synced_strategy(base, refine_seed=3, world_size=1)
+    assert s.grows_as is base and synced_strategy(s, refine_seed=3, world_size=1).grows_as is base
+    params = torch.nn.ParameterDict(
+        {
+            "means": torch.nn.Parameter(torch.randn(4, 3)),
+            "scales": torch.nn.Parameter(torch.full((4, 3), -5.0)),
+            "quats": torch.nn.Parameter(torch.nn.functional.normalize(torch.randn(4, 4), dim=-1)),
+            "opacities": torch.nn.Parameter(torch.zeros(4)),
+        }
+    )
+    optimizers = {k: torch.optim.Adam([params[k]], lr=1e-3) for k in params}
+    state = s.initialize_state(scene_scale=1.0)
+    state.update(grad2d=torch.tensor([0.5, 0.4, 0.3, 0.2]), count=torch.ones(4), radii=torch.zeros(4))
+    s._grow_gs(params, optimizers, state, step=600)
+    assert params["means"].shape[0] == 5  # four eligible, room for one
 
 
 def test_mcmc_densification_is_seeded_alike_on_every_rank():
@@ -567,7 +591,9 @@ def _reference(config, records):
             model.state_dict()[k].copy_(v)
     from gsplat.strategy import DefaultStrategy
 
-    assert type(model.strategy) is DefaultStrategy, "one process must keep gsplat's strategy"
+    assert isinstance(model.strategy, DefaultStrategy) and not isinstance(model.strategy, RankSyncedStrategy), (
+        "one process must keep its own strategy (gsplat's, with its budget)"
+    )
     assert not hasattr(optimizers.optimizer_scaler_step_some, "willags_averages_gradients")
     strategy = synced_strategy(model.strategy, records[0]["refine_seed"], world_size=1)  # the ranks' seeded splits
     strategy.pause_refine_after_reset = records[0]["pause_refine_after_reset"]  # the ranks' schedule

@@ -200,14 +200,14 @@ def test_auto_densifies_by_mcmc_on_a_gpu_and_as_splatfacto_on_the_cpu():
 
 
 def test_the_default_model_on_the_cpu_densifies_as_splatfacto(tmp_path):
-    from gsplat.strategy import DefaultStrategy
-
     from tests.test_train import _train
+    from willags_ns.splats.splitclone import BudgetedDefaultStrategy
 
     _, trainer, _ = _train(tmp_path, "willags", steps=2, device="cpu")
     model = trainer.pipeline.model
     assert model.config.densification == "auto" and not model.mcmc_on
-    assert type(model.strategy) is DefaultStrategy
+    assert type(model.strategy) is BudgetedDefaultStrategy  # gsplat's DefaultStrategy with a budget
+    assert model.strategy.cap_max == model.config.splitclone_cap > 0
 
 
 def test_the_cap_reason_names_the_larger_cap_only_below_it():

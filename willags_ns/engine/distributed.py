@@ -581,11 +581,16 @@ class RankSyncedStrategy(DefaultStrategy):
     """Base seed of the refinements' random draws (+ the step): the same on every rank."""
     world_size: int = 1
     """Number of ranks to all-reduce the statistics over (1: none)."""
+    grows_as: DefaultStrategy | None = None
+    """The strategy whose growth this one runs, after the all-reduce, when it is a DefaultStrategy of its own kind
+    (a budget on the growth: splats/splitclone.py); None: gsplat's."""
 
     def _grow_gs(self, params, optimizers, state, step):  # type: ignore[override]
         if self.world_size > 1:
             all_reduce_strategy_state(state)
         with same_rng(self.refine_seed + step, params["means"].device):
+            if self.grows_as is not None:  # on the all-reduced statistics: the same choice on every rank
+                return self.grows_as._grow_gs(params, optimizers, state, step)
             return super()._grow_gs(params, optimizers, state, step)
 
     def _prune_gs(self, params, optimizers, state, step):  # type: ignore[override]
@@ -596,11 +601,13 @@ class RankSyncedStrategy(DefaultStrategy):
 
 
 def synced_strategy(strategy, refine_seed: int, world_size: int):
-    """`strategy`'s settings in a RankSyncedStrategy; a strategy whose draws take a seed (MCMC densification:
-    splats/mcmc.py, a `seed` field) gets `refine_seed`: its every move is then drawn alike on every rank."""
+    """`strategy`'s settings in a RankSyncedStrategy (a DefaultStrategy of its own kind, such as one with a budget on
+    its growth, grows through itself on the all-reduced statistics: `grows_as`); a strategy whose draws take a seed
+    (MCMC densification: splats/mcmc.py, a `seed` field) gets `refine_seed`: its every move is then drawn alike on
+    every rank."""
     if "seed" in {f.name for f in fields(strategy)} and not isinstance(strategy, DefaultStrategy):
         return replace(strategy, seed=refine_seed)
-    if type(strategy) is not DefaultStrategy and not isinstance(strategy, RankSyncedStrategy):
+    if not isinstance(strategy, DefaultStrategy):
         raise DataParallelError(
             f"willags: data-parallel training synchronises gsplat's DefaultStrategy, got {type(strategy).__name__}"
         )
@@ -611,4 +618,7 @@ def synced_strategy(strategy, refine_seed: int, world_size: int):
                 "densification cannot be synchronised with this gsplat"
             )
     settings = {f.name: getattr(strategy, f.name) for f in fields(DefaultStrategy)}
-    return RankSyncedStrategy(**settings, refine_seed=refine_seed, world_size=world_size)
+    grows_as = strategy.grows_as if isinstance(strategy, RankSyncedStrategy) else strategy
+    if type(grows_as) is DefaultStrategy:
+        grows_as = None
+    return RankSyncedStrategy(**settings, refine_seed=refine_seed, world_size=world_size, grows_as=grows_as)

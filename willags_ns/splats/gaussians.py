@@ -65,14 +65,16 @@ def initial_gauss_params(
 
 
 def densification_strategy(cfg, num_train: int, mcmc: bool = False):
-    """gsplat's DefaultStrategy with splatfacto's settings (cfg: the model config), or with `mcmc` the MCMC
-    densification of splats/mcmc.py over the same refinement window."""
-    from gsplat.strategy import DefaultStrategy
+    """gsplat's DefaultStrategy with splatfacto's settings and a budget of cfg.splitclone_cap Gaussians
+    (splats/splitclone.py; cfg: the model config), or with `mcmc` the MCMC densification of splats/mcmc.py over the
+    same refinement window."""
+    from willags_ns.splats.splitclone import BudgetedDefaultStrategy
 
     if mcmc:
         return mcmc_strategy(cfg)
 
-    return DefaultStrategy(
+    return BudgetedDefaultStrategy(
+        cap_max=cfg.splitclone_cap,
         prune_opa=cfg.cull_alpha_thresh,
         grow_grad2d=cfg.densify_grad_thresh,
         grow_scale3d=cfg.densify_size_thresh,
