@@ -390,6 +390,16 @@ def test_synced_strategy_keeps_the_budget_on_the_growth():
     state.update(grad2d=torch.tensor([0.5, 0.4, 0.3, 0.2]), count=torch.ones(4), radii=torch.zeros(4))
     s._grow_gs(params, optimizers, state, step=600)
     assert params["means"].shape[0] == 5  # four eligible, room for one
+    # the synced strategy's settings as they are now (the time budget refits them after the strategy is synced)
+    # decide the growth, the budget its own: only 0.5 passes a threshold raised to 0.45
+    s = synced_strategy(BudgetedDefaultStrategy(grow_grad2d=0.001, cap_max=10), refine_seed=3, world_size=1)
+    s.grow_grad2d = 0.45
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.detach()[:4].clone()) for k, v in params.items()})
+    optimizers = {k: torch.optim.Adam([params[k]], lr=1e-3) for k in params}
+    state = s.initialize_state(scene_scale=1.0)
+    state.update(grad2d=torch.tensor([0.5, 0.4, 0.3, 0.2]), count=torch.ones(4), radii=torch.zeros(4))
+    s._grow_gs(params, optimizers, state, step=600)
+    assert params["means"].shape[0] == 5
 
 
 def test_mcmc_densification_is_seeded_alike_on_every_rank():

@@ -582,15 +582,17 @@ class RankSyncedStrategy(DefaultStrategy):
     world_size: int = 1
     """Number of ranks to all-reduce the statistics over (1: none)."""
     grows_as: DefaultStrategy | None = None
-    """The strategy whose growth this one runs, after the all-reduce, when it is a DefaultStrategy of its own kind
-    (a budget on the growth: splats/splitclone.py); None: gsplat's."""
+    """A DefaultStrategy of its own kind whose growth this one runs, after the all-reduce (a budget on the growth:
+    splats/splitclone.py), with this strategy's settings as they are at that step (the time budget refits them) and
+    its own fields beyond gsplat's (the budget); None: gsplat's growth."""
 
     def _grow_gs(self, params, optimizers, state, step):  # type: ignore[override]
         if self.world_size > 1:
             all_reduce_strategy_state(state)
         with same_rng(self.refine_seed + step, params["means"].device):
             if self.grows_as is not None:  # on the all-reduced statistics: the same choice on every rank
-                return self.grows_as._grow_gs(params, optimizers, state, step)
+                now = replace(self.grows_as, **default_strategy_settings(self))
+                return now._grow_gs(params, optimizers, state, step)
             return super()._grow_gs(params, optimizers, state, step)
 
     def _prune_gs(self, params, optimizers, state, step):  # type: ignore[override]
@@ -598,6 +600,11 @@ class RankSyncedStrategy(DefaultStrategy):
         if self.world_size > 1:
             check_parameters_agree(dict(params.items()), f"after the refinement at step {step}")
         return n_pruned
+
+
+def default_strategy_settings(strategy: DefaultStrategy) -> dict[str, Any]:
+    """The values of gsplat's DefaultStrategy fields on `strategy` (any DefaultStrategy, of gsplat's kind or another)."""
+    return {f.name: getattr(strategy, f.name) for f in fields(DefaultStrategy)}
 
 
 def synced_strategy(strategy, refine_seed: int, world_size: int):
@@ -617,7 +624,7 @@ def synced_strategy(strategy, refine_seed: int, world_size: int):
                 f"willags: gsplat's DefaultStrategy has no {hook} (the pinned gsplat 1.4.0 has): data-parallel "
                 "densification cannot be synchronised with this gsplat"
             )
-    settings = {f.name: getattr(strategy, f.name) for f in fields(DefaultStrategy)}
+    settings = default_strategy_settings(strategy)
     grows_as = strategy.grows_as if isinstance(strategy, RankSyncedStrategy) else strategy
     if type(grows_as) is DefaultStrategy:
         grows_as = None
