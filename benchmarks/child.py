@@ -168,13 +168,30 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
         save_right_halves(Path(renders_dir) / f"{_run_name(spec)}.png", shown, [r["psnr"] for r in per_image])
     if dump is not None:  # the reference geometry of the regions comes from willags' runs (benchmarks/regions.py)
         dump.save(Path(regions_dir) / f"{_run_name(spec)}.npz", names, trainer if spec["method"] == REFERENCE else None)
-    rec: dict[str, Any] = {**agg, "per_image": per_image, "eval_s": time.perf_counter() - t2}
-    rec.update(latent_spread(model))
-    if int(spec.get("train_views", 0)) != 0:
-        train_imgs = [d["image"] for d in dm.cached_train]
-        rec.update(train_view_scores(model, dm.train_dataset.cameras, train_imgs, int(spec["train_views"])))
-    rec["num_test_images"] = len(images)
+    rec: dict[str, Any] = {**agg, "per_image": per_image, "num_test_images": len(images)}
+    rec["eval_s"] = time.perf_counter() - t2
+    # the diagnoses below are extras: one that fails is written into the record and the log, and the protocol's
+    # scores, which took the GPU a whole run, are kept
+    for name, extra in (
+        ("latent_spread", lambda: latent_spread(model)),
+        ("train_views", lambda: _train_views(model, dm, train_view_scores, int(spec.get("train_views", 0)))),
+    ):
+        try:
+            rec.update(extra())
+        except Exception as e:  # any failure of a diagnosis
+            rec[f"{name}_error"] = f"{type(e).__name__}: {e}"
+            print(
+                f"benchmarks: the run's {name} failed and is left out of its record: {type(e).__name__}: {e}",
+                file=sys.stderr,
+            )
     return rec
+
+
+def _train_views(model, dm, train_view_scores, max_images: int) -> dict[str, float]:
+    """train_view_scores over up to `max_images` of the cached training photos; none when 0."""
+    if max_images == 0:
+        return {}
+    return train_view_scores(model, dm.train_dataset.cameras, [d["image"] for d in dm.cached_train], max_images)
 
 
 def latent_spread(model) -> dict[str, float]:

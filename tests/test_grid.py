@@ -413,6 +413,13 @@ def test_peer_adapter_fits_the_latent_through_the_peers_embedding_and_restores_i
     assert ("cam_idx",) not in peer.seen[:-1]  # while fitting, the peer never looked its own row up
     torch.testing.assert_close(model.get_outputs(cam)["rgb"][0, 0], peer.appearance_embeds.weight[2, :3])
 
+    # the training fit the harness records after the protocol: the peer has no mask, so no kept pixels, and its
+    # own row reproduces its own render
+    from willags_ns.eval.protocol import train_view_scores
+
+    own = train_view_scores(model, cam, [peer.appearance_embeds.weight[0, :3].detach().expand(6, 8, 3)])
+    assert own["train_num_images"] == 1 and own["train_psnr"] > 40 and "train_psnr_kept" not in own
+
 
 def test_peer_source_missing_is_a_clear_error(tmp_path, monkeypatch):
     from benchmarks import peer

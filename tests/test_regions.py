@@ -110,3 +110,27 @@ def test_a_scored_run_writes_its_maps_and_the_report_reads_them(tmp_path, monkey
     assert "| s | willags | 1 |" in text and (tmp_path / "pictures" / "s.png").exists()
     assert set(json.loads((tmp_path / "regions.json").read_text())["s"]["willags"]) == {"all", *rg.REGIONS}
     assert np.isfinite(rec["psnr"])
+
+
+@pytest.mark.slow
+def test_a_diagnosis_that_fails_leaves_the_protocols_scores_in_the_record(tmp_path, monkeypatch, capsys):
+    """The training fit is scored after the protocol; if it fails, the record keeps the protocol's scores (a whole
+    GPU run's worth) and names the failure, in the record and in the log."""
+    from benchmarks.child import protocol_scores
+    from tests.test_train import _train
+    from willags_ns.eval import protocol
+
+    _, trainer, _ = _train(tmp_path / "run", steps=6)
+
+    def broken(*args, **kwargs):
+        raise AttributeError("no attribute 'mask'")
+
+    monkeypatch.setattr(protocol, "train_view_scores", broken)
+    spec = {"method": "willags", "protocol_steps": 2, "protocol_lr": 0.01, "max_test_images": 2, "train_views": 2}
+    rec = protocol_scores(trainer, spec)
+    assert np.isfinite(rec["psnr"]) and len(rec["per_image"]) == 2 and rec["num_test_images"] >= 2
+    assert rec["train_views_error"] == "AttributeError: no attribute 'mask'" and "train_psnr" not in rec
+    assert "train_views failed" in capsys.readouterr().err
+    monkeypatch.undo()
+    rec = protocol_scores(trainer, {**spec, "scene_name": "s"})
+    assert "train_views_error" not in rec and np.isfinite(rec["train_psnr"])

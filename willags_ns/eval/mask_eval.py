@@ -218,11 +218,13 @@ def kept_pixels(model, camera, image: Tensor, image_idx: int, threshold: float |
     """bool [H, W]: the pixels of training image `image_idx` (`image` [H, W, 3] in [0, 1], seen by `camera` as
     training sees it) that the training loss keeps under the model's mask at its current step: the rule's mask
     against the teacher's render (a rejected mask keeps every pixel), then the SfM support. None for a model without
-    the mask, or before the mask's warm-up. `threshold`: the bar instead of the step's (:func:`step_threshold`)."""
+    the mask (splatfacto, the peer's adapter: no mask config at all), or before the mask's warm-up. `threshold`: the
+    bar instead of the step's (:func:`step_threshold`)."""
     cfg = model.config
-    if getattr(cfg, "appearance", "sh") != "willags" or not cfg.mask.enabled:
+    mask = getattr(cfg, "mask", None)
+    if getattr(cfg, "appearance", "sh") != "willags" or mask is None or not mask.enabled:
         return None
-    if cfg.mask.distance == "vgg" and model.perceptual is None:
+    if mask.distance == "vgg" and model.perceptual is None:
         return None
     if threshold is None and not model.mask_step.active(model.step):
         return None
