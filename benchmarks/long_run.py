@@ -234,8 +234,13 @@ def train(args) -> int:
     last = [seg["start_step"] - 1]
     budget = getattr(trainer, "time_budget", None)  # the knob's (its callback runs before this one)
 
+    laps = seg["laps"] = []  # [steps done, train s since the segment's start, Gaussians] every --lap-every steps
+
     def after_step(step: int) -> None:
         last[0] = step
+        if args.lap_every > 0 and (step + 1) % args.lap_every == 0:
+            sync(device)  # once every lap: the clock reads the work done, not the work queued
+            laps.append([step + 1, time.perf_counter() - t0[0], int(trainer.pipeline.model.num_points)])
         if args.check_finite:  # every parameter and gradient finite after every step (docs/reliability.md, row 19)
             named = trainer.pipeline.model.named_parameters()
             bad = [
@@ -510,6 +515,12 @@ def main(argv=None) -> int:
     t.add_argument("--budget-minutes", type=float, help="willags' --pipeline.time-budget-minutes; --steps is the cap")
     t.add_argument("--check-finite", action="store_true", help="anomaly mode; stop at a non-finite parameter or grad")
     t.add_argument("--downscale", type=int, default=1, help="train and score on photos this many times smaller")
+    t.add_argument(
+        "--lap-every",
+        type=int,
+        default=500,
+        help="record the train time and the Gaussians every this many steps (where a run's time goes; 0: never)",
+    )
     e = sub.choices["eval"]
     e.add_argument("--train-views", type=int, default=8)
     e.add_argument("--protocol-lr", type=float, default=0.01, help="Adam learning rate of the latent fit")

@@ -313,3 +313,23 @@ def test_a_downscaled_run_trains_and_is_scored_on_the_smaller_photos(tmp_path, m
     )
     cams = small.pipeline.datamanager.eval_dataset.cameras
     assert (int(cams.width[0]), int(cams.height[0])) == (w // 2, h // 2)
+
+
+def test_a_run_records_its_laps_so_a_speed_pair_shows_where_its_time_went(tmp_path, monkeypatch):
+    """--lap-every k: every k steps the segment records the steps done, the train time so far and the Gaussians; the
+    laps rise with the steps and end within the segment's train time."""
+    from tests._scenes import small_scene
+
+    monkeypatch.setenv("WILLAGS_CACHE", str(tmp_path / "cache"))
+    data = small_scene(tmp_path / "scene", appearance=1.0, transients=0.0)
+    run = tmp_path / "run"
+    argv = ["train", "--run-dir", str(run), "--method", "willags-3dgs", "--data", str(data), "--steps", "5"]
+    assert long_run.main([*argv, "--milestones", "5", "--budget-s", "1e9", "--lap-every", "2"]) == 0
+    (seg,) = json.loads((run / long_run.STATE).read_text())["segments"]
+    assert [lap[0] for lap in seg["laps"]] == [2, 4]
+    times = [lap[1] for lap in seg["laps"]]
+    assert 0 < times[0] < times[1] <= seg["train_s"] and all(lap[2] > 0 for lap in seg["laps"])
+    run0 = tmp_path / "run0"
+    argv0 = [*argv[:2], str(run0), *argv[3:]]
+    assert long_run.main([*argv0, "--milestones", "5", "--budget-s", "1e9", "--lap-every", "0"]) == 0
+    assert json.loads((run0 / long_run.STATE).read_text())["segments"][0]["laps"] == []
