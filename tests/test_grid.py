@@ -395,7 +395,7 @@ def test_peer_adapter_fits_the_latent_through_the_peers_embedding_and_restores_i
             else:
                 e = self.appearance_embeds(torch.tensor(0))
             self.seen.append(tuple(md))
-            return {"rgb": e[:3].expand(6, 8, 3)}
+            return {"rgb": e[:3].expand(int(camera.height), int(camera.width), 3)}
 
     peer = FakePeer()
     model = PeerForProtocol(peer)
@@ -419,6 +419,16 @@ def test_peer_adapter_fits_the_latent_through_the_peers_embedding_and_restores_i
 
     own = train_view_scores(model, cam, [peer.appearance_embeds.weight[0, :3].detach().expand(6, 8, 3)])
     assert own["train_num_images"] == 1 and own["train_psnr"] > 40 and "train_psnr_kept" not in own
+    # and the protocol itself, as the harness scores a peer's run (its start rule and oracle included)
+    from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model
+
+    big = Cameras(camera_to_worlds=torch.eye(4)[:3][None], fx=1.0, fy=1.0, cx=16.0, cy=12.0, width=32, height=24)
+    photo = torch.tensor([0.2, 0.7, 0.4]).expand(24, 32, 3)
+    fitted, _ = evaluate_model(model, big, [photo], EvalProtocolConfig(steps=60, lr=0.05), ["t.jpg"])
+    agg, per_image = evaluate_model(
+        model, big, [photo], EvalProtocolConfig(steps=2, oracle=True, start_candidates=2), ["t.jpg"]
+    )
+    assert fitted["psnr"] > 20 and per_image[0]["image"] == "t.jpg" and "oracle_psnr" in agg
 
 
 def test_peer_source_missing_is_a_clear_error(tmp_path, monkeypatch):
