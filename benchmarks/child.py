@@ -48,9 +48,9 @@ def mask_record(model, train_dataset, max_images: int = -1) -> dict[str, Any]:
     subject dropped where it has ``masks_subject/`` (``subject_masked``; ``mask_fp_rate`` then counts the rest of
     the photo); elsewhere the share of every pixel dropped (``mask_share``), at most what a static scene loses.
     Empty for a model without the mask; ``mask_status`` says why nothing was measured."""
-    from willags_ns.eval.mask_eval import mask_scores
+    from willags_ns.eval.mask_eval import mask_scores, trained_mask
 
-    if getattr(model.config, "appearance", "sh") != "willags" or not model.config.mask.enabled:
+    if trained_mask(model) is None:
         return {}
     scene = Path(train_dataset.image_filenames[0]).parent.parent if train_dataset.image_filenames else None
     meta_dir = train_dataset.metadata.get("masks_gt_dir")

@@ -419,6 +419,10 @@ def test_peer_adapter_fits_the_latent_through_the_peers_embedding_and_restores_i
 
     own = train_view_scores(model, cam, [peer.appearance_embeds.weight[0, :3].detach().expand(6, 8, 3)])
     assert own["train_num_images"] == 1 and own["train_psnr"] > 40 and "train_psnr_kept" not in own
+    from willags_ns.eval.mask_eval import mask_scores, trained_mask
+
+    assert trained_mask(model) is None  # and so no mask scores either
+    assert mask_scores(model, None, None) == {"status": "no perceptual mask in this model"}
     # and the protocol itself, as the harness scores a peer's run (its start rule and oracle included)
     from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model
 

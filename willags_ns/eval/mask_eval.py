@@ -213,16 +213,26 @@ def rule_mask(model, camera, image: Tensor, image_idx: int, threshold: float | N
     )
 
 
+def trained_mask(model):
+    """The mask settings (MaskConfig) of a model that trains with the transient mask; None for one without: a model
+    without willags' appearance (splatfacto), one with no mask config at all (the peer's adapter,
+    benchmarks/peer.PeerForProtocol) or with the mask off."""
+    cfg = model.config
+    mask = getattr(cfg, "mask", None)
+    if getattr(cfg, "appearance", "sh") != "willags" or mask is None or not mask.enabled:
+        return None
+    return mask
+
+
 @torch.no_grad()
 def kept_pixels(model, camera, image: Tensor, image_idx: int, threshold: float | None = None) -> Tensor | None:
     """bool [H, W]: the pixels of training image `image_idx` (`image` [H, W, 3] in [0, 1], seen by `camera` as
     training sees it) that the training loss keeps under the model's mask at its current step: the rule's mask
     against the teacher's render (a rejected mask keeps every pixel), then the SfM support. None for a model without
-    the mask (splatfacto, the peer's adapter: no mask config at all), or before the mask's warm-up. `threshold`: the
-    bar instead of the step's (:func:`step_threshold`)."""
-    cfg = model.config
-    mask = getattr(cfg, "mask", None)
-    if getattr(cfg, "appearance", "sh") != "willags" or mask is None or not mask.enabled:
+    the mask (:func:`trained_mask`), or before the mask's warm-up. `threshold`: the bar instead of the step's
+    (:func:`step_threshold`)."""
+    mask = trained_mask(model)
+    if mask is None:
         return None
     if mask.distance == "vgg" and model.perceptual is None:
         return None
@@ -251,7 +261,7 @@ def mask_scores(
     ``d_median_clean``, ``status`` ("ok" or why nothing was measured) and, with keep_per_image, ``per_image``.
     """
     cfg = model.config
-    if getattr(cfg, "appearance", "sh") != "willags" or not cfg.mask.enabled or model.perceptual is None:
+    if trained_mask(model) is None or model.perceptual is None:
         return {"status": "no perceptual mask in this model"}
     masks_gt_dir = None if masks_gt_dir is None else Path(masks_gt_dir)
     residual = cfg.mask.distance == "residual"
