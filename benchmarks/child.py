@@ -129,7 +129,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     """The NeRF-W protocol on the test split of a set-up trainer (spec: protocol_steps, protocol_lr,
     max_test_images, oracle, start_candidates, train_views): aggregate scores, per_image, eval_s and the train-view
     scores."""
-    from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model, train_view_scores
+    from willags_ns.eval.protocol import EvalProtocolConfig, evaluate_model
 
     dm = trainer.pipeline.datamanager
     model = trainer.pipeline.model
@@ -174,7 +174,7 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     # scores, which took the GPU a whole run, are kept
     for name, extra in (
         ("latent_spread", lambda: latent_spread(model)),
-        ("train_views", lambda: _train_views(model, dm, train_view_scores, int(spec.get("train_views", 0)))),
+        ("train_views", lambda: _train_views(model, dm, int(spec.get("train_views", 0)))),
     ):
         try:
             rec.update(extra())
@@ -187,8 +187,10 @@ def protocol_scores(trainer, spec: dict[str, Any]) -> dict[str, Any]:
     return rec
 
 
-def _train_views(model, dm, train_view_scores, max_images: int) -> dict[str, float]:
+def _train_views(model, dm, max_images: int) -> dict[str, float]:
     """train_view_scores over up to `max_images` of the cached training photos; none when 0."""
+    from willags_ns.eval.protocol import train_view_scores
+
     if max_images == 0:
         return {}
     return train_view_scores(model, dm.train_dataset.cameras, [d["image"] for d in dm.cached_train], max_images)
