@@ -255,6 +255,8 @@ class MethodCV:
     fold_means: dict[int, float]
     """Fold -> mean over its photos."""
     runs: int
+    borrowed: tuple[int, ...] = ()
+    """The folds whose scores are another method's runs of the same model (BORROWS), not the method's own."""
 
     @property
     def seeds(self) -> float:
@@ -305,6 +307,20 @@ def fold_runs(
             yield fold, rec, ms
 
 
+BORROWS: dict[str, tuple[str, str, str]] = {
+    "willags-prior-low-nomask": (
+        "willags",
+        "mask_status",
+        "the inspector kept the default's mask off there: the same model",
+    ),
+}
+"""Candidates that train another method's model wherever that method's run shows a switch off: candidate ->
+(the method, the record field whose absence shows the switch off, why the model is the same). On a fold the
+candidate has no run of its own it takes that method's runs that lack the field, so a candidate that differs only
+where the inspector turned a switch on runs only there and still counts on every collection (its difference there is
+none, as the model is the same). Taken runs are never replicates (`replicate_differences` reads the records)."""
+
+
 @dataclass
 class FoldScores:
     """One method's fold runs of one collection, photo by photo, before runs are averaged (MethodCV)."""
@@ -314,46 +330,79 @@ class FoldScores:
     """Fold -> photo -> right-half PSNR of each run of that fold."""
     runs: dict[int, int]
     """Fold -> how many runs scored it."""
+    borrowed: tuple[int, ...] = ()
+    """The folds whose runs are BORROWS' (another method's runs of the same model)."""
 
     def cv(self) -> MethodCV:
         """The method's MethodCV: its runs averaged photo by photo (method_cv)."""
-        return method_cv(self.by_fold, self.folds, sum(self.runs.values()))
+        cv = method_cv(self.by_fold, self.folds, sum(self.runs.values()))
+        cv.borrowed = self.borrowed
+        return cv
 
 
 def fold_scores(
-    records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None, variant: str | None = None
+    records: Sequence[dict[str, Any]],
+    steps: int,
+    tags: Sequence[str] | None = None,
+    variant: str | None = None,
+    borrowers: Sequence[str] | None = None,
 ) -> dict[str, dict[str, FoldScores]]:
     """{scene: {method: FoldScores}} of the fold runs scored at `steps` (records with per-photo scores; `tags`: only
     records whose tag starts with one of these; `variant`: their scores under that protocol variant instead of the
-    protocol's own); one fold count per scene and method, the finer split where runs used two."""
+    protocol's own); one fold count per scene and method, the finer split where runs used two. `borrowers`: the
+    BORROWS candidates that take runs (default: those with a run of their own among `records`)."""
     from benchmarks.methods import configuration
+
+    if borrowers is None:
+        borrowers = sorted({configuration(r) for r in records} & set(BORROWS))
 
     photos: dict[tuple[str, int, str], dict[int, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(dict))
     runs: dict[tuple[str, int, str], dict[int, int]] = defaultdict(lambda: defaultdict(int))
+    lent: dict[tuple[str, int, str], dict[int, list[list[tuple[str, float]]]]] = defaultdict(lambda: defaultdict(list))
     for fold, rec, ms in fold_runs(records, steps, tags, variant):
         if not ms.get("per_image"):
             continue
         scene, k, folds = fold
-        key = (scene, folds, configuration(rec))
-        runs[key][k] += 1
-        for p in ms["per_image"]:
-            photos[key][k].setdefault(p["image"], []).append(float(p["psnr"]))
+        method = configuration(rec)
+        scores = [(p["image"], float(p["psnr"])) for p in ms["per_image"]]
+        runs[(scene, folds, method)][k] += 1
+        for name, psnr in scores:
+            photos[(scene, folds, method)][k].setdefault(name, []).append(psnr)
+        for borrower in borrowers:
+            lender, field, _ = BORROWS[borrower]
+            if method == lender and field not in rec:
+                lent[(scene, folds, borrower)][k].append(scores)
+    taken: dict[tuple[str, int, str], list[int]] = defaultdict(list)
+    for key, by_fold in lent.items():
+        for k, run_scores in sorted(by_fold.items()):
+            if k in photos.get(key, {}):  # the candidate ran this fold itself
+                continue
+            for scores in run_scores:
+                runs[key][k] += 1
+                for name, psnr in scores:
+                    photos[key][k].setdefault(name, []).append(psnr)
+            taken[key].append(k)
     out: dict[str, dict[str, FoldScores]] = defaultdict(dict)
     for (scene, folds, method), by_fold in sorted(photos.items()):
         prev = out[scene].get(method)
         if prev is None or folds > prev.folds:
-            out[scene][method] = FoldScores(folds, dict(by_fold), dict(runs[(scene, folds, method)]))
+            key = (scene, folds, method)
+            out[scene][method] = FoldScores(folds, dict(by_fold), dict(runs[key]), tuple(taken.get(key, ())))
     return dict(out)
 
 
 def collect(
-    records: Sequence[dict[str, Any]], steps: int, tags: Sequence[str] | None = None, variant: str | None = None
+    records: Sequence[dict[str, Any]],
+    steps: int,
+    tags: Sequence[str] | None = None,
+    variant: str | None = None,
+    borrowers: Sequence[str] | None = None,
 ):
     """{scene: {method: MethodCV}} from the fold runs scored at `steps` (fold_scores, runs averaged photo by
     photo)."""
     return {
         scene: {m: f.cv() for m, f in by_method.items()}
-        for scene, by_method in fold_scores(records, steps, tags, variant).items()
+        for scene, by_method in fold_scores(records, steps, tags, variant, borrowers).items()
     }
 
 
@@ -743,6 +792,10 @@ def cv_rows(
             own, key = refs.get((scene, method), (None, UNRECORDED))
             on = "that name no build" if key == UNRECORDED else f"on {key[:12]}"
             note = "" if own is None else f" (the default's runs {on})"
+            if cv.borrowed:
+                lender, _, why = BORROWS[method]
+                folds = "/".join(str(k) for k in cv.borrowed)
+                note += f" (folds {folds}: {lender}'s runs, {why})"
             cand_rows.append([scene, method, _cell(cv), _diff(cv, own or ref, sigma) + note])
     noise = (
         f"Run noise: sigma = {sigma:.2f} dB, the standard deviation of one run's cross-validated mean, from {pairs} "
@@ -1167,8 +1220,9 @@ def stopping_gain(
 def missing_folds(records: Sequence[dict[str, Any]], method: str, steps: int, default: str = "willags") -> list[str]:
     """The fold scenes (`<collection>-cv<k>of<K>`) that `method` has no run of scored at `steps`, on every collection
     where the default has every fold there: what a lease must still run before the method counts on all of them (a
-    lease that ran out leaves some folds unscored; `cv_lease.sh` takes the list as CV_FOLDS)."""
-    by_scene = collect(records, steps)
+    lease that ran out leaves some folds unscored; `cv_lease.sh` takes the list as CV_FOLDS). A BORROWS candidate
+    lacks only the folds where the method it borrows from had the switch on."""
+    by_scene = collect(records, steps, borrowers=[method] if method in BORROWS else [])
     out = []
     for scene, by_method in sorted(by_scene.items()):
         ref = by_method.get(default)

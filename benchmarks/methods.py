@@ -123,7 +123,8 @@ METHODS: dict[str, MethodSpec] = {
         _PRIOR_LOW,
         ("mask.enabled", False),
         note="the default (its prior weight named) with the transient mask off on every scene, also where the "
-        "inspector turns it on (sacre-coeur-mini): what the mask changes there",
+        "inspector turns it on (sacre-coeur-mini, hochiminh-mausoleum): what the mask changes there; elsewhere the "
+        "default's model, whose runs it takes (cv.BORROWS)",
         keep=("mask.enabled",),
     ),
     "willags-prior-low-mask-expected": _masked_on_gpu(

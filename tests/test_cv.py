@@ -765,3 +765,54 @@ def test_bar_composes_the_two_methods_fold_by_fold_from_the_rules_shares():
     assert cv.bar_rows(recs, 5000, "willags-prior-low-captransients", "willags", "x", [0.02]) == [
         "cv: no fold run of willags-prior-low-captransients recorded cap_rule_share at 5000 steps"
     ]
+
+
+def test_a_candidate_that_only_turns_a_switch_off_takes_the_defaults_runs_where_the_default_had_it_off(capsys):
+    """`willags-prior-low-nomask` is the default wherever the inspector kept the mask off (the default's record has no
+    mask_status): on such a fold without a run of its own it takes the default's runs, so it needs runs only where the
+    default trained the mask; on a fold where it ran, its own run counts; its taken folds are named in the table and
+    are never replicates; until it has a run of its own the tables leave it out."""
+    nomask = "willags-prior-low-nomask"
+    photos = {1: {"a.jpg": 20.0, "c.jpg": 22.0}, 2: {"b.jpg": 18.0, "d.jpg": 24.0}}
+    recs = []
+    for scene, masked in (("open", ()), ("crowd", (1,))):
+        for k, p in photos.items():
+            rec = _fold_rec(scene, k, 2, "willags", p)
+            if k in masked:
+                rec["mask_status"] = "ok"
+            recs.append(rec)
+            recs.append(_fold_rec(scene, k, 2, "peer", {n: v - 1.0 for n, v in p.items()}))
+    assert cv.missing_folds(recs, nomask, 5000) == ["crowd-cv1of2"]  # the one fold where the default had the mask
+    assert nomask not in cv.collect(recs, 5000)["open"]  # no run of its own yet: the tables leave it out
+    by = cv.collect(recs, 5000, borrowers=[nomask])
+    assert by["open"][nomask].complete and by["open"][nomask].borrowed == (1, 2)
+    assert cv.paired(by["open"][nomask], by["open"]["willags"])[:3] == (0.0, 0.0, 0.0)
+    assert not by["crowd"][nomask].complete and by["crowd"][nomask].borrowed == (2,)
+    assert [r[0] for r in cv.pooled_rows_of(by, None, "willags")] == ["peer"]  # whole on one collection of two
+
+    recs.append(_fold_rec("crowd", 1, 2, nomask, {"a.jpg": 21.0, "c.jpg": 23.0}))  # without the mask: +1 there
+    by = cv.collect(recs, 5000)
+    crowd = by["crowd"][nomask]
+    assert crowd.complete and crowd.borrowed == (2,) and crowd.per_photo["a.jpg"] == 21.0
+    assert cv.paired(crowd, by["crowd"]["willags"])[0] == pytest.approx(0.5)  # +1 on fold 1's photos, 0 on fold 2's
+    row = cv.pooled_rows_of(by, None, "willags")
+    assert [r[0] for r in row] == ["peer", nomask] and row[1][1] == "2"  # counted on both collections
+    assert cv.replicate_differences(recs, 5000) == []  # a taken run is the default's own, not a second run
+    text = "\n".join(cv.cv_rows(recs, 5000))
+    assert "(folds 2: willags's runs, the inspector kept the default's mask off there: the same model)" in text
+    assert "(folds 1/2: willags's runs" in text
+
+    own = recs + [_fold_rec("open", 2, 2, nomask, {"b.jpg": 17.0, "d.jpg": 23.0})]  # its own run wins on that fold
+    assert cv.collect(own, 5000)["open"][nomask].borrowed == (1,)
+    assert cv.collect(own, 5000)["open"][nomask].per_photo["b.jpg"] == 17.0
+
+
+def test_every_borrower_is_a_method_that_keeps_the_switch_it_turns_off_from_the_inspector():
+    """A BORROWS candidate trains the lender's model only where the switch is off for both: its method must pin that
+    switch off (keep) so the inspector cannot turn it on, and the lender must be a benchmarked method."""
+    from benchmarks.methods import METHODS
+
+    for borrower, (lender, field, _) in cv.BORROWS.items():
+        spec = METHODS[borrower]
+        assert lender in METHODS and field == "mask_status"
+        assert ("mask.enabled", False) in spec.overrides and "mask.enabled" in spec.keep
