@@ -168,6 +168,22 @@ def test_the_pose_refining_candidate_changes_only_the_camera_optimiser(tmp_path)
     assert cfg.optimizers == ref.optimizers and "camera_opt" in cfg.optimizers
 
 
+def test_the_mask_candidates_change_only_the_mask_and_the_one_that_turns_it_off_pins_it(tmp_path):
+    """`willags-prior-low-nomask` is the default with the mask off, kept off against the inspector;
+    `willags-prior-low-maskres` the default whose mask, where the inspector turns it on, compares by the colour
+    residual: the inspector still decides whether it is on. Nothing else differs."""
+    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    off = build_config("willags-prior-low-nomask", 15000, "cpu", None, None, "default", tmp_path)
+    res = build_config("willags-prior-low-maskres", 15000, "cpu", None, None, "default", tmp_path)
+    assert ref.pipeline.model.mask.enabled and not off.pipeline.model.mask.enabled
+    assert "mask.enabled" in off.pipeline.auto_config_keep and "mask.enabled" not in res.pipeline.auto_config_keep
+    assert (ref.pipeline.model.mask.distance, res.pipeline.model.mask.distance) == ("vgg", "residual")
+    off.pipeline.model.mask.enabled = True
+    res.pipeline.model.mask.distance = "vgg"
+    assert off.pipeline.model == ref.pipeline.model and res.pipeline.model == ref.pipeline.model
+    assert off.optimizers == ref.optimizers == res.optimizers
+
+
 def test_the_holdout_candidate_changes_only_the_held_out_photos(tmp_path):
     """`willags-prior-low-holdout` is the default with 8 photos' right halves held out; nothing else differs."""
     ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
