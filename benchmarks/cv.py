@@ -910,6 +910,9 @@ def pooled_rows_of(
         else:
             where = f"{len(have)} of {len(scenes)} ({', '.join(have)})"
             said = f"none yet ({verdict(low, high)} on these)"
+        taken = [s for s in have if len(by_scene[s][m].borrowed) == by_scene[s][m].folds]
+        if taken:  # collections where it is the lender's model on every fold: a difference of none by construction
+            where += f" ({len(taken)} wholly {BORROWS[m][0]}'s runs: cv.BORROWS)"
         out.append([m, where, str(n), f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]", said])
     return out
 

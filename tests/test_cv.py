@@ -796,7 +796,8 @@ def test_a_candidate_that_only_turns_a_switch_off_takes_the_defaults_runs_where_
     assert crowd.complete and crowd.borrowed == (2,) and crowd.per_photo["a.jpg"] == 21.0
     assert cv.paired(crowd, by["crowd"]["willags"])[0] == pytest.approx(0.5)  # +1 on fold 1's photos, 0 on fold 2's
     row = cv.pooled_rows_of(by, None, "willags")
-    assert [r[0] for r in row] == ["peer", nomask] and row[1][1] == "2"  # counted on both collections
+    assert [r[0] for r in row] == ["peer", nomask]  # counted on both collections, one of them wholly borrowed
+    assert row[1][1] == "2 (1 wholly willags's runs: cv.BORROWS)"
     assert cv.replicate_differences(recs, 5000) == []  # a taken run is the default's own, not a second run
     text = "\n".join(cv.cv_rows(recs, 5000))
     assert "(folds 2: willags's runs, the inspector kept the default's mask off there: the same model)" in text
