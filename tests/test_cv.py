@@ -767,7 +767,7 @@ def test_bar_composes_the_two_methods_fold_by_fold_from_the_rules_shares():
     ]
 
 
-def test_a_candidate_that_only_turns_a_switch_off_takes_the_defaults_runs_where_the_default_had_it_off(capsys):
+def test_a_candidate_that_only_turns_a_switch_off_takes_the_defaults_runs_where_the_default_had_it_off():
     """`willags-prior-low-nomask` is the default wherever the inspector kept the mask off (the default's record has no
     mask_status): on such a fold without a run of its own it takes the default's runs, so it needs runs only where the
     default trained the mask; on a fold where it ran, its own run counts; its taken folds are named in the table and

@@ -260,12 +260,12 @@ def mask_scores(
     Returns the dict of :func:`aggregate_counts` plus ``threshold``, ``d_median_transient`` /
     ``d_median_clean``, ``status`` ("ok" or why nothing was measured) and, with keep_per_image, ``per_image``.
     """
-    cfg = model.config
-    if trained_mask(model) is None or model.perceptual is None:
+    mask = trained_mask(model)
+    if mask is None or model.perceptual is None:
         return {"status": "no perceptual mask in this model"}
     masks_gt_dir = None if masks_gt_dir is None else Path(masks_gt_dir)
-    residual = cfg.mask.distance == "residual"
-    thr = step_threshold(cfg.mask, model.step) if threshold is None else threshold  # "residual": its bar's floor
+    residual = mask.distance == "residual"
+    thr = step_threshold(mask, model.step) if threshold is None else threshold  # "residual": its bar's floor
     was_training = model.training
     model.eval()
     counts: list[MaskCounts] = []
@@ -295,7 +295,7 @@ def mask_scores(
             c = count_pixels(pred, gt_t, rejected)
             counts.append(c)
             # the paper's fixed rule on the same D, for comparison
-            fixed, fixed_rej = transient_mask(d, thr, "fixed", max_masked_fraction=cfg.mask.max_masked_fraction)
+            fixed, fixed_rej = transient_mask(d, thr, "fixed", max_masked_fraction=mask.max_masked_fraction)
             counts_fixed.append(count_pixels(fixed, gt_t, bool(fixed_rej)))
             d_cpu = d.float().cpu()
             gt_cpu = gt_t.cpu()
@@ -315,7 +315,7 @@ def mask_scores(
         return {"status": f"no training image has a mask in {masks_gt_dir}" if masks_gt_dir else "no training image"}
     out: dict = dict(aggregate_counts(counts))
     out["threshold"] = float(thr)
-    out["rule"] = "residual" if residual else cfg.mask.threshold_rule
+    out["rule"] = "residual" if residual else mask.threshold_rule
     fixed_agg = aggregate_counts(counts_fixed)
     for key in ("iou", "recall", "fp_rate", "rejected"):
         out[f"fixed_{key}"] = fixed_agg[key]
