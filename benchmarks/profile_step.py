@@ -12,6 +12,11 @@ launches and calls of the parts of a step (the model's get_outputs, colours, ras
 loss; the densification strategy; the optimisers; the next photo), each under a ``record_function`` label, inclusive
 and nested (the colours are inside get_outputs; the backward pass is what the labels leave out), with ``ops``: the
 operators each part's own code calls, nested labels apart.
+
+The warm-up itself is clocked too, so a run's whole-length rate and the window's can be told apart: ``laps`` (every
+``--lap-every`` steps: steps done, seconds since the first step, Gaussians) and ``event_steps`` (the same steps, each
+with the time of that one step, synchronised on both sides: the densification strategy refines on these steps, so a
+lap's time is ``lap_every - 1`` ordinary steps plus one such step; ``ordinary_ms`` is the rest of the lap a step).
 """
 
 import argparse
@@ -164,9 +169,26 @@ def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str
     }
 
 
-def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir: Path) -> dict[str, Any]:
+def lap_rows(laps: list[list[float]], events: dict[int, float], lap_every: int) -> list[dict[str, Any]]:
+    """One row a lap (``laps``: [steps done, seconds since the first step, Gaussians]; ``events``: step -> ms of that
+    one step): the lap's mean step, the event step inside it and the mean of the lap's other steps."""
+    rows, prev_steps, prev_s = [], 0, 0.0
+    for done, secs, gaussians in laps:
+        n = int(done) - prev_steps
+        lap_ms = 1000.0 * (secs - prev_s)
+        event = next((events[s] for s in range(prev_steps, int(done)) if s in events), None)
+        row = {"steps": int(done), "gaussians": int(gaussians), "step_ms": lap_ms / n, "event_ms": event}
+        row["ordinary_ms"] = (lap_ms - event) / (n - 1) if event is not None and n > 1 else None
+        rows.append(row)
+        prev_steps, prev_s = int(done), secs
+    return rows
+
+
+def profile(
+    method: str, data: Path, warmup: int, steps: int, seed: int, run_dir: Path, lap_every: int = 100
+) -> dict[str, Any]:
     """Train ``method`` on ``data`` for ``warmup`` steps, time the next ``steps`` and profile the ``steps`` after them
-    (see the module docstring)."""
+    (see the module docstring); the warm-up is clocked in laps of ``lap_every`` steps (0: not at all)."""
     import torch
     from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
     from torch.profiler import ProfilerActivity
@@ -191,7 +213,25 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
             return
         original_showwarning(message, category, filename, lineno, file, line)
 
+    laps: list[list[float]] = []
+    events: dict[int, float] = {}
+    device = trainer.pipeline.model.device
+
+    def before_step(step: int) -> None:
+        if step == 0 and lap_every > 0:
+            sync(device)
+            clock["start"] = clock["event"] = time.perf_counter()
+        elif lap_every > 0 and step < warmup and step % lap_every == 0:
+            sync(device)  # the step that refines starts on an idle GPU: its own time, not the queue's
+            clock["event"] = time.perf_counter()
+
     def after_step(step: int) -> None:
+        if lap_every > 0 and step < warmup and step % lap_every == 0 and step > 0:
+            sync(device)
+            events[step] = (time.perf_counter() - clock["event"]) * 1000.0
+        if lap_every > 0 and step < warmup and (step + 1) % lap_every == 0:
+            sync(device)
+            laps.append([step + 1, time.perf_counter() - clock["start"], int(trainer.pipeline.model.num_points)])
         if step == warmup - 1:  # the timed window (no profiler: it adds host time to every operator)
             sync(trainer.pipeline.model.device)
             clock["t0"] = time.perf_counter()
@@ -209,6 +249,9 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
             clock["t2"] = time.perf_counter()
             raise long_run.Stop  # the sync mode and the warning hooks are put back below
 
+    trainer.callbacks.insert(
+        0, TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_step, update_every_num_iters=1)
+    )
     trainer.callbacks.append(
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
     )
@@ -234,6 +277,8 @@ def profile(method: str, data: Path, warmup: int, steps: int, seed: int, run_dir
         "profiled_wall_ms": (clock["t2"] - clock["t1"]) * 1000.0 / steps,
         "syncs": sum(sites.values()) / steps,
         "sync_sites": {k: v / steps for k, v in sites.most_common()},
+        "lap_every": lap_every,
+        "laps": lap_rows(laps, events, lap_every),
     }
     out.update(summarize(prof.key_averages(), steps, on_cuda))
     out["components"] = component_summary(prof.events(), steps, on_cuda)
@@ -248,12 +293,16 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=50, help="steps profiled")
     ap.add_argument("--seed", type=int, default=42)
     ap.add_argument("--run-dir", default=None, help="scratch directory of the run (default: a temporary one)")
+    ap.add_argument("--lap-every", type=int, default=100, help="clock the warm-up in laps of this many steps (0: not)")
     ap.add_argument("--out", required=True, help="JSON file written")
     args = ap.parse_args(argv)
     if args.warmup < 1 or args.steps < 1:
         raise SystemExit(f"profile_step: --warmup and --steps must be >= 1 (got {args.warmup}, {args.steps})")
+    if args.lap_every < 0 or args.lap_every == 1:
+        raise SystemExit(f"profile_step: --lap-every must be 0 or >= 2 (got {args.lap_every})")
     with tempfile.TemporaryDirectory() as tmp:
-        rec = profile(args.method, Path(args.data), args.warmup, args.steps, args.seed, Path(args.run_dir or tmp))
+        run_dir = Path(args.run_dir or tmp)
+        rec = profile(args.method, Path(args.data), args.warmup, args.steps, args.seed, run_dir, args.lap_every)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(rec, indent=1))
     print(
@@ -261,6 +310,10 @@ def main(argv=None) -> int:
         f"{rec['device_ms']:.1f} ms on the device, {rec['launches']:.0f} launches, {rec['syncs']:.1f} syncs/step, "
         f"{rec['num_gaussians']:,} Gaussians"
     )
+    for lap in rec["laps"]:
+        event = "" if lap["event_ms"] is None else f", its refining step {lap['event_ms']:.1f} ms, the others "
+        event += "" if lap["ordinary_ms"] is None else f"{lap['ordinary_ms']:.1f} ms"
+        print(f"  lap to step {lap['steps']}: {lap['step_ms']:.1f} ms/step{event} ({lap['gaussians']:,} Gaussians)")
     for site, n in list(rec["sync_sites"].items())[:10]:
         print(f"  sync {n:.1f}/step at {site}")
     for name, c in rec["components"].items():

@@ -25,9 +25,14 @@ def test_profiling_a_window_of_willags_steps_on_the_cpu(tmp_path):
         tmp_path / "scene", appearance=1.0, transients=0.3, num_train=12, width=64, height=48, num_points=1500
     )
     out = tmp_path / "prof.json"
-    args = ["--method", "willags", "--data", str(data), "--warmup", "2", "--steps", "3", "--out", str(out)]
-    assert profile_step.main([*args, "--run-dir", str(tmp_path / "run")]) == 0
+    args = ["--method", "willags", "--data", str(data), "--warmup", "6", "--steps", "3", "--out", str(out)]
+    assert profile_step.main([*args, "--lap-every", "2", "--run-dir", str(tmp_path / "run")]) == 0
     rec = json.loads(out.read_text())
+    # the warm-up in laps of 2 steps; steps 2 and 4 are clocked alone (step 0 has no lap before it)
+    assert [lap["steps"] for lap in rec["laps"]] == [2, 4, 6]
+    assert rec["laps"][0]["event_ms"] is None and rec["laps"][0]["ordinary_ms"] is None
+    assert all(lap["event_ms"] > 0 and lap["ordinary_ms"] is not None for lap in rec["laps"][1:])
+    assert all(lap["step_ms"] > 0 and lap["gaussians"] > 0 for lap in rec["laps"])
     assert (rec["method"], rec["scene"], rec["device"], rec["steps"]) == ("willags", "scene", "cpu", 3)
     assert rec["wall_ms"] > 0 and rec["num_gaussians"] > 0
     assert rec["device_ms"] == 0 and rec["syncs"] == 0  # nothing waits on a CPU
@@ -90,3 +95,17 @@ def test_a_components_own_calls_are_its_outermost_operators_outside_nested_label
     forward = ev("step/model.get_outputs", linear, nested, wrapper, ev("aten::mul"))
     assert sorted(profile_step.own_ops(forward)) == ["aten::linear", "aten::mul", "aten::mul", "aten::mul"]
     assert list(profile_step.own_ops(nested)) == ["aten::add", "aten::add"]
+
+
+def test_a_lap_splits_into_its_refining_step_and_the_others():
+    # laps of 100 steps: the first (steps 0..99) holds no clocked step, the second's step 100 took 300 ms
+    laps = [[100, 1.0, 1000], [200, 2.5, 1500]]
+    rows = profile_step.lap_rows(laps, {100: 300.0}, 100)
+    assert rows[0] == {"steps": 100, "gaussians": 1000, "step_ms": 10.0, "event_ms": None, "ordinary_ms": None}
+    assert rows[1]["step_ms"] == pytest.approx(15.0) and rows[1]["event_ms"] == 300.0
+    assert rows[1]["ordinary_ms"] == pytest.approx((1500.0 - 300.0) / 99)
+
+
+def test_a_lap_of_one_step_is_refused(tmp_path):
+    with pytest.raises(SystemExit, match="--lap-every must be 0 or >= 2"):
+        profile_step.main(["--method", "willags", "--data", "x", "--lap-every", "1", "--out", str(tmp_path / "o")])
