@@ -184,6 +184,17 @@ def test_the_mask_candidates_change_only_the_mask_and_the_one_that_turns_it_off_
     assert off.optimizers == ref.optimizers == res.optimizers
 
 
+def test_the_late_mask_candidate_changes_only_when_the_inspectors_mask_starts(tmp_path):
+    """`willags-prior-low-mask5k` is the default whose mask, where the inspector turns it on, starts at step 5000:
+    the inspector still decides whether it is on; nothing else differs."""
+    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    cfg = build_config("willags-prior-low-mask5k", 15000, "cpu", None, None, "default", tmp_path)
+    assert (ref.pipeline.model.mask.warmup_steps, cfg.pipeline.model.mask.warmup_steps) == (500, 5000)
+    assert cfg.pipeline.model.mask.enabled and "mask.enabled" not in cfg.pipeline.auto_config_keep
+    cfg.pipeline.model.mask.warmup_steps = 500
+    assert cfg.pipeline.model == ref.pipeline.model and cfg.optimizers == ref.optimizers
+
+
 def test_the_holdout_candidate_changes_only_the_held_out_photos(tmp_path):
     """`willags-prior-low-holdout` is the default with 8 photos' right halves held out; nothing else differs."""
     ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
