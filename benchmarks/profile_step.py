@@ -14,9 +14,9 @@ and nested (the colours are inside get_outputs; the backward pass is what the la
 operators each part's own code calls, nested labels apart.
 
 The warm-up itself is clocked too, so a run's whole-length rate and the window's can be told apart: ``laps`` (every
-``--lap-every`` steps: steps done, seconds since the first step, Gaussians) and ``event_steps`` (the same steps, each
-with the time of that one step, synchronised on both sides: the densification strategy refines on these steps, so a
-lap's time is ``lap_every - 1`` ordinary steps plus one such step; ``ordinary_ms`` is the rest of the lap a step).
+``--lap-every`` steps, a row each: ``steps`` done, ``gaussians``, ``step_ms`` the lap's mean step, ``event_ms`` the
+time of the lap's first step alone, synchronised on both sides (the densification strategy refines on these steps, so
+a lap is one such step and ``lap_every - 1`` ordinary ones), ``ordinary_ms`` the mean of the others).
 """
 
 import argparse
@@ -169,7 +169,7 @@ def summarize(events: Any, steps: int, on_cuda: bool, top: int = 15) -> dict[str
     }
 
 
-def lap_rows(laps: list[list[float]], events: dict[int, float], lap_every: int) -> list[dict[str, Any]]:
+def lap_rows(laps: list[list[float]], events: dict[int, float]) -> list[dict[str, Any]]:
     """One row a lap (``laps``: [steps done, seconds since the first step, Gaussians]; ``events``: step -> ms of that
     one step): the lap's mean step, the event step inside it and the mean of the lap's other steps."""
     rows, prev_steps, prev_s = [], 0, 0.0
@@ -217,21 +217,20 @@ def profile(
     events: dict[int, float] = {}
     device = trainer.pipeline.model.device
 
-    def before_step(step: int) -> None:
-        if step == 0 and lap_every > 0:
-            sync(device)
-            clock["start"] = clock["event"] = time.perf_counter()
-        elif lap_every > 0 and step < warmup and step % lap_every == 0:
+    def before_step(step: int) -> None:  # registered only with lap_every > 0
+        if step < warmup and step % lap_every == 0:
             sync(device)  # the step that refines starts on an idle GPU: its own time, not the queue's
             clock["event"] = time.perf_counter()
+            clock.setdefault("start", clock["event"])
 
     def after_step(step: int) -> None:
-        if lap_every > 0 and step < warmup and step % lap_every == 0 and step > 0:
-            sync(device)
-            events[step] = (time.perf_counter() - clock["event"]) * 1000.0
-        if lap_every > 0 and step < warmup and (step + 1) % lap_every == 0:
-            sync(device)
-            laps.append([step + 1, time.perf_counter() - clock["start"], int(trainer.pipeline.model.num_points)])
+        if lap_every > 0 and step < warmup:
+            if step % lap_every == 0 and step > 0:
+                sync(device)
+                events[step] = (time.perf_counter() - clock["event"]) * 1000.0
+            if (step + 1) % lap_every == 0:
+                sync(device)
+                laps.append([step + 1, time.perf_counter() - clock["start"], int(trainer.pipeline.model.num_points)])
         if step == warmup - 1:  # the timed window (no profiler: it adds host time to every operator)
             sync(trainer.pipeline.model.device)
             clock["t0"] = time.perf_counter()
@@ -249,9 +248,11 @@ def profile(
             clock["t2"] = time.perf_counter()
             raise long_run.Stop  # the sync mode and the warning hooks are put back below
 
-    trainer.callbacks.insert(
-        0, TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_step, update_every_num_iters=1)
-    )
+    if lap_every > 0:
+        before = TrainingCallback(
+            [TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], before_step, update_every_num_iters=1
+        )
+        trainer.callbacks.insert(0, before)
     trainer.callbacks.append(
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], after_step, update_every_num_iters=1)
     )
@@ -278,7 +279,7 @@ def profile(
         "syncs": sum(sites.values()) / steps,
         "sync_sites": {k: v / steps for k, v in sites.most_common()},
         "lap_every": lap_every,
-        "laps": lap_rows(laps, events, lap_every),
+        "laps": lap_rows(laps, events),
     }
     out.update(summarize(prof.key_averages(), steps, on_cuda))
     out["components"] = component_summary(prof.events(), steps, on_cuda)

@@ -100,7 +100,7 @@ def test_a_components_own_calls_are_its_outermost_operators_outside_nested_label
 def test_a_lap_splits_into_its_refining_step_and_the_others():
     # laps of 100 steps: the first (steps 0..99) holds no clocked step, the second's step 100 took 300 ms
     laps = [[100, 1.0, 1000], [200, 2.5, 1500]]
-    rows = profile_step.lap_rows(laps, {100: 300.0}, 100)
+    rows = profile_step.lap_rows(laps, {100: 300.0})
     assert rows[0] == {"steps": 100, "gaussians": 1000, "step_ms": 10.0, "event_ms": None, "ordinary_ms": None}
     assert rows[1]["step_ms"] == pytest.approx(15.0) and rows[1]["event_ms"] == 300.0
     assert rows[1]["ordinary_ms"] == pytest.approx((1500.0 - 300.0) / 99)
