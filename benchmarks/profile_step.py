@@ -232,10 +232,10 @@ def profile(
                 sync(device)
                 laps.append([step + 1, time.perf_counter() - clock["start"], int(trainer.pipeline.model.num_points)])
         if step == warmup - 1:  # the timed window (no profiler: it adds host time to every operator)
-            sync(trainer.pipeline.model.device)
+            sync(device)
             clock["t0"] = time.perf_counter()
         elif step == warmup + steps - 1:  # the timed window ends, the profiled one starts with the next step
-            sync(trainer.pipeline.model.device)
+            sync(device)
             clock["t1"] = time.perf_counter()
             warnings.showwarning = on_warning
             warnings.simplefilter("always")
@@ -243,7 +243,7 @@ def profile(
                 torch.cuda.set_sync_debug_mode("warn")
             prof.__enter__()
         elif step == warmup + 2 * steps - 1:
-            sync(trainer.pipeline.model.device)
+            sync(device)
             prof.__exit__(None, None, None)
             clock["t2"] = time.perf_counter()
             raise long_run.Stop  # the sync mode and the warning hooks are put back below
