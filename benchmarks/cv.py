@@ -323,6 +323,11 @@ BORROWS: dict[str, tuple[str, str, str]] = {
         "mask_status",
         "the inspector kept the default's mask off there, so when the mask starts changes nothing: the same model",
     ),
+    "willags-prior-low-mask5k-gate": (
+        "willags",
+        "mask_status",
+        "the inspector kept the default's mask off there, so the mask's start rule changes nothing: the same model",
+    ),
 }
 """Candidates that train another method's model wherever that method's run shows a switch off: candidate ->
 (the method, the record field whose absence shows the switch off, why the model is the same). On a fold the

@@ -144,6 +144,16 @@ METHODS: dict[str, MethodSpec] = {
         "1.6 dB higher, as if the mask dropped what the latent had not yet learned of a large appearance change; "
         "elsewhere the default's model, whose runs it takes (cv.BORROWS)",
     ),
+    "willags-prior-low-mask5k-gate": _default_on_gpu(
+        _PRIOR_LOW,
+        ("mask.warmup_steps", 5000),
+        ("mask.start_rule", "transients"),
+        note="willags-prior-low-mask5k whose mask starts at step 5000 only where the training photos' own renders then "
+        "leave at least 10 % of their pixels as residual blobs (mask.start_rule transients, willags_ns/mask/rule.py "
+        "mask_start): at step 5000 with the mask not yet started, fox-wild's renders left 11.8-13.1 % (the mask then "
+        "gained there), hochiminh-mausoleum's 5.0-7.3 % and sacre-coeur-mini's 3.0-3.7 % (the mask off scored 1.6 dB "
+        "higher on the first); elsewhere the default's model, whose runs it takes (cv.BORROWS)",
+    ),
     "willags-prior-low-mask-expected": _masked_on_gpu(
         _PRIOR_LOW,
         ("mask.residual.expected", True),

@@ -195,6 +195,21 @@ def test_the_late_mask_candidate_changes_only_when_the_inspectors_mask_starts(tm
     assert cfg.pipeline.model == ref.pipeline.model and cfg.optimizers == ref.optimizers
 
 
+def test_the_gated_mask_candidate_changes_only_when_and_whether_the_inspectors_mask_starts(tmp_path):
+    """`willags-prior-low-mask5k-gate` is `willags-prior-low-mask5k` whose mask starts only above the start rule's
+    bar: the inspector still decides whether it is on; nothing else differs, and its folds without the mask are the
+    default's runs."""
+    from benchmarks.cv import BORROWS
+
+    late = build_config("willags-prior-low-mask5k", 15000, "cpu", None, None, "default", tmp_path)
+    cfg = build_config("willags-prior-low-mask5k-gate", 15000, "cpu", None, None, "default", tmp_path)
+    assert (late.pipeline.model.mask.start_rule, cfg.pipeline.model.mask.start_rule) == ("always", "transients")
+    assert cfg.pipeline.model.mask.enabled and "mask.enabled" not in cfg.pipeline.auto_config_keep
+    assert BORROWS["willags-prior-low-mask5k-gate"][:2] == ("willags", "mask_status")
+    cfg.pipeline.model.mask.start_rule = "always"
+    assert cfg.pipeline.model == late.pipeline.model and cfg.optimizers == late.optimizers
+
+
 def test_the_holdout_candidate_changes_only_the_held_out_photos(tmp_path):
     """`willags-prior-low-holdout` is the default with 8 photos' right halves held out; nothing else differs."""
     ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)

@@ -309,3 +309,9 @@ def check_settings(cfg: WillagsModelConfig) -> None:
             f"(it is the colour residual's expected level; with mask.distance {cfg.mask.distance!r} nothing would "
             "learn or use it)"
         )
+    m = cfg.mask
+    if m.start_rule not in ("always", "transients") or not (0.0 <= m.start_share <= 1.0):
+        raise ValueError(
+            "willags: --pipeline.model.mask.start-rule must be always or transients and --pipeline.model.mask.start-share "
+            f"within [0, 1] (got start-rule {m.start_rule!r}, start-share {m.start_share})"
+        )

@@ -71,6 +71,7 @@ from willags_ns.eval.protocol import training_outlier_share
 from willags_ns.mask.expected import LEVEL, expected_on, initial_levels, level_channels, level_loss
 from willags_ns.mask.health import MaskHealth
 from willags_ns.mask.residual import colour_residual
+from willags_ns.mask.rule import mask_start
 from willags_ns.mask.step import (
     MaskStep,
     StepMask,
@@ -189,6 +190,7 @@ class WillagsModel(SplatfactoModel):
         self.holdout_best = BestStep(cfg.holdout.margin)
         self._train_photos = None  # () -> (cameras, images) of the training photos (get_training_callbacks)
         self.cap_decision: dict[str, Any] | None = None  # the "transients" rule's {step, share, cap}, once taken
+        self.mask_decision: dict[str, Any] | None = None  # the mask's start rule's {step, share, start}, once taken
         self._finished_at: int | None = None  # the step finish_training ended the run at
 
     # ------------------------------------------------------------------ latents (appearance/latents.py)
@@ -267,8 +269,11 @@ class WillagsModel(SplatfactoModel):
 
     # ------------------------------------------------------------------ the mask (mask/step.py)
     def update_teacher(self, step: int) -> None:
-        """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step."""
+        """EMA: W_T <- tau W_T + (1 - tau) W_S after every optimiser step (none once the mask's start rule kept the
+        mask off: nothing reads the teacher then)."""
         assert self.teacher is not None and self.appearance_nets is not None
+        if self.mask_step.declined:
+            return
         ema_update_(self.teacher, self.appearance_nets, self.config.mask.teacher.tau)
 
     def step_static_mask(self, outputs, gt_img: Tensor) -> StepMask:
@@ -772,7 +777,29 @@ class WillagsModel(SplatfactoModel):
                 cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.score_holdout))
             if isinstance(self.strategy, McmcDensification) and self.config.mcmc.cap_rule == "transients":
                 cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.decide_cap))
+            mask = self.config.mask
+            if self.appearance_nets is not None and mask.enabled and mask.start_rule == "transients":
+                cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.decide_mask))
         return cbs
+
+    def decide_mask(self, step: int) -> None:
+        """The mask's "transients" start rule (mask/rule.mask_start) after the last step before mask.warmup_steps:
+        the training photos' residual-blob share, measured on their renders with their own latents
+        (eval/protocol.training_outlier_share), starts the mask or keeps it off for the rest of the run. A
+        data-parallel run starts it: each rank holds only its share of the photos."""
+        if self._train_photos is None or self.mask_decision is not None or step < self.config.mask.warmup_steps - 1:
+            return
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            if torch.distributed.get_world_size() > 1:
+                self.mask_decision = {"step": step, "share": None, "start": True}
+                CONSOLE.log("willags: the mask's start rule does not measure a data-parallel run: the mask starts")
+                return
+        cameras, images = self._train_photos()
+        share = training_outlier_share(self, cameras, images)
+        start, reason = mask_start(share, self.config.mask)
+        self.mask_decision = {"step": step, "share": share, "start": start}
+        self.mask_step.declined = not start
+        CONSOLE.log(f"willags: step {step + 1:,}: {reason}")
 
     def decide_cap(self, step: int) -> None:
         """The "transients" cap rule (splats/mcmc.transient_cap) at the first step whose Gaussians fill MCMC's cap while
@@ -860,6 +887,8 @@ class WillagsModel(SplatfactoModel):
             state["holdout"] = self.holdout_best.summary()
         if self.cap_decision is not None:
             state["cap_decision"] = dict(self.cap_decision)
+        if self.mask_decision is not None:
+            state["mask_decision"] = dict(self.mask_decision)
         return state
 
     def set_extra_state(self, state) -> None:
@@ -868,3 +897,7 @@ class WillagsModel(SplatfactoModel):
         if decision is not None and isinstance(self.strategy, McmcDensification):  # a resumed run keeps its cap
             self.cap_decision = dict(decision)
             self.strategy.cap_max = int(decision["cap"])
+        started = (state or {}).get("mask_decision")
+        if started is not None:  # a resumed run keeps its mask on or off
+            self.mask_decision = dict(started)
+            self.mask_step.declined = not bool(started["start"])

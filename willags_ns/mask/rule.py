@@ -60,6 +60,16 @@ class MaskConfig:
     warmup_steps: int = 500
     """No masking before this step: until then the teacher render is not yet a meaningful reference and D would
     flag most of the image."""
+    start_rule: Literal["always", "transients"] = "always"
+    """Whether the mask starts at warmup_steps. "always": it does. "transients" (:func:`mask_start`): at
+    warmup_steps training measures the share of its own photos' pixels that their renders, each with its own latent,
+    leave as residual blobs (eval/protocol.training_outlier_share, the measure of MCMC's "transients" cap rule), and
+    the mask starts only at or above start_share; below it the mask stays off for the rest of the run. Why: where
+    the renders leave few blobs the mask has few passers-by to drop, and what it dropped there was scene the test
+    photos show (docs/design.md, "The transient mask's start")."""
+    start_share: float = 0.10
+    """The "transients" start rule's bar: the share of the training photos' pixels left as residual blobs at
+    warmup_steps at or above which the mask starts."""
     ramp_steps: int = 0
     """After warmup, lower the threshold linearly from RAMP_START_FACTOR * threshold to threshold over this many
     steps (0: the full threshold at once). Eases the switch from no mask to the full mask."""
@@ -143,6 +153,20 @@ def transient_mask(
     transient = ~static_mask(D[None], thr)[0]
     rejected = transient.float().mean() > max_masked_fraction
     return transient & ~rejected, rejected
+
+
+def mask_start(share: float, cfg: MaskConfig) -> tuple[bool, str]:
+    """(start, reason) of the "transients" start rule (MaskConfig.start_rule) for a measured `share` of the training
+    photos' pixels left as residual blobs: the mask starts at or above `cfg.start_share`, else stays off."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"willags: a residual-blob share is within [0, 1], got {share}")
+    start = share >= cfg.start_share
+    side = "at or above" if start else "below"
+    verdict = "the transient mask starts" if start else "the transient mask stays off for the rest of the run"
+    return start, (
+        f"the training photos leave {share:.1%} of their pixels as residual blobs, {side} the mask's bar of "
+        f"{cfg.start_share:.1%}: {verdict}"
+    )
 
 
 def mask_active(step: int, warmup_steps: int) -> bool:

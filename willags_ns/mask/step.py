@@ -72,10 +72,13 @@ class MaskStep:
         (willags_ns/mask/store.py), since every training image's stays for the whole run."""
         self.visits: dict[int, int] = {}
         self.support_cache: dict[int, Tensor | None] = {}
+        self.declined = False
+        """The mask's start rule (mask.start_rule "transients", rule.mask_start) kept it off for the rest of the run."""
 
     def active(self, step: int) -> bool:
         cfg = self.cfg
-        return cfg.appearance == "willags" and cfg.mask.enabled and mask_active(step, cfg.mask.warmup_steps)
+        on = cfg.appearance == "willags" and cfg.mask.enabled and not self.declined
+        return on and mask_active(step, cfg.mask.warmup_steps)
 
     def teacher_needed(self, step: int, idx: int) -> bool:
         """Whether this training step renders the teacher for image `idx` (counts the visit): on every mask.every-th
