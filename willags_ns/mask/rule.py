@@ -66,7 +66,7 @@ class MaskConfig:
     leave as residual blobs (eval/protocol.training_outlier_share, the measure of MCMC's "transients" cap rule), and
     the mask starts only at or above start_share; below it the mask stays off for the rest of the run. Why: where
     the renders leave few blobs the mask has few passers-by to drop, and what it dropped there was scene the test
-    photos show (docs/design.md, "The transient mask's start")."""
+    photos show (docs/design.md, "The mask from step 5000")."""
     start_share: float = 0.10
     """The "transients" start rule's bar: the share of the training photos' pixels left as residual blobs at
     warmup_steps at or above which the mask starts."""
