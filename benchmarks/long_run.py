@@ -362,6 +362,10 @@ def evaluate(args) -> int:
         decision = getattr(trainer.pipeline.model, "cap_decision", None)
         if decision is not None and decision.get("share") is not None:  # the "transients" cap rule's measure
             rec["cap_rule_share"] = float(decision["share"])
+        started = getattr(trainer.pipeline.model, "mask_decision", None)
+        if started is not None and started.get("share") is not None:  # the mask's start rule's measure and verdict
+            rec["mask_start_share"] = float(started["share"])
+            rec["mask_started"] = bool(started["start"])
         if m == state["steps"] and variant is None:  # the transient mask the run ended with
             rec.update(mask_record(trainer.pipeline.model, trainer.pipeline.datamanager.train_dataset))
         rec["eval_wall_s"] = time.perf_counter() - t
@@ -460,6 +464,8 @@ def record(args) -> int:
                         "num_gaussians",
                         "latent_spread",
                         "cap_rule_share",
+                        "mask_start_share",
+                        "mask_started",
                     )
                     if kk in v
                 },

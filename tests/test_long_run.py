@@ -110,6 +110,24 @@ def test_a_record_carries_the_share_the_transients_cap_rule_measured(tmp_path):
     assert "cap_rule_share" not in recs[1]
 
 
+def test_a_record_carries_the_share_and_verdict_of_the_masks_start_rule(tmp_path):
+    """The mask's start rule's share and verdict (model.mask_decision, scored into the state) reach the record's
+    milestone; a run without the rule claims none."""
+    base = {"method": "willags-prior-low-mask5k-gate", "data": "/x/fox-wild", "steps": 10, "seed": 42,
+            "segments": [{"start_step": 0, "end_step": 9, "train_s": 1.0}]}  # fmt: skip
+    recs = []
+    for case, score in (
+        ("rule", {"psnr": 15.0, "mask_start_share": 0.062, "mask_started": False}),
+        ("plain", {"psnr": 15.0}),
+    ):
+        _write_state(tmp_path / case, {**base, "scores": {"10": score}})
+        out = tmp_path / f"{case}.json"
+        assert long_run.main(["record", "--run-dir", str(tmp_path / case), "--tag", "t", "--out", str(out)]) == 0
+        recs.append(json.loads(out.read_text())[0]["milestones"]["10"])
+    assert (recs[0]["mask_start_share"], recs[0]["mask_started"]) == (0.062, False)
+    assert "mask_start_share" not in recs[1] and "mask_started" not in recs[1]
+
+
 def test_a_record_names_the_sfm_model_its_scene_held(tmp_path):
     """Two builds of one collection can hold different SfM models (benchmarks/collections.py): each record says
     which one its run started from, so the cross-validation can tell runs on different builds apart."""

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from willags_ns.config import WillagsModelConfig
+from willags_ns.eval.mask_eval import trained_mask
 from willags_ns.mask.rule import MaskConfig, mask_start
 
 
@@ -54,11 +55,13 @@ def test_the_start_rule_decides_at_the_mask_warmup_and_a_checkpoint_keeps_it(tmp
     d = off.mask_decision
     assert d is not None and d["step"] == 5 and 0.0 <= d["share"] < 1.0 and d["start"] is False
     assert off.mask_step.declined and not off.mask_step.active(11) and len(off.last_masks) == 0
+    assert trained_mask(off) is None  # scored as what it trained: a model without the mask
     frozen = [p.detach().clone() for p in off.teacher.parameters()]
     off.update_teacher(12)  # the teacher no longer follows the student
     assert all(torch.equal(a, b) for a, b in zip(frozen, off.teacher.parameters(), strict=True))
     on = _train_with_start_rule(tmp_path / "on", start_share=0.0)
     assert on.mask_decision["start"] is True and on.mask_decision["step"] == 5
     assert not on.mask_step.declined and on.mask_step.active(11) and len(on.last_masks) > 0
+    assert trained_mask(on) is on.config.mask
     on.set_extra_state(off.get_extra_state())  # as a resumed run loads it
     assert on.mask_decision == d and on.mask_step.declined and not on.mask_step.active(11)

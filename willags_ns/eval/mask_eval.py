@@ -216,10 +216,13 @@ def rule_mask(model, camera, image: Tensor, image_idx: int, threshold: float | N
 def trained_mask(model):
     """The mask settings (MaskConfig) of a model that trains with the transient mask; None for one without: a model
     without willags' appearance (splatfacto), one with no mask config at all (the peer's adapter,
-    benchmarks/peer.PeerForProtocol) or with the mask off."""
+    benchmarks/peer.PeerForProtocol), with the mask off, or one whose mask's start rule kept it off (mask.start_rule)."""
     cfg = model.config
     mask = getattr(cfg, "mask", None)
     if getattr(cfg, "appearance", "sh") != "willags" or mask is None or not mask.enabled:
+        return None
+    step = getattr(model, "mask_step", None)
+    if step is not None and step.declined:
         return None
     return mask
 
