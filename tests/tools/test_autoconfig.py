@@ -276,6 +276,21 @@ def test_kept_switches_are_left_reported_and_printed(scenes):
     assert plain.mask.enabled is False and s["kept"] == {} and s["switches"]["mask"] is False
 
 
+def test_a_mask_under_the_start_rule_says_when_and_where_it_starts(scenes):
+    """A mask that is on under mask.start_rule "transients" is decided again at its warm-up's end: the summary says
+    so; a mask that is off says nothing of it."""
+    cfg = willags_model_config()
+    cfg.mask.start_rule, cfg.mask.warmup_steps, cfg.mask.start_share = "transients", 5000, 0.1
+    s = apply_auto_config(cfg, scenes["appearance"], keep=("mask.enabled",))
+    assert "starts at step 5,000 only where the training photos' own renders then leave at least 10%" in format_summary(
+        s
+    )
+    off = willags_model_config()
+    off.mask.start_rule = "transients"
+    s = apply_auto_config(off, scenes["appearance"])
+    assert s["switches"]["mask"] is False and "start_rule" not in s["reasons"]["mask"]
+
+
 def test_training_keeps_a_switch_the_user_changed_from_the_preset(tmp_path, scenes):
     from tests.test_train import _train
 

@@ -189,6 +189,12 @@ def apply_auto_config(
         switches["teacher"] = bool(mask.enabled and mask.teacher.enabled)
     if "use_field" in kept:
         switches["triplane_field"] = bool(model_config.use_field)
+    mask = getattr(model_config, "mask", None)
+    if switches["mask"] and mask is not None and mask.start_rule == "transients":  # on, but decided again later
+        reasons["mask"] += (
+            f"; it starts at step {mask.warmup_steps:,} only where the training photos' own renders then leave at "
+            f"least {mask.start_share:.0%} of their pixels as residual blobs (mask.start_rule transients)"
+        )
     return {
         "applied": True,
         "error": None,
