@@ -103,6 +103,13 @@ from willags_ns.splats.mcmc import McmcDensification, transient_cap, uses_mcmc
 __all__ = ["WillagsModel"]
 
 
+def _several_ranks() -> bool:
+    """Whether this process is one rank of a data-parallel run: the rules that measure the training photos (MCMC's
+    transients cap, the mask's start) do not measure there, since each rank holds only its share of them."""
+    dist = torch.distributed
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+
+
 class WillagsModel(SplatfactoModel):
     """WilLaGS on top of splatfacto. See the module docstring for the per-step data flow. Its public methods are
     here, each section a line or two over its room: the latents (`current_latent`, `render_latent`, `image_latents`,
@@ -190,7 +197,6 @@ class WillagsModel(SplatfactoModel):
         self.holdout_best = BestStep(cfg.holdout.margin)
         self._train_photos = None  # () -> (cameras, images) of the training photos (get_training_callbacks)
         self.cap_decision: dict[str, Any] | None = None  # the "transients" rule's {step, share, cap}, once taken
-        self.mask_decision: dict[str, Any] | None = None  # the mask's start rule's {step, share, start}, once taken
         self._finished_at: int | None = None  # the step finish_training ended the run at
 
     # ------------------------------------------------------------------ latents (appearance/latents.py)
@@ -782,6 +788,11 @@ class WillagsModel(SplatfactoModel):
                 cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.decide_mask))
         return cbs
 
+    @property
+    def mask_decision(self) -> dict[str, Any] | None:
+        """The mask's start rule's {step, share, start}, once taken (MaskStep.start_decision)."""
+        return self.mask_step.start_decision
+
     def decide_mask(self, step: int) -> None:
         """The mask's "transients" start rule (mask/rule.mask_start) after the last step before mask.warmup_steps:
         the training photos' residual-blob share, measured on their renders with their own latents
@@ -789,16 +800,14 @@ class WillagsModel(SplatfactoModel):
         data-parallel run starts it: each rank holds only its share of the photos."""
         if self._train_photos is None or self.mask_decision is not None or step < self.config.mask.warmup_steps - 1:
             return
-        if torch.distributed.is_available() and torch.distributed.is_initialized():
-            if torch.distributed.get_world_size() > 1:
-                self.mask_decision = {"step": step, "share": None, "start": True}
-                CONSOLE.log("willags: the mask's start rule does not measure a data-parallel run: the mask starts")
-                return
+        if _several_ranks():
+            self.mask_step.start_decision = {"step": step, "share": None, "start": True}
+            CONSOLE.log("willags: the mask's start rule does not measure a data-parallel run: the mask starts")
+            return
         cameras, images = self._train_photos()
         share = training_outlier_share(self, cameras, images)
         start, reason = mask_start(share, self.config.mask)
-        self.mask_decision = {"step": step, "share": share, "start": start}
-        self.mask_step.declined = not start
+        self.mask_step.start_decision = {"step": step, "share": share, "start": start}
         CONSOLE.log(f"willags: step {step + 1:,}: {reason}")
 
     def decide_cap(self, step: int) -> None:
@@ -811,14 +820,13 @@ class WillagsModel(SplatfactoModel):
             return
         if step >= strategy.refine_stop_iter:  # the growth has ended: nothing left to decide
             return
-        if torch.distributed.is_available() and torch.distributed.is_initialized():
-            if torch.distributed.get_world_size() > 1:
-                self.cap_decision = {"step": step, "share": None, "cap": int(strategy.cap_max)}
-                CONSOLE.log(
-                    "willags: the transients cap rule does not measure a data-parallel run: "
-                    f"at most {strategy.cap_max:,} Gaussians"
-                )
-                return
+        if _several_ranks():
+            self.cap_decision = {"step": step, "share": None, "cap": int(strategy.cap_max)}
+            CONSOLE.log(
+                "willags: the transients cap rule does not measure a data-parallel run: "
+                f"at most {strategy.cap_max:,} Gaussians"
+            )
+            return
         cameras, images = self._train_photos()
         share = training_outlier_share(self, cameras, images)
         cap, reason = transient_cap(share, self.config.mcmc)
@@ -899,5 +907,4 @@ class WillagsModel(SplatfactoModel):
             self.strategy.cap_max = int(decision["cap"])
         started = (state or {}).get("mask_decision")
         if started is not None:  # a resumed run keeps its mask on or off
-            self.mask_decision = dict(started)
-            self.mask_step.declined = not bool(started["start"])
+            self.mask_step.start_decision = dict(started)

@@ -72,8 +72,15 @@ class MaskStep:
         (willags_ns/mask/store.py), since every training image's stays for the whole run."""
         self.visits: dict[int, int] = {}
         self.support_cache: dict[int, Tensor | None] = {}
-        self.declined = False
-        """The mask's start rule (mask.start_rule "transients", rule.mask_start) kept it off for the rest of the run."""
+        self.start_decision: dict | None = None
+        """The start rule's {step, share, start} once taken (mask.start_rule "transients", rule.mask_start); None
+        before it, and under start_rule "always"."""
+
+    @property
+    def declined(self) -> bool:
+        """The start rule kept the mask off for the rest of the run."""
+        d = self.start_decision
+        return d is not None and not d["start"]
 
     def active(self, step: int) -> bool:
         cfg = self.cfg
