@@ -318,15 +318,15 @@ BORROWS: dict[str, tuple[str, str, str]] = {
         "mask_status",
         "the inspector kept the default's mask off there, so the mask's distance changes nothing: the same model",
     ),
+    "willags-earlymask": (
+        "willags",
+        "mask_status",
+        "the inspector kept the mask off there, so when and whether it starts changes nothing: the same model",
+    ),
     "willags-prior-low-mask5k": (
         "willags",
         "mask_status",
         "the inspector kept the default's mask off there, so when the mask starts changes nothing: the same model",
-    ),
-    "willags-prior-low-mask5k-gate": (
-        "willags",
-        "mask_status",
-        "the inspector kept the default's mask off there, so the mask's start rule changes nothing: the same model",
     ),
 }
 """Candidates that train another method's model wherever that method's run shows a switch off: candidate ->

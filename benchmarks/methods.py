@@ -46,14 +46,19 @@ _PRIOR_LOW = ("latent.prior_weight", 0.002)
 records say what they measured whatever the default's weight becomes."""
 
 
+_EARLY_MASK = (("mask.warmup_steps", 500), ("mask.start_rule", "always"))
+"""The mask's start before the start rule was the default's: from step 500, whatever the renders leave. Every
+configuration measured with it names it (with the mask off it changes nothing), so that its records say what they
+measured and a new run of it trains the same model; `willags-earlymask` is the default with it."""
+
 _RESIDUAL_MASK = (("mask.enabled", True), ("mask.distance", "residual"))
 """The transient mask on every scene, by the colour residual to the teacher (the inspector keeps it: keep=...)."""
 
 
 def _masked_on_gpu(*overrides: tuple[str, Any], note: str) -> MethodSpec:
     """The default as a GPU trains it with the residual mask forced on every scene, and `overrides` on top."""
-    return MethodSpec("willags", (_AUTO, *_RESIDUAL_MASK, ("densification", "mcmc"), *overrides), note=note,
-                      keep=("mask.enabled",))  # fmt: skip
+    return MethodSpec("willags", (_AUTO, *_RESIDUAL_MASK, ("densification", "mcmc"), *_EARLY_MASK, *overrides),
+                      note=note, keep=("mask.enabled",))  # fmt: skip
 
 
 def _default_on_gpu(*overrides: tuple[str, Any], note: str, keep: tuple[str, ...] = ()) -> MethodSpec:
@@ -62,11 +67,19 @@ def _default_on_gpu(*overrides: tuple[str, Any], note: str, keep: tuple[str, ...
     return MethodSpec("willags", (_AUTO, ("densification", "mcmc"), *overrides), note=note, keep=keep)
 
 
+def _early_mask_on_gpu(*overrides: tuple[str, Any], note: str, keep: tuple[str, ...] = ()) -> MethodSpec:
+    """_default_on_gpu with the mask's start of the configurations measured before the start rule (_EARLY_MASK):
+    the inspector's mask, where it turns it on, from step 500 whatever the renders leave."""
+    return _default_on_gpu(*_EARLY_MASK, *overrides, note=note, keep=keep)
+
+
 METHODS: dict[str, MethodSpec] = {
     # The base "willags" is the full model without inspection (base_trainer_config); the method `willags` itself
     # (ns-train willags) inspects the scene first (auto_config).
     "willags": MethodSpec("willags", (_AUTO,), note="the default: the full model with the scene inspected first"),
-    "willags-full": MethodSpec("willags", (_NO_PRIOR,), note="every component, no inspection, no latent prior"),
+    "willags-full": MethodSpec(
+        "willags", (_NO_PRIOR, *_EARLY_MASK), note="every component, no inspection, no latent prior"
+    ),
     "willags-paper": MethodSpec("willags-paper", note="the paper: beta-VAE, colour decoder over tri-plane + f_s"),
     "willags-lite": MethodSpec("willags-lite", note="fast preset"),
     "willags-3dgs": MethodSpec(
@@ -75,44 +88,51 @@ METHODS: dict[str, MethodSpec] = {
     "willags-mcmc": MethodSpec(
         "willags", (_AUTO, ("densification", "mcmc")), note="the default named in full on a GPU (MCMC densification)"
     ),
-    "willags-noprior": _default_on_gpu(_NO_PRIOR, note="the default without the latent prior on its table's rows"),
+    "willags-noprior": _early_mask_on_gpu(_NO_PRIOR, note="the default without the latent prior on its table's rows"),
     "willags-splitclone": MethodSpec(
         "willags",
-        (_AUTO, ("densification", "splatfacto"), _NO_PRIOR),
+        (_AUTO, ("densification", "splatfacto"), _NO_PRIOR, *_EARLY_MASK),
         note="willags-noprior with splatfacto's split / clone / prune",
     ),
     "willags-residual": MethodSpec(
         "willags",
-        (_AUTO, ("mask.enabled", True), ("mask.distance", "residual"), ("densification", "splatfacto"), _NO_PRIOR),
+        (_AUTO, *_RESIDUAL_MASK, ("densification", "splatfacto"), _NO_PRIOR, *_EARLY_MASK),
         note="willags-splitclone with the transient mask on every scene, by the colour residual to the teacher",
         keep=("mask.enabled",),
     ),
     "willags-mask": _masked_on_gpu(
         _NO_PRIOR, note="willags-noprior with the transient mask on every scene, by the colour residual to the teacher"
     ),
-    "willags-cap150k": _default_on_gpu(
+    "willags-cap150k": _early_mask_on_gpu(
         ("mcmc.cap_max", 150_000), _NO_PRIOR, note="willags-noprior, MCMC capped at 150k"
     ),
-    "willags-cap1m": _default_on_gpu(("mcmc.cap_max", 1_000_000), _NO_PRIOR, note="willags-noprior, MCMC capped at 1M"),
-    "willags-capscene": _default_on_gpu(
+    "willags-cap1m": _early_mask_on_gpu(
+        ("mcmc.cap_max", 1_000_000), _NO_PRIOR, note="willags-noprior, MCMC capped at 1M"
+    ),
+    "willags-capscene": _early_mask_on_gpu(
         ("mcmc.cap_rule", "pixels"),
         _NO_PRIOR,
         note="willags-noprior, MCMC's cap from the training photos' megapixels (splats/mcmc.scene_cap)",
     ),
-    "willags-field": _default_on_gpu(
+    "willags-field": _early_mask_on_gpu(
         ("use_field", True),
         _NO_PRIOR,
         note="willags-noprior with the latent-conditioned tri-plane field on (its feature feeds the per-Gaussian "
         "residual)",
         keep=("use_field",),
     ),
-    "willags-prior": _default_on_gpu(
+    "willags-prior": _early_mask_on_gpu(
         ("latent.prior_weight", 0.02),
         note="the default with ten times its latent prior (0.02, the pull the VAE's KL puts on its latent)",
     ),
     "willags-prior-low": _default_on_gpu(
         _PRIOR_LOW,
         note="the default's own prior weight named (0.002, a tenth of willags-prior's): the same model as willags",
+    ),
+    "willags-earlymask": _early_mask_on_gpu(
+        note="the default with the inspector's mask, where it turns it on, from step 500 whatever the renders leave "
+        "(mask.warmup_steps 500, mask.start_rule always): what the default was before its mask's start rule; where "
+        "the mask is off the default's model",
     ),
     "willags-prior-low-mask": _masked_on_gpu(
         _PRIOR_LOW,
@@ -127,7 +147,7 @@ METHODS: dict[str, MethodSpec] = {
         "default's model, whose runs it takes (cv.BORROWS)",
         keep=("mask.enabled",),
     ),
-    "willags-prior-low-maskres": _default_on_gpu(
+    "willags-prior-low-maskres": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("mask.distance", "residual"),
         note="the default (its prior weight named) with its mask, where the inspector turns it on, comparing the photo "
@@ -136,7 +156,7 @@ METHODS: dict[str, MethodSpec] = {
         "forced on, the seeded VGG mask 15-22 % where the inspector turned it on; elsewhere the default's model, "
         "whose runs it takes (cv.BORROWS)",
     ),
-    "willags-prior-low-mask5k": _default_on_gpu(
+    "willags-prior-low-mask5k": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("mask.warmup_steps", 5000),
         note="the default (its prior weight named) with its mask, where the inspector turns it on, applied from step "
@@ -148,7 +168,8 @@ METHODS: dict[str, MethodSpec] = {
         _PRIOR_LOW,
         ("mask.warmup_steps", 5000),
         ("mask.start_rule", "transients"),
-        note="willags-prior-low-mask5k whose mask starts at step 5000 only where the training photos' own renders then "
+        note="the default with its mask's start named (the same model as willags, whose rows its records join): "
+        "willags-prior-low-mask5k whose mask starts at step 5000 only where the training photos' own renders then "
         "leave at least 10 % of their pixels as residual blobs (mask.start_rule transients, willags_ns/mask/rule.py "
         "mask_start): at step 5000 with the mask not yet started, fox-wild's renders left 11.8-13.1 % (the mask then "
         "gained there), hochiminh-mausoleum's 5.0-7.3 % and sacre-coeur-mini's 3.0-3.7 % (the mask off scored 1.6 dB "
@@ -172,14 +193,14 @@ METHODS: dict[str, MethodSpec] = {
         ("mask.warmup_steps", 5000),
         note="willags-prior-low-mask-expected with the mask from step 5000",
     ),
-    "willags-prior-low-sky": _default_on_gpu(
+    "willags-prior-low-sky": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("sky.enabled", True),
         note="the default (its prior weight named) with the sky above each photo's skyline on every scene: the "
         "inspector leaves it off below 0.15 of open background (westminster-abbey 0.148, south-building 0.05)",
         keep=("sky.enabled",),
     ),
-    "willags-prior-low-meanslr": _default_on_gpu(
+    "willags-prior-low-meanslr": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("optimizers.means.lr", 1.6e-5),
         ("optimizers.means.lr_final", 1.6e-7),
@@ -187,7 +208,7 @@ METHODS: dict[str, MethodSpec] = {
         "1.6e-7, a tenth of splatfacto's; MCMC's position noise follows it): the geometry moves less, where the "
         "default's training photos rise with length while its new photos fall on the crowded collections",
     ),
-    "willags-prior-low-camopt": _default_on_gpu(
+    "willags-prior-low-camopt": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("camera_optimizer.mode", "SO3xR3"),
         note="the default (its prior weight named) refining each training photo's pose as it trains (nerfstudio's "
@@ -195,7 +216,7 @@ METHODS: dict[str, MethodSpec] = {
         "pixel scores 24-28 dB, and COLMAP's reprojection residuals are 0.3-0.65 px; test photos keep their COLMAP "
         "poses, as the protocol has them",
     ),
-    "willags-prior-low-holdout": _default_on_gpu(
+    "willags-prior-low-holdout": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("holdout.photos", 8),
         note="the default (its prior weight named) with the right halves of 8 training photos (at most a quarter) "
@@ -209,18 +230,18 @@ METHODS: dict[str, MethodSpec] = {
         note="willags-prior-low-mask-expected with MCMC's cap at 1M Gaussians: the capacity a million gave the clean "
         "collections, with the mask keeping it off the crowds that a million learned on reichstag",
     ),
-    "willags-prior-low-cap1m": _default_on_gpu(
+    "willags-prior-low-cap1m": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("mcmc.cap_max", 1_000_000),
         note="the default (its prior weight named) with MCMC's cap at 1M Gaussians instead of 300,000",
     ),
-    "willags-prior-low-captransients": _default_on_gpu(
+    "willags-prior-low-captransients": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("mcmc.cap_rule", "transients"),
         note="the default (its prior weight named) with MCMC's cap set by the transients rule: 300,000 until MCMC fills "
         "them, then 1,000,000 where the training photos leave under 2 % of their pixels as residual blobs",
     ),
-    "willags-prior-low-captransients25": _default_on_gpu(
+    "willags-prior-low-captransients25": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("mcmc.cap_rule", "transients"),
         ("mcmc.clean_share", 0.025),
@@ -228,12 +249,12 @@ METHODS: dict[str, MethodSpec] = {
         "million's, composed fold by fold from their measured shares, scored highest over the six collections "
         "(`python -m benchmarks cv bar`); a bar read off the runs it scores is in-sample, so these runs test it",
     ),
-    "willags-prior-low-lowpen": _default_on_gpu(
+    "willags-prior-low-lowpen": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("modulation.local_penalty", 0.001),
         note="the default (its prior weight named) with a tenth of the per-Gaussian residual's penalty (0.001)",
     ),
-    "willags-prior-low-proj64": _default_on_gpu(
+    "willags-prior-low-proj64": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("modulation.latent_proj", 64),
         note="the default (its prior weight named) with the latent projected to 64 instead of 16 before the "
@@ -242,7 +263,7 @@ METHODS: dict[str, MethodSpec] = {
         "scores 0.48 dB lower over four collections, so the latent's path into it carries to new photos. The same "
         "per-Gaussian work (the latent's share is one vector added to the hidden layer)",
     ),
-    "willags-prior-low-latent8": _default_on_gpu(
+    "willags-prior-low-latent8": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("latent.dim", 8),
         note="the default (its prior weight named) with an 8-d latent on every scene instead of the inspector's 32 or "
@@ -250,20 +271,20 @@ METHODS: dict[str, MethodSpec] = {
         "what only the left half shows",
         keep=("latent.dim",),
     ),
-    "willags-prior-low-field": _default_on_gpu(
+    "willags-prior-low-field": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("use_field", True),
         note="the default (its prior weight named) with the latent-conditioned tri-plane field on (its feature feeds "
         "the per-Gaussian residual): the paper's spatially varying appearance at the deciding length",
         keep=("use_field",),
     ),
-    "willags-prior-low-capscene": _default_on_gpu(
+    "willags-prior-low-capscene": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("mcmc.cap_rule", "pixels"),
         note="the default (its prior weight named) with MCMC's cap from the training photos' megapixels "
         "(splats/mcmc.scene_cap): a 12-photo collection is not given the Gaussians of a 128-photo one",
     ),
-    "willags-prior-low-capshrink": _default_on_gpu(
+    "willags-prior-low-capshrink": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("mcmc.cap_rule", "pixels"),
         ("mcmc.cap_ceiling", 300_000),
@@ -271,21 +292,21 @@ METHODS: dict[str, MethodSpec] = {
         "the default's 300,000 (splats/mcmc.scene_cap): fewer Gaussians where fewer pixels pin them down, the "
         "default's cap on collections with more; it trains the default's model wherever the rule reaches 300,000",
     ),
-    "willags-prior-low-sh1": _default_on_gpu(
+    "willags-prior-low-sh1": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("sh_degree", 1),
         note="the default (its prior weight named) with the Gaussians' SH at degree 1 instead of 3: 12 colour "
         "coefficients a Gaussian instead of 48, so a collection of few photos fits less view dependence that a "
         "new view does not share",
     ),
-    "willags-prior-low-sfmdepth": _default_on_gpu(
+    "willags-prior-low-sfmdepth": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("sfm_depth.weight", 0.1),
         note="the default (its prior weight named) with the SfM depth loss at 0.1: each training render's expected "
         "depth held to the depths of its photo's own SfM points (track >= 3), so that novel views see the "
         "geometry the photos agree on rather than what fits one photo's colours",
     ),
-    "willags-prior-low-mcmcreg": _default_on_gpu(
+    "willags-prior-low-mcmcreg": _early_mask_on_gpu(
         _PRIOR_LOW,
         ("mcmc.opacity_reg", 0.001),
         ("mcmc.scale_reg", 0.001),
@@ -293,12 +314,12 @@ METHODS: dict[str, MethodSpec] = {
         "the default fits its training photos 1.6-12.5 dB below the light peer and a million Gaussians did not close "
         "that, while these penalties pull every Gaussian towards transparent and small",
     ),
-    "willags-lowpen": _default_on_gpu(
+    "willags-lowpen": _early_mask_on_gpu(
         ("modulation.local_penalty", 0.001),
         _NO_PRIOR,
         note="willags-noprior with a tenth of the per-Gaussian residual's penalty (0.001)",
     ),
-    "willags-staticres": _default_on_gpu(
+    "willags-staticres": _early_mask_on_gpu(
         ("modulation.latent_proj", 0),
         _NO_PRIOR,
         note="willags-noprior with a per-Gaussian residual that does not see the latent (a static colour scale and "
@@ -325,7 +346,8 @@ def apply_schedule(config, steps: int, schedule: str = "short") -> None:
     "default": only ``max_num_iterations`` changes (what ``ns-train <method> --max-num-iterations N`` does).
     "short": the demo's short-run schedule (willags_ns/scripts/demo.py::train_args): full resolution from the
     first step (num_downscales 0), densification from steps/6 (at least 50) every 50 steps until 0.8 * steps, no
-    opacity reset, the transient mask from steps/4, and learning-rate schedules that end at `steps`.
+    opacity reset, the transient mask from steps/4 (whatever step a method's overrides start it at), and
+    learning-rate schedules that end at `steps`.
     """
     if schedule not in ("short", "default"):
         raise ValueError(f"unknown schedule {schedule!r} (short | default)")
@@ -386,11 +408,16 @@ def configuration(rec: dict[str, Any]) -> str:
     """The method name of the configuration a record measured: the ``configuration`` it carries where the name it ran
     as meant another one then (`willags` before the default inspected the scene: `willags-full`; before it densified
     by MCMC, and `willags-auto` runs of that time: `willags-splitclone`; before its latent prior:
-    `willags-noprior`), `willags` for `willags-mcmc` and `willags-prior-low` (the default named in full), else its
+    `willags-noprior`; before its mask's start rule, where the mask was on: `willags-earlymask`), `willags` for
+    `willags-mcmc`, `willags-prior-low` and `willags-prior-low-mask5k-gate` (the default named in full), else its
     own."""
     if rec.get("configuration"):
         return str(rec["configuration"])
-    return "willags" if rec.get("method") in ("willags-mcmc", "willags-prior-low") else str(rec.get("method"))
+    return "willags" if rec.get("method") in DEFAULT_NAMED else str(rec.get("method"))
+
+
+DEFAULT_NAMED = ("willags-mcmc", "willags-prior-low", "willags-prior-low-mask5k-gate")
+"""Methods that name the default's own settings: their runs are the default's (configuration)."""
 
 
 def base_trainer_config(base: str):
@@ -424,7 +451,6 @@ def build_config(
     """The TrainerConfig of one benchmark run (saved to output_dir like ns-train would)."""
     spec = METHODS[method]
     config = base_trainer_config(spec.base)
-    apply_schedule(config, steps, schedule)
     config.method_name = method
     config.vis = "tensorboard"
     config.output_dir = output_dir
@@ -449,6 +475,8 @@ def build_config(
             set_nested(m, k, v)
     if spec.keep:
         config.pipeline.auto_config_keep = tuple(sorted({*config.pipeline.auto_config_keep, *spec.keep}))
+    # after the overrides: the short schedule sets every method's step schedules alike, a method's own included
+    apply_schedule(config, steps, schedule)
     if hasattr(m, "log_images_every"):
         m.log_images_every = 0
     return config

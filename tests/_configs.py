@@ -11,8 +11,18 @@ from willags_ns.mask.static_support import StaticSupportConfig
 
 
 def mask(**fields: Any) -> MaskConfig:
-    """The mask at every step, VGG at 512 px, no safeguard; `fields` on top."""
-    return MaskConfig(**{"every": 1, "max_resolution": 512, "safeguard": StaticSupportConfig(enabled=False), **fields})
+    """The mask at every step from step 500 whatever the renders leave (the paper's), VGG at 512 px, no safeguard;
+    `fields` on top."""
+    return MaskConfig(
+        **{
+            "every": 1,
+            "max_resolution": 512,
+            "warmup_steps": 500,
+            "start_rule": "always",
+            "safeguard": StaticSupportConfig(enabled=False),
+            **fields,
+        }
+    )
 
 
 def latent(use_vae: bool = True, **fields: Any) -> LatentConfig:

@@ -25,9 +25,13 @@ def test_the_dataclass_defaults_are_the_method_willags():
 
 def test_a_config_yml_of_the_flat_layout_loads_into_the_groups():
     old = yaml.load(FLAT_LAYOUT.read_text(), Loader=yaml.Loader)
-    # a file written before the densification setting trained with splatfacto's, and loads with it
+    # a file written before the densification setting trained with splatfacto's, and loads with it; one written
+    # before the mask's start rule started its mask at its warm-up's end (500 then), and loads so
     assert all(cfg.densification == "splatfacto" for cfg in old.values())
-    assert old["willags"] == dataclasses.replace(mc.willags_config().pipeline.model, densification="splatfacto")
+    assert all(cfg.mask.start_rule == "always" for cfg in old.values())
+    now = mc.willags_config().pipeline.model
+    early = dataclasses.replace(now.mask, warmup_steps=500, start_rule="always")
+    assert old["willags"] == dataclasses.replace(now, densification="splatfacto", mask=early)
     paper_now = mc.willags_paper_config().pipeline.model
     assert not paper_now.sky.enabled  # the file's sky region ("everywhere", its default then) does nothing here
     assert old["willags-paper"] == dataclasses.replace(
@@ -39,9 +43,11 @@ def test_a_config_yml_of_the_flat_layout_loads_into_the_groups():
     for cfg in old.values():  # no stray attribute of the flat layout survives
         assert not {"use_vae", "use_mask", "teacher", "static_support"} & set(vars(cfg))
         assert "latent_dim" not in vars(cfg.triplane) and "dynamic_dim" not in vars(cfg.decoder)
-    # and what today's config.yml stores loads as itself
+    # and what today's config.yml stores loads as itself, the default's start rule too
     again = yaml.load(yaml.dump(old["willags-paper"]), Loader=yaml.Loader)
     assert again == old["willags-paper"]
+    again = yaml.load(yaml.dump(now), Loader=yaml.Loader)
+    assert again == now and again.mask.start_rule == "transients"
 
 
 @pytest.mark.parametrize("old,new", [(o, n) for o, n in RENAMED if "." not in o])

@@ -10,7 +10,7 @@ from PIL import Image
 
 from benchmarks import grid
 from benchmarks.grid import parse_grid
-from benchmarks.methods import apply_schedule, base_trainer_config, build_config
+from benchmarks.methods import apply_schedule, base_trainer_config, build_config, configuration
 from benchmarks.records import load_records, merge_records, record_key
 from benchmarks.tables import render_markdown, write_outputs
 
@@ -127,12 +127,20 @@ def test_the_default_inspects_and_its_candidates_change_the_full_model(tmp_path)
     assert built["willags"].auto_config is True and built["willags-full"].auto_config is False
     assert built["willags"].latent.prior_weight == 0.002
     noprior = dataclasses.replace(built["willags"].latent, prior_weight=0.0)
-    assert vars(built["willags-full"]) == {**vars(built["willags"]), "auto_config": False, "latent": noprior}
+    # as their records measured them: the mask from its warm-up's end whatever the renders leave (_EARLY_MASK)
+    early = dataclasses.replace(built["willags"].mask, start_rule="always")
+    assert built["willags"].mask.start_rule == "transients"
+    assert vars(built["willags-full"]) == {
+        **vars(built["willags"]),
+        "auto_config": False,
+        "latent": noprior,
+        "mask": early,
+    }
     # the default names its densification by device ("auto": MCMC on a GPU); the candidates name theirs
     assert built["willags"].densification == "auto"
     assert vars(built["willags-mcmc"]) == {**vars(built["willags"]), "densification": "mcmc"}
     assert vars(built["willags-prior-low"]) == vars(built["willags-mcmc"])  # the default's prior named
-    assert vars(built["willags-noprior"]) == {**vars(built["willags-mcmc"]), "latent": noprior}
+    assert vars(built["willags-noprior"]) == {**vars(built["willags-mcmc"]), "latent": noprior, "mask": early}
     assert vars(built["willags-splitclone"]) == {**vars(built["willags-noprior"]), "densification": "splatfacto"}
 
 
@@ -141,7 +149,7 @@ def test_an_optimizer_override_sets_one_groups_learning_rate_and_names_what_it_c
     and nothing else (the model, every other group); a bad group or field is an error that names it."""
     from benchmarks.methods import set_learning_rate
 
-    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    ref = build_config("willags-earlymask", 15000, "cpu", None, None, "default", tmp_path)
     cfg = build_config("willags-prior-low-meanslr", 15000, "cpu", None, None, "default", tmp_path)
     means, ref_means = cfg.optimizers["means"], ref.optimizers["means"]
     assert (means["optimizer"].lr, means["scheduler"].lr_final) == (1.6e-5, 1.6e-7)
@@ -160,7 +168,7 @@ def test_an_optimizer_override_sets_one_groups_learning_rate_and_names_what_it_c
 def test_the_pose_refining_candidate_changes_only_the_camera_optimiser(tmp_path):
     """`willags-prior-low-camopt` is the default with nerfstudio's camera optimiser on (SO3xR3, its optimizer group
     as splatfacto's); every other field of the model and every optimizer group as the default's."""
-    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    ref = build_config("willags-earlymask", 15000, "cpu", None, None, "default", tmp_path)
     cfg = build_config("willags-prior-low-camopt", 15000, "cpu", None, None, "default", tmp_path)
     assert (ref.pipeline.model.camera_optimizer.mode, cfg.pipeline.model.camera_optimizer.mode) == ("off", "SO3xR3")
     cfg.pipeline.model.camera_optimizer.mode = "off"
@@ -173,21 +181,22 @@ def test_the_mask_candidates_change_only_the_mask_and_the_one_that_turns_it_off_
     `willags-prior-low-maskres` the default whose mask, where the inspector turns it on, compares by the colour
     residual: the inspector still decides whether it is on. Nothing else differs."""
     ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    early = build_config("willags-earlymask", 15000, "cpu", None, None, "default", tmp_path)
     off = build_config("willags-prior-low-nomask", 15000, "cpu", None, None, "default", tmp_path)
     res = build_config("willags-prior-low-maskres", 15000, "cpu", None, None, "default", tmp_path)
     assert ref.pipeline.model.mask.enabled and not off.pipeline.model.mask.enabled
     assert "mask.enabled" in off.pipeline.auto_config_keep and "mask.enabled" not in res.pipeline.auto_config_keep
-    assert (ref.pipeline.model.mask.distance, res.pipeline.model.mask.distance) == ("vgg", "residual")
+    assert (early.pipeline.model.mask.distance, res.pipeline.model.mask.distance) == ("vgg", "residual")
     off.pipeline.model.mask.enabled = True
     res.pipeline.model.mask.distance = "vgg"
-    assert off.pipeline.model == ref.pipeline.model and res.pipeline.model == ref.pipeline.model
+    assert off.pipeline.model == ref.pipeline.model and res.pipeline.model == early.pipeline.model
     assert off.optimizers == ref.optimizers == res.optimizers
 
 
 def test_the_late_mask_candidate_changes_only_when_the_inspectors_mask_starts(tmp_path):
     """`willags-prior-low-mask5k` is the default whose mask, where the inspector turns it on, starts at step 5000:
     the inspector still decides whether it is on; nothing else differs."""
-    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    ref = build_config("willags-earlymask", 15000, "cpu", None, None, "default", tmp_path)
     cfg = build_config("willags-prior-low-mask5k", 15000, "cpu", None, None, "default", tmp_path)
     assert (ref.pipeline.model.mask.warmup_steps, cfg.pipeline.model.mask.warmup_steps) == (500, 5000)
     assert cfg.pipeline.model.mask.enabled and "mask.enabled" not in cfg.pipeline.auto_config_keep
@@ -195,24 +204,32 @@ def test_the_late_mask_candidate_changes_only_when_the_inspectors_mask_starts(tm
     assert cfg.pipeline.model == ref.pipeline.model and cfg.optimizers == ref.optimizers
 
 
-def test_the_gated_mask_candidate_changes_only_when_and_whether_the_inspectors_mask_starts(tmp_path):
-    """`willags-prior-low-mask5k-gate` is `willags-prior-low-mask5k` whose mask starts only above the start rule's
-    bar: the inspector still decides whether it is on; nothing else differs, and its folds without the mask are the
-    default's runs."""
+def test_the_default_starts_its_mask_by_the_start_rule_and_earlymask_is_the_default_without_it(tmp_path):
+    """`willags-prior-low-mask5k-gate` names the default's own mask start (step 5000, the start rule), so its runs
+    are the default's; `willags-earlymask` is the default whose mask, where the inspector turns it on, starts at step
+    500 whatever the renders leave (the records measured before the rule), and its folds without the mask are the
+    default's runs; `willags-prior-low-mask5k` is that late mask without the rule."""
     from benchmarks.cv import BORROWS
 
+    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    gate = build_config("willags-prior-low-mask5k-gate", 15000, "cpu", None, None, "default", tmp_path)
+    early = build_config("willags-earlymask", 15000, "cpu", None, None, "default", tmp_path)
     late = build_config("willags-prior-low-mask5k", 15000, "cpu", None, None, "default", tmp_path)
-    cfg = build_config("willags-prior-low-mask5k-gate", 15000, "cpu", None, None, "default", tmp_path)
-    assert (late.pipeline.model.mask.start_rule, cfg.pipeline.model.mask.start_rule) == ("always", "transients")
-    assert cfg.pipeline.model.mask.enabled and "mask.enabled" not in cfg.pipeline.auto_config_keep
-    assert BORROWS["willags-prior-low-mask5k-gate"][:2] == ("willags", "mask_status")
-    cfg.pipeline.model.mask.start_rule = "always"
-    assert cfg.pipeline.model == late.pipeline.model and cfg.optimizers == late.optimizers
+    assert gate.pipeline.model == ref.pipeline.model and gate.optimizers == ref.optimizers
+    assert configuration({"method": "willags-prior-low-mask5k-gate"}) == "willags"
+    mask = ref.pipeline.model.mask
+    assert (mask.warmup_steps, mask.start_rule) == (5000, "transients")
+    assert (early.pipeline.model.mask.warmup_steps, early.pipeline.model.mask.start_rule) == (500, "always")
+    assert (late.pipeline.model.mask.warmup_steps, late.pipeline.model.mask.start_rule) == (5000, "always")
+    assert early.pipeline.model.mask.enabled and "mask.enabled" not in early.pipeline.auto_config_keep
+    assert BORROWS["willags-earlymask"][:2] == ("willags", "mask_status")
+    early.pipeline.model.mask.warmup_steps, early.pipeline.model.mask.start_rule = 5000, "transients"
+    assert early.pipeline.model == ref.pipeline.model and early.optimizers == ref.optimizers
 
 
 def test_the_holdout_candidate_changes_only_the_held_out_photos(tmp_path):
     """`willags-prior-low-holdout` is the default with 8 photos' right halves held out; nothing else differs."""
-    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    ref = build_config("willags-earlymask", 15000, "cpu", None, None, "default", tmp_path)
     cfg = build_config("willags-prior-low-holdout", 15000, "cpu", None, None, "default", tmp_path)
     assert (ref.pipeline.model.holdout.photos, cfg.pipeline.model.holdout.photos) == (0, 8)
     cfg.pipeline.model.holdout.photos = 0
@@ -221,7 +238,7 @@ def test_the_holdout_candidate_changes_only_the_held_out_photos(tmp_path):
 
 def test_the_mcmc_penalty_candidate_changes_only_the_two_penalties(tmp_path):
     """`willags-prior-low-mcmcreg` is the default with MCMC's opacity and scale penalties at a tenth; nothing else."""
-    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    ref = build_config("willags-earlymask", 15000, "cpu", None, None, "default", tmp_path)
     cfg = build_config("willags-prior-low-mcmcreg", 15000, "cpu", None, None, "default", tmp_path)
     got, want = cfg.pipeline.model.mcmc, ref.pipeline.model.mcmc
     assert (got.opacity_reg, got.scale_reg) == (0.001, 0.001) and (want.opacity_reg, want.scale_reg) == (0.01, 0.01)
@@ -239,14 +256,14 @@ def test_the_mcmc_penalty_candidate_changes_only_the_two_penalties(tmp_path):
         ({"method": "willags", "configuration": "willags-noprior"}, "willags-noprior"),  # before the latent prior
         ({"method": "willags-prior-low", "configuration": "willags"}, "willags"),  # the default's prior named
         ({"method": "willags-prior-low"}, "willags"),
+        ({"method": "willags", "configuration": "willags-earlymask"}, "willags-earlymask"),  # before the start rule
+        ({"method": "willags-prior-low-mask5k-gate"}, "willags"),  # the default's mask start named
         ({"method": "willags-auto", "configuration": "willags-splitclone"}, "willags-splitclone"),
         ({"method": "willags-auto"}, "willags-auto"),  # an older full model under it
         ({"method": "peer", "date": "2026-11-25T19:00:00"}, "peer"),
     ],
 )
 def test_a_record_is_named_by_the_configuration_it_measured(rec, name):
-    from benchmarks.methods import configuration
-
     assert configuration(rec) == name
 
 
@@ -356,8 +373,9 @@ def test_markdown_lists_every_record_in_the_table_of_its_kind():
 def test_tiny_grid_end_to_end(tmp_path):
     spec = {
         "device": "cpu", "steps": [5], "protocol_steps": 2, "max_test_images": 1, "mask_max_images": 2,
-        "fps_views": 1, "runs": [{"scene": "default", "methods": ["willags"]}],
+        "fps_views": 1, "runs": [{"scene": "default", "methods": ["willags-earlymask"]}],
     }  # fmt: skip
+    # willags-earlymask: the mask from its warm-up's end whatever the renders leave, so the record scores the mask
     gpath = tmp_path / "grid.json"
     gpath.write_text(json.dumps(spec))
     out = tmp_path / "docs" / "benchmarks"
@@ -375,7 +393,7 @@ def test_tiny_grid_end_to_end(tmp_path):
     back = load_records(out.with_suffix(".json"))
     assert {x["device"] for x in back} == {"cpu", "cuda"}  # merged, the GPU record kept
     assert "### default (cpu)" in out.with_suffix(".md").read_text()
-    assert not (tmp_path / "work" / "default-willags-5-cpu" / "out").exists()  # checkpoints removed
+    assert not (tmp_path / "work" / "default-willags-earlymask-5-cpu" / "out").exists()  # checkpoints removed
 
 
 def test_markdown_renders_speed_suite_records_as_their_own_table():

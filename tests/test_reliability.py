@@ -226,7 +226,7 @@ def small_networks() -> dict:
         "latent": LatentConfig(dim=8, vae=VAEConfig(image_size=16, channels=(8, 8))),
         "triplane": TriplaneConfig(resolution=8, channels=4, hyper_hidden=(16,), feature_dim=8, mlp_hidden=16),
         "intrinsic_dim": 8,
-        "mask": MaskConfig(vgg_weights="seeded", warmup_steps=2, max_resolution=512),
+        "mask": MaskConfig(vgg_weights="seeded", warmup_steps=2, start_rule="always", max_resolution=512),
     }
 
 

@@ -49,6 +49,8 @@ def _train(
     m.reset_alpha_every = 1000
     if hasattr(m, "mask"):
         m.mask.warmup_steps = 4
+        # the mask's path in every short run (the start rule's own tests: tests/mask/test_start_rule.py)
+        m.mask.start_rule = "always"
         m.log_images_every = 10
     for k, v in model_overrides.items():  # "a.b": the field b of the group a
         *groups, leaf = k.split(".")

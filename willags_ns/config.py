@@ -159,10 +159,14 @@ class WillagsModelConfig(SplatfactoModelConfig):
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         """Unpickling and YAML loading (config.yml): fields of the flat layout move to their places in the groups
-        (`migrate_state`), and fields a file lacks get their defaults, except the densification: a file without
-        `densification` trained with splatfacto's, and resumes with it."""
+        (`migrate_state`), and fields a file lacks get their defaults, except two that say how the file's run
+        trained, and it resumes so: a file without `densification` trained with splatfacto's, and one without
+        `mask.start_rule` started its mask at `mask.warmup_steps` whatever the renders left ("always")."""
         state = migrate_state(dict(state))
         state.setdefault("densification", "splatfacto")
+        mask = state.get("mask")
+        if mask is not None and hasattr(mask, "__dict__"):
+            vars(mask).setdefault("start_rule", "always")
         self.__dict__.update(state)
         fill_defaults(self)
 

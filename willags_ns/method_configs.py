@@ -110,7 +110,9 @@ def willags_model_config() -> WillagsModelConfig:
       new photo's fit. A new photo's appearance is fitted to it (`willags-render --appearance photo:P
       --refine-steps N`); `--pipeline.model.latent.kind vae` brings the encoder back;
     - the EMA teacher and the perceptual mask of the paper, the mask refreshed on every 4th visit of an image with
-      VGG at 256 px (the paper: every step at full size), for a fraction of the step time;
+      VGG at 256 px (the paper: every step at full size), for a fraction of the step time; it starts at step 5000,
+      and only where the training photos' own renders then leave at least 10 % of their pixels as residual blobs
+      (mask.start_rule "transients"): where they leave fewer, what the mask drops is mostly scene;
     - colour: each Gaussian's SH colour under a global colour transform of z plus a penalised per-Gaussian
       residual (16-d f_s), no tri-plane field;
     - gsplat's antialiased rasterisation, which keeps renders consistent across the resolution schedule (a
@@ -146,7 +148,13 @@ def willags_paper_model_config() -> WillagsModelConfig:
         latent=LatentConfig(kind="vae"),
         use_field=True,
         intrinsic_dim=32,
-        mask=MaskConfig(every=1, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
+        mask=MaskConfig(
+            every=1,
+            max_resolution=512,
+            warmup_steps=500,
+            start_rule="always",
+            safeguard=StaticSupportConfig(enabled=False),
+        ),
         sky=SkyConfig(enabled=False),
         rasterize_mode="classic",
         densification="splatfacto",
@@ -173,7 +181,9 @@ def willags_lite_config() -> WillagsTrainerConfig:
     """
     model = WillagsModelConfig(
         latent=LatentConfig(kind="vae", dim=32, vae=VAEConfig(image_size=32)),
-        mask=MaskConfig(warmup_steps=300, max_resolution=512, safeguard=StaticSupportConfig(enabled=False)),
+        mask=MaskConfig(
+            warmup_steps=300, start_rule="always", max_resolution=512, safeguard=StaticSupportConfig(enabled=False)
+        ),
         sky=SkyConfig(enabled=False),
         refine_every=100,
         warmup_length=300,

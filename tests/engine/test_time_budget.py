@@ -755,7 +755,7 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
     assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (100, 20, 3000)
     assert (cfg.warmup_length, cfg.refine_every, cfg.stop_split_at) == (100, 20, 3000)
     assert cfg.sh_degree_interval == 1000  # the SH degree keeps its steps: a short run stays at degree 0
-    assert cfg.mask.warmup_steps == 100  # the mask keeps its share of the run
+    assert cfg.mask.warmup_steps == 1000  # the mask keeps its share of the run (5000 of 30000)
     if mcmc:
         assert strategy.reset_every == 0  # never resets opacities, however short the run
     else:
@@ -766,7 +766,7 @@ def test_the_schedules_are_fitted_into_either_densification(mcmc):
     assert strategy.reset_every == 0 if mcmc else strategy.reset_every > 600
     fit(30000)  # a plan of the preset's own length gives the schedules back
     assert (strategy.refine_start_iter, strategy.refine_every, strategy.refine_stop_iter) == (500, 100, 15000)
-    assert strategy.reset_every == (0 if mcmc else 3000) and cfg.mask.warmup_steps == 500
+    assert strategy.reset_every == (0 if mcmc else 3000) and cfg.mask.warmup_steps == 5000
 
 
 @pytest.mark.slow

@@ -65,3 +65,21 @@ def test_the_start_rule_decides_at_the_mask_warmup_and_a_checkpoint_keeps_it(tmp
     assert trained_mask(on) is on.config.mask
     on.set_extra_state(off.get_extra_state())  # as a resumed run loads it
     assert on.mask_decision == d and on.mask_step.declined and not on.mask_step.active(11)
+
+
+def test_a_run_that_ends_before_its_mask_starts_says_so():
+    """ns-train with --max-num-iterations under the mask's start gets one line naming both steps and the flag; a run
+    past the start, a mask off, a model without the latent (no mask built) or a time budget (which fits the start
+    into its plan) get none."""
+    from willags_ns.engine.trainer import mask_after_the_end
+
+    cfg = WillagsModelConfig()
+    note = mask_after_the_end(cfg, 3000, budgeted=False)
+    assert note is not None and "5,000" in note and "3,000" in note and "--pipeline.model.mask.warmup-steps" in note
+    assert mask_after_the_end(cfg, 5000, budgeted=False) is not None  # the last step is 4,999: never on
+    assert mask_after_the_end(cfg, 5001, budgeted=False) is None
+    assert mask_after_the_end(cfg, 3000, budgeted=True) is None
+    off = WillagsModelConfig()
+    off.mask.enabled = False
+    assert mask_after_the_end(off, 3000, budgeted=False) is None
+    assert mask_after_the_end(WillagsModelConfig(appearance="sh"), 3000, budgeted=False) is None

@@ -254,8 +254,19 @@ def test_schedule_boundaries():
 
 def test_config_defaults():
     cfg = MaskConfig()
-    assert cfg.threshold == 0.85 and cfg.vgg_weights == "auto" and cfg.warmup_steps == 500
+    assert cfg.threshold == 0.85 and cfg.vgg_weights == "auto"
     assert cfg.threshold_rule == "robust" and cfg.robust_k == 2.0
+    # the default's mask starts at step 5000 and only where the renders then leave transients
+    assert cfg.warmup_steps == 5000 and cfg.start_rule == "transients" and cfg.start_share == 0.10
+
+
+def test_the_paper_and_fast_presets_start_their_mask_early_and_always():
+    from willags_ns.method_configs import willags_lite_config, willags_paper_config
+
+    paper = willags_paper_config().pipeline.model.mask
+    lite = willags_lite_config().pipeline.model.mask
+    assert (paper.warmup_steps, paper.start_rule) == (500, "always")
+    assert (lite.warmup_steps, lite.start_rule) == (300, "always")
 
 
 def test_modules_do_not_import_torchvision_eagerly():

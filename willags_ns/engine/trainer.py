@@ -92,6 +92,20 @@ def make_run_folder(base_dir: Path) -> None:
     base_dir.mkdir(parents=True, exist_ok=True)
 
 
+def mask_after_the_end(model_config: Any, planned_end: int, budgeted: bool) -> str | None:
+    """A line for a run whose mask would start after its last step (its warm-up at or past the run's end), else None.
+    A time budget fits the warm-up into its plan (time_budget.STEP_SCHEDULES), so a budgeted run gets no line."""
+    mask = getattr(model_config, "mask", None)
+    if budgeted or mask is None or not mask.enabled or getattr(model_config, "appearance", "willags") != "willags":
+        return None
+    if mask.warmup_steps < planned_end:
+        return None
+    return (
+        f"willags: the transient mask starts at step {mask.warmup_steps:,}, and this run ends at step {planned_end:,}: "
+        "it trains without the mask (--pipeline.model.mask.warmup-steps N starts it earlier)"
+    )
+
+
 @dataclass
 class WillagsTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig whose trainer applies `--pipeline.time-budget-minutes` (willags_ns/engine/time_budget.py).
@@ -293,6 +307,9 @@ class WillagsTrainer(Trainer):
                 markup=False,
                 highlight=False,
             )
+            note = mask_after_the_end(self.pipeline.model.config, self.planned_end, self.time_budget is not None)
+            if note:
+                CONSOLE.print(note, soft_wrap=True, markup=False, highlight=False)
         try:
             super().train()
         except CheckpointError:

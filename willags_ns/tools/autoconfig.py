@@ -193,7 +193,8 @@ def apply_auto_config(
     if switches["mask"] and mask is not None and mask.start_rule == "transients":  # on, but decided again later
         reasons["mask"] += (
             f"; it starts at step {mask.warmup_steps:,} only where the training photos' own renders then leave at "
-            f"least {mask.start_share:.0%} of their pixels as residual blobs (mask.start_rule transients)"
+            f"least {mask.start_share:.0%} of their pixels as residual blobs (mask.start_rule transients; "
+            "--pipeline.model.mask.start-rule always starts it regardless)"
         )
     return {
         "applied": True,
