@@ -307,31 +307,36 @@ def fold_runs(
             yield fold, rec, ms
 
 
-BORROWS: dict[str, tuple[str, str, str]] = {
+_MASK_OFF = ("mask_status", "mask_started")
+"""A run whose record has neither field had the inspector's mask off: no mask scored (mask_status), and no start rule
+measured (mask_started: the start rule measures only where the inspector turned the mask on, and keeps it off or
+starts it then)."""
+
+BORROWS: dict[str, tuple[str, tuple[str, ...], str]] = {
     "willags-prior-low-nomask": (
         "willags",
-        "mask_status",
+        _MASK_OFF,
         "the inspector kept the default's mask off there: the same model",
     ),
     "willags-prior-low-maskres": (
         "willags",
-        "mask_status",
+        _MASK_OFF,
         "the inspector kept the default's mask off there, so the mask's distance changes nothing: the same model",
     ),
     "willags-earlymask": (
         "willags",
-        "mask_status",
+        _MASK_OFF,
         "the inspector kept the mask off there, so when and whether it starts changes nothing: the same model",
     ),
     "willags-prior-low-mask5k": (
         "willags",
-        "mask_status",
+        _MASK_OFF,
         "the inspector kept the default's mask off there, so when the mask starts changes nothing: the same model",
     ),
 }
 """Candidates that train another method's model wherever that method's run shows a switch off: candidate ->
-(the method, the record field whose absence shows the switch off, why the model is the same). On a fold the
-candidate has no run of its own it takes that method's runs that lack the field, so a candidate that differs only
+(the method, the record fields whose absence shows the switch off, why the model is the same). On a fold the
+candidate has no run of its own it takes that method's runs that lack every one of the fields, so a candidate that differs only
 where the inspector turned a switch on runs only there and still counts on every collection (its difference there is
 none, as the model is the same). Taken runs are never replicates (`replicate_differences` reads the records)."""
 
@@ -384,8 +389,8 @@ def fold_scores(
         for name, psnr in scores:
             photos[(scene, folds, method)][k].setdefault(name, []).append(psnr)
         for borrower in borrowers:
-            lender, field, _ = BORROWS[borrower]
-            if method == lender and field not in rec:
+            lender, fields, _ = BORROWS[borrower]
+            if method == lender and not any(f in rec for f in fields):
                 lent[(scene, folds, borrower)][k].append(scores)
     taken: dict[tuple[str, int, str], list[int]] = defaultdict(list)
     for key, by_fold in lent.items():

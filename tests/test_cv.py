@@ -807,6 +807,12 @@ def test_a_candidate_that_only_turns_a_switch_off_takes_the_defaults_runs_where_
     assert cv.collect(own, 5000)["open"][nomask].borrowed == (1,)
     assert cv.collect(own, 5000)["open"][nomask].per_photo["b.jpg"] == 17.0
 
+    # a default run whose mask the start rule kept off had the inspector's mask on: a run of another model, not lent
+    for rec in recs:
+        if rec["scene"].startswith("open-cv1of2") and rec["method"] == "willags":
+            rec["mask_started"] = False
+    assert cv.collect(recs, 5000, borrowers=[nomask])["open"][nomask].borrowed == (2,)
+
 
 def test_every_borrower_is_a_method_that_keeps_the_switch_it_turns_off_from_the_inspector():
     """A BORROWS candidate trains the lender's model wherever the lender's record shows the mask off: it is the lender
@@ -814,9 +820,9 @@ def test_every_borrower_is_a_method_that_keeps_the_switch_it_turns_off_from_the_
     act only where the mask is on), and the lender is a benchmarked method."""
     from benchmarks.methods import METHODS
 
-    for borrower, (lender, field, _) in cv.BORROWS.items():
+    for borrower, (lender, fields, _) in cv.BORROWS.items():
         spec, base = METHODS[borrower], METHODS[lender]
-        assert field == "mask_status" and spec.base == base.base
+        assert fields == ("mask_status", "mask_started") and spec.base == base.base
         added = [(k, v) for k, v in spec.overrides if (k, v) not in base.overrides]
         mask = [k for k, _ in added if k.startswith("mask.")]
         pinned_off = ("mask.enabled", False) in added and "mask.enabled" in spec.keep

@@ -222,7 +222,7 @@ def test_the_default_starts_its_mask_by_the_start_rule_and_earlymask_is_the_defa
     assert (early.pipeline.model.mask.warmup_steps, early.pipeline.model.mask.start_rule) == (500, "always")
     assert (late.pipeline.model.mask.warmup_steps, late.pipeline.model.mask.start_rule) == (5000, "always")
     assert early.pipeline.model.mask.enabled and "mask.enabled" not in early.pipeline.auto_config_keep
-    assert BORROWS["willags-earlymask"][:2] == ("willags", "mask_status")
+    assert BORROWS["willags-earlymask"][:2] == ("willags", ("mask_status", "mask_started"))
     early.pipeline.model.mask.warmup_steps, early.pipeline.model.mask.start_rule = 5000, "transients"
     assert early.pipeline.model == ref.pipeline.model and early.optimizers == ref.optimizers
 
