@@ -328,6 +328,11 @@ BORROWS: dict[str, tuple[str, tuple[str, ...], str]] = {
         _MASK_OFF,
         "the inspector kept the mask off there, so when and whether it starts changes nothing: the same model",
     ),
+    "willags-startrule-cap1m": (
+        "willags-prior-low-cap1m",
+        _MASK_OFF,
+        "the inspector kept the mask off there, so when and whether it starts changes nothing: the same model",
+    ),
     "willags-prior-low-mask5k": (
         "willags",
         _MASK_OFF,

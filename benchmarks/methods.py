@@ -51,6 +51,10 @@ _EARLY_MASK = (("mask.warmup_steps", 500), ("mask.start_rule", "always"))
 configuration measured with it names it (with the mask off it changes nothing), so that its records say what they
 measured and a new run of it trains the same model; `willags-earlymask` is the default with it."""
 
+_START_RULE = (("mask.warmup_steps", 5000), ("mask.start_rule", "transients"))
+"""The default's own mask start, named: a candidate on today's default sets it explicitly, so that its records say
+what they measured whatever the default's start becomes (as _PRIOR_LOW for the prior)."""
+
 _RESIDUAL_MASK = (("mask.enabled", True), ("mask.distance", "residual"))
 """The transient mask on every scene, by the colour residual to the teacher (the inspector keeps it: keep=...)."""
 
@@ -234,6 +238,14 @@ METHODS: dict[str, MethodSpec] = {
         _PRIOR_LOW,
         ("mcmc.cap_max", 1_000_000),
         note="the default (its prior weight named) with MCMC's cap at 1M Gaussians instead of 300,000",
+    ),
+    "willags-startrule-cap1m": _default_on_gpu(
+        _PRIOR_LOW,
+        *_START_RULE,
+        ("mcmc.cap_max", 1_000_000),
+        note="the default (its prior and its mask's start named) with MCMC's cap at 1M Gaussians: "
+        "willags-prior-low-cap1m on today's default; where the inspector keeps the mask off the same model, whose "
+        "runs it takes (cv.BORROWS), so it needs runs only on the masked folds and the collections cap1m lacks",
     ),
     "willags-prior-low-captransients": _early_mask_on_gpu(
         _PRIOR_LOW,

@@ -227,6 +227,24 @@ def test_the_default_starts_its_mask_by_the_start_rule_and_earlymask_is_the_defa
     assert early.pipeline.model == ref.pipeline.model and early.optimizers == ref.optimizers
 
 
+def test_the_million_cap_on_todays_default_changes_only_the_cap_and_takes_the_early_mask_runs_where_the_mask_is_off(
+    tmp_path,
+):
+    """`willags-startrule-cap1m` is the default with MCMC's cap at 1M; `willags-prior-low-cap1m` the same with the
+    early mask, whose runs it takes where the inspector kept the mask off (the model is the same there)."""
+    from benchmarks.cv import BORROWS
+
+    ref = build_config("willags-prior-low", 15000, "cpu", None, None, "default", tmp_path)
+    cfg = build_config("willags-startrule-cap1m", 15000, "cpu", None, None, "default", tmp_path)
+    early = build_config("willags-prior-low-cap1m", 15000, "cpu", None, None, "default", tmp_path)
+    assert (cfg.pipeline.model.mcmc.cap_max, ref.pipeline.model.mcmc.cap_max) == (1_000_000, 300_000)
+    assert BORROWS["willags-startrule-cap1m"][0] == "willags-prior-low-cap1m"
+    early.pipeline.model.mask.warmup_steps, early.pipeline.model.mask.start_rule = 5000, "transients"
+    assert early.pipeline.model == cfg.pipeline.model
+    cfg.pipeline.model.mcmc.cap_max = 300_000
+    assert cfg.pipeline.model == ref.pipeline.model and cfg.optimizers == ref.optimizers
+
+
 def test_the_holdout_candidate_changes_only_the_held_out_photos(tmp_path):
     """`willags-prior-low-holdout` is the default with 8 photos' right halves held out; nothing else differs."""
     ref = build_config("willags-earlymask", 15000, "cpu", None, None, "default", tmp_path)
