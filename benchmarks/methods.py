@@ -416,6 +416,10 @@ def set_learning_rate(optimizers: dict, dotted: str, value: float) -> None:
     setattr(target, field, value)
 
 
+DEFAULT_NAMED = ("willags-mcmc", "willags-prior-low", "willags-prior-low-mask5k-gate")
+"""Methods that name the default's own settings: their runs are the default's (configuration)."""
+
+
 def configuration(rec: dict[str, Any]) -> str:
     """The method name of the configuration a record measured: the ``configuration`` it carries where the name it ran
     as meant another one then (`willags` before the default inspected the scene: `willags-full`; before it densified
@@ -426,10 +430,6 @@ def configuration(rec: dict[str, Any]) -> str:
     if rec.get("configuration"):
         return str(rec["configuration"])
     return "willags" if rec.get("method") in DEFAULT_NAMED else str(rec.get("method"))
-
-
-DEFAULT_NAMED = ("willags-mcmc", "willags-prior-low", "willags-prior-low-mask5k-gate")
-"""Methods that name the default's own settings: their runs are the default's (configuration)."""
 
 
 def base_trainer_config(base: str):

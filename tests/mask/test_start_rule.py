@@ -72,14 +72,16 @@ def test_a_run_that_ends_before_its_mask_starts_says_so():
     past the start, a mask off, a model without the latent (no mask built) or a time budget (which fits the start
     into its plan) get none."""
     from willags_ns.engine.trainer import mask_after_the_end
+    from willags_ns.mask.step import MaskStep
 
-    cfg = WillagsModelConfig()
-    note = mask_after_the_end(cfg, 3000, budgeted=False)
+    step = MaskStep(WillagsModelConfig(), None)
+    note = mask_after_the_end(step, 3000, budgeted=False)
     assert note is not None and "5,000" in note and "3,000" in note and "--pipeline.model.mask.warmup-steps" in note
-    assert mask_after_the_end(cfg, 5000, budgeted=False) is not None  # the last step is 4,999: never on
-    assert mask_after_the_end(cfg, 5001, budgeted=False) is None
-    assert mask_after_the_end(cfg, 3000, budgeted=True) is None
+    assert mask_after_the_end(step, 5000, budgeted=False) is not None  # the last step is 4,999: never on
+    assert mask_after_the_end(step, 5001, budgeted=False) is None
+    assert mask_after_the_end(step, 3000, budgeted=True) is None
     off = WillagsModelConfig()
     off.mask.enabled = False
-    assert mask_after_the_end(off, 3000, budgeted=False) is None
-    assert mask_after_the_end(WillagsModelConfig(appearance="sh"), 3000, budgeted=False) is None
+    assert mask_after_the_end(MaskStep(off, None), 3000, budgeted=False) is None
+    assert mask_after_the_end(MaskStep(WillagsModelConfig(appearance="sh"), None), 3000, budgeted=False) is None
+    assert mask_after_the_end(None, 3000, budgeted=False) is None

@@ -92,16 +92,18 @@ def make_run_folder(base_dir: Path) -> None:
     base_dir.mkdir(parents=True, exist_ok=True)
 
 
-def mask_after_the_end(model_config: Any, planned_end: int, budgeted: bool) -> str | None:
-    """A line for a run whose mask would start after its last step (its warm-up at or past the run's end), else None.
-    A time budget fits the warm-up into its plan (time_budget.STEP_SCHEDULES), so a budgeted run gets no line."""
-    mask = getattr(model_config, "mask", None)
-    if budgeted or mask is None or not mask.enabled or getattr(model_config, "appearance", "willags") != "willags":
+def mask_after_the_end(mask_step: Any, planned_end: int, budgeted: bool) -> str | None:
+    """A line for a run whose mask would start after its last step, else None: the model's own MaskStep says
+    whether the mask is on at all (at its warm-up's end) and whether it is on at the run's last step. A time budget
+    fits the warm-up into its plan (time_budget.STEP_SCHEDULES), so a budgeted run gets no line; so does a model
+    without a mask step."""
+    if budgeted or mask_step is None:
         return None
-    if mask.warmup_steps < planned_end:
+    warmup = mask_step.cfg.mask.warmup_steps
+    if not mask_step.active(warmup) or mask_step.active(planned_end - 1):  # no mask, or it starts within the run
         return None
     return (
-        f"willags: the transient mask starts at step {mask.warmup_steps:,}, and this run ends at step {planned_end:,}: "
+        f"willags: the transient mask starts at step {warmup:,}, and this run ends at step {planned_end:,}: "
         "it trains without the mask (--pipeline.model.mask.warmup-steps N starts it earlier)"
     )
 
@@ -307,7 +309,8 @@ class WillagsTrainer(Trainer):
                 markup=False,
                 highlight=False,
             )
-            note = mask_after_the_end(self.pipeline.model.config, self.planned_end, self.time_budget is not None)
+            mask_step = getattr(self.pipeline.model, "mask_step", None)
+            note = mask_after_the_end(mask_step, self.planned_end, self.time_budget is not None)
             if note:
                 CONSOLE.print(note, soft_wrap=True, markup=False, highlight=False)
         try:
